@@ -1,0 +1,664 @@
+/* Soft rasteriser: forward and backward (Liu et al., eq. 2-14). Maths: docs/conventions.md.
+ *
+ * Build-time flags (softras_cl/program.py sets every one):
+ *   SR_OUT_RGB, SR_OUT_ALPHA, SR_OUT_DEPTH      which images to produce (0/1)
+ *   SR_METRIC_BARY        0: Euclidean distance to the edges, 1: barycentric distance
+ *   SR_COLOR_HARD         0: softmax aggregation of rgb/depth, 1: hard z-buffer
+ *   SR_ALPHA_AGG          0: occupancy, 1: sum, 2: hard
+ *   SR_TEXTURE            0: vertex colours, 1: per-face R x R textures, 2: uv map (bilinear)
+ *   SR_PERSPECTIVE        1: perspective-correct interpolation, 0: linear
+ *   SR_SAVE_STATE         forward also writes what the backward needs
+ *   SR_GRAD_POS, SR_GRAD_COLOR   which gradients the backward computes
+ *
+ * Work layout: the image (padded to Wp x Hp, multiples of 8) is cut into 8 x 8 tiles; the host
+ * bins each face into the tiles its cut-off footprint touches, in increasing face order.
+ * Forward: one work-item = 8 adjacent pixels of one row (a realv), looping over its tile's faces.
+ * Backward: one work-item = one tile, looping over its faces; each (tile, face) pair writes its
+ * summed gradient to its own slot, and the host adds the slots of each face in a fixed order, so
+ * results are bit-identical run to run (no float atomics).
+ * Per-pixel images are stored as planes (channel-major) of Wp x Hp pixels per batch item.
+ */
+
+#define TILE 8
+#define FACE_STRIDE 24
+#define SR_NEED_COLOR (SR_OUT_RGB || SR_OUT_DEPTH)
+#define LANE_OFFSETS ((realv)(R(0.5), R(1.5), R(2.5), R(3.5), R(4.5), R(5.5), R(6.5), R(7.5)))
+
+#if SR_TEXTURE == 2 && SR_GRAD_COLOR
+#pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
+#endif
+
+typedef maskv idv; /* per-lane face index, same width as the comparison masks */
+
+/* Per-face constants prepared on the host (softras_cl/raster.py, _face_setup). */
+typedef struct {
+    real x[3], y[3];      /* screen positions, NDC */
+    real m[3][2];         /* b_k = m[k][0] (px - x0) + m[k][1] (py - y0) + (k == 0) */
+    real z[3], iz[3];     /* view depths and their inverses */
+    real inv_len2[3];     /* 1 / |edge|^2 for edges (v0 v1), (v1 v2), (v2 v0) */
+} Face;
+
+inline Face load_face(__global const real *geom, int face)
+{
+    __global const real *g = geom + face * FACE_STRIDE;
+    Face f;
+    for (int k = 0; k < 3; ++k) {
+        f.x[k] = g[2 * k];
+        f.y[k] = g[2 * k + 1];
+        f.m[k][0] = g[6 + 2 * k];
+        f.m[k][1] = g[7 + 2 * k];
+        f.z[k] = g[12 + k];
+        f.iz[k] = g[15 + k];
+        f.inv_len2[k] = g[18 + k];
+    }
+    return f;
+}
+
+/* Scene constants shared by the forward and backward kernels. */
+typedef struct {
+    real inv_sigma, x_cut, inv_gamma, eps, near, far, inv_range;
+} Params;
+
+/* Everything about one face at 8 pixels of a row. */
+typedef struct {
+    realv b[3];           /* unclipped barycentrics */
+    maskv inside;
+    realv x;              /* delta * d^2 / sigma: D = sigmoid(x) */
+    realv bc[3];          /* clipped barycentrics */
+    realv inv_clip_sum;   /* 1 / sum(clamp(b, 0, 1)) */
+    realv Z;              /* interpolated view depth */
+    realv a[3];           /* attribute weights */
+    maskv valid;          /* the pair counts: D >= dist_eps and near <= Z <= far */
+#if SR_METRIC_BARY
+    maskv min1, min2;     /* smallest barycentric is b1 / b2 (else b0) */
+#else
+    realv cx, cy;         /* closest point on the nearest edge, minus the pixel */
+    realv t;              /* its position along that edge */
+    maskv on1, on2;       /* nearest edge is (v1 v2) / (v2 v0) (else (v0 v1)) */
+#endif
+} Frag;
+
+#if !SR_METRIC_BARY
+/* Squared distance from the pixels to segment a + t e, t in [0, 1]. */
+inline realv edge_distance2(real xa, real ya, real ex, real ey, real inv_len2,
+                            realv px, real py, realv *t, realv *cx, realv *cy)
+{
+    realv wx = px - xa;
+    real wy = py - ya;
+    *t = clamp((wx * ex + wy * ey) * inv_len2, R(0), R(1));
+    *cx = *t * ex - wx;
+    *cy = *t * ey - wy;
+    return *cx * *cx + *cy * *cy;
+}
+
+inline realv euclidean_distance2(const Face *f, realv px, real py, Frag *r)
+{
+    realv t1, cx1, cy1, t2, cx2, cy2;
+    realv d2 = edge_distance2(f->x[0], f->y[0], f->x[1] - f->x[0], f->y[1] - f->y[0],
+                              f->inv_len2[0], px, py, &r->t, &r->cx, &r->cy);
+    realv d2_1 = edge_distance2(f->x[1], f->y[1], f->x[2] - f->x[1], f->y[2] - f->y[1],
+                                f->inv_len2[1], px, py, &t1, &cx1, &cy1);
+    realv d2_2 = edge_distance2(f->x[2], f->y[2], f->x[0] - f->x[2], f->y[0] - f->y[2],
+                                f->inv_len2[2], px, py, &t2, &cx2, &cy2);
+    r->on1 = d2_1 < d2;
+    d2 = select(d2, d2_1, r->on1);
+    r->t = select(r->t, t1, r->on1);
+    r->cx = select(r->cx, cx1, r->on1);
+    r->cy = select(r->cy, cy1, r->on1);
+    r->on2 = d2_2 < d2;
+    r->on1 = r->on1 & ~r->on2;
+    d2 = select(d2, d2_2, r->on2);
+    r->t = select(r->t, t2, r->on2);
+    r->cx = select(r->cx, cx2, r->on2);
+    r->cy = select(r->cy, cy2, r->on2);
+    return d2;
+}
+#else
+inline realv barycentric_distance2(Frag *r)
+{
+    realv bmin = r->b[0];
+    r->min1 = r->b[1] < bmin;
+    bmin = select(bmin, r->b[1], r->min1);
+    r->min2 = r->b[2] < bmin;
+    r->min1 = r->min1 & ~r->min2;
+    bmin = select(bmin, r->b[2], r->min2);
+    return bmin * bmin;
+}
+#endif
+
+inline Frag eval_frag(const Face *f, realv px, real py, const Params *p)
+{
+    Frag r;
+    realv dx = px - f->x[0];
+    real dy = py - f->y[0];
+    r.b[1] = f->m[1][0] * dx + f->m[1][1] * dy;
+    r.b[2] = f->m[2][0] * dx + f->m[2][1] * dy;
+    r.b[0] = R(1) - r.b[1] - r.b[2];
+    r.inside = (r.b[0] >= R(0)) & (r.b[1] >= R(0)) & (r.b[2] >= R(0));
+#if SR_METRIC_BARY
+    realv d2 = barycentric_distance2(&r);
+#else
+    realv d2 = euclidean_distance2(f, px, py, &r);
+#endif
+    r.x = select(-d2, d2, r.inside) * p->inv_sigma;
+
+    realv c0 = clamp(r.b[0], R(0), R(1)), c1 = clamp(r.b[1], R(0), R(1)), c2 = clamp(r.b[2], R(0), R(1));
+    r.inv_clip_sum = R(1) / (c0 + c1 + c2);
+    r.bc[0] = c0 * r.inv_clip_sum;
+    r.bc[1] = c1 * r.inv_clip_sum;
+    r.bc[2] = c2 * r.inv_clip_sum;
+#if SR_PERSPECTIVE
+    realv q0 = r.bc[0] * f->iz[0], q1 = r.bc[1] * f->iz[1], q2 = r.bc[2] * f->iz[2];
+    r.Z = R(1) / (q0 + q1 + q2);
+    r.a[0] = q0 * r.Z;
+    r.a[1] = q1 * r.Z;
+    r.a[2] = q2 * r.Z;
+#else
+    r.Z = r.bc[0] * f->z[0] + r.bc[1] * f->z[1] + r.bc[2] * f->z[2];
+    r.a[0] = r.bc[0];
+    r.a[1] = r.bc[1];
+    r.a[2] = r.bc[2];
+#endif
+    r.valid = (r.x >= p->x_cut) & (r.Z >= p->near) & (r.Z <= p->far);
+    return r;
+}
+
+/* ---- colour of a face at 8 pixels ------------------------------------------------------- */
+#if SR_TEXTURE == 1
+inline int face_texel(real a0, real a1, int res)
+{
+    return min((int)floor(a0 * res), res - 1) * res + min((int)floor(a1 * res), res - 1);
+}
+#endif
+
+#if SR_TEXTURE == 2
+/* Bilinear taps of the uv map for one pixel: 4 texel offsets (into an Ht x Wt x 3 image) and
+ * their weights; d_du / d_dv are the weights' derivatives with respect to u and v. */
+typedef struct {
+    int offset[4];
+    real weight[4], d_du[4], d_dv[4];
+} Taps;
+
+inline Taps bilinear_taps(real u, real v, int tex_h, int tex_w)
+{
+    real fx = u * tex_w - R(0.5), fy = (R(1) - v) * tex_h - R(0.5);
+    real fx0 = floor(fx), fy0 = floor(fy);
+    real tx = fx - fx0, ty = fy - fy0;
+    int x0 = (int)fx0, y0 = (int)fy0;
+    int xs[2] = {clamp(x0, 0, tex_w - 1), clamp(x0 + 1, 0, tex_w - 1)};
+    int ys[2] = {clamp(y0, 0, tex_h - 1), clamp(y0 + 1, 0, tex_h - 1)};
+    real wx[2] = {R(1) - tx, tx}, wy[2] = {R(1) - ty, ty};
+    real dwx[2] = {-(real)tex_w, (real)tex_w}, dwy[2] = {(real)tex_h, -(real)tex_h};
+    Taps taps;
+    for (int j = 0; j < 2; ++j)
+        for (int i = 0; i < 2; ++i) {
+            int k = 2 * j + i;
+            taps.offset[k] = (ys[j] * tex_w + xs[i]) * 3;
+            taps.weight[k] = wy[j] * wx[i];
+            taps.d_du[k] = wy[j] * dwx[i];
+            taps.d_dv[k] = dwy[j] * wx[i];
+        }
+    return taps;
+}
+#endif
+
+/* Colour C (3 vectors) of face `face` at the pixels; dC_du/dC_dv only for the uv map (may be 0). */
+inline void face_color(__global const real *attr, __global const real *tex_image, int face,
+                       int tex_res, int tex_h, int tex_w, const Frag *r,
+                       realv C[3], realv *dC_du, realv *dC_dv)
+{
+#if SR_TEXTURE == 0
+    __global const real *col = attr + face * 9;
+    for (int c = 0; c < 3; ++c)
+        C[c] = r->a[0] * col[c] + r->a[1] * col[3 + c] + r->a[2] * col[6 + c];
+#else
+    real a0[SR_VEC], a1[SR_VEC], a2[SR_VEC], out[3][SR_VEC];
+    vstore8(r->a[0], 0, a0);
+    vstore8(r->a[1], 0, a1);
+    vstore8(r->a[2], 0, a2);
+#if SR_TEXTURE == 1
+    __global const real *tex = attr + (size_t)face * tex_res * tex_res * 3;
+    for (int l = 0; l < SR_VEC; ++l) {
+        int texel = face_texel(a0[l], a1[l], tex_res) * 3;
+        for (int c = 0; c < 3; ++c)
+            out[c][l] = tex[texel + c];
+    }
+#else
+    __global const real *uv = attr + face * 6;
+    real du[3][SR_VEC], dv[3][SR_VEC];
+    for (int l = 0; l < SR_VEC; ++l) {
+        real u = a0[l] * uv[0] + a1[l] * uv[2] + a2[l] * uv[4];
+        real v = a0[l] * uv[1] + a1[l] * uv[3] + a2[l] * uv[5];
+        Taps taps = bilinear_taps(u, v, tex_h, tex_w);
+        for (int c = 0; c < 3; ++c) {
+            out[c][l] = du[c][l] = dv[c][l] = R(0);
+            for (int k = 0; k < 4; ++k) {
+                real texel = tex_image[taps.offset[k] + c];
+                out[c][l] += taps.weight[k] * texel;
+                du[c][l] += taps.d_du[k] * texel;
+                dv[c][l] += taps.d_dv[k] * texel;
+            }
+        }
+    }
+    if (dC_du)
+        for (int c = 0; c < 3; ++c) {
+            dC_du[c] = vload8(0, du[c]);
+            dC_dv[c] = vload8(0, dv[c]);
+        }
+#endif
+    for (int c = 0; c < 3; ++c)
+        C[c] = vload8(0, out[c]);
+#endif
+}
+
+inline Params make_params(real inv_sigma, real x_cut, real inv_gamma, real eps, real near, real far)
+{
+    Params p = {inv_sigma, x_cut, inv_gamma, eps, near, far, R(1) / (far - near)};
+    return p;
+}
+
+#define GEOMETRY_ARGS \
+    const int W, const int H, const int Wp, const int Hp, const int ntx, const int nty, \
+    const real pix_scale, const real inv_sigma, const real x_cut, const real inv_gamma, \
+    const real eps, const real near, const real far, \
+    const int tex_res, const int tex_h, const int tex_w, \
+    __global const real *geom, __global const real *attr, __global const real *tex_image, \
+    __global const int *tile_start, __global const int *tile_faces
+
+/* ---- forward ------------------------------------------------------------------------------ */
+__kernel void soft_raster_fwd(GEOMETRY_ARGS,
+                              const real bg_r, const real bg_g, const real bg_b,
+                              __global real *out_rgb, __global real *out_alpha, __global real *out_depth,
+                              __global real *color_state, __global real *alpha_state,
+                              __global int *id_state)
+{
+    const int cb = get_global_id(0), row = get_global_id(1), batch = get_global_id(2);
+    if (row >= H)
+        return;
+    const Params p = make_params(inv_sigma, x_cut, inv_gamma, eps, near, far);
+    const int tile = (batch * nty + row / TILE) * ntx + cb;
+    const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
+    const size_t pix = ((size_t)batch * Hp + row) * Wp + cb * SR_VEC;
+    const realv px = ((real)(cb * SR_VEC) - R(0.5) * W + LANE_OFFSETS) * pix_scale;
+    const real py = (R(0.5) * H - row - R(0.5)) * pix_scale;
+    const realv bg[3] = {(realv)bg_r, (realv)bg_g, (realv)bg_b};
+    __global const real *image = tex_image + (size_t)batch * tex_h * tex_w * 3;
+
+#if SR_NEED_COLOR && !SR_COLOR_HARD
+    realv m = (realv)(eps * inv_gamma), S = (realv)R(1), accZ = (realv)far;
+    realv acc[3] = {bg[0], bg[1], bg[2]};
+#elif SR_NEED_COLOR
+    realv bestZ = (realv)far, best[3] = {bg[0], bg[1], bg[2]};
+    idv best_id = (idv)(-1);
+#endif
+#if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
+    realv l_rest = (realv)R(0), l_min = (realv)R(0);
+    idv min_id = (idv)(-1);
+#elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
+    realv sumD = (realv)R(0);
+#elif SR_OUT_ALPHA
+    maskv covered = (maskv)0;
+#endif
+
+    for (int k = tile_start[tile]; k < tile_start[tile + 1]; ++k) {
+        const int face = tile_faces[k];
+        const Face f = load_face(geom, face);
+        const Frag r = eval_frag(&f, px, py, &p);
+        if (!any(r.valid))
+            continue;
+#if SR_NEED_COLOR
+        realv C[3] = {(realv)R(0), (realv)R(0), (realv)R(0)};
+#if SR_OUT_RGB
+        face_color(attr, image, face, tex_res, tex_h, tex_w, &r, C, 0, 0);
+#endif
+#if !SR_COLOR_HARD
+        /* online softmax: one exp per pair, the running maximum m keeps every exp <= 1 */
+        realv t = log_sigmoid(r.x) + (far - r.Z) * p.inv_range * inv_gamma;
+        realv diff = t - m, e = exp(-fabs(diff));
+        maskv up = (diff > R(0)) & r.valid;
+        realv old_scale = select((realv)R(1), e, up);
+        realv new_weight = keep(select(e, (realv)R(1), up), r.valid);
+        S = S * old_scale + new_weight;
+        for (int c = 0; c < 3; ++c)
+            acc[c] = acc[c] * old_scale + new_weight * C[c];
+        accZ = accZ * old_scale + new_weight * r.Z;
+        m = select(m, t, up);
+#else
+        maskv nearer = r.inside & r.valid & ((r.Z < bestZ) | (best_id < 0));
+        bestZ = select(bestZ, r.Z, nearer);
+        for (int c = 0; c < 3; ++c)
+            best[c] = select(best[c], C[c], nearer);
+        best_id = select(best_id, (idv)face, nearer);
+#endif
+#endif
+#if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
+        /* log(1 - D) summed; the most negative term is kept apart for a stable backward */
+        realv l1m = log_sigmoid(-r.x);
+        maskv lower = (l1m < l_min) & r.valid;
+        l_rest += keep(select(l1m, l_min, lower), r.valid);
+        l_min = select(l_min, l1m, lower);
+        min_id = select(min_id, (idv)face, lower);
+#elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
+        sumD += keep(exp(log_sigmoid(r.x)), r.valid);
+#elif SR_OUT_ALPHA
+        covered |= r.inside & r.valid;
+#endif
+    }
+
+#if SR_NEED_COLOR && !SR_COLOR_HARD
+    const realv inv_S = R(1) / S;
+#if SR_OUT_RGB
+    for (int c = 0; c < 3; ++c)
+        vstore8(acc[c] * inv_S, 0, out_rgb + c * npix + pix);
+#endif
+#if SR_OUT_DEPTH
+    vstore8(accZ * inv_S, 0, out_depth + pix);
+#endif
+#if SR_SAVE_STATE
+    vstore8(m + log(S), 0, color_state + pix);
+#endif
+#elif SR_NEED_COLOR
+#if SR_OUT_RGB
+    for (int c = 0; c < 3; ++c)
+        vstore8(best[c], 0, out_rgb + c * npix + pix);
+#endif
+#if SR_OUT_DEPTH
+    vstore8(bestZ, 0, out_depth + pix);
+#endif
+#if SR_SAVE_STATE
+    vstore8(convert_int8(best_id), 0, id_state + pix);
+#endif
+#endif
+
+#if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
+    vstore8(-expm1(l_rest + l_min), 0, out_alpha + pix);
+#if SR_SAVE_STATE
+    vstore8(l_rest, 0, alpha_state + pix);
+    vstore8(l_min, 0, alpha_state + npix + pix);
+    vstore8(convert_int8(min_id), 0, id_state + npix + pix);
+#endif
+#elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
+    vstore8(fmin(sumD, R(1)), 0, out_alpha + pix);
+#if SR_SAVE_STATE
+    vstore8(sumD, 0, alpha_state + pix);
+#endif
+#elif SR_OUT_ALPHA
+    vstore8(select((realv)R(0), (realv)R(1), covered), 0, out_alpha + pix);
+#endif
+}
+
+/* ---- backward ----------------------------------------------------------------------------- */
+/* Gradient sums of one (tile, face) pair, kept per lane until the end of the tile. */
+typedef struct {
+    realv gx[3], gy[3], gz[3];   /* dL/d(x, y, z) of the face's three vertices */
+    realv gcol[9];               /* dL/d(vertex colour) (texture == vertex) */
+} Accum;
+
+/* Cotangents and saved state at 8 pixels. */
+typedef struct {
+    realv g[3], g_alpha, g_depth, g_dot_img;
+    realv lse, l_rest, l_min, sumD;
+    idv best_id, min_id;
+} PixelIn;
+
+inline PixelIn load_pixel(__global const real *grad_rgb, __global const real *grad_alpha,
+                          __global const real *grad_depth, __global const real *g_dot_img,
+                          __global const real *color_state, __global const real *alpha_state,
+                          __global const int *id_state, size_t pix, size_t npix)
+{
+    PixelIn in;
+    for (int c = 0; c < 3; ++c)
+        in.g[c] = SR_OUT_RGB ? vload8(0, grad_rgb + c * npix + pix) : (realv)R(0);
+    in.g_depth = SR_OUT_DEPTH ? vload8(0, grad_depth + pix) : (realv)R(0);
+#if SR_NEED_COLOR && !SR_COLOR_HARD
+    in.g_dot_img = vload8(0, g_dot_img + pix);
+    in.lse = vload8(0, color_state + pix);
+#elif SR_NEED_COLOR
+#if SR_DOUBLE
+    in.best_id = convert_long8(vload8(0, id_state + pix));
+#else
+    in.best_id = vload8(0, id_state + pix);
+#endif
+#endif
+#if SR_OUT_ALPHA
+    in.g_alpha = vload8(0, grad_alpha + pix);
+#if SR_ALPHA_AGG == 0
+    in.l_rest = vload8(0, alpha_state + pix);
+    in.l_min = vload8(0, alpha_state + npix + pix);
+#if SR_DOUBLE
+    in.min_id = convert_long8(vload8(0, id_state + npix + pix));
+#else
+    in.min_id = vload8(0, id_state + npix + pix);
+#endif
+#elif SR_ALPHA_AGG == 1
+    in.sumD = vload8(0, alpha_state + pix);
+#endif
+#endif
+    return in;
+}
+
+/* Spread dL/d(b) (unclipped barycentrics) to the vertex positions: db = -U^-1 dU b. */
+inline void barycentric_vjp(const Face *f, const Frag *r, const realv gb[3], maskv valid, Accum *acc)
+{
+    realv Gx = gb[0] * f->m[0][0] + gb[1] * f->m[1][0] + gb[2] * f->m[2][0];
+    realv Gy = gb[0] * f->m[0][1] + gb[1] * f->m[1][1] + gb[2] * f->m[2][1];
+    for (int k = 0; k < 3; ++k) {
+        acc->gx[k] -= keep(r->b[k] * Gx, valid);
+        acc->gy[k] -= keep(r->b[k] * Gy, valid);
+    }
+}
+
+#if !SR_METRIC_BARY
+/* dL/d(d^2) through the nearest edge's closest point c = a + t (b - a) to its two vertices. */
+inline void edge_vjp(const Frag *r, realv g_d2, maskv valid, Accum *acc)
+{
+    realv ga = keep(R(2) * g_d2 * (R(1) - r->t), valid), gb = keep(R(2) * g_d2 * r->t, valid);
+    maskv on0 = ~(r->on1 | r->on2);
+    /* vertex k is the start of edge k and the end of edge k-1 */
+    const maskv start[3] = {on0, r->on1, r->on2}, end[3] = {r->on2, on0, r->on1};
+    for (int k = 0; k < 3; ++k) {
+        realv w = select((realv)R(0), ga, start[k]) + select((realv)R(0), gb, end[k]);
+        acc->gx[k] += w * r->cx;
+        acc->gy[k] += w * r->cy;
+    }
+}
+#endif
+
+/* Adjoint of one (face, 8 pixels) pair: the whole chain from the image cotangents to the face's
+ * vertices and colours. */
+inline void pair_vjp(const Face *f, const Frag *r, const PixelIn *in, const Params *p, int face,
+                     __global const real *attr, __global const real *tex_image,
+                     int tex_res, int tex_h, int tex_w, Accum *acc, realv gC[3])
+{
+    const maskv valid = r->valid;
+    realv g_x = (realv)R(0);          /* dL/dx, x the sigmoid's argument */
+    realv g_Z = (realv)R(0);          /* dL/dZ, Z the interpolated depth */
+    realv g_a[3] = {(realv)R(0), (realv)R(0), (realv)R(0)};
+    gC[0] = gC[1] = gC[2] = (realv)R(0);
+#if SR_NEED_COLOR
+    realv C[3] = {(realv)R(0), (realv)R(0), (realv)R(0)}, dC_du[3], dC_dv[3];
+#if SR_OUT_RGB
+    face_color(attr, tex_image, face, tex_res, tex_h, tex_w, r, C, dC_du, dC_dv);
+#endif
+#if !SR_COLOR_HARD
+    realv t = log_sigmoid(r->x) + (p->far - r->Z) * p->inv_range * p->inv_gamma;
+    realv w = keep(exp(t - in->lse), valid);
+    realv g_t = w * (in->g[0] * C[0] + in->g[1] * C[1] + in->g[2] * C[2]
+                     + in->g_depth * r->Z - in->g_dot_img);                /* eq. 11-12 */
+    g_x += g_t * exp(log_sigmoid(-r->x));                                    /* dlogD/dx = 1-D */
+    g_Z -= g_t * p->inv_gamma * p->inv_range;
+#else
+    realv w = select((realv)R(0), (realv)R(1), valid & (in->best_id == (idv)face));
+#endif
+    for (int c = 0; c < 3; ++c)
+        gC[c] = w * in->g[c];
+    g_Z += w * in->g_depth;
+#if SR_OUT_RGB && SR_TEXTURE == 0
+    __global const real *col = attr + face * 9;
+    for (int k = 0; k < 3; ++k)
+        g_a[k] = gC[0] * col[3 * k] + gC[1] * col[3 * k + 1] + gC[2] * col[3 * k + 2];
+#elif SR_OUT_RGB && SR_TEXTURE == 2
+    realv g_u = gC[0] * dC_du[0] + gC[1] * dC_du[1] + gC[2] * dC_du[2];
+    realv g_v = gC[0] * dC_dv[0] + gC[1] * dC_dv[1] + gC[2] * dC_dv[2];
+    __global const real *uv = attr + face * 6;
+    for (int k = 0; k < 3; ++k)
+        g_a[k] = g_u * uv[2 * k] + g_v * uv[2 * k + 1];
+#endif
+#endif
+#if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
+    /* dA/dD_j = prod_{k != j} (1 - D_k), from the saved sums with the smallest term apart */
+    realv l1m = log_sigmoid(-r->x);
+    realv l_excl = select(in->l_rest + in->l_min - l1m, in->l_rest, in->min_id == (idv)face);
+    g_x += keep(in->g_alpha * exp(l_excl + log_sigmoid(r->x) + l1m), valid);
+#elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
+    g_x += keep(in->g_alpha * exp(log_sigmoid(r->x) + log_sigmoid(-r->x)), valid & (in->sumD < R(1)));
+#endif
+
+#if SR_GRAD_POS
+    g_x = keep(g_x, valid);
+    g_Z = keep(g_Z, valid);
+    /* attribute weights and depth -> clipped barycentrics and vertex depths */
+    realv g_bc[3];
+#if SR_PERSPECTIVE
+    realv g_dot_a = g_a[0] * r->a[0] + g_a[1] * r->a[1] + g_a[2] * r->a[2];
+    for (int k = 0; k < 3; ++k) {
+        realv g_q = r->Z * (g_a[k] - g_dot_a) - r->Z * r->Z * g_Z;
+        g_bc[k] = g_q * f->iz[k];
+        acc->gz[k] -= keep(g_q * r->bc[k] * f->iz[k] * f->iz[k], valid);
+    }
+#else
+    for (int k = 0; k < 3; ++k) {
+        g_bc[k] = g_a[k] + g_Z * f->z[k];
+        acc->gz[k] += keep(g_Z * r->bc[k], valid);
+    }
+#endif
+    /* clipping: bc = clamp(b, 0, 1) / sum */
+    realv g_dot_bc = g_bc[0] * r->bc[0] + g_bc[1] * r->bc[1] + g_bc[2] * r->bc[2];
+    realv gb[3];
+    for (int k = 0; k < 3; ++k)
+        gb[k] = keep((g_bc[k] - g_dot_bc) * r->inv_clip_sum, (r->b[k] > R(0)) & (r->b[k] < R(1)));
+    /* distance: x = +-d^2 / sigma */
+    realv g_d2 = g_x * select((realv)(-p->inv_sigma), (realv)p->inv_sigma, r->inside);
+#if SR_METRIC_BARY
+    maskv min0 = ~(r->min1 | r->min2);
+    const maskv is_min[3] = {min0, r->min1, r->min2};
+    for (int k = 0; k < 3; ++k)
+        gb[k] += select((realv)R(0), R(2) * g_d2 * r->b[k], is_min[k]);
+#else
+    edge_vjp(r, g_d2, valid, acc);
+#endif
+    barycentric_vjp(f, r, gb, valid, acc);
+#endif
+}
+
+#if SR_GRAD_COLOR && SR_TEXTURE == 0
+inline void add_vertex_color_grads(const Frag *r, const realv gC[3], maskv valid, Accum *acc)
+{
+    for (int k = 0; k < 3; ++k)
+        for (int c = 0; c < 3; ++c)
+            acc->gcol[3 * k + c] += keep(r->a[k] * gC[c], valid);
+}
+#elif SR_GRAD_COLOR && SR_TEXTURE == 1
+/* The face owns its texels, and this work-item owns the (tile, face) slot: plain adds. */
+inline void add_face_texel_grads(const Frag *r, const realv gC[3], int tex_res,
+                                 __global real *slot_tex)
+{
+    real a0[SR_VEC], a1[SR_VEC], g[3][SR_VEC];
+    vstore8(r->a[0], 0, a0);
+    vstore8(r->a[1], 0, a1);
+    for (int c = 0; c < 3; ++c)
+        vstore8(keep(gC[c], r->valid), 0, g[c]);
+    for (int l = 0; l < SR_VEC; ++l) {
+        int texel = face_texel(a0[l], a1[l], tex_res) * 3;
+        for (int c = 0; c < 3; ++c)
+            slot_tex[texel + c] += g[c][l];
+    }
+}
+#elif SR_GRAD_COLOR && SR_TEXTURE == 2
+/* uv-map texels are shared between faces: integer (fixed-point) atomics, whose sums do not
+ * depend on the order of the adds, keep the result deterministic. */
+inline void add_uv_texel_grads(const Frag *r, const realv gC[3], __global const real *uv,
+                               int tex_h, int tex_w, real scale, __global long *tex_grad)
+{
+    real a0[SR_VEC], a1[SR_VEC], a2[SR_VEC], g[3][SR_VEC];
+    vstore8(r->a[0], 0, a0);
+    vstore8(r->a[1], 0, a1);
+    vstore8(r->a[2], 0, a2);
+    for (int c = 0; c < 3; ++c)
+        vstore8(keep(gC[c], r->valid), 0, g[c]);
+    for (int l = 0; l < SR_VEC; ++l) {
+        if (g[0][l] == R(0) && g[1][l] == R(0) && g[2][l] == R(0))
+            continue;
+        real u = a0[l] * uv[0] + a1[l] * uv[2] + a2[l] * uv[4];
+        real v = a0[l] * uv[1] + a1[l] * uv[3] + a2[l] * uv[5];
+        Taps taps = bilinear_taps(u, v, tex_h, tex_w);
+        for (int k = 0; k < 4; ++k)
+            for (int c = 0; c < 3; ++c) {
+                long q = convert_long_rte(g[c][l] * taps.weight[k] * scale);
+                if (q != 0)
+                    atom_add(tex_grad + taps.offset[k] + c, q);
+            }
+    }
+}
+#endif
+
+__kernel void soft_raster_bwd(GEOMETRY_ARGS,
+                              __global const int *tile_slots,
+                              __global const real *grad_rgb, __global const real *grad_alpha,
+                              __global const real *grad_depth, __global const real *g_dot_img,
+                              __global const real *color_state, __global const real *alpha_state,
+                              __global const int *id_state,
+                              const real tex_grad_scale,
+                              __global real *slot_pos, __global real *slot_attr,
+                              __global long *tex_grad)
+{
+    const int cb = get_global_id(0), tile_row = get_global_id(1), batch = get_global_id(2);
+    const Params p = make_params(inv_sigma, x_cut, inv_gamma, eps, near, far);
+    const int tile = (batch * nty + tile_row) * ntx + cb;
+    const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
+    const realv px = ((real)(cb * SR_VEC) - R(0.5) * W + LANE_OFFSETS) * pix_scale;
+    const int rows = min(TILE, H - tile_row * TILE);
+    __global const real *image = tex_image + (size_t)batch * tex_h * tex_w * 3;
+
+    for (int k = tile_start[tile]; k < tile_start[tile + 1]; ++k) {
+        const int face = tile_faces[k], slot = tile_slots[k];
+        const Face f = load_face(geom, face);
+        Accum acc;
+        for (int i = 0; i < 3; ++i)
+            acc.gx[i] = acc.gy[i] = acc.gz[i] = (realv)R(0);
+        for (int i = 0; i < 9; ++i)
+            acc.gcol[i] = (realv)R(0);
+
+        for (int dr = 0; dr < rows; ++dr) {
+            const int row = tile_row * TILE + dr;
+            const real py = (R(0.5) * H - row - R(0.5)) * pix_scale;
+            const Frag r = eval_frag(&f, px, py, &p);
+            if (!any(r.valid))
+                continue;
+            const size_t pix = ((size_t)batch * Hp + row) * Wp + cb * SR_VEC;
+            const PixelIn in = load_pixel(grad_rgb, grad_alpha, grad_depth, g_dot_img,
+                                          color_state, alpha_state, id_state, pix, npix);
+            realv gC[3];
+            pair_vjp(&f, &r, &in, &p, face, attr, image, tex_res, tex_h, tex_w, &acc, gC);
+#if SR_GRAD_COLOR && SR_TEXTURE == 0
+            add_vertex_color_grads(&r, gC, r.valid, &acc);
+#elif SR_GRAD_COLOR && SR_TEXTURE == 1
+            add_face_texel_grads(&r, gC, tex_res, slot_attr + (size_t)slot * tex_res * tex_res * 3);
+#elif SR_GRAD_COLOR && SR_TEXTURE == 2
+            add_uv_texel_grads(&r, gC, attr + face * 6, tex_h, tex_w, tex_grad_scale,
+                               tex_grad + (size_t)batch * tex_h * tex_w * 3);
+#endif
+        }
+#if SR_GRAD_POS
+        for (int i = 0; i < 3; ++i) {
+            slot_pos[slot * 9 + 3 * i] = lane_sum(acc.gx[i]);
+            slot_pos[slot * 9 + 3 * i + 1] = lane_sum(acc.gy[i]);
+            slot_pos[slot * 9 + 3 * i + 2] = lane_sum(acc.gz[i]);
+        }
+#endif
+#if SR_GRAD_COLOR && SR_TEXTURE == 0
+        for (int i = 0; i < 9; ++i)
+            slot_attr[slot * 9 + i] = lane_sum(acc.gcol[i]);
+#endif
+    }
+}

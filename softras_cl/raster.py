@@ -1,0 +1,436 @@
+"""Soft rasteriser host side: argument checks, per-face setup, tile binning, kernel launches.
+
+Maths: docs/conventions.md. Usage: docs/api.md. The heavy per-(pixel, face) work runs in
+kernels/soft_raster.cl; the host prepares O(F) face constants and the O(bins) tile lists in numpy.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyopencl as cl
+
+from .device import get_context, has_fp64, has_int64_atomics, select_device
+from .inputs import MeshInputs, check_cotangent, check_inputs
+from .program import build_kernel
+from .settings import RasterSettings
+
+TILE = 8            # tiles are TILE x TILE pixels; one kernel vector = TILE pixels of a row
+FACE_STRIDE = 24    # reals per face in the geometry buffer (see Face in soft_raster.cl)
+MIN_AREA = 1e-12    # faces with |doubled NDC area| below this are dropped
+GRAD_NAMES = ("vertices", "colors")
+
+
+@dataclass
+class Bins:
+    """Faces binned into tiles. Entries are (tile, face) pairs.
+
+    tile_start: (n_tiles + 1,) int32, entries of tile t are tile_start[t]:tile_start[t+1]
+    tile_faces: (n_entries,) int32 global face index (batch * F + f), increasing within a tile
+    tile_slots: (n_entries,) int32 position of the entry in face-major order
+    face_start: (B*F + 1,) int64, face-major entries of face g are face_start[g]:face_start[g+1]
+    """
+    tile_start: np.ndarray
+    tile_faces: np.ndarray
+    tile_slots: np.ndarray
+    face_start: np.ndarray
+
+    @property
+    def n_entries(self) -> int:
+        return int(self.face_start[-1])
+
+
+@dataclass
+class RasterOutput:
+    """Images of one forward call, each cropped to (B, H, W[, 3]) in the settings' dtype;
+    None for outputs not requested. `saved` holds what backward needs (device buffers)."""
+    rgb: np.ndarray | None
+    alpha: np.ndarray | None
+    depth: np.ndarray | None
+    saved: dict = field(default_factory=dict, repr=False)
+
+    def rgba(self) -> np.ndarray:
+        """(B, H, W, 4): rgb and alpha side by side (both must have been requested)."""
+        if self.rgb is None or self.alpha is None:
+            raise ValueError("rgba() needs both 'rgb' and 'alpha' in settings.outputs")
+        return np.concatenate([self.rgb, self.alpha[..., None]], axis=-1)
+
+
+class SoftRasterizer:
+    """Renders batches of screen-space meshes with the soft rasteriser and back-propagates.
+
+    settings: RasterSettings. device: a pyopencl.Device (default: softras_cl.device.select_device()).
+    """
+
+    def __init__(self, settings: RasterSettings, device: cl.Device | None = None):
+        if not isinstance(settings, RasterSettings):
+            raise TypeError(f"settings must be a RasterSettings, got {type(settings).__name__}")
+        self.settings = settings
+        self.device = device if device is not None else select_device()
+        if settings.dtype == "float64" and not has_fp64(self.device):
+            raise ValueError(f"settings.dtype='float64' but device {self.device.name!r} has no "
+                             "cl_khr_fp64; use dtype='float32' or another device")
+        self.ctx, self.queue = get_context(self.device)
+        self.real = np.dtype(settings.dtype)
+
+    # ---- public API ------------------------------------------------------------------------
+    def forward(self, vertices, faces, colors=None, face_textures=None, texture_image=None,
+                uvs=None, grads=()) -> RasterOutput:
+        """Render. Shapes in docs/api.md; images come back as (B, H, W[, 3]) arrays.
+
+        grads: the gradients backward() will be asked for, subset of ("vertices", "colors").
+        """
+        s = self.settings
+        grads = _check_grads(grads, s)
+        mesh = check_inputs(s, vertices, faces, colors, face_textures, texture_image, uvs)
+        if "colors" in grads and s.texture == "uv" and not has_int64_atomics(self.device):
+            raise ValueError(f"uv-texture gradients need cl_khr_int64_base_atomics, which device "
+                             f"{self.device.name!r} lacks")
+        geom, drawable = face_setup(mesh, s)
+        bins = bin_faces(geom, drawable, mesh.batch, mesh.n_faces, s)
+        bufs = self._upload(mesh, geom, bins)
+        images = self._run_forward(mesh, bufs, bool(grads))
+        saved = dict(mesh=mesh, bins=bins, bufs=bufs, grads=grads, images=images)
+        return RasterOutput(*(self._crop(images.get(n)) for n in ("rgb", "alpha", "depth")), saved)
+
+    def backward(self, output: RasterOutput, grad_rgb=None, grad_alpha=None, grad_depth=None) -> dict:
+        """Gradients of a scalar loss given its cotangents dL/d(rgb, alpha, depth).
+
+        Each cotangent has the shape of the matching output (None = zero). Returns a dict with
+        the names given as `grads` to forward: "vertices" (shape of the vertices given, float64)
+        and "colors" (shape of the colour input given: colors, face_textures or texture_image).
+        """
+        saved = output.saved
+        if not saved or not saved["grads"]:
+            raise ValueError("output: forward() was called without grads=...; nothing to differentiate")
+        s, mesh = self.settings, saved["mesh"]
+        shape = (mesh.batch, s.height, s.width)
+        cot = {name: check_cotangent(name, g, shape, name[len("grad_"):] in s.outputs)
+               for name, g in (("grad_rgb", grad_rgb), ("grad_alpha", grad_alpha), ("grad_depth", grad_depth))}
+        slot_pos, slot_attr, tex_fixed, scale = self._run_backward(saved, cot)
+        return self._gather_grads(saved, slot_pos, slot_attr, tex_fixed, scale)
+
+    # ---- kernels ---------------------------------------------------------------------------
+    def _kernel(self, name: str, grads: tuple, save_state: bool) -> cl.Kernel:
+        s = self.settings
+        defines = dict(
+            SR_DOUBLE=s.dtype == "float64",
+            SR_OUT_RGB="rgb" in s.outputs, SR_OUT_ALPHA="alpha" in s.outputs,
+            SR_OUT_DEPTH="depth" in s.outputs,
+            SR_METRIC_BARY=s.metric == "barycentric",
+            SR_COLOR_HARD=s.color_agg == "hard",
+            SR_ALPHA_AGG=("occupancy", "sum", "hard").index(s.alpha_agg),
+            SR_TEXTURE=("vertex", "face", "uv").index(s.texture),
+            SR_PERSPECTIVE=s.perspective_correct,
+            SR_SAVE_STATE=save_state,
+            SR_GRAD_POS="vertices" in grads,
+            SR_GRAD_COLOR="colors" in grads and "rgb" in s.outputs)
+        return build_kernel(self.ctx, "soft_raster.cl", name, defines, s.fast_math)
+
+    def _geometry_args(self, mesh: MeshInputs, bufs: dict) -> list:
+        s, real = self.settings, self.real.type
+        ntx, nty = _tiles(s)
+        x_cut = -np.finfo(self.real).max if s.dist_eps == 0 else math.log(s.dist_eps / (1 - s.dist_eps))
+        i32 = np.int32
+        return [i32(s.width), i32(s.height), i32(ntx * TILE), i32(nty * TILE), i32(ntx), i32(nty),
+                real(2.0 / min(s.width, s.height)), real(1.0 / s.sigma), real(x_cut),
+                real(1.0 / s.gamma), real(s.eps), real(s.near), real(s.far),
+                i32(mesh.tex_res), i32(mesh.tex_shape[0]), i32(mesh.tex_shape[1]),
+                bufs["geom"], bufs["attr"], bufs["tex_image"], bufs["tile_start"], bufs["tile_faces"]]
+
+    def _run_forward(self, mesh: MeshInputs, bufs: dict, save_state: bool) -> dict:
+        s, real = self.settings, self.real
+        ntx, nty = _tiles(s)
+        npix = mesh.batch * nty * TILE * ntx * TILE
+        planes = dict(rgb=3 if "rgb" in s.outputs else 0, alpha=int("alpha" in s.outputs),
+                      depth=int("depth" in s.outputs))
+        out = {n: cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, npix * k * real.itemsize)
+               for n, k in planes.items() if k}
+        state = self._state_buffers(npix) if save_state else {}
+        dummy = self._dummy()
+        knl = self._kernel("soft_raster_fwd", (), save_state)
+        knl(self.queue, (ntx, nty * TILE, mesh.batch), None, *self._geometry_args(mesh, bufs),
+            *(real.type(c) for c in s.background),
+            *(out.get(n, dummy) for n in ("rgb", "alpha", "depth")),
+            *(state.get(n, dummy) for n in ("color", "alpha", "ids")))
+        images = {n: self._download(b, planes[n], mesh.batch) for n, b in out.items()}
+        images["state"] = state
+        return images
+
+    def _state_buffers(self, npix: int) -> dict:
+        """Per-pixel state the backward reads: softmax log-normaliser or hard face ids, and the
+        occupancy sums (two planes) or the sum of D."""
+        s, itemsize = self.settings, self.real.itemsize
+        rw = cl.mem_flags.READ_WRITE
+        state = {}
+        if {"rgb", "depth"} & set(s.outputs) and s.color_agg == "softmax":
+            state["color"] = cl.Buffer(self.ctx, rw, npix * itemsize)
+        if "alpha" in s.outputs and s.alpha_agg != "hard":
+            state["alpha"] = cl.Buffer(self.ctx, rw, npix * itemsize * (2 if s.alpha_agg == "occupancy" else 1))
+        state["ids"] = cl.Buffer(self.ctx, rw, npix * 4 * 2)
+        return state
+
+    def _run_backward(self, saved: dict, cot: dict):
+        s, real, mesh, bins = self.settings, self.real, saved["mesh"], saved["bins"]
+        ntx, nty = _tiles(s)
+        images, grads = saved["images"], saved["grads"]
+        planes = {n: self._pad_planes(c, mesh.batch) for n, c in cot.items() if c is not None}
+        g_dot = self._g_dot_image(images, planes, mesh.batch)
+        ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+        dummy = self._dummy()
+        cot_bufs = [cl.Buffer(self.ctx, ro, hostbuf=planes[n]) if n in planes else dummy
+                    for n in ("grad_rgb", "grad_alpha", "grad_depth")]
+        g_dot_buf = cl.Buffer(self.ctx, ro, hostbuf=g_dot) if g_dot is not None else dummy
+        n = max(bins.n_entries, 1)
+        slot_pos = np.zeros((n, 9), real) if "vertices" in grads else None
+        slot_attr, tex_fixed, scale = self._color_grad_buffers(mesh, grads, n, cot["grad_rgb"])
+        rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
+        out_bufs = [cl.Buffer(self.ctx, rw, hostbuf=a) if a is not None else dummy
+                    for a in (slot_pos, slot_attr, tex_fixed)]
+        state = images["state"]
+        knl = self._kernel("soft_raster_bwd", grads, True)
+        knl(self.queue, (ntx, nty, mesh.batch), None, *self._geometry_args(mesh, saved["bufs"]),
+            saved["bufs"]["tile_slots"], *cot_bufs, g_dot_buf,
+            *(state.get(k, dummy) for k in ("color", "alpha", "ids")), real.type(scale), *out_bufs)
+        for host, dev in zip((slot_pos, slot_attr, tex_fixed), out_bufs):
+            if host is not None:
+                cl.enqueue_copy(self.queue, host, dev)
+        return slot_pos, slot_attr, tex_fixed, scale
+
+    def _color_grad_buffers(self, mesh: MeshInputs, grads: tuple, n_entries: int, grad_rgb):
+        """Host arrays the backward writes colour gradients into, and the uv fixed-point scale."""
+        s = self.settings
+        if "colors" not in grads or "rgb" not in s.outputs or grad_rgb is None:
+            return None, None, 1.0
+        if s.texture == "vertex":
+            return np.zeros((n_entries, 9), self.real), None, 1.0
+        if s.texture == "face":
+            return np.zeros((n_entries, mesh.tex_res ** 2 * 3), self.real), None, 1.0
+        scale = _fixed_point_scale(grad_rgb, self.real)
+        return None, np.zeros((mesh.batch, *mesh.tex_shape, 3), np.int64), scale
+
+    def _gather_grads(self, saved: dict, slot_pos, slot_attr, tex_fixed, scale) -> dict:
+        """Sum the (tile, face) slots per face in a fixed order, then faces onto vertices."""
+        mesh, bins, grads = saved["mesh"], saved["bins"], saved["grads"]
+        out = {}
+        if "vertices" in grads:
+            per_face = _sum_slots(slot_pos, bins).reshape(mesh.batch, mesh.n_faces, 3, 3)
+            out["vertices"] = mesh.unbatch_vertices(_scatter_to_vertices(per_face, mesh))
+        if "colors" in grads:
+            out["colors"] = mesh.unbatch_colors(self._color_grads(mesh, bins, slot_attr, tex_fixed, scale))
+        return out
+
+    def _color_grads(self, mesh: MeshInputs, bins: Bins, slot_attr, tex_fixed, scale) -> np.ndarray:
+        s = self.settings
+        if s.texture == "uv":
+            if tex_fixed is None:
+                return np.zeros((mesh.batch, *mesh.tex_shape, 3))
+            return tex_fixed.astype(np.float64) / scale
+        if s.texture == "face":
+            r = mesh.tex_res
+            if slot_attr is None:
+                return np.zeros((mesh.batch, mesh.n_faces, r, r, 3))
+            return _sum_slots(slot_attr, bins).reshape(mesh.batch, mesh.n_faces, r, r, 3)
+        if slot_attr is None:
+            return np.zeros((mesh.batch, mesh.n_vertices, 3))
+        per_face = _sum_slots(slot_attr, bins).reshape(mesh.batch, mesh.n_faces, 3, 3)
+        return _scatter_to_vertices(per_face, mesh)
+
+    # ---- buffers ---------------------------------------------------------------------------
+    def _upload(self, mesh: MeshInputs, geom: np.ndarray, bins: Bins) -> dict:
+        ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+        arrays = dict(geom=geom.astype(self.real), attr=mesh.face_attributes().astype(self.real),
+                      tex_image=mesh.texture_image_array().astype(self.real),
+                      tile_start=bins.tile_start, tile_faces=bins.tile_faces,
+                      tile_slots=bins.tile_slots)
+        return {name: cl.Buffer(self.ctx, ro, hostbuf=np.ascontiguousarray(a)) if a.size else self._dummy()
+                for name, a in arrays.items()}
+
+    def _dummy(self) -> cl.Buffer:
+        """A small buffer standing in for arguments the kernel variant never reads."""
+        if not hasattr(self, "_dummy_buf"):
+            self._dummy_buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, 64)
+        return self._dummy_buf
+
+    def _download(self, buf: cl.Buffer, n_planes: int, batch: int) -> np.ndarray:
+        """(planes, B, Hp, Wp) host copy of a per-pixel device buffer."""
+        ntx, nty = _tiles(self.settings)
+        host = np.empty((n_planes, batch, nty * TILE, ntx * TILE), self.real)
+        cl.enqueue_copy(self.queue, host, buf)
+        return host
+
+    def _crop(self, planes: np.ndarray | None) -> np.ndarray | None:
+        """(planes, B, Hp, Wp) -> (B, H, W) for one plane, (B, H, W, planes) otherwise."""
+        if planes is None:
+            return None
+        h, w = self.settings.height, self.settings.width
+        img = planes[:, :, :h, :w]
+        return img[0].copy() if img.shape[0] == 1 else np.ascontiguousarray(np.moveaxis(img, 0, -1))
+
+    def _pad_planes(self, image: np.ndarray, batch: int) -> np.ndarray:
+        """(B, H, W[, C]) -> (C, B, Hp, Wp) zero-padded, in the kernel dtype."""
+        ntx, nty = _tiles(self.settings)
+        planes = image[None] if image.ndim == 3 else np.moveaxis(image, -1, 0)
+        out = np.zeros((planes.shape[0], batch, nty * TILE, ntx * TILE), self.real)
+        out[:, :, :image.shape[1], :image.shape[2]] = planes
+        return out
+
+    def _g_dot_image(self, images: dict, planes: dict, batch: int) -> np.ndarray | None:
+        """Per-pixel sum over rgb and depth channels of cotangent * output (softmax backward)."""
+        s = self.settings
+        if s.color_agg != "softmax" or not {"rgb", "depth"} & set(s.outputs):
+            return None
+        total = np.zeros(images.get("rgb", images.get("depth")).shape[1:], np.float64)
+        for cot_name, img_name in (("grad_rgb", "rgb"), ("grad_depth", "depth")):
+            if cot_name in planes:
+                total += np.einsum("cbhw,cbhw->bhw", planes[cot_name].astype(np.float64), images[img_name])
+        return total.astype(self.real)
+
+
+# ---- face setup and binning (numpy, O(F) and O(bins)) ---------------------------------------
+def _tiles(s: RasterSettings) -> tuple[int, int]:
+    """(tiles across, tiles down) for the settings' image size."""
+    return -(-s.width // TILE), -(-s.height // TILE)
+
+
+def face_setup(mesh: MeshInputs, s: RasterSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Per-face constants for the kernel and which faces can be drawn at all.
+
+    Returns geom (B*F, FACE_STRIDE) float64 (layout: Face in soft_raster.cl) and drawable (B*F,) bool.
+    """
+    tri = mesh.triangles().reshape(-1, 3, 3)            # (B*F, corner, xyz)
+    x, y, z = tri[..., 0], tri[..., 1], tri[..., 2]
+    area = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])
+    drawable = ((np.abs(area) >= MIN_AREA) & (z > 0).all(1)
+                & ~(z < s.near).all(1) & ~(z > s.far).all(1))
+    if not s.double_sided:
+        drawable &= area > 0
+    safe_area = np.where(drawable, area, 1.0)
+    m1 = np.stack([(y[:, 2] - y[:, 0]), -(x[:, 2] - x[:, 0])], 1) / safe_area[:, None]
+    m2 = np.stack([-(y[:, 1] - y[:, 0]), (x[:, 1] - x[:, 0])], 1) / safe_area[:, None]
+    edge = np.roll(tri[..., :2], -1, axis=1) - tri[..., :2]   # v1-v0, v2-v1, v0-v2
+    len2 = (edge ** 2).sum(-1)
+    geom = np.zeros((tri.shape[0], FACE_STRIDE))
+    geom[:, 0:6] = tri[..., :2].reshape(-1, 6)
+    geom[:, 6:12] = np.concatenate([-(m1 + m2), m1, m2], 1)
+    geom[:, 12:15] = z
+    geom[:, 15:18] = 1.0 / np.where(drawable[:, None], z, 1.0)
+    geom[:, 18:21] = 1.0 / np.where(drawable[:, None] & (len2 > 0), len2, 1.0)
+    geom[~drawable] = 0.0
+    return geom, drawable
+
+
+def footprint_margin(s: RasterSettings) -> float:
+    """How far beyond a face (NDC, or barycentric units for that metric) D stays >= dist_eps.
+
+    inf when nothing is cut off (dist_eps = 0); 0 when only hard aggregations are used.
+    """
+    soft = ((s.color_agg == "softmax" and {"rgb", "depth"} & set(s.outputs))
+            or ("alpha" in s.outputs and s.alpha_agg != "hard"))
+    if not soft:
+        return 0.0
+    if s.dist_eps == 0:
+        return math.inf
+    return math.sqrt(s.sigma * math.log(1.0 / s.dist_eps - 1.0))
+
+
+def _footprint_boxes(geom: np.ndarray, s: RasterSettings) -> np.ndarray:
+    """(B*F, 4) NDC boxes (xmin, xmax, ymin, ymax) where a face can reach D >= dist_eps."""
+    xy = geom[:, 0:6].reshape(-1, 3, 2)
+    margin = footprint_margin(s)
+    if s.metric == "barycentric" and math.isfinite(margin):
+        centre = xy.mean(1, keepdims=True)
+        xy = centre + (1 + 3 * margin) * (xy - centre)   # region min(b) >= -margin
+        margin = 0.0
+    lo, hi = xy.min(1) - margin, xy.max(1) + margin
+    return np.stack([lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]], 1)
+
+
+def _pixel_ranges(boxes: np.ndarray, s: RasterSettings):
+    """Inclusive pixel column and row ranges whose centres fall in the boxes (clipped)."""
+    w, h = s.width, s.height
+    inv_ps = min(w, h) / 2.0
+    slack = 1e-3    # pixels: keeps float32 kernels from meeting pairs the binning dropped
+    with np.errstate(invalid="ignore", over="ignore"):
+        c0 = np.ceil(boxes[:, 0] * inv_ps + w / 2 - 0.5 - slack)
+        c1 = np.floor(boxes[:, 1] * inv_ps + w / 2 - 0.5 + slack)
+        r0 = np.ceil(h / 2 - 0.5 - boxes[:, 3] * inv_ps - slack)
+        r1 = np.floor(h / 2 - 0.5 - boxes[:, 2] * inv_ps + slack)
+    clip = lambda a, n: np.clip(np.nan_to_num(a, nan=0.0, posinf=n, neginf=-1), -1, n).astype(np.int64)
+    return clip(c0, w), clip(c1, w), clip(r0, h), clip(r1, h)
+
+
+def bin_faces(geom: np.ndarray, drawable: np.ndarray, batch: int, n_faces: int,
+              s: RasterSettings) -> Bins:
+    """Bin every drawable face into the TILE x TILE tiles its footprint touches."""
+    ntx, nty = _tiles(s)
+    c0, c1, r0, r1 = _pixel_ranges(_footprint_boxes(geom, s), s)
+    c0, r0 = np.maximum(c0, 0), np.maximum(r0, 0)
+    c1, r1 = np.minimum(c1, s.width - 1), np.minimum(r1, s.height - 1)
+    live = drawable & (c1 >= c0) & (r1 >= r0)
+    tx0, ty0 = c0 // TILE, r0 // TILE
+    nx = np.where(live, c1 // TILE - tx0 + 1, 0)
+    ny = np.where(live, r1 // TILE - ty0 + 1, 0)
+    counts = nx * ny
+    face_start = np.concatenate([[0], np.cumsum(counts)])
+    total = int(face_start[-1])
+    if total >= 2 ** 31:
+        raise ValueError(f"{total} (tile, face) pairs exceed the int32 limit: lower image_size, "
+                         "raise dist_eps or split the batch")
+    face = np.repeat(np.arange(len(counts)), counts)
+    local = np.arange(total) - face_start[face]
+    tx = tx0[face] + local % nx[face]
+    ty = ty0[face] + local // nx[face]
+    tile = ((face // n_faces) * nty + ty) * ntx + tx if total else np.zeros(0, np.int64)
+    order = np.argsort(tile, kind="stable")
+    tile_start = np.concatenate([[0], np.cumsum(np.bincount(tile, minlength=batch * ntx * nty))])
+    return Bins(tile_start.astype(np.int32), face[order].astype(np.int32),
+                order.astype(np.int32), face_start)
+
+
+# ---- gradient reduction ---------------------------------------------------------------------
+def _sum_slots(slots: np.ndarray, bins: Bins) -> np.ndarray:
+    """(n_entries, K) per-(tile, face) sums -> (B*F, K) per-face sums, always in the same order."""
+    counts = np.diff(bins.face_start)
+    out = np.zeros((len(counts), slots.shape[1]))
+    has = counts > 0
+    if has.any():
+        out[has] = np.add.reduceat(slots[:bins.n_entries].astype(np.float64), bins.face_start[:-1][has], axis=0)
+    return out
+
+
+def _scatter_to_vertices(per_face_corner: np.ndarray, mesh: MeshInputs) -> np.ndarray:
+    """(B, F, 3 corners, K) -> (B, V, K) by summing each corner onto its vertex (bincount: ordered)."""
+    b, f, _, k = per_face_corner.shape
+    index = (mesh.faces + (np.arange(b) * mesh.n_vertices)[:, None, None]).ravel()
+    flat = per_face_corner.reshape(-1, k)
+    out = np.stack([np.bincount(index, weights=flat[:, c], minlength=b * mesh.n_vertices)
+                    for c in range(k)], -1)
+    return out.reshape(b, mesh.n_vertices, k)
+
+
+def _fixed_point_scale(grad_rgb: np.ndarray, real: np.dtype) -> float:
+    """Power of two that maps uv-texel gradient sums into int64 without overflow.
+
+    Every texel's sum is bounded by sum |dL/drgb| over the image (weights and bilinear taps sum
+    to at most 1), so that bound times the scale stays below 2^62.
+    """
+    bound = float(np.abs(grad_rgb).sum(axis=(1, 2, 3)).max()) if grad_rgb.size else 0.0
+    top = 100 if real == np.float32 else 1000
+    if bound == 0.0:
+        return 1.0
+    return 2.0 ** min(top, math.floor(62 - math.log2(bound)))
+
+
+def _check_grads(grads, s: RasterSettings) -> tuple:
+    grads = tuple(grads)
+    bad = [g for g in grads if g not in GRAD_NAMES]
+    if bad:
+        raise ValueError(f"grads must be a subset of {GRAD_NAMES}, got {grads!r}")
+    return grads
+
+
+def soft_rasterize(vertices, faces, settings: RasterSettings | None = None, **colour_inputs) -> RasterOutput:
+    """One-shot forward: SoftRasterizer(settings).forward(vertices, faces, **colour_inputs)."""
+    return SoftRasterizer(settings or RasterSettings()).forward(vertices, faces, **colour_inputs)

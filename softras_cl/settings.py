@@ -1,0 +1,107 @@
+"""Rasteriser settings.
+
+Every field is either *build-time* (it selects a kernel variant through a -D flag, so a scene
+pays nothing for effects it does not use) or *run-time* (a kernel argument or host-side choice).
+The maths behind each field is written down in docs/conventions.md.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+
+METRICS = ("euclidean", "barycentric")
+COLOR_AGGS = ("softmax", "hard")
+ALPHA_AGGS = ("occupancy", "sum", "hard")
+TEXTURES = ("vertex", "face", "uv")
+OUTPUTS = ("rgb", "alpha", "depth")
+DTYPES = ("float32", "float64")
+
+
+def _build(doc: str, **kw):
+    return field(metadata={"build": True, "doc": doc}, **kw)
+
+
+def _run(doc: str, **kw):
+    return field(metadata={"build": False, "doc": doc}, **kw)
+
+
+@dataclass(frozen=True)
+class RasterSettings:
+    """All knobs of the soft rasteriser; immutable, hashable, validated on creation.
+
+    Image size is (height, width) in pixels. sigma is in squared NDC units.
+    """
+
+    image_size: tuple = _run("(height, width) of the output image in pixels", default=(256, 256))
+    sigma: float = _run("sharpness of the probability map D (eq. 2), squared NDC units", default=1e-5)
+    gamma: float = _run("sharpness of the softmax aggregation (eq. 9)", default=1e-4)
+    dist_eps: float = _run("cut-off: skip (pixel, face) pairs with D < dist_eps; 0 = exact", default=1e-4)
+    eps: float = _run("background weight exp(eps / gamma) (eq. 9)", default=1e-3)
+    near: float = _run("near clipping depth (view z), > 0", default=1.0)
+    far: float = _run("far clipping depth (view z), > near", default=100.0)
+    background: tuple = _run("background RGB colour", default=(0.0, 0.0, 0.0))
+    double_sided: bool = _run("draw faces of both orientations (else CCW only)", default=False)
+    outputs: tuple = _build("which images to produce: subset of rgb, alpha, depth", default=("rgb", "alpha"))
+    metric: str = _build("pixel-to-face distance: euclidean (eq. 4) or barycentric (eq. 6)", default="euclidean")
+    color_agg: str = _build("aggregation of rgb and depth: softmax (eq. 8) or hard (z-buffer)", default="softmax")
+    alpha_agg: str = _build("aggregation of alpha: occupancy (eq. 13), sum or hard", default="occupancy")
+    texture: str = _build("colour source: vertex colours, per-face RxR textures or a uv map", default="vertex")
+    perspective_correct: bool = _build("perspective-correct depth and colour interpolation", default=True)
+    dtype: str = _build("kernel precision: float32 or float64 (needs cl_khr_fp64)", default="float32")
+    fast_math: bool = _build("build with -cl-fast-relaxed-math (an accuracy knob: measure it)", default=False)
+
+    def __post_init__(self):
+        _check_settings(self)
+
+    def replace(self, **changes) -> "RasterSettings":
+        """A copy with some fields changed (validated again)."""
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        values.update(changes)
+        return RasterSettings(**values)
+
+    @property
+    def height(self) -> int:
+        return int(self.image_size[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.image_size[1])
+
+
+def _positive_finite(name, value):
+    if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+
+
+def _choice(name, value, allowed):
+    if value not in allowed:
+        raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
+
+
+def _check_settings(s: RasterSettings) -> None:
+    size = s.image_size
+    if (not isinstance(size, (tuple, list)) or len(size) != 2
+            or not all(isinstance(n, int) and n >= 1 for n in size)):
+        raise ValueError(f"image_size must be (height, width), two ints >= 1, got {size!r}")
+    object.__setattr__(s, "image_size", (int(size[0]), int(size[1])))
+    for name in ("sigma", "gamma", "near"):
+        _positive_finite(name, getattr(s, name))
+    if not (isinstance(s.far, (int, float)) and math.isfinite(s.far) and s.far > s.near):
+        raise ValueError(f"far must be finite and > near ({s.near}), got {s.far!r}")
+    if not (isinstance(s.dist_eps, (int, float)) and 0 <= s.dist_eps < 0.5):
+        raise ValueError(f"dist_eps must be in [0, 0.5), got {s.dist_eps!r}")
+    if not (isinstance(s.eps, (int, float)) and math.isfinite(s.eps)):
+        raise ValueError(f"eps must be a finite number, got {s.eps!r}")
+    bg = tuple(float(c) for c in s.background)
+    if len(bg) != 3 or not all(math.isfinite(c) for c in bg):
+        raise ValueError(f"background must be 3 finite numbers (RGB), got {s.background!r}")
+    object.__setattr__(s, "background", bg)
+    outputs = tuple(s.outputs)
+    if not outputs or any(o not in OUTPUTS for o in outputs) or len(set(outputs)) != len(outputs):
+        raise ValueError(f"outputs must be a non-empty subset of {OUTPUTS}, got {s.outputs!r}")
+    object.__setattr__(s, "outputs", tuple(o for o in OUTPUTS if o in outputs))
+    _choice("metric", s.metric, METRICS)
+    _choice("color_agg", s.color_agg, COLOR_AGGS)
+    _choice("alpha_agg", s.alpha_agg, ALPHA_AGGS)
+    _choice("texture", s.texture, TEXTURES)
+    _choice("dtype", s.dtype, DTYPES)
