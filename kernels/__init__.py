@@ -1,0 +1,1 @@
+"""OpenCL C sources (package data: the .cl and .h files beside this file)."""

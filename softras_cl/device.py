@@ -1,0 +1,160 @@
+"""OpenCL platform/device choice and capability queries.
+
+Order of choice (`select_device`):
+1. `SOFTRAS_CL_DEVICE`: "P:D" (platform and device index, "P" alone means device 0) or a
+   case-insensitive substring of "platform name + platform version + device name", e.g. "pocl 3.1".
+2. `PYOPENCL_CTX`: pyopencl's format, "P:D" where each part is an index or a name substring.
+3. The best device found: GPUs, then CPUs (CPU platforms ranked by `PREFERRED_CPU_PLATFORMS`),
+   then anything else; ties keep pyopencl's order.
+"""
+from __future__ import annotations
+
+import os
+import re
+
+import pyopencl as cl
+
+ENV_VAR = "SOFTRAS_CL_DEVICE"
+
+# Substrings of platform.version, best first; CPU platforms matching none come after these.
+PREFERRED_CPU_PLATFORMS = ("PoCL 3.1",)
+
+NO_PLATFORM_HELP = (
+    "No OpenCL platform found. Install one: `pip install pocl-binary-distribution` (CPU, any OS), "
+    "or `apt-get install pocl-opencl-icd` (Debian/Ubuntu CPU driver), or your GPU vendor's "
+    "OpenCL driver (NVIDIA, AMD ROCm, Intel compute-runtime).")
+
+_contexts: dict = {}
+
+
+def _entries() -> list[tuple[int, int, cl.Platform, cl.Device]]:
+    """All (platform index, device index, platform, device); RuntimeError if there are none."""
+    try:
+        platforms = cl.get_platforms()
+    except cl.Error as e:
+        raise RuntimeError(f"{NO_PLATFORM_HELP} (pyopencl: {e})") from e
+    out = []
+    for pi, p in enumerate(platforms):
+        try:
+            devices = p.get_devices()
+        except cl.Error:  # a platform with no usable device
+            continue
+        out.extend((pi, di, p, d) for di, d in enumerate(devices))
+    if not out:
+        raise RuntimeError(NO_PLATFORM_HELP)
+    return out
+
+
+def _type_name(device: cl.Device) -> str:
+    if device.type & cl.device_type.GPU:
+        return "GPU"
+    if device.type & cl.device_type.CPU:
+        return "CPU"
+    if device.type & cl.device_type.ACCELERATOR:
+        return "ACCELERATOR"
+    return "OTHER"
+
+
+def _label(p: cl.Platform, d: cl.Device) -> str:
+    return f"{p.name} {p.version} {d.name}"
+
+
+def _rank(entry) -> tuple[int, int]:
+    """Sort key, smaller is better: (device type, CPU platform preference)."""
+    _, _, p, d = entry
+    kind = {"GPU": 0, "CPU": 1}.get(_type_name(d), 2)
+    pref = next((i for i, s in enumerate(PREFERRED_CPU_PLATFORMS) if s.lower() in p.version.lower()),
+                len(PREFERRED_CPU_PLATFORMS))
+    return kind, pref if kind == 1 else 0
+
+
+def _available(entries) -> str:
+    return "; ".join(f"{pi}:{di} = {_label(p, d)}" for pi, di, p, d in entries)
+
+
+def _by_index(entries, pi: int, di: int):
+    return next((e for e in entries if e[0] == pi and e[1] == di), None)
+
+
+def _from_softras_env(entries, value: str):
+    m = re.fullmatch(r"\s*(\d+)\s*(?::\s*(\d+)\s*)?", value)
+    if m:
+        found = _by_index(entries, int(m[1]), int(m[2] or 0))
+    else:
+        matches = [e for e in entries if value.strip().lower() in _label(e[2], e[3]).lower()]
+        found = min(matches, key=_rank) if matches else None
+    if found is None:
+        raise ValueError(f"{ENV_VAR}={value!r} matches no OpenCL device. Use 'P:D' indices or a "
+                         f"substring of platform name+version+device name. Available: "
+                         f"{_available(entries)}")
+    return found
+
+
+def _from_pyopencl_env(entries, value: str):
+    """pyopencl's PYOPENCL_CTX: "P[:D]", each part an index or a case-insensitive name substring."""
+    p_part, _, d_part = (part.strip() for part in value.partition(":"))
+
+    def ok(part: str, index: int, name: str) -> bool:
+        return not part or (int(part) == index if part.isdigit() else part.lower() in name.lower())
+
+    matches = [e for e in entries if ok(p_part, e[0], e[2].name) and ok(d_part, e[1], e[3].name)]
+    if not matches:
+        raise ValueError(f"PYOPENCL_CTX={value!r} matches no OpenCL device. "
+                         f"Available: {_available(entries)}")
+    return matches[0]
+
+
+def _select(entries):
+    value = os.environ.get(ENV_VAR, "").strip()
+    if value:
+        return _from_softras_env(entries, value)
+    value = os.environ.get("PYOPENCL_CTX", "").strip()
+    if value:
+        return _from_pyopencl_env(entries, value)
+    return min(entries, key=_rank)
+
+
+def select_device() -> cl.Device:
+    """The OpenCL device to use (see the module docstring for the order of choice).
+
+    Raises ValueError (naming the variable and listing devices) for a bad SOFTRAS_CL_DEVICE or
+    PYOPENCL_CTX, RuntimeError (saying how to install one) when there is no OpenCL platform.
+    """
+    return _select(_entries())[3]
+
+
+def has_fp64(device: cl.Device) -> bool:
+    """True if the device supports double precision (cl_khr_fp64)."""
+    return "cl_khr_fp64" in device.extensions.split()
+
+
+def has_int64_atomics(device: cl.Device) -> bool:
+    """True if the device supports 64-bit integer atomics (cl_khr_int64_base_atomics)."""
+    return "cl_khr_int64_base_atomics" in device.extensions.split()
+
+
+def list_devices() -> list[dict]:
+    """Every OpenCL device, one dict each with keys: platform_index, device_index (int),
+    platform_name, platform_version, device_name, type ("CPU"/"GPU"/"ACCELERATOR"/"OTHER"),
+    compute_units (int), fp64, int64_atomics, chosen (bool; True for the one `select_device`
+    returns, none if the environment variable names no device)."""
+    entries = _entries()
+    try:
+        chosen = _select(entries)
+    except ValueError:
+        chosen = None
+    return [dict(platform_index=pi, device_index=di, platform_name=p.name,
+                 platform_version=p.version, device_name=d.name, type=_type_name(d),
+                 compute_units=d.max_compute_units, fp64=has_fp64(d),
+                 int64_atomics=has_int64_atomics(d),
+                 chosen=chosen is not None and chosen[:2] == (pi, di))
+            for pi, di, p, d in entries]
+
+
+def get_context(device: cl.Device | None = None) -> tuple[cl.Context, cl.CommandQueue]:
+    """(context, in-order queue) for `device` (default: `select_device()`), cached per device."""
+    device = select_device() if device is None else device
+    if device not in _contexts:
+        ctx = cl.Context([device])
+        _contexts[device] = (ctx, cl.CommandQueue(ctx, device))
+    return _contexts[device]
