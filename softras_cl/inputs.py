@@ -161,12 +161,12 @@ def check_inputs(s: RasterSettings, vertices, faces, colors=None, face_textures=
 
 
 def check_cotangent(name: str, value, shape: tuple, produced: bool) -> np.ndarray | None:
-    """A backward() cotangent: None, or an array shaped like its output (B, H, W[, 3])."""
+    """A backward() cotangent: None, or an array of `shape`, the shape of its output."""
     if value is None:
         return None
     if not produced:
         raise ValueError(f"{name} was given but its output is not in settings.outputs")
-    want = shape + (3,) if name == "grad_rgb" else shape
+    want = shape
     arr = np.asarray(value)
     if not np.issubdtype(arr.dtype, np.floating):
         raise TypeError(f"{name} must be a float array, got dtype {arr.dtype}")

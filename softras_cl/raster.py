@@ -105,8 +105,7 @@ class SoftRasterizer:
         if not saved or not saved["grads"]:
             raise ValueError("output: forward() was called without grads=...; nothing to differentiate")
         s, mesh = self.settings, saved["mesh"]
-        shape = (mesh.batch, s.height, s.width)
-        cot = {name: check_cotangent(name, g, shape, name[len("grad_"):] in s.outputs)
+        cot = {name: check_cotangent(name, g, _cot_shape(name, mesh.batch, s), name[len("grad_"):] in s.outputs)
                for name, g in (("grad_rgb", grad_rgb), ("grad_alpha", grad_alpha), ("grad_depth", grad_depth))}
         slot_pos, slot_attr, tex_fixed, scale = self._run_backward(saved, cot)
         return self._gather_grads(saved, slot_pos, slot_attr, tex_fixed, scale)
@@ -175,7 +174,9 @@ class SoftRasterizer:
         s, real, mesh, bins = self.settings, self.real, saved["mesh"], saved["bins"]
         ntx, nty = _tiles(s)
         images, grads = saved["images"], saved["grads"]
-        planes = {n: self._pad_planes(c, mesh.batch) for n, c in cot.items() if c is not None}
+        # an output without a cotangent contributes zero; the kernel variant still reads its plane
+        planes = {n: self._pad_planes(c if c is not None else np.zeros(_cot_shape(n, mesh.batch, s)), mesh.batch)
+                  for n, c in cot.items() if n[len("grad_"):] in s.outputs}
         g_dot = self._g_dot_image(images, planes, mesh.batch)
         ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
         dummy = self._dummy()
@@ -189,7 +190,10 @@ class SoftRasterizer:
         out_bufs = [cl.Buffer(self.ctx, rw, hostbuf=a) if a is not None else dummy
                     for a in (slot_pos, slot_attr, tex_fixed)]
         state = images["state"]
-        knl = self._kernel("soft_raster_bwd", grads, True)
+        kernel_grads = tuple(g for g in grads if g != "colors" or slot_attr is not None or tex_fixed is not None)
+        if not kernel_grads:    # colour gradients only, and no rgb cotangent: all zero
+            return slot_pos, slot_attr, tex_fixed, scale
+        knl = self._kernel("soft_raster_bwd", kernel_grads, True)
         knl(self.queue, (ntx, nty, mesh.batch), None, *self._geometry_args(mesh, saved["bufs"]),
             saved["bufs"]["tile_slots"], *cot_bufs, g_dot_buf,
             *(state.get(k, dummy) for k in ("color", "alpha", "ids")), real.type(scale), *out_bufs)
@@ -423,11 +427,18 @@ def _fixed_point_scale(grad_rgb: np.ndarray, real: np.dtype) -> float:
     return 2.0 ** min(top, math.floor(62 - math.log2(bound)))
 
 
+def _cot_shape(name: str, batch: int, s: RasterSettings) -> tuple:
+    """Shape of the cotangent `name` ("grad_rgb", ...): (B, H, W) plus (3,) for rgb."""
+    return (batch, s.height, s.width) + ((3,) if name == "grad_rgb" else ())
+
+
 def _check_grads(grads, s: RasterSettings) -> tuple:
     grads = tuple(grads)
     bad = [g for g in grads if g not in GRAD_NAMES]
     if bad:
         raise ValueError(f"grads must be a subset of {GRAD_NAMES}, got {grads!r}")
+    if "colors" in grads and "rgb" not in s.outputs:
+        raise ValueError(f"grads asks for 'colors' but settings.outputs={s.outputs} uses no colours")
     return grads
 
 
