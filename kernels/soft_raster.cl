@@ -273,7 +273,7 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
                               __global int *id_state)
 {
     const int cb = get_global_id(0), row = get_global_id(1), batch = get_global_id(2);
-    if (row >= H)
+    if (row >= H || cb >= ntx)    /* padding rows / work-items of the last group */
         return;
     const Params p = make_params(inv_sigma, x_cut, inv_gamma, eps, near, far);
     const int tile = (batch * nty + row / TILE) * ntx + cb;
@@ -613,6 +613,8 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
                               __global long *tex_grad)
 {
     const int cb = get_global_id(0), tile_row = get_global_id(1), batch = get_global_id(2);
+    if (cb >= ntx)                /* work-items of the last group beyond the image */
+        return;
     const Params p = make_params(inv_sigma, x_cut, inv_gamma, eps, near, far);
     const int tile = (batch * nty + tile_row) * ntx + cb;
     const size_t npix = (size_t)get_global_size(2) * Hp * Wp;

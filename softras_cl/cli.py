@@ -48,10 +48,26 @@ def register_devices(sub) -> None:
     p.set_defaults(func=_run_devices)
 
 
+def register_bench(sub) -> None:
+    """`softras-cl bench raster`: options and runner live in softras_cl/bench.py."""
+    from .bench import register
+
+    register(sub)
+
+
+def register_demo(sub) -> None:
+    """`softras-cl demo`: options and runner live in softras_cl/demo.py."""
+    from .demo import register
+
+    register(sub)
+
+
 # name -> registration function. `demo` (render a built-in mesh to a PNG) and `bench`
 # (`softras-cl bench raster`) are added here by their modules' register functions.
 SUBCOMMANDS = {
     "devices": register_devices,
+    "demo": register_demo,
+    "bench": register_bench,
 }
 
 

@@ -56,7 +56,8 @@ class MeshInputs:
     def corners(self, per_vertex: np.ndarray) -> np.ndarray:
         """(B, V, K) per-vertex values -> (B, F, 3, K) values at each face's corners."""
         idx = self.faces.reshape(self.batch, -1)
-        return np.take_along_axis(per_vertex, idx[..., None], 1).reshape(self.batch, self.n_faces, 3, -1)
+        return np.take_along_axis(per_vertex, idx[..., None], 1).reshape(
+            self.batch, self.n_faces, 3, per_vertex.shape[-1])
 
     def face_attributes(self) -> np.ndarray:
         """(B*F, K) colour data per face for the kernel: 9 corner colours, R*R*3 texels, 6 uvs."""
@@ -79,7 +80,8 @@ class MeshInputs:
 
 
 def _float_array(name: str, value, trailing: tuple, allow_unbatched: bool = True) -> tuple[np.ndarray, bool]:
-    """Check a float array of shape (B, *trailing) or (*trailing) (None entries: any size >= 1)."""
+    """Check a float array of shape (B, *trailing) or (*trailing); every size must be >= 1
+    (None entries: any size)."""
     arr = np.asarray(value)
     if not np.issubdtype(arr.dtype, np.floating):
         raise TypeError(f"{name} must be a float32 or float64 array, got dtype {arr.dtype}")
@@ -88,8 +90,11 @@ def _float_array(name: str, value, trailing: tuple, allow_unbatched: bool = True
         raise ValueError(f"{name} must have shape {_shape_text(trailing, allow_unbatched)}, got {arr.shape}")
     core = arr.shape[1:] if batched else arr.shape
     for want, got in zip(trailing, core):
-        if want is not None and want != got:
-            raise ValueError(f"{name} must have shape {_shape_text(trailing, allow_unbatched)}, got {arr.shape}")
+        if (want is not None and want != got) or got < 1:
+            raise ValueError(f"{name} must have shape {_shape_text(trailing, allow_unbatched)} "
+                             f"(n >= 1), got {arr.shape}")
+    if batched and arr.shape[0] < 1:
+        raise ValueError(f"{name} has batch size 0; expected at least 1")
     if not np.isfinite(arr).all():
         bad = np.argwhere(~np.isfinite(arr))[0]
         raise ValueError(f"{name} contains NaN or Inf (first at index {tuple(int(i) for i in bad)})")

@@ -20,6 +20,9 @@ TILE = 8            # tiles are TILE x TILE pixels; one kernel vector = TILE pix
 FACE_STRIDE = 24    # reals per face in the geometry buffer (see Face in soft_raster.cl)
 MIN_AREA = 1e-12    # faces with |doubled NDC area| below this are dropped
 GRAD_NAMES = ("vertices", "colors")
+# Work-group shape of both kernels. Set explicitly: left to the driver, PoCL picked groups of
+# 4096 work-items whose float64 private state overflowed its thread stacks (a crash at 1024^2).
+GROUP = (8, 1, 1)
 
 
 @dataclass
@@ -149,7 +152,7 @@ class SoftRasterizer:
         state = self._state_buffers(npix) if save_state else {}
         dummy = self._dummy()
         knl = self._kernel("soft_raster_fwd", (), save_state)
-        knl(self.queue, (ntx, nty * TILE, mesh.batch), None, *self._geometry_args(mesh, bufs),
+        knl(self.queue, (_round_up(ntx), nty * TILE, mesh.batch), GROUP, *self._geometry_args(mesh, bufs),
             *(real.type(c) for c in s.background),
             *(out.get(n, dummy) for n in ("rgb", "alpha", "depth")),
             *(state.get(n, dummy) for n in ("color", "alpha", "ids")))
@@ -194,7 +197,7 @@ class SoftRasterizer:
         if not kernel_grads:    # colour gradients only, and no rgb cotangent: all zero
             return slot_pos, slot_attr, tex_fixed, scale
         knl = self._kernel("soft_raster_bwd", kernel_grads, True)
-        knl(self.queue, (ntx, nty, mesh.batch), None, *self._geometry_args(mesh, saved["bufs"]),
+        knl(self.queue, (_round_up(ntx), nty, mesh.batch), GROUP, *self._geometry_args(mesh, saved["bufs"]),
             saved["bufs"]["tile_slots"], *cot_bufs, g_dot_buf,
             *(state.get(k, dummy) for k in ("color", "alpha", "ids")), real.type(scale), *out_bufs)
         for host, dev in zip((slot_pos, slot_attr, tex_fixed), out_bufs):
@@ -293,6 +296,11 @@ class SoftRasterizer:
 
 
 # ---- face setup and binning (numpy, O(F) and O(bins)) ---------------------------------------
+def _round_up(n: int) -> int:
+    """n rounded up to a whole number of work-groups along x (the kernels skip the extra items)."""
+    return -(-n // GROUP[0]) * GROUP[0]
+
+
 def _tiles(s: RasterSettings) -> tuple[int, int]:
     """(tiles across, tiles down) for the settings' image size."""
     return -(-s.width // TILE), -(-s.height // TILE)
