@@ -20,7 +20,7 @@
  */
 
 #define TILE 8
-#define FACE_STRIDE 24
+#define FACE_STRIDE 28
 #define SR_NEED_COLOR (SR_OUT_RGB || SR_OUT_DEPTH)
 #define LANE_OFFSETS ((realv)(R(0.5), R(1.5), R(2.5), R(3.5), R(4.5), R(5.5), R(6.5), R(7.5)))
 
@@ -37,6 +37,14 @@ typedef struct {
     real z[3], iz[3];     /* view depths and their inverses */
     real inv_len2[3];     /* 1 / |edge|^2 for edges (v0 v1), (v1 v2), (v2 v0) */
 } Face;
+
+/* The face's footprint box (NDC, where D can reach dist_eps): lets a row of pixels skip a face
+ * with four compares instead of a full evaluation. */
+inline bool outside_footprint(__global const real *geom, int face, real x_lo, real x_hi, real y)
+{
+    __global const real *box = geom + face * FACE_STRIDE + 24;   /* xmin, xmax, ymin, ymax */
+    return x_hi < box[0] || x_lo > box[1] || y < box[2] || y > box[3];
+}
 
 inline Face load_face(__global const real *geom, int face)
 {
@@ -302,6 +310,8 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
 
     for (int k = tile_start[tile]; k < tile_start[tile + 1]; ++k) {
         const int face = tile_faces[k];
+        if (outside_footprint(geom, face, px.s0, px.s7, py))
+            continue;
         const Face f = load_face(geom, face);
         const Frag r = eval_frag(&f, px, py, &p);
         if (!any(r.valid))
@@ -634,6 +644,8 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
         for (int dr = 0; dr < rows; ++dr) {
             const int row = tile_row * TILE + dr;
             const real py = (R(0.5) * H - row - R(0.5)) * pix_scale;
+            if (outside_footprint(geom, face, px.s0, px.s7, py))
+                continue;
             const Frag r = eval_frag(&f, px, py, &p);
             if (!any(r.valid))
                 continue;

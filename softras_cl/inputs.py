@@ -50,14 +50,11 @@ class MeshInputs:
 
     def triangles(self) -> np.ndarray:
         """(B, F, 3 corners, 3) corner positions."""
-        return np.take_along_axis(self.vertices[:, :, None, :], self.faces.reshape(self.batch, -1, 1, 1), 1
-                                  ).reshape(self.batch, self.n_faces, 3, 3)
+        return self.corners(self.vertices)
 
     def corners(self, per_vertex: np.ndarray) -> np.ndarray:
         """(B, V, K) per-vertex values -> (B, F, 3, K) values at each face's corners."""
-        idx = self.faces.reshape(self.batch, -1)
-        return np.take_along_axis(per_vertex, idx[..., None], 1).reshape(
-            self.batch, self.n_faces, 3, per_vertex.shape[-1])
+        return per_vertex[np.arange(self.batch)[:, None, None], self.faces]
 
     def face_attributes(self) -> np.ndarray:
         """(B*F, K) colour data per face for the kernel: 9 corner colours, R*R*3 texels, 6 uvs."""

@@ -17,7 +17,7 @@ from .program import build_kernel
 from .settings import RasterSettings
 
 TILE = 8            # tiles are TILE x TILE pixels; one kernel vector = TILE pixels of a row
-FACE_STRIDE = 24    # reals per face in the geometry buffer (see Face in soft_raster.cl)
+FACE_STRIDE = 28    # reals per face in the geometry buffer (see Face in soft_raster.cl)
 MIN_AREA = 1e-12    # faces with |doubled NDC area| below this are dropped
 GRAD_NAMES = ("vertices", "colors")
 # Work-group shape of both kernels. Set explicitly: left to the driver, PoCL picked groups of
@@ -288,11 +288,11 @@ class SoftRasterizer:
         s = self.settings
         if s.color_agg != "softmax" or not {"rgb", "depth"} & set(s.outputs):
             return None
-        total = np.zeros(images.get("rgb", images.get("depth")).shape[1:], np.float64)
+        total = np.zeros(images.get("rgb", images.get("depth")).shape[1:], self.real)
         for cot_name, img_name in (("grad_rgb", "rgb"), ("grad_depth", "depth")):
             if cot_name in planes:
-                total += np.einsum("cbhw,cbhw->bhw", planes[cot_name].astype(np.float64), images[img_name])
-        return total.astype(self.real)
+                total += (planes[cot_name] * images[img_name]).sum(0)
+        return total
 
 
 # ---- face setup and binning (numpy, O(F) and O(bins)) ---------------------------------------
@@ -311,26 +311,25 @@ def face_setup(mesh: MeshInputs, s: RasterSettings) -> tuple[np.ndarray, np.ndar
 
     Returns geom (B*F, FACE_STRIDE) float64 (layout: Face in soft_raster.cl) and drawable (B*F,) bool.
     """
-    tri = mesh.triangles().reshape(-1, 3, 3)            # (B*F, corner, xyz)
-    x, y, z = tri[..., 0], tri[..., 1], tri[..., 2]
-    area = (x[:, 1] - x[:, 0]) * (y[:, 2] - y[:, 0]) - (x[:, 2] - x[:, 0]) * (y[:, 1] - y[:, 0])
-    drawable = ((np.abs(area) >= MIN_AREA) & (z > 0).all(1)
-                & ~(z < s.near).all(1) & ~(z > s.far).all(1))
+    # one contiguous (B*F,) array per coordinate of each corner: x[k], y[k], z[k]
+    x, y, z = np.moveaxis(mesh.triangles().reshape(-1, 3, 3), (2, 1), (0, 1)).copy()
+    area = (x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0])
+    drawable = ((np.abs(area) >= MIN_AREA) & (z.min(0) > 0) & (z.max(0) >= s.near) & (z.min(0) <= s.far))
     if not s.double_sided:
         drawable &= area > 0
-    safe_area = np.where(drawable, area, 1.0)
-    m1 = np.stack([(y[:, 2] - y[:, 0]), -(x[:, 2] - x[:, 0])], 1) / safe_area[:, None]
-    m2 = np.stack([-(y[:, 1] - y[:, 0]), (x[:, 1] - x[:, 0])], 1) / safe_area[:, None]
-    edge = np.roll(tri[..., :2], -1, axis=1) - tri[..., :2]   # v1-v0, v2-v1, v0-v2
-    len2 = (edge ** 2).sum(-1)
-    geom = np.zeros((tri.shape[0], FACE_STRIDE))
-    geom[:, 0:6] = tri[..., :2].reshape(-1, 6)
-    geom[:, 6:12] = np.concatenate([-(m1 + m2), m1, m2], 1)
-    geom[:, 12:15] = z
-    geom[:, 15:18] = 1.0 / np.where(drawable[:, None], z, 1.0)
-    geom[:, 18:21] = 1.0 / np.where(drawable[:, None] & (len2 > 0), len2, 1.0)
-    geom[~drawable] = 0.0
-    return geom, drawable
+    inv_area = 1.0 / np.where(drawable, area, 1.0)
+    m1 = ((y[2] - y[0]) * inv_area, -(x[2] - x[0]) * inv_area)
+    m2 = (-(y[1] - y[0]) * inv_area, (x[1] - x[0]) * inv_area)
+    edge_len2 = [(x[(k + 1) % 3] - x[k]) ** 2 + (y[(k + 1) % 3] - y[k]) ** 2 for k in range(3)]
+    rows = np.zeros((FACE_STRIDE, len(area)))
+    rows[0:6:2], rows[1:6:2] = x, y
+    rows[6:12] = [-(m1[0] + m2[0]), -(m1[1] + m2[1]), *m1, *m2]
+    rows[12:15] = z
+    rows[15:18] = 1.0 / np.where(drawable, z, 1.0)
+    rows[18:21] = [1.0 / np.where(drawable & (l2 > 0), l2, 1.0) for l2 in edge_len2]
+    rows[24:28] = _footprint_boxes(x, y, s)
+    rows[:, ~drawable] = 0.0
+    return np.ascontiguousarray(rows.T), drawable
 
 
 def footprint_margin(s: RasterSettings) -> float:
@@ -347,29 +346,33 @@ def footprint_margin(s: RasterSettings) -> float:
     return math.sqrt(s.sigma * math.log(1.0 / s.dist_eps - 1.0))
 
 
-def _footprint_boxes(geom: np.ndarray, s: RasterSettings) -> np.ndarray:
-    """(B*F, 4) NDC boxes (xmin, xmax, ymin, ymax) where a face can reach D >= dist_eps."""
-    xy = geom[:, 0:6].reshape(-1, 3, 2)
+def _footprint_boxes(x: np.ndarray, y: np.ndarray, s: RasterSettings) -> np.ndarray:
+    """(4, B*F) NDC boxes (xmin, xmax, ymin, ymax) where a face can reach D >= dist_eps, from
+    corner coordinates x, y (3, B*F).
+
+    Grown by a thousandth of a pixel, so that float32 kernels never meet a pair the box
+    excludes; unbounded footprints (dist_eps = 0) are clipped to +-1e6.
+    """
     margin = footprint_margin(s)
     if s.metric == "barycentric" and math.isfinite(margin):
-        centre = xy.mean(1, keepdims=True)
-        xy = centre + (1 + 3 * margin) * (xy - centre)   # region min(b) >= -margin
+        grow = 1 + 3 * margin                              # region min(b) >= -margin
+        x = x.mean(0) + grow * (x - x.mean(0))
+        y = y.mean(0) + grow * (y - y.mean(0))
         margin = 0.0
-    lo, hi = xy.min(1) - margin, xy.max(1) + margin
-    return np.stack([lo[:, 0], hi[:, 0], lo[:, 1], hi[:, 1]], 1)
+    margin += 2e-3 / min(s.width, s.height)
+    box = [x.min(0) - margin, x.max(0) + margin, y.min(0) - margin, y.max(0) + margin]
+    return np.clip(box, -1e6, 1e6)
 
 
 def _pixel_ranges(boxes: np.ndarray, s: RasterSettings):
     """Inclusive pixel column and row ranges whose centres fall in the boxes (clipped)."""
     w, h = s.width, s.height
     inv_ps = min(w, h) / 2.0
-    slack = 1e-3    # pixels: keeps float32 kernels from meeting pairs the binning dropped
-    with np.errstate(invalid="ignore", over="ignore"):
-        c0 = np.ceil(boxes[:, 0] * inv_ps + w / 2 - 0.5 - slack)
-        c1 = np.floor(boxes[:, 1] * inv_ps + w / 2 - 0.5 + slack)
-        r0 = np.ceil(h / 2 - 0.5 - boxes[:, 3] * inv_ps - slack)
-        r1 = np.floor(h / 2 - 0.5 - boxes[:, 2] * inv_ps + slack)
-    clip = lambda a, n: np.clip(np.nan_to_num(a, nan=0.0, posinf=n, neginf=-1), -1, n).astype(np.int64)
+    c0 = np.ceil(boxes[:, 0] * inv_ps + w / 2 - 0.5)
+    c1 = np.floor(boxes[:, 1] * inv_ps + w / 2 - 0.5)
+    r0 = np.ceil(h / 2 - 0.5 - boxes[:, 3] * inv_ps)
+    r1 = np.floor(h / 2 - 0.5 - boxes[:, 2] * inv_ps)
+    clip = lambda a, n: np.clip(a, -1, n).astype(np.int64)
     return clip(c0, w), clip(c1, w), clip(r0, h), clip(r1, h)
 
 
@@ -377,7 +380,7 @@ def bin_faces(geom: np.ndarray, drawable: np.ndarray, batch: int, n_faces: int,
               s: RasterSettings) -> Bins:
     """Bin every drawable face into the TILE x TILE tiles its footprint touches."""
     ntx, nty = _tiles(s)
-    c0, c1, r0, r1 = _pixel_ranges(_footprint_boxes(geom, s), s)
+    c0, c1, r0, r1 = _pixel_ranges(geom[:, 24:28], s)
     c0, r0 = np.maximum(c0, 0), np.maximum(r0, 0)
     c1, r1 = np.minimum(c1, s.width - 1), np.minimum(r1, s.height - 1)
     live = drawable & (c1 >= c0) & (r1 >= r0)
