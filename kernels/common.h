@@ -2,23 +2,39 @@
  *
  * Build-time flags (set by softras_cl/program.py):
  *   SR_DOUBLE      1: real = double (needs cl_khr_fp64), 0: real = float
- * Every kernel works on SR_VEC = 8 adjacent pixels of one image row at a time, as realv vectors,
+ * Every kernel works on SR_VEC adjacent pixels (8 floats or 4 doubles) of one image row at a time,
+ * as realv vectors,
  * so CPU drivers use their SIMD lanes and GPU drivers simply see wider work-items.
  */
 #if SR_DOUBLE
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
+/* 4 doubles (256 bits): wider double vectors break pip's PoCL 3.0 on CPUs without AVX-512 (its
+ * kernel cache returns programs with no kernels), and 256 bits is the native width anyway. */
 typedef double real;
-typedef double8 realv;
-typedef long8 maskv;   /* result type of comparisons between double8 */
+typedef double4 realv;
+typedef long4 maskv;    /* result type of comparisons between double4 */
+#define SR_VEC 4
+#define VLOAD vload4
+#define VSTORE vstore4
+#define TO_INT convert_int4
+#define TO_MASK convert_long4
+#define LAST_LANE(v) ((v).s3)
+#define LANE_OFFSETS ((realv)(R(0.5), R(1.5), R(2.5), R(3.5)))
 #define REAL_MAX DBL_MAX
 #else
 typedef float real;
 typedef float8 realv;
-typedef int8 maskv;    /* result type of comparisons between float8 */
+typedef int8 maskv;     /* result type of comparisons between float8 */
+#define SR_VEC 8
+#define VLOAD vload8
+#define VSTORE vstore8
+#define TO_INT
+#define TO_MASK
+#define LAST_LANE(v) ((v).s7)
+#define LANE_OFFSETS ((realv)(R(0.5), R(1.5), R(2.5), R(3.5), R(4.5), R(5.5), R(6.5), R(7.5)))
 #define REAL_MAX FLT_MAX
 #endif
 
-#define SR_VEC 8
 #define R(x) ((real)(x))
 
 /* log(sigmoid(x)) without overflow for any finite x: min(x, 0) - log1p(exp(-|x|)). */
@@ -32,7 +48,7 @@ inline real lane_sum(realv v)
 {
     real s = R(0);
     real lanes[SR_VEC];
-    vstore8(v, 0, lanes);
+    VSTORE(v, 0, lanes);
     for (int l = 0; l < SR_VEC; ++l)
         s += lanes[l];
     return s;

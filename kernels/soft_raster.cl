@@ -10,19 +10,18 @@
  *   SR_SAVE_STATE         forward also writes what the backward needs
  *   SR_GRAD_POS, SR_GRAD_COLOR   which gradients the backward computes
  *
- * Work layout: the image (padded to Wp x Hp, multiples of 8) is cut into 8 x 8 tiles; the host
- * bins each face into the tiles its cut-off footprint touches, in increasing face order.
- * Forward: one work-item = 8 adjacent pixels of one row (a realv), looping over its tile's faces.
+ * Work layout: the image (padded to Wp x Hp) is cut into tiles of SR_VEC x TILE_H pixels; the
+ * host bins each face into the tiles its cut-off footprint touches, in increasing face order.
+ * Forward: one work-item = SR_VEC adjacent pixels of one row (a realv), looping over its tile's faces.
  * Backward: one work-item = one tile, looping over its faces; each (tile, face) pair writes its
  * summed gradient to its own slot, and the host adds the slots of each face in a fixed order, so
  * results are bit-identical run to run (no float atomics).
  * Per-pixel images are stored as planes (channel-major) of Wp x Hp pixels per batch item.
  */
 
-#define TILE 8
+#define TILE_H 8   /* tile height in rows; tile width is SR_VEC */
 #define FACE_STRIDE 28
 #define SR_NEED_COLOR (SR_OUT_RGB || SR_OUT_DEPTH)
-#define LANE_OFFSETS ((realv)(R(0.5), R(1.5), R(2.5), R(3.5), R(4.5), R(5.5), R(6.5), R(7.5)))
 
 #if SR_TEXTURE == 2 && SR_GRAD_COLOR
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
@@ -67,7 +66,7 @@ typedef struct {
     real inv_sigma, x_cut, inv_gamma, eps, near, far, inv_range;
 } Params;
 
-/* Everything about one face at 8 pixels of a row. */
+/* Everything about one face at the SR_VEC pixels of a row. */
 typedef struct {
     realv b[3];           /* unclipped barycentrics */
     maskv inside;
@@ -171,7 +170,7 @@ inline Frag eval_frag(const Face *f, realv px, real py, const Params *p)
     return r;
 }
 
-/* ---- colour of a face at 8 pixels ------------------------------------------------------- */
+/* ---- colour of a face at SR_VEC pixels ------------------------------------------------------- */
 #if SR_TEXTURE == 1
 inline int face_texel(real a0, real a1, int res)
 {
@@ -221,9 +220,9 @@ inline void face_color(__global const real *attr, __global const real *tex_image
         C[c] = r->a[0] * col[c] + r->a[1] * col[3 + c] + r->a[2] * col[6 + c];
 #else
     real a0[SR_VEC], a1[SR_VEC], a2[SR_VEC], out[3][SR_VEC];
-    vstore8(r->a[0], 0, a0);
-    vstore8(r->a[1], 0, a1);
-    vstore8(r->a[2], 0, a2);
+    VSTORE(r->a[0], 0, a0);
+    VSTORE(r->a[1], 0, a1);
+    VSTORE(r->a[2], 0, a2);
 #if SR_TEXTURE == 1
     __global const real *tex = attr + (size_t)face * tex_res * tex_res * 3;
     for (int l = 0; l < SR_VEC; ++l) {
@@ -250,12 +249,12 @@ inline void face_color(__global const real *attr, __global const real *tex_image
     }
     if (dC_du)
         for (int c = 0; c < 3; ++c) {
-            dC_du[c] = vload8(0, du[c]);
-            dC_dv[c] = vload8(0, dv[c]);
+            dC_du[c] = VLOAD(0, du[c]);
+            dC_dv[c] = VLOAD(0, dv[c]);
         }
 #endif
     for (int c = 0; c < 3; ++c)
-        C[c] = vload8(0, out[c]);
+        C[c] = VLOAD(0, out[c]);
 #endif
 }
 
@@ -284,7 +283,7 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
     if (row >= H || cb >= ntx)    /* padding rows / work-items of the last group */
         return;
     const Params p = make_params(inv_sigma, x_cut, inv_gamma, eps, near, far);
-    const int tile = (batch * nty + row / TILE) * ntx + cb;
+    const int tile = (batch * nty + row / TILE_H) * ntx + cb;
     const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
     const size_t pix = ((size_t)batch * Hp + row) * Wp + cb * SR_VEC;
     const realv px = ((real)(cb * SR_VEC) - R(0.5) * W + LANE_OFFSETS) * pix_scale;
@@ -310,7 +309,7 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
 
     for (int k = tile_start[tile]; k < tile_start[tile + 1]; ++k) {
         const int face = tile_faces[k];
-        if (outside_footprint(geom, face, px.s0, px.s7, py))
+        if (outside_footprint(geom, face, px.s0, LAST_LANE(px), py))
             continue;
         const Face f = load_face(geom, face);
         const Frag r = eval_frag(&f, px, py, &p);
@@ -359,41 +358,41 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
     const realv inv_S = R(1) / S;
 #if SR_OUT_RGB
     for (int c = 0; c < 3; ++c)
-        vstore8(acc[c] * inv_S, 0, out_rgb + c * npix + pix);
+        VSTORE(acc[c] * inv_S, 0, out_rgb + c * npix + pix);
 #endif
 #if SR_OUT_DEPTH
-    vstore8(accZ * inv_S, 0, out_depth + pix);
+    VSTORE(accZ * inv_S, 0, out_depth + pix);
 #endif
 #if SR_SAVE_STATE
-    vstore8(m + log(S), 0, color_state + pix);
+    VSTORE(m + log(S), 0, color_state + pix);
 #endif
 #elif SR_NEED_COLOR
 #if SR_OUT_RGB
     for (int c = 0; c < 3; ++c)
-        vstore8(best[c], 0, out_rgb + c * npix + pix);
+        VSTORE(best[c], 0, out_rgb + c * npix + pix);
 #endif
 #if SR_OUT_DEPTH
-    vstore8(bestZ, 0, out_depth + pix);
+    VSTORE(bestZ, 0, out_depth + pix);
 #endif
 #if SR_SAVE_STATE
-    vstore8(convert_int8(best_id), 0, id_state + pix);
+    VSTORE(TO_INT(best_id), 0, id_state + pix);
 #endif
 #endif
 
 #if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
-    vstore8(-expm1(l_rest + l_min), 0, out_alpha + pix);
+    VSTORE(-expm1(l_rest + l_min), 0, out_alpha + pix);
 #if SR_SAVE_STATE
-    vstore8(l_rest, 0, alpha_state + pix);
-    vstore8(l_min, 0, alpha_state + npix + pix);
-    vstore8(convert_int8(min_id), 0, id_state + npix + pix);
+    VSTORE(l_rest, 0, alpha_state + pix);
+    VSTORE(l_min, 0, alpha_state + npix + pix);
+    VSTORE(TO_INT(min_id), 0, id_state + npix + pix);
 #endif
 #elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
-    vstore8(fmin(sumD, R(1)), 0, out_alpha + pix);
+    VSTORE(fmin(sumD, R(1)), 0, out_alpha + pix);
 #if SR_SAVE_STATE
-    vstore8(sumD, 0, alpha_state + pix);
+    VSTORE(sumD, 0, alpha_state + pix);
 #endif
 #elif SR_OUT_ALPHA
-    vstore8(select((realv)R(0), (realv)R(1), covered), 0, out_alpha + pix);
+    VSTORE(select((realv)R(0), (realv)R(1), covered), 0, out_alpha + pix);
 #endif
 }
 
@@ -404,7 +403,7 @@ typedef struct {
     realv gcol[9];               /* dL/d(vertex colour) (texture == vertex) */
 } Accum;
 
-/* Cotangents and saved state at 8 pixels. */
+/* Cotangents and saved state at SR_VEC pixels. */
 typedef struct {
     realv g[3], g_alpha, g_depth, g_dot_img;
     realv lse, l_rest, l_min, sumD;
@@ -418,30 +417,22 @@ inline PixelIn load_pixel(__global const real *grad_rgb, __global const real *gr
 {
     PixelIn in;
     for (int c = 0; c < 3; ++c)
-        in.g[c] = SR_OUT_RGB ? vload8(0, grad_rgb + c * npix + pix) : (realv)R(0);
-    in.g_depth = SR_OUT_DEPTH ? vload8(0, grad_depth + pix) : (realv)R(0);
+        in.g[c] = SR_OUT_RGB ? VLOAD(0, grad_rgb + c * npix + pix) : (realv)R(0);
+    in.g_depth = SR_OUT_DEPTH ? VLOAD(0, grad_depth + pix) : (realv)R(0);
 #if SR_NEED_COLOR && !SR_COLOR_HARD
-    in.g_dot_img = vload8(0, g_dot_img + pix);
-    in.lse = vload8(0, color_state + pix);
+    in.g_dot_img = VLOAD(0, g_dot_img + pix);
+    in.lse = VLOAD(0, color_state + pix);
 #elif SR_NEED_COLOR
-#if SR_DOUBLE
-    in.best_id = convert_long8(vload8(0, id_state + pix));
-#else
-    in.best_id = vload8(0, id_state + pix);
-#endif
+    in.best_id = TO_MASK(VLOAD(0, id_state + pix));
 #endif
 #if SR_OUT_ALPHA
-    in.g_alpha = vload8(0, grad_alpha + pix);
+    in.g_alpha = VLOAD(0, grad_alpha + pix);
 #if SR_ALPHA_AGG == 0
-    in.l_rest = vload8(0, alpha_state + pix);
-    in.l_min = vload8(0, alpha_state + npix + pix);
-#if SR_DOUBLE
-    in.min_id = convert_long8(vload8(0, id_state + npix + pix));
-#else
-    in.min_id = vload8(0, id_state + npix + pix);
-#endif
+    in.l_rest = VLOAD(0, alpha_state + pix);
+    in.l_min = VLOAD(0, alpha_state + npix + pix);
+    in.min_id = TO_MASK(VLOAD(0, id_state + npix + pix));
 #elif SR_ALPHA_AGG == 1
-    in.sumD = vload8(0, alpha_state + pix);
+    in.sumD = VLOAD(0, alpha_state + pix);
 #endif
 #endif
     return in;
@@ -474,7 +465,7 @@ inline void edge_vjp(const Frag *r, realv g_d2, maskv valid, Accum *acc)
 }
 #endif
 
-/* Adjoint of one (face, 8 pixels) pair: the whole chain from the image cotangents to the face's
+/* Adjoint of one (face, SR_VEC pixels) pair: the whole chain from the image cotangents to the face's
  * vertices and colours. */
 inline void pair_vjp(const Face *f, const Frag *r, const PixelIn *in, const Params *p, int face,
                      __global const real *attr, __global const real *tex_image,
@@ -574,10 +565,10 @@ inline void add_face_texel_grads(const Frag *r, const realv gC[3], int tex_res,
                                  __global real *slot_tex)
 {
     real a0[SR_VEC], a1[SR_VEC], g[3][SR_VEC];
-    vstore8(r->a[0], 0, a0);
-    vstore8(r->a[1], 0, a1);
+    VSTORE(r->a[0], 0, a0);
+    VSTORE(r->a[1], 0, a1);
     for (int c = 0; c < 3; ++c)
-        vstore8(keep(gC[c], r->valid), 0, g[c]);
+        VSTORE(keep(gC[c], r->valid), 0, g[c]);
     for (int l = 0; l < SR_VEC; ++l) {
         int texel = face_texel(a0[l], a1[l], tex_res) * 3;
         for (int c = 0; c < 3; ++c)
@@ -591,11 +582,11 @@ inline void add_uv_texel_grads(const Frag *r, const realv gC[3], __global const 
                                int tex_h, int tex_w, real scale, __global long *tex_grad)
 {
     real a0[SR_VEC], a1[SR_VEC], a2[SR_VEC], g[3][SR_VEC];
-    vstore8(r->a[0], 0, a0);
-    vstore8(r->a[1], 0, a1);
-    vstore8(r->a[2], 0, a2);
+    VSTORE(r->a[0], 0, a0);
+    VSTORE(r->a[1], 0, a1);
+    VSTORE(r->a[2], 0, a2);
     for (int c = 0; c < 3; ++c)
-        vstore8(keep(gC[c], r->valid), 0, g[c]);
+        VSTORE(keep(gC[c], r->valid), 0, g[c]);
     for (int l = 0; l < SR_VEC; ++l) {
         if (g[0][l] == R(0) && g[1][l] == R(0) && g[2][l] == R(0))
             continue;
@@ -629,7 +620,7 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
     const int tile = (batch * nty + tile_row) * ntx + cb;
     const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
     const realv px = ((real)(cb * SR_VEC) - R(0.5) * W + LANE_OFFSETS) * pix_scale;
-    const int rows = min(TILE, H - tile_row * TILE);
+    const int rows = min(TILE_H, H - tile_row * TILE_H);
     __global const real *image = tex_image + (size_t)batch * tex_h * tex_w * 3;
 
     for (int k = tile_start[tile]; k < tile_start[tile + 1]; ++k) {
@@ -642,9 +633,9 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
             acc.gcol[i] = (realv)R(0);
 
         for (int dr = 0; dr < rows; ++dr) {
-            const int row = tile_row * TILE + dr;
+            const int row = tile_row * TILE_H + dr;
             const real py = (R(0.5) * H - row - R(0.5)) * pix_scale;
-            if (outside_footprint(geom, face, px.s0, px.s7, py))
+            if (outside_footprint(geom, face, px.s0, LAST_LANE(px), py))
                 continue;
             const Frag r = eval_frag(&f, px, py, &p);
             if (!any(r.valid))

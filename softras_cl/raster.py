@@ -16,7 +16,7 @@ from .inputs import MeshInputs, check_cotangent, check_inputs
 from .program import build_kernel
 from .settings import RasterSettings
 
-TILE = 8            # tiles are TILE x TILE pixels; one kernel vector = TILE pixels of a row
+TILE_H = 8          # tile height in rows; tile width = kernel vector width (_tile_width)
 FACE_STRIDE = 28    # reals per face in the geometry buffer (see Face in soft_raster.cl)
 MIN_AREA = 1e-12    # faces with |doubled NDC area| below this are dropped
 GRAD_NAMES = ("vertices", "colors")
@@ -132,10 +132,10 @@ class SoftRasterizer:
 
     def _geometry_args(self, mesh: MeshInputs, bufs: dict) -> list:
         s, real = self.settings, self.real.type
-        ntx, nty = _tiles(s)
+        g = _grid(s)
         x_cut = -np.finfo(self.real).max if s.dist_eps == 0 else math.log(s.dist_eps / (1 - s.dist_eps))
         i32 = np.int32
-        return [i32(s.width), i32(s.height), i32(ntx * TILE), i32(nty * TILE), i32(ntx), i32(nty),
+        return [i32(s.width), i32(s.height), i32(g.wp), i32(g.hp), i32(g.ntx), i32(g.nty),
                 real(2.0 / min(s.width, s.height)), real(1.0 / s.sigma), real(x_cut),
                 real(1.0 / s.gamma), real(s.eps), real(s.near), real(s.far),
                 i32(mesh.tex_res), i32(mesh.tex_shape[0]), i32(mesh.tex_shape[1]),
@@ -143,8 +143,8 @@ class SoftRasterizer:
 
     def _run_forward(self, mesh: MeshInputs, bufs: dict, save_state: bool) -> dict:
         s, real = self.settings, self.real
-        ntx, nty = _tiles(s)
-        npix = mesh.batch * nty * TILE * ntx * TILE
+        g = _grid(s)
+        npix = mesh.batch * g.hp * g.wp
         planes = dict(rgb=3 if "rgb" in s.outputs else 0, alpha=int("alpha" in s.outputs),
                       depth=int("depth" in s.outputs))
         out = {n: cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, npix * k * real.itemsize)
@@ -152,7 +152,7 @@ class SoftRasterizer:
         state = self._state_buffers(npix) if save_state else {}
         dummy = self._dummy()
         knl = self._kernel("soft_raster_fwd", (), save_state)
-        knl(self.queue, (_round_up(ntx), nty * TILE, mesh.batch), GROUP, *self._geometry_args(mesh, bufs),
+        knl(self.queue, (_round_up(g.ntx), g.hp, mesh.batch), GROUP, *self._geometry_args(mesh, bufs),
             *(real.type(c) for c in s.background),
             *(out.get(n, dummy) for n in ("rgb", "alpha", "depth")),
             *(state.get(n, dummy) for n in ("color", "alpha", "ids")))
@@ -175,7 +175,7 @@ class SoftRasterizer:
 
     def _run_backward(self, saved: dict, cot: dict):
         s, real, mesh, bins = self.settings, self.real, saved["mesh"], saved["bins"]
-        ntx, nty = _tiles(s)
+        g = _grid(s)
         images, grads = saved["images"], saved["grads"]
         # an output without a cotangent contributes zero; the kernel variant still reads its plane
         planes = {n: self._pad_planes(c if c is not None else np.zeros(_cot_shape(n, mesh.batch, s)), mesh.batch)
@@ -197,7 +197,7 @@ class SoftRasterizer:
         if not kernel_grads:    # colour gradients only, and no rgb cotangent: all zero
             return slot_pos, slot_attr, tex_fixed, scale
         knl = self._kernel("soft_raster_bwd", kernel_grads, True)
-        knl(self.queue, (_round_up(ntx), nty, mesh.batch), GROUP, *self._geometry_args(mesh, saved["bufs"]),
+        knl(self.queue, (_round_up(g.ntx), g.nty, mesh.batch), GROUP, *self._geometry_args(mesh, saved["bufs"]),
             saved["bufs"]["tile_slots"], *cot_bufs, g_dot_buf,
             *(state.get(k, dummy) for k in ("color", "alpha", "ids")), real.type(scale), *out_bufs)
         for host, dev in zip((slot_pos, slot_attr, tex_fixed), out_bufs):
@@ -262,8 +262,8 @@ class SoftRasterizer:
 
     def _download(self, buf: cl.Buffer, n_planes: int, batch: int) -> np.ndarray:
         """(planes, B, Hp, Wp) host copy of a per-pixel device buffer."""
-        ntx, nty = _tiles(self.settings)
-        host = np.empty((n_planes, batch, nty * TILE, ntx * TILE), self.real)
+        g = _grid(self.settings)
+        host = np.empty((n_planes, batch, g.hp, g.wp), self.real)
         cl.enqueue_copy(self.queue, host, buf)
         return host
 
@@ -277,9 +277,9 @@ class SoftRasterizer:
 
     def _pad_planes(self, image: np.ndarray, batch: int) -> np.ndarray:
         """(B, H, W[, C]) -> (C, B, Hp, Wp) zero-padded, in the kernel dtype."""
-        ntx, nty = _tiles(self.settings)
+        g = _grid(self.settings)
         planes = image[None] if image.ndim == 3 else np.moveaxis(image, -1, 0)
-        out = np.zeros((planes.shape[0], batch, nty * TILE, ntx * TILE), self.real)
+        out = np.zeros((planes.shape[0], batch, g.hp, g.wp), self.real)
         out[:, :, :image.shape[1], :image.shape[2]] = planes
         return out
 
@@ -301,9 +301,27 @@ def _round_up(n: int) -> int:
     return -(-n // GROUP[0]) * GROUP[0]
 
 
-def _tiles(s: RasterSettings) -> tuple[int, int]:
-    """(tiles across, tiles down) for the settings' image size."""
-    return -(-s.width // TILE), -(-s.height // TILE)
+@dataclass(frozen=True)
+class Grid:
+    """Tiling of the image: tiles of tile_w x TILE_H pixels, ntx x nty of them, covering the
+    padded image of wp x hp pixels that every per-pixel device buffer holds."""
+    tile_w: int
+    ntx: int
+    nty: int
+
+    @property
+    def wp(self) -> int:
+        return self.ntx * self.tile_w
+
+    @property
+    def hp(self) -> int:
+        return self.nty * TILE_H
+
+
+def _grid(s: RasterSettings) -> Grid:
+    """The tiling for the settings: one tile row is one kernel vector (8 floats or 4 doubles)."""
+    tile_w = 4 if s.dtype == "float64" else 8
+    return Grid(tile_w, -(-s.width // tile_w), -(-s.height // TILE_H))
 
 
 def face_setup(mesh: MeshInputs, s: RasterSettings) -> tuple[np.ndarray, np.ndarray]:
@@ -378,15 +396,15 @@ def _pixel_ranges(boxes: np.ndarray, s: RasterSettings):
 
 def bin_faces(geom: np.ndarray, drawable: np.ndarray, batch: int, n_faces: int,
               s: RasterSettings) -> Bins:
-    """Bin every drawable face into the TILE x TILE tiles its footprint touches."""
-    ntx, nty = _tiles(s)
+    """Bin every drawable face into the tiles its footprint touches."""
+    g = _grid(s)
     c0, c1, r0, r1 = _pixel_ranges(geom[:, 24:28], s)
     c0, r0 = np.maximum(c0, 0), np.maximum(r0, 0)
     c1, r1 = np.minimum(c1, s.width - 1), np.minimum(r1, s.height - 1)
     live = drawable & (c1 >= c0) & (r1 >= r0)
-    tx0, ty0 = c0 // TILE, r0 // TILE
-    nx = np.where(live, c1 // TILE - tx0 + 1, 0)
-    ny = np.where(live, r1 // TILE - ty0 + 1, 0)
+    tx0, ty0 = c0 // g.tile_w, r0 // TILE_H
+    nx = np.where(live, c1 // g.tile_w - tx0 + 1, 0)
+    ny = np.where(live, r1 // TILE_H - ty0 + 1, 0)
     counts = nx * ny
     face_start = np.concatenate([[0], np.cumsum(counts)])
     total = int(face_start[-1])
@@ -397,9 +415,9 @@ def bin_faces(geom: np.ndarray, drawable: np.ndarray, batch: int, n_faces: int,
     local = np.arange(total) - face_start[face]
     tx = tx0[face] + local % nx[face]
     ty = ty0[face] + local // nx[face]
-    tile = ((face // n_faces) * nty + ty) * ntx + tx if total else np.zeros(0, np.int64)
+    tile = ((face // n_faces) * g.nty + ty) * g.ntx + tx if total else np.zeros(0, np.int64)
     order = np.argsort(tile, kind="stable")
-    tile_start = np.concatenate([[0], np.cumsum(np.bincount(tile, minlength=batch * ntx * nty))])
+    tile_start = np.concatenate([[0], np.cumsum(np.bincount(tile, minlength=batch * g.ntx * g.nty))])
     return Bins(tile_start.astype(np.int32), face[order].astype(np.int32),
                 order.astype(np.int32), face_start)
 
