@@ -289,9 +289,10 @@ class SoftRasterizer:
         if s.color_agg != "softmax" or not {"rgb", "depth"} & set(s.outputs):
             return None
         total = np.zeros(images.get("rgb", images.get("depth")).shape[1:], self.real)
+        h = s.height   # the forward never writes the padding rows below the image
         for cot_name, img_name in (("grad_rgb", "rgb"), ("grad_depth", "depth")):
             if cot_name in planes:
-                total += (planes[cot_name] * images[img_name]).sum(0)
+                total[:, :h] += (planes[cot_name][:, :, :h] * images[img_name][:, :, :h]).sum(0)
         return total
 
 
