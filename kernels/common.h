@@ -20,7 +20,6 @@ typedef long4 maskv;    /* result type of comparisons between double4 */
 #define TO_MASK convert_long4
 #define LAST_LANE(v) ((v).s3)
 #define LANE_OFFSETS ((realv)(R(0.5), R(1.5), R(2.5), R(3.5)))
-#define REAL_MAX DBL_MAX
 #else
 typedef float real;
 typedef float8 realv;
@@ -32,7 +31,6 @@ typedef int8 maskv;     /* result type of comparisons between float8 */
 #define TO_MASK
 #define LAST_LANE(v) ((v).s7)
 #define LANE_OFFSETS ((realv)(R(0.5), R(1.5), R(2.5), R(3.5), R(4.5), R(5.5), R(6.5), R(7.5)))
-#define REAL_MAX FLT_MAX
 #endif
 
 #define R(x) ((real)(x))

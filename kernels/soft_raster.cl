@@ -63,7 +63,7 @@ inline Face load_face(__global const real *geom, int face)
 
 /* Scene constants shared by the forward and backward kernels. */
 typedef struct {
-    real inv_sigma, x_cut, inv_gamma, eps, near, far, inv_range;
+    real inv_sigma, x_cut, inv_gamma, near, far, inv_range;
 } Params;
 
 /* Everything about one face at the SR_VEC pixels of a row. */
@@ -258,9 +258,9 @@ inline void face_color(__global const real *attr, __global const real *tex_image
 #endif
 }
 
-inline Params make_params(real inv_sigma, real x_cut, real inv_gamma, real eps, real near, real far)
+inline Params make_params(real inv_sigma, real x_cut, real inv_gamma, real near, real far)
 {
-    Params p = {inv_sigma, x_cut, inv_gamma, eps, near, far, R(1) / (far - near)};
+    Params p = {inv_sigma, x_cut, inv_gamma, near, far, R(1) / (far - near)};
     return p;
 }
 
@@ -282,7 +282,7 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
     const int cb = get_global_id(0), row = get_global_id(1), batch = get_global_id(2);
     if (row >= H || cb >= ntx)    /* padding rows / work-items of the last group */
         return;
-    const Params p = make_params(inv_sigma, x_cut, inv_gamma, eps, near, far);
+    const Params p = make_params(inv_sigma, x_cut, inv_gamma, near, far);
     const int tile = (batch * nty + row / TILE_H) * ntx + cb;
     const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
     const size_t pix = ((size_t)batch * Hp + row) * Wp + cb * SR_VEC;
@@ -616,7 +616,7 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
     const int cb = get_global_id(0), tile_row = get_global_id(1), batch = get_global_id(2);
     if (cb >= ntx)                /* work-items of the last group beyond the image */
         return;
-    const Params p = make_params(inv_sigma, x_cut, inv_gamma, eps, near, far);
+    const Params p = make_params(inv_sigma, x_cut, inv_gamma, near, far);
     const int tile = (batch * nty + tile_row) * ntx + cb;
     const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
     const realv px = ((real)(cb * SR_VEC) - R(0.5) * W + LANE_OFFSETS) * pix_scale;

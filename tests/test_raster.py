@@ -213,3 +213,20 @@ def test_memory_grows_with_bins_not_pixels_times_faces():
     tiles = (256 // 8) ** 2
     assert e3 < 0.05 * f3 * tiles and e4 < 0.05 * f4 * tiles
     assert e4 / e3 < 4.0   # 4x faces, each smaller: fewer than 4x entries
+
+
+def test_unused_outputs_are_neither_computed_nor_allocated():
+    vertices, faces, _ = random_scene(10)
+    out = SoftRasterizer(settings(outputs=("alpha",))).forward(vertices, faces, grads=("vertices",))
+    assert out.rgb is None and out.depth is None
+    assert set(out.saved["images"]) == {"alpha", "state"}
+    assert "color" not in out.saved["images"]["state"]     # no softmax normaliser without rgb/depth
+
+
+def test_fast_math_variant_stays_close_to_exact_maths():
+    """-cl-fast-relaxed-math is an accuracy knob; in float32 it stays within 1e-4 here."""
+    vertices, faces, colours = random_scene(11)
+    exact = SoftRasterizer(settings(dtype="float32")).forward(vertices, faces, **colours)
+    fast = SoftRasterizer(settings(dtype="float32", fast_math=True)).forward(vertices, faces, **colours)
+    for name in OUTPUTS:
+        np.testing.assert_allclose(getattr(fast, name), getattr(exact, name), rtol=1e-4, atol=1e-4)
