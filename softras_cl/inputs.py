@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .corners import gather_corners
+
 from .settings import RasterSettings
 
 _COLOUR_ARGS = {"vertex": ("colors",), "face": ("face_textures",), "uv": ("texture_image", "uvs")}
@@ -27,6 +29,7 @@ class MeshInputs:
     uvs: np.ndarray | None = None
     vertices_batched: bool = True
     colors_batched: bool = True
+    colors_batch: int = 1          # batch size of the colour input as given (1 may be broadcast)
 
     @property
     def batch(self) -> int:
@@ -54,7 +57,7 @@ class MeshInputs:
 
     def corners(self, per_vertex: np.ndarray) -> np.ndarray:
         """(B, V, K) per-vertex values -> (B, F, 3, K) values at each face's corners."""
-        return per_vertex[np.arange(self.batch)[:, None, None], self.faces]
+        return gather_corners(per_vertex, self.faces)
 
     def face_attributes(self) -> np.ndarray:
         """(B*F, K) colour data per face for the kernel: 9 corner colours, R*R*3 texels, 6 uvs."""
@@ -73,7 +76,9 @@ class MeshInputs:
         return grad if self.vertices_batched else grad.sum(0)
 
     def unbatch_colors(self, grad: np.ndarray) -> np.ndarray:
-        return grad if self.colors_batched else grad.sum(0)
+        if not self.colors_batched:
+            return grad.sum(0)
+        return grad.sum(0, keepdims=True) if self.colors_batch == 1 else grad
 
 
 def _float_array(name: str, value, trailing: tuple, allow_unbatched: bool = True) -> tuple[np.ndarray, bool]:
@@ -156,6 +161,9 @@ def check_inputs(s: RasterSettings, vertices, faces, colors=None, face_textures=
     if "texture_image" in given:
         mesh.texture_image, mesh.colors_batched = _float_array("texture_image", texture_image, (None, None, 3))
         mesh.uvs, _ = _float_array("uvs", uvs, (n_vertices, 2))
+    colour = next((getattr(mesh, n) for n in ("colors", "face_textures", "texture_image")
+                   if getattr(mesh, n) is not None), None)
+    mesh.colors_batch = colour.shape[0] if colour is not None else 1
     for name in ("colors", "face_textures", "texture_image", "uvs"):
         if getattr(mesh, name) is not None:
             setattr(mesh, name, _match_batch(name, getattr(mesh, name), b))

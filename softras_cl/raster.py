@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyopencl as cl
 
+from .corners import scatter_corners
 from .device import get_context, has_fp64, has_int64_atomics, select_device
 from .inputs import MeshInputs, check_cotangent, check_inputs
 from .program import build_kernel
@@ -223,7 +224,7 @@ class SoftRasterizer:
         out = {}
         if "vertices" in grads:
             per_face = _sum_slots(slot_pos, bins).reshape(mesh.batch, mesh.n_faces, 3, 3)
-            out["vertices"] = mesh.unbatch_vertices(_scatter_to_vertices(per_face, mesh))
+            out["vertices"] = mesh.unbatch_vertices(scatter_corners(per_face, mesh.faces, mesh.n_vertices))
         if "colors" in grads:
             out["colors"] = mesh.unbatch_colors(self._color_grads(mesh, bins, slot_attr, tex_fixed, scale))
         return out
@@ -242,7 +243,7 @@ class SoftRasterizer:
         if slot_attr is None:
             return np.zeros((mesh.batch, mesh.n_vertices, 3))
         per_face = _sum_slots(slot_attr, bins).reshape(mesh.batch, mesh.n_faces, 3, 3)
-        return _scatter_to_vertices(per_face, mesh)
+        return scatter_corners(per_face, mesh.faces, mesh.n_vertices)
 
     # ---- buffers ---------------------------------------------------------------------------
     def _upload(self, mesh: MeshInputs, geom: np.ndarray, bins: Bins) -> dict:
@@ -432,16 +433,6 @@ def _sum_slots(slots: np.ndarray, bins: Bins) -> np.ndarray:
     if has.any():
         out[has] = np.add.reduceat(slots[:bins.n_entries].astype(np.float64), bins.face_start[:-1][has], axis=0)
     return out
-
-
-def _scatter_to_vertices(per_face_corner: np.ndarray, mesh: MeshInputs) -> np.ndarray:
-    """(B, F, 3 corners, K) -> (B, V, K) by summing each corner onto its vertex (bincount: ordered)."""
-    b, f, _, k = per_face_corner.shape
-    index = (mesh.faces + (np.arange(b) * mesh.n_vertices)[:, None, None]).ravel()
-    flat = per_face_corner.reshape(-1, k)
-    out = np.stack([np.bincount(index, weights=flat[:, c], minlength=b * mesh.n_vertices)
-                    for c in range(k)], -1)
-    return out.reshape(b, mesh.n_vertices, k)
 
 
 def _fixed_point_scale(grad_rgb: np.ndarray, real: np.dtype) -> float:
