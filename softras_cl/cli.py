@@ -62,12 +62,20 @@ def register_demo(sub) -> None:
     register(sub)
 
 
+def register_scene_commands(sub) -> None:
+    from .scene_cli import register_compare, register_render
+
+    register_render(sub)
+    register_compare(sub)
+
+
 # name -> registration function. `demo` (render a built-in mesh to a PNG) and `bench`
 # (`softras-cl bench raster`) are added here by their modules' register functions.
 SUBCOMMANDS = {
     "devices": register_devices,
     "demo": register_demo,
     "bench": register_bench,
+    "render, compare": register_scene_commands,
 }
 
 

@@ -21,7 +21,10 @@ texture="uv": row 0 of the texture is v = 1, clamp to edge).
 Vertex order: vertices come in file order, with what trimesh does on load: vertices are split
 where one position has several texture coordinates (UV seams) or materials (an OBJ with several
 `usemtl` is one trimesh geometry per material), and vertices no face uses are dropped from OBJ
-files. A scene (GLB/GLTF, or an OBJ with several materials) is concatenated in the order of its
+files. OBJ normals (`vn`) are ignored, so they split nothing (renderers compute normals from
+the geometry); glTF primitives come as stored (glTF itself splits vertices at every seam).
+
+Scenes (GLB/GLTF, or an OBJ with several materials) are concatenated in the order of their
 geometries, each placed by its scene-graph transform (faces flipped under a mirroring one so
 they keep their orientation). When the geometries have different textures, or only some have
 one, the textures are packed side by side into one atlas (each with a one-texel border copied
@@ -35,6 +38,7 @@ sRGB vertex colours) or OBJ (`v x y z r g b` with the colours as sRGB in [0, 1],
 from __future__ import annotations
 
 import dataclasses
+import io
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -358,6 +362,31 @@ def _coff_colors(path: Path, n_vertices: int) -> np.ndarray | None:
     return to_linear(np.clip(values, 0.0, 1.0))
 
 
+def _obj_without_normals(data: bytes) -> bytes:
+    """OBJ text with the `vn` lines and the normal indices of faces (`f 1/2/3` -> `f 1/2`,
+    `f 1//3` -> `f 1`) removed: trimesh splits a vertex wherever its (position, uv, normal)
+    triples differ, which for files with per-face normals would unshare every corner. Shading
+    normals are computed from the geometry anyway (docs/scene.md)."""
+    out = []
+    for line in data.splitlines():
+        stripped = line.lstrip()
+        if stripped.startswith(b"vn") and stripped[2:3] in (b" ", b"\t"):
+            continue
+        if stripped.startswith(b"f") and stripped[1:2] in (b" ", b"\t") and b"/" in stripped:
+            tokens = stripped.split()
+            line = b" ".join([tokens[0]] + [_drop_normal(t) for t in tokens[1:]])
+        out.append(line)
+    return b"\n".join(out) + b"\n"
+
+
+def _drop_normal(token: bytes) -> bytes:
+    """One OBJ face corner `v`, `v/vt`, `v/vt/vn` or `v//vn` -> `v` or `v/vt`."""
+    parts = token.split(b"/")
+    if len(parts) >= 2 and parts[1]:
+        return parts[0] + b"/" + parts[1]
+    return parts[0]
+
+
 def load_mesh(path) -> Mesh:
     """Read a mesh file (.obj, .ply, .glb, .gltf, .off, .stl) into a Mesh (see the module doc).
 
@@ -374,7 +403,12 @@ def load_mesh(path) -> Mesh:
         raise ValueError(f"unknown mesh file extension {path.suffix!r} for {path}; "
                          f"supported: {', '.join(MESH_EXTENSIONS)}")
     try:
-        scene = trimesh.load_scene(str(path), file_type=ext[1:], process=False)
+        if ext == ".obj":    # without normals, so trimesh splits vertices at UV seams only
+            scene = trimesh.load_scene(
+                io.BytesIO(_obj_without_normals(path.read_bytes())), file_type="obj",
+                resolver=trimesh.resolvers.FilePathResolver(str(path)), process=False)
+        else:
+            scene = trimesh.load_scene(str(path), file_type=ext[1:], process=False)
     except Exception as e:     # trimesh's loaders raise many kinds
         raise ValueError(f"cannot read mesh {path}: {type(e).__name__}: {e}") from e
 
