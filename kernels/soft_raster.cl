@@ -7,6 +7,7 @@
  *   SR_ALPHA_AGG          0: occupancy, 1: sum, 2: hard
  *   SR_TEXTURE            0: vertex colours, 1: per-face R x R textures, 2: uv map (bilinear)
  *   SR_PERSPECTIVE        1: perspective-correct interpolation, 0: linear
+ *   SR_LIGHTING           0: colours as given, 1: per-pixel Lambert, 2: per-pixel SH (texture 0)
  *   SR_SAVE_STATE         forward also writes what the backward needs
  *   SR_GRAD_POS, SR_GRAD_COLOR   which gradients the backward computes
  *
@@ -22,6 +23,8 @@
 #define TILE_H 8   /* tile height in rows; tile width is SR_VEC */
 #define FACE_STRIDE 28
 #define SR_NEED_COLOR (SR_OUT_RGB || SR_OUT_DEPTH)
+/* per-face colour data of texture 0: corner colours (9), and with lighting corner normals (9) */
+#define VERTEX_ATTR (SR_LIGHTING ? 18 : 9)
 
 #if SR_TEXTURE == 2 && SR_GRAD_COLOR
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
@@ -209,13 +212,62 @@ inline Taps bilinear_taps(real u, real v, int tex_h, int tex_w)
 }
 #endif
 
-/* Colour C (3 vectors) of face `face` at the pixels; dC_du/dC_dv only for the uv map (may be 0). */
-inline void face_color(__global const real *attr, __global const real *tex_image, int face,
-                       int tex_res, int tex_h, int tex_w, const Frag *r,
-                       realv C[3], realv *dC_du, realv *dC_dv)
+
+#if SR_LIGHTING
+/* Per-pixel lighting: albedo and normal interpolated with the attribute weights, the normal
+ * renormalised, then shaded. light[27]: Lambert = ambient rgb, directional rgb, unit direction
+ * towards the light; SH = 3 x 9 coefficients already scaled by the host (A_l times the basis
+ * constants), so here the basis is the plain polynomial P below. */
+typedef struct {
+    realv albedo[3], n[3], inv_len, shade[3];
+#if SR_LIGHTING == 1
+    realv n_dot_l;
+#else
+    realv P[9];
+#endif
+} Lit;
+
+inline Lit eval_lit(__global const real *col, __global const real *light, const Frag *r)
 {
-#if SR_TEXTURE == 0
-    __global const real *col = attr + face * 9;
+    Lit L;
+    realv m[3];
+    for (int c = 0; c < 3; ++c) {
+        L.albedo[c] = r->a[0] * col[c] + r->a[1] * col[3 + c] + r->a[2] * col[6 + c];
+        m[c] = r->a[0] * col[9 + c] + r->a[1] * col[12 + c] + r->a[2] * col[15 + c];
+    }
+    realv len = sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
+    L.inv_len = keep(R(1) / fmax(len, R(1e-30)), len > R(1e-30));   /* a vanished normal stays 0 */
+    for (int d = 0; d < 3; ++d)
+        L.n[d] = m[d] * L.inv_len;
+#if SR_LIGHTING == 1
+    L.n_dot_l = L.n[0] * light[6] + L.n[1] * light[7] + L.n[2] * light[8];
+    for (int c = 0; c < 3; ++c)
+        L.shade[c] = light[c] + light[3 + c] * fmax(L.n_dot_l, R(0));
+#else
+    const realv x = L.n[0], y = L.n[1], z = L.n[2];
+    L.P[0] = (realv)R(1); L.P[1] = y; L.P[2] = z; L.P[3] = x; L.P[4] = x * y; L.P[5] = y * z;
+    L.P[6] = R(3) * z * z - R(1); L.P[7] = x * z; L.P[8] = x * x - y * y;
+    for (int c = 0; c < 3; ++c) {
+        L.shade[c] = (realv)R(0);
+        for (int i = 0; i < 9; ++i)
+            L.shade[c] += light[9 * c + i] * L.P[i];
+    }
+#endif
+    return L;
+}
+#endif
+
+/* Colour C (3 vectors) of face `face` at the pixels; dC_du/dC_dv only for the uv map (may be 0). */
+inline void face_color(__global const real *attr, __global const real *tex_image,
+                       __global const real *light, int face, int tex_res, int tex_h, int tex_w,
+                       const Frag *r, realv C[3], realv *dC_du, realv *dC_dv)
+{
+#if SR_TEXTURE == 0 && SR_LIGHTING
+    const Lit L = eval_lit(attr + face * VERTEX_ATTR, light, r);
+    for (int c = 0; c < 3; ++c)
+        C[c] = L.albedo[c] * L.shade[c];
+#elif SR_TEXTURE == 0
+    __global const real *col = attr + face * VERTEX_ATTR;
     for (int c = 0; c < 3; ++c)
         C[c] = r->a[0] * col[c] + r->a[1] * col[3 + c] + r->a[2] * col[6 + c];
 #else
@@ -270,7 +322,7 @@ inline Params make_params(real inv_sigma, real x_cut, real inv_gamma, real near,
     const real eps, const real near, const real far, \
     const int tex_res, const int tex_h, const int tex_w, \
     __global const real *geom, __global const real *attr, __global const real *tex_image, \
-    __global const int *tile_start, __global const int *tile_faces
+    __global const real *light, __global const int *tile_start, __global const int *tile_faces
 
 /* ---- forward ------------------------------------------------------------------------------ */
 __kernel void soft_raster_fwd(GEOMETRY_ARGS,
@@ -318,7 +370,7 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
 #if SR_NEED_COLOR
         realv C[3] = {(realv)R(0), (realv)R(0), (realv)R(0)};
 #if SR_OUT_RGB
-        face_color(attr, image, face, tex_res, tex_h, tex_w, &r, C, 0, 0);
+        face_color(attr, image, light, face, tex_res, tex_h, tex_w, &r, C, 0, 0);
 #endif
 #if !SR_COLOR_HARD
         /* online softmax: one exp per pair, the running maximum m keeps every exp <= 1 */
@@ -400,7 +452,11 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
 /* Gradient sums of one (tile, face) pair, kept per lane until the end of the tile. */
 typedef struct {
     realv gx[3], gy[3], gz[3];   /* dL/d(x, y, z) of the face's three vertices */
-    realv gcol[9];               /* dL/d(vertex colour) (texture == vertex) */
+    realv gcol[9];               /* dL/d(vertex colour or albedo) (texture == vertex) */
+#if SR_LIGHTING
+    realv gnrm[9];               /* dL/d(vertex normal) at the three corners */
+    realv glight[27];            /* dL/d(light parameters), layout of `light` */
+#endif
 } Accum;
 
 /* Cotangents and saved state at SR_VEC pixels. */
@@ -465,11 +521,62 @@ inline void edge_vjp(const Frag *r, realv g_d2, maskv valid, Accum *acc)
 }
 #endif
 
+#if SR_LIGHTING
+/* Adjoint of per-pixel lighting: from dL/dC to the attribute weights (g_a), corner albedos,
+ * corner normals and the light parameters. */
+inline void lit_vjp(__global const real *col, __global const real *light, const Frag *r,
+                    const realv gC[3], maskv valid, Accum *acc, realv g_a[3])
+{
+    const Lit L = eval_lit(col, light, r);
+    realv gA[3], gs[3], g_n[3];
+    for (int c = 0; c < 3; ++c) {
+        gA[c] = keep(gC[c] * L.shade[c], valid);
+        gs[c] = keep(gC[c] * L.albedo[c], valid);
+    }
+#if SR_LIGHTING == 1
+    realv lit = fmax(L.n_dot_l, R(0));
+    realv g_ndl = select((realv)R(0), gs[0] * light[3] + gs[1] * light[4] + gs[2] * light[5],
+                         L.n_dot_l > R(0));
+    for (int c = 0; c < 3; ++c) {
+        acc->glight[c] += gs[c];
+        acc->glight[3 + c] += gs[c] * lit;
+        acc->glight[6 + c] += g_ndl * L.n[c];
+        g_n[c] = g_ndl * light[6 + c];
+    }
+#else
+    realv gP[9];
+    for (int i = 0; i < 9; ++i) {
+        gP[i] = gs[0] * light[i] + gs[1] * light[9 + i] + gs[2] * light[18 + i];
+        for (int c = 0; c < 3; ++c)
+            acc->glight[9 * c + i] += gs[c] * L.P[i];
+    }
+    const realv x = L.n[0], y = L.n[1], z = L.n[2];
+    g_n[0] = gP[3] + y * gP[4] + z * gP[7] + R(2) * x * gP[8];
+    g_n[1] = gP[1] + x * gP[4] + z * gP[5] - R(2) * y * gP[8];
+    g_n[2] = gP[2] + y * gP[5] + R(6) * z * gP[6] + x * gP[7];
+#endif
+    /* n = m / |m| */
+    realv n_dot_g = L.n[0] * g_n[0] + L.n[1] * g_n[1] + L.n[2] * g_n[2];
+    realv g_m[3];
+    for (int d = 0; d < 3; ++d)
+        g_m[d] = (g_n[d] - L.n[d] * n_dot_g) * L.inv_len;
+    for (int k = 0; k < 3; ++k) {
+        g_a[k] += gA[0] * col[3 * k] + gA[1] * col[3 * k + 1] + gA[2] * col[3 * k + 2]
+                  + g_m[0] * col[9 + 3 * k] + g_m[1] * col[10 + 3 * k] + g_m[2] * col[11 + 3 * k];
+        for (int c = 0; c < 3; ++c) {
+            acc->gcol[3 * k + c] += r->a[k] * gA[c];
+            acc->gnrm[3 * k + c] += r->a[k] * g_m[c];
+        }
+    }
+}
+#endif
+
 /* Adjoint of one (face, SR_VEC pixels) pair: the whole chain from the image cotangents to the face's
  * vertices and colours. */
 inline void pair_vjp(const Face *f, const Frag *r, const PixelIn *in, const Params *p, int face,
                      __global const real *attr, __global const real *tex_image,
-                     int tex_res, int tex_h, int tex_w, Accum *acc, realv gC[3])
+                     __global const real *light, int tex_res, int tex_h, int tex_w,
+                     Accum *acc, realv gC[3])
 {
     const maskv valid = r->valid;
     realv g_x = (realv)R(0);          /* dL/dx, x the sigmoid's argument */
@@ -479,7 +586,7 @@ inline void pair_vjp(const Face *f, const Frag *r, const PixelIn *in, const Para
 #if SR_NEED_COLOR
     realv C[3] = {(realv)R(0), (realv)R(0), (realv)R(0)}, dC_du[3], dC_dv[3];
 #if SR_OUT_RGB
-    face_color(attr, tex_image, face, tex_res, tex_h, tex_w, r, C, dC_du, dC_dv);
+    face_color(attr, tex_image, light, face, tex_res, tex_h, tex_w, r, C, dC_du, dC_dv);
 #endif
 #if !SR_COLOR_HARD
     realv t = log_sigmoid(r->x) + (p->far - r->Z) * p->inv_range * p->inv_gamma;
@@ -494,8 +601,10 @@ inline void pair_vjp(const Face *f, const Frag *r, const PixelIn *in, const Para
     for (int c = 0; c < 3; ++c)
         gC[c] = w * in->g[c];
     g_Z += w * in->g_depth;
-#if SR_OUT_RGB && SR_TEXTURE == 0
-    __global const real *col = attr + face * 9;
+#if SR_OUT_RGB && SR_TEXTURE == 0 && SR_LIGHTING
+    lit_vjp(attr + face * VERTEX_ATTR, light, r, gC, valid, acc, g_a);
+#elif SR_OUT_RGB && SR_TEXTURE == 0
+    __global const real *col = attr + face * VERTEX_ATTR;
     for (int k = 0; k < 3; ++k)
         g_a[k] = gC[0] * col[3 * k] + gC[1] * col[3 * k + 1] + gC[2] * col[3 * k + 2];
 #elif SR_OUT_RGB && SR_TEXTURE == 2
@@ -552,7 +661,7 @@ inline void pair_vjp(const Face *f, const Frag *r, const PixelIn *in, const Para
 #endif
 }
 
-#if SR_GRAD_COLOR && SR_TEXTURE == 0
+#if SR_GRAD_COLOR && SR_TEXTURE == 0 && !SR_LIGHTING
 inline void add_vertex_color_grads(const Frag *r, const realv gC[3], maskv valid, Accum *acc)
 {
     for (int k = 0; k < 3; ++k)
@@ -611,7 +720,7 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
                               __global const int *id_state,
                               const real tex_grad_scale,
                               __global real *slot_pos, __global real *slot_attr,
-                              __global long *tex_grad)
+                              __global real *slot_light, __global long *tex_grad)
 {
     const int cb = get_global_id(0), tile_row = get_global_id(1), batch = get_global_id(2);
     if (cb >= ntx)                /* work-items of the last group beyond the image */
@@ -631,6 +740,12 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
             acc.gx[i] = acc.gy[i] = acc.gz[i] = (realv)R(0);
         for (int i = 0; i < 9; ++i)
             acc.gcol[i] = (realv)R(0);
+#if SR_LIGHTING
+        for (int i = 0; i < 9; ++i)
+            acc.gnrm[i] = (realv)R(0);
+        for (int i = 0; i < 27; ++i)
+            acc.glight[i] = (realv)R(0);
+#endif
 
         for (int dr = 0; dr < rows; ++dr) {
             const int row = tile_row * TILE_H + dr;
@@ -644,8 +759,8 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
             const PixelIn in = load_pixel(grad_rgb, grad_alpha, grad_depth, g_dot_img,
                                           color_state, alpha_state, id_state, pix, npix);
             realv gC[3];
-            pair_vjp(&f, &r, &in, &p, face, attr, image, tex_res, tex_h, tex_w, &acc, gC);
-#if SR_GRAD_COLOR && SR_TEXTURE == 0
+            pair_vjp(&f, &r, &in, &p, face, attr, image, light, tex_res, tex_h, tex_w, &acc, gC);
+#if SR_GRAD_COLOR && SR_TEXTURE == 0 && !SR_LIGHTING
             add_vertex_color_grads(&r, gC, r.valid, &acc);
 #elif SR_GRAD_COLOR && SR_TEXTURE == 1
             add_face_texel_grads(&r, gC, tex_res, slot_attr + (size_t)slot * tex_res * tex_res * 3);
@@ -663,7 +778,13 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
 #endif
 #if SR_GRAD_COLOR && SR_TEXTURE == 0
         for (int i = 0; i < 9; ++i)
-            slot_attr[slot * 9 + i] = lane_sum(acc.gcol[i]);
+            slot_attr[slot * VERTEX_ATTR + i] = lane_sum(acc.gcol[i]);
+#endif
+#if SR_GRAD_COLOR && SR_LIGHTING
+        for (int i = 0; i < 9; ++i)
+            slot_attr[slot * VERTEX_ATTR + 9 + i] = lane_sum(acc.gnrm[i]);
+        for (int i = 0; i < 27; ++i)
+            slot_light[slot * 27 + i] = lane_sum(acc.glight[i]);
 #endif
     }
 }

@@ -27,6 +27,8 @@ class MeshInputs:
     face_textures: np.ndarray | None = None
     texture_image: np.ndarray | None = None
     uvs: np.ndarray | None = None
+    normals: np.ndarray | None = None       # (B, V, 3), per-pixel lighting only
+    light: np.ndarray | None = None         # (27,), per-pixel lighting only
     vertices_batched: bool = True
     colors_batched: bool = True
     colors_batch: int = 1          # batch size of the colour input as given (1 may be broadcast)
@@ -61,6 +63,9 @@ class MeshInputs:
 
     def face_attributes(self) -> np.ndarray:
         """(B*F, K) colour data per face for the kernel: 9 corner colours, R*R*3 texels, 6 uvs."""
+        if self.colors is not None and self.normals is not None:
+            return np.concatenate([self.corners(self.colors).reshape(-1, 9),
+                                   self.corners(self.normals).reshape(-1, 9)], 1)
         if self.colors is not None:
             return self.corners(self.colors).reshape(-1, 9)
         if self.face_textures is not None:
@@ -135,7 +140,7 @@ def _match_batch(name: str, arr: np.ndarray, batch: int) -> np.ndarray:
 
 
 def check_inputs(s: RasterSettings, vertices, faces, colors=None, face_textures=None,
-                 texture_image=None, uvs=None) -> MeshInputs:
+                 texture_image=None, uvs=None, normals=None, light=None) -> MeshInputs:
     """Validate forward() arguments against the settings; returns batched float64/int64 arrays."""
     verts, v_batched = _float_array("vertices", vertices, (None, 3))
     b, n_vertices = verts.shape[0], verts.shape[1]
@@ -161,13 +166,28 @@ def check_inputs(s: RasterSettings, vertices, faces, colors=None, face_textures=
     if "texture_image" in given:
         mesh.texture_image, mesh.colors_batched = _float_array("texture_image", texture_image, (None, None, 3))
         mesh.uvs, _ = _float_array("uvs", uvs, (n_vertices, 2))
+    _check_lighting(s, mesh, normals, light)
     colour = next((getattr(mesh, n) for n in ("colors", "face_textures", "texture_image")
                    if getattr(mesh, n) is not None), None)
     mesh.colors_batch = colour.shape[0] if colour is not None else 1
-    for name in ("colors", "face_textures", "texture_image", "uvs"):
+    for name in ("colors", "face_textures", "texture_image", "uvs", "normals"):
         if getattr(mesh, name) is not None:
             setattr(mesh, name, _match_batch(name, getattr(mesh, name), b))
     return mesh
+
+
+def _check_lighting(s: RasterSettings, mesh: MeshInputs, normals, light) -> None:
+    """Per-pixel lighting inputs: vertex normals like the colours, and 27 light parameters."""
+    lit = s.lighting != "none" and "rgb" in s.outputs
+    for name, value in (("normals", normals), ("light", light)):
+        if lit and value is None:
+            raise ValueError(f"settings.lighting={s.lighting!r} needs {name}=")
+        if not lit and value is not None:
+            raise ValueError(f"{name} was given but settings.lighting is 'none' (or there is no rgb output)")
+    if lit:
+        mesh.normals, _ = _float_array("normals", normals, (mesh.n_vertices, 3))
+        mesh.light, _ = _float_array("light", np.ravel(light), (27,), allow_unbatched=True)
+        mesh.light = mesh.light[0]
 
 
 def check_cotangent(name: str, value, shape: tuple, produced: bool) -> np.ndarray | None:

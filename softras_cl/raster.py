@@ -80,14 +80,16 @@ class SoftRasterizer:
 
     # ---- public API ------------------------------------------------------------------------
     def forward(self, vertices, faces, colors=None, face_textures=None, texture_image=None,
-                uvs=None, grads=()) -> RasterOutput:
+                uvs=None, normals=None, light=None, grads=()) -> RasterOutput:
         """Render. Shapes in docs/api.md; images come back as (B, H, W[, 3]) arrays.
 
-        grads: the gradients backward() will be asked for, subset of ("vertices", "colors").
+        normals (B, V, 3) and light (27,) only with per-pixel lighting (settings.lighting).
+        grads: the gradients backward() will be asked for, subset of ("vertices", "colors");
+        with per-pixel lighting "colors" also gives "normals" and "light".
         """
         s = self.settings
         grads = _check_grads(grads, s)
-        mesh = check_inputs(s, vertices, faces, colors, face_textures, texture_image, uvs)
+        mesh = check_inputs(s, vertices, faces, colors, face_textures, texture_image, uvs, normals, light)
         if "colors" in grads and s.texture == "uv" and not has_int64_atomics(self.device):
             raise ValueError(f"uv-texture gradients need cl_khr_int64_base_atomics, which device "
                              f"{self.device.name!r} lacks")
@@ -111,8 +113,7 @@ class SoftRasterizer:
         s, mesh = self.settings, saved["mesh"]
         cot = {name: check_cotangent(name, g, _cot_shape(name, mesh.batch, s), name[len("grad_"):] in s.outputs)
                for name, g in (("grad_rgb", grad_rgb), ("grad_alpha", grad_alpha), ("grad_depth", grad_depth))}
-        slot_pos, slot_attr, tex_fixed, scale = self._run_backward(saved, cot)
-        return self._gather_grads(saved, slot_pos, slot_attr, tex_fixed, scale)
+        return self._gather_grads(saved, self._run_backward(saved, cot))
 
     # ---- kernels ---------------------------------------------------------------------------
     def _kernel(self, name: str, grads: tuple, save_state: bool) -> cl.Kernel:
@@ -126,6 +127,7 @@ class SoftRasterizer:
             SR_ALPHA_AGG=("occupancy", "sum", "hard").index(s.alpha_agg),
             SR_TEXTURE=("vertex", "face", "uv").index(s.texture),
             SR_PERSPECTIVE=s.perspective_correct,
+            SR_LIGHTING=("none", "lambert", "sh").index(s.lighting),
             SR_SAVE_STATE=save_state,
             SR_GRAD_POS="vertices" in grads,
             SR_GRAD_COLOR="colors" in grads and "rgb" in s.outputs)
@@ -140,7 +142,8 @@ class SoftRasterizer:
                 real(2.0 / min(s.width, s.height)), real(1.0 / s.sigma), real(x_cut),
                 real(1.0 / s.gamma), real(s.eps), real(s.near), real(s.far),
                 i32(mesh.tex_res), i32(mesh.tex_shape[0]), i32(mesh.tex_shape[1]),
-                bufs["geom"], bufs["attr"], bufs["tex_image"], bufs["tile_start"], bufs["tile_faces"]]
+                bufs["geom"], bufs["attr"], bufs["tex_image"], bufs["light"], bufs["tile_start"],
+                bufs["tile_faces"]]
 
     def _run_forward(self, mesh: MeshInputs, bufs: dict, save_state: bool) -> dict:
         s, real = self.settings, self.real
@@ -190,21 +193,22 @@ class SoftRasterizer:
         n = max(bins.n_entries, 1)
         slot_pos = np.zeros((n, 9), real) if "vertices" in grads else None
         slot_attr, tex_fixed, scale = self._color_grad_buffers(mesh, grads, n, cot["grad_rgb"])
+        slot_light = np.zeros((n, 27), real) if slot_attr is not None and s.lighting != "none" else None
         rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
-        out_bufs = [cl.Buffer(self.ctx, rw, hostbuf=a) if a is not None else dummy
-                    for a in (slot_pos, slot_attr, tex_fixed)]
+        hosts = (slot_pos, slot_attr, slot_light, tex_fixed)
+        out_bufs = [cl.Buffer(self.ctx, rw, hostbuf=a) if a is not None else dummy for a in hosts]
         state = images["state"]
         kernel_grads = tuple(g for g in grads if g != "colors" or slot_attr is not None or tex_fixed is not None)
         if not kernel_grads:    # colour gradients only, and no rgb cotangent: all zero
-            return slot_pos, slot_attr, tex_fixed, scale
+            return dict(pos=slot_pos, attr=slot_attr, light=slot_light, tex=tex_fixed, scale=scale)
         knl = self._kernel("soft_raster_bwd", kernel_grads, True)
         knl(self.queue, (_round_up(g.ntx), g.nty, mesh.batch), GROUP, *self._geometry_args(mesh, saved["bufs"]),
             saved["bufs"]["tile_slots"], *cot_bufs, g_dot_buf,
             *(state.get(k, dummy) for k in ("color", "alpha", "ids")), real.type(scale), *out_bufs)
-        for host, dev in zip((slot_pos, slot_attr, tex_fixed), out_bufs):
+        for host, dev in zip(hosts, out_bufs):
             if host is not None:
                 cl.enqueue_copy(self.queue, host, dev)
-        return slot_pos, slot_attr, tex_fixed, scale
+        return dict(pos=slot_pos, attr=slot_attr, light=slot_light, tex=tex_fixed, scale=scale)
 
     def _color_grad_buffers(self, mesh: MeshInputs, grads: tuple, n_entries: int, grad_rgb):
         """Host arrays the backward writes colour gradients into, and the uv fixed-point scale."""
@@ -212,44 +216,53 @@ class SoftRasterizer:
         if "colors" not in grads or "rgb" not in s.outputs or grad_rgb is None:
             return None, None, 1.0
         if s.texture == "vertex":
-            return np.zeros((n_entries, 9), self.real), None, 1.0
+            return np.zeros((n_entries, 18 if s.lighting != "none" else 9), self.real), None, 1.0
         if s.texture == "face":
             return np.zeros((n_entries, mesh.tex_res ** 2 * 3), self.real), None, 1.0
         scale = _fixed_point_scale(grad_rgb, self.real)
         return None, np.zeros((mesh.batch, *mesh.tex_shape, 3), np.int64), scale
 
-    def _gather_grads(self, saved: dict, slot_pos, slot_attr, tex_fixed, scale) -> dict:
+    def _gather_grads(self, saved: dict, slots: dict) -> dict:
         """Sum the (tile, face) slots per face in a fixed order, then faces onto vertices."""
         mesh, bins, grads = saved["mesh"], saved["bins"], saved["grads"]
         out = {}
         if "vertices" in grads:
-            per_face = _sum_slots(slot_pos, bins).reshape(mesh.batch, mesh.n_faces, 3, 3)
+            per_face = _sum_slots(slots["pos"], bins).reshape(mesh.batch, mesh.n_faces, 3, 3)
             out["vertices"] = mesh.unbatch_vertices(scatter_corners(per_face, mesh.faces, mesh.n_vertices))
         if "colors" in grads:
-            out["colors"] = mesh.unbatch_colors(self._color_grads(mesh, bins, slot_attr, tex_fixed, scale))
+            out.update(self._color_grads(mesh, bins, slots))
         return out
 
-    def _color_grads(self, mesh: MeshInputs, bins: Bins, slot_attr, tex_fixed, scale) -> np.ndarray:
-        s = self.settings
+    def _color_grads(self, mesh: MeshInputs, bins: Bins, slots: dict) -> dict:
+        """{"colors": gradient shaped like the colour input} (+ "normals", "light" when lit)."""
+        s, attr = self.settings, slots["attr"]
         if s.texture == "uv":
-            if tex_fixed is None:
-                return np.zeros((mesh.batch, *mesh.tex_shape, 3))
-            return tex_fixed.astype(np.float64) / scale
+            tex = slots["tex"]
+            g = (np.zeros((mesh.batch, *mesh.tex_shape, 3)) if tex is None
+                 else tex.astype(np.float64) / slots["scale"])
+            return dict(colors=mesh.unbatch_colors(g))
         if s.texture == "face":
             r = mesh.tex_res
-            if slot_attr is None:
-                return np.zeros((mesh.batch, mesh.n_faces, r, r, 3))
-            return _sum_slots(slot_attr, bins).reshape(mesh.batch, mesh.n_faces, r, r, 3)
-        if slot_attr is None:
-            return np.zeros((mesh.batch, mesh.n_vertices, 3))
-        per_face = _sum_slots(slot_attr, bins).reshape(mesh.batch, mesh.n_faces, 3, 3)
-        return scatter_corners(per_face, mesh.faces, mesh.n_vertices)
+            g = (np.zeros((mesh.batch * mesh.n_faces, r * r * 3)) if attr is None else _sum_slots(attr, bins))
+            return dict(colors=mesh.unbatch_colors(g.reshape(mesh.batch, mesh.n_faces, r, r, 3)))
+        width = 18 if s.lighting != "none" else 9
+        per_face = (np.zeros((mesh.batch * mesh.n_faces, width)) if attr is None else _sum_slots(attr, bins))
+        per_face = per_face.reshape(mesh.batch, mesh.n_faces, width // 3, 3)
+        out = dict(colors=mesh.unbatch_colors(
+            scatter_corners(per_face[:, :, :3], mesh.faces, mesh.n_vertices)))
+        if s.lighting != "none":
+            out["normals"] = scatter_corners(per_face[:, :, 3:], mesh.faces, mesh.n_vertices)
+            light = slots["light"]
+            out["light"] = (np.zeros(27) if light is None
+                            else light[:bins.n_entries].astype(np.float64).sum(0))
+        return out
 
     # ---- buffers ---------------------------------------------------------------------------
     def _upload(self, mesh: MeshInputs, geom: np.ndarray, bins: Bins) -> dict:
         ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
         arrays = dict(geom=geom.astype(self.real), attr=mesh.face_attributes().astype(self.real),
                       tex_image=mesh.texture_image_array().astype(self.real),
+                      light=(mesh.light if mesh.light is not None else np.zeros(0)).astype(self.real),
                       tile_start=bins.tile_start, tile_faces=bins.tile_faces,
                       tile_slots=bins.tile_slots)
         return {name: cl.Buffer(self.ctx, ro, hostbuf=np.ascontiguousarray(a)) if a.size else self._dummy()

@@ -147,6 +147,27 @@ def face_colors(settings, a, faces, batch, colors, face_textures, texture_image,
     return sample_bilinear(image, np.einsum("bhwfk,bfkc->bhwfc", a, corner_uv))
 
 
+def lit_face_colors(settings, a, faces, batch, colors, normals, light) -> np.ndarray:
+    """Per-pixel lighting (settings.lighting): albedo and normal interpolated with the attribute
+    weights a (B, H, W, F, 3), the normal renormalised (a zero normal stays zero), then
+    Lambert (light = ambient rgb, directional rgb, unit direction) or SH (light = 3 x 9
+    coefficients already multiplied by A_l and the basis constants, so the basis is the
+    polynomial [1, y, z, x, xy, yz, 3z^2 - 1, xz, x^2 - y^2]). Returns (B, H, W, F, 3)."""
+    albedo = face_colors(settings, a, faces, batch, colors, None, None, None)
+    corner_n = gather_corners(_batched(np.asarray(normals, np.float64), 3, batch, "normals"), faces)
+    m = np.einsum("bhwfk,bfkc->bhwfc", a, corner_n)
+    length = np.linalg.norm(m, axis=-1, keepdims=True)
+    n = np.where(length > 1e-30, m / np.where(length > 1e-30, length, 1.0), 0.0)
+    light = np.asarray(light, np.float64).ravel()
+    if settings.lighting == "lambert":
+        shade = light[0:3] + light[3:6] * np.maximum(n @ light[6:9], 0.0)[..., None]
+    else:
+        x, y, z = n[..., 0], n[..., 1], n[..., 2]
+        poly = np.stack([np.ones_like(x), y, z, x, x * y, y * z, 3 * z * z - 1, x * z, x * x - y * y], -1)
+        shade = poly @ light.reshape(3, 9).T
+    return albedo * shade
+
+
 def softmax_aggregate(log_d, zn, used, values, background_value, settings) -> np.ndarray:
     """Eq. 8-9: sum_j w_j values_j + w_b background_value, over faces where ``used``.
 
@@ -183,12 +204,14 @@ def alpha_aggregate(log_d, log_1md, used, inside, settings) -> np.ndarray:
     return np.any(inside, axis=-1).astype(np.float64)
 
 
-def soft_rasterize(vertices, faces, settings, colors=None, face_textures=None, texture_image=None, uvs=None):
+def soft_rasterize(vertices, faces, settings, colors=None, face_textures=None, texture_image=None, uvs=None,
+                   normals=None, light=None):
     """Forward soft rasterisation (docs/conventions.md) in float64.
 
     vertices (B, V, 3) or (V, 3): x, y NDC and view depth z; faces (F, 3) or (B, F, 3) int.
     Colour input by settings.texture: colors (B, V, 3) | (V, 3); face_textures (B, F, R, R, 3);
     texture_image (B, Ht, Wt, 3) with uvs (B, V, 2) | (V, 2). Not needed unless "rgb" is requested.
+    With settings.lighting: vertex normals (B, V, 3) | (V, 3) and light (27,) (lit_face_colors).
     Returns dict(rgb=(B, H, W, 3), alpha=(B, H, W), depth=(B, H, W)); outputs not requested are None.
     """
     vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces)
@@ -225,7 +248,9 @@ def soft_rasterize(vertices, faces, settings, colors=None, face_textures=None, t
         if name not in settings.outputs:
             continue
         if name == "rgb":
-            values = face_colors(settings, a, faces, batch, colors, face_textures, texture_image, uvs)
+            values = (lit_face_colors(settings, a, faces, batch, colors, normals, light)
+                      if getattr(settings, "lighting", "none") != "none" else
+                      face_colors(settings, a, faces, batch, colors, face_textures, texture_image, uvs))
             fill = np.asarray(settings.background, np.float64)
         else:
             values, fill = depth[..., None], np.array([float(settings.far)])

@@ -21,7 +21,7 @@ from .corners import scatter_corners
 from .raster import SoftRasterizer
 from .settings import RasterSettings
 
-SHADINGS = ("vertex", "face", "none")
+SHADINGS = ("vertex", "face", "pixel", "none")
 GRAD_GROUPS = ("vertices", "albedo", "camera", "light")
 
 
@@ -40,10 +40,11 @@ class RenderOutput:
 class Renderer:
     """Renders meshes seen by cameras under a light, with gradients for every scene parameter.
 
-    settings: RasterSettings (its `texture` and `perspective_correct` are set by the renderer);
-    shading: "vertex" (vertex normals and albedo, Gouraud), "face" (face normals, flat; albedo
-    averaged over each face's corners) or "none" (unlit: the colour input is drawn as it is,
-    with any texture mode); device: a pyopencl.Device or None for the default.
+    settings: RasterSettings (its `texture`, `lighting` and `perspective_correct` are set by the
+    renderer); shading: "vertex" (vertex normals and albedo, Gouraud), "face" (face normals,
+    flat; albedo averaged over each face's corners), "pixel" (albedo and normals interpolated
+    and lit per pixel in the kernel; Lambert or SH lights) or "none" (unlit: the colour input is
+    drawn as it is, with any texture mode); device: a pyopencl.Device or None for the default.
     """
 
     def __init__(self, settings: RasterSettings, shading: str = "vertex", device=None):
@@ -73,7 +74,7 @@ class Renderer:
         screen = np.concatenate(screen, 0)
         colour_args, shade_ctx = self._colours(verts, faces, cameras, albedo, light, face_textures,
                                                texture_image, uvs)
-        raster = self._rasterizer(cameras[0].projection, colour_args)
+        raster = self._rasterizer(cameras[0].projection, colour_args, light)
         out = raster.forward(screen, faces, grads=_raster_grads(grads, self.shading), **colour_args)
         saved = dict(raster=raster, raster_out=out, cameras=cameras, cam_ctx=cam_ctx,
                      shade_ctx=shade_ctx, light=light, grads=grads, batched=batched,
@@ -91,6 +92,7 @@ class Renderer:
         if not saved.get("grads"):
             raise ValueError("output: forward() was called without grads=...; nothing to differentiate")
         g_raster = saved["raster"].backward(saved["raster_out"], grad_rgb, grad_alpha, grad_depth)
+        saved["raster_grads"] = g_raster
         g_shade = self._shading_vjp(saved, g_raster.get("colors"))
         g_cams = [cam.project_vjp(ctx, g_raster["vertices"][b:b + 1]) if "vertices" in g_raster else None
                   for b, (cam, ctx) in enumerate(zip(saved["cameras"], saved["cam_ctx"]))]
@@ -110,14 +112,20 @@ class Renderer:
         if self.shading == "vertex":
             colours, ctx = shading.shade_vertices(verts, faces, batch_albedo, light, centres)
             return dict(colors=colours), ctx
+        if self.shading == "pixel":
+            normals, ctx = shading.vertex_normals(verts, faces)
+            return dict(colors=batch_albedo, normals=normals, light=_light_vector(light)), ctx
         face_albedo = batch_albedo[:, faces].mean(axis=2)
         colours, ctx = shading.shade_faces(verts, faces, face_albedo, light, centres)
         return dict(face_textures=colours[:, :, None, None, :]), ctx
 
-    def _rasterizer(self, projection: str, colour_args: dict) -> SoftRasterizer:
+    def _rasterizer(self, projection: str, colour_args: dict, light) -> SoftRasterizer:
         texture = ("face" if "face_textures" in colour_args else
                    "uv" if "texture_image" in colour_args else "vertex")
-        s = self.settings.replace(texture=texture, perspective_correct=projection == "perspective")
+        lighting = ("none" if self.shading != "pixel" else
+                    "sh" if isinstance(light, shading.SHLight) else "lambert")
+        s = self.settings.replace(texture=texture, lighting=lighting,
+                                  perspective_correct=projection == "perspective")
         if s not in self._rasterizers:
             self._rasterizers[s] = SoftRasterizer(s, device=self.device)
         return self._rasterizers[s]
@@ -126,6 +134,10 @@ class Renderer:
         """Shading vjp (vertices, albedo, camera_center, light parameters), or {} when unlit."""
         if saved["shade_ctx"] is None or g_colours is None:
             return {}
+        if self.shading == "pixel":
+            g_raster = saved["raster_grads"]
+            return dict(shading.vertex_normals_vjp(saved["shade_ctx"], g_raster["normals"]),
+                        albedo=g_colours, **_light_vector_vjp(saved["light"], g_raster["light"]))
         if self.shading == "vertex":
             return shading.shade_vertices_vjp(saved["shade_ctx"], g_colours)
         return shading.shade_faces_vjp(saved["shade_ctx"], g_colours[:, :, 0, 0, :])
@@ -156,6 +168,26 @@ class Renderer:
             per_corner = np.repeat(g[:, :, None, :] / 3.0, 3, axis=2)
             g = scatter_corners(per_corner, raster.faces, raster.n_vertices)
         return g if len(saved["albedo_shape"]) == 3 else g.sum(0)
+
+
+def _light_vector(light) -> np.ndarray:
+    """The 27 light parameters of the per-pixel kernel (settings.lighting, docs/scene.md)."""
+    if isinstance(light, shading.SHLight):
+        return (light.coefficients * shading.SH_POLY_SCALE).ravel()
+    if type(light) is shading.LambertLight:
+        direction = light.direction / np.linalg.norm(light.direction)
+        return np.concatenate([light.ambient, light.directional, direction, np.zeros(18)])
+    raise ValueError(f"light: shading='pixel' supports LambertLight and SHLight, got {type(light).__name__}")
+
+
+def _light_vector_vjp(light, grad: np.ndarray) -> dict:
+    """Gradient of the 27 kernel light parameters -> the light's own parameters."""
+    if isinstance(light, shading.SHLight):
+        return dict(coefficients=grad.reshape(3, 9) * shading.SH_POLY_SCALE)
+    length = np.linalg.norm(light.direction)
+    unit = light.direction / length
+    g_unit = grad[6:9]
+    return dict(ambient=grad[0:3], directional=grad[3:6], direction=(g_unit - unit * (unit @ g_unit)) / length)
 
 
 def _camera_grads(camera: Camera, g_proj: dict, g_center) -> dict:

@@ -13,6 +13,7 @@ METRICS = ("euclidean", "barycentric")
 COLOR_AGGS = ("softmax", "hard")
 ALPHA_AGGS = ("occupancy", "sum", "hard")
 TEXTURES = ("vertex", "face", "uv")
+LIGHTINGS = ("none", "lambert", "sh")
 OUTPUTS = ("rgb", "alpha", "depth")
 DTYPES = ("float32", "float64")
 
@@ -47,6 +48,8 @@ class RasterSettings:
     alpha_agg: str = _build("aggregation of alpha: occupancy (eq. 13), sum or hard", default="occupancy")
     texture: str = _build("colour source: vertex colours, per-face RxR textures or a uv map", default="vertex")
     perspective_correct: bool = _build("perspective-correct depth and colour interpolation", default=True)
+    lighting: str = _build("per-pixel lighting of vertex albedo with interpolated vertex normals: "
+                           "none, lambert or sh (texture='vertex' only)", default="none")
     dtype: str = _build("kernel precision: float32 or float64 (needs cl_khr_fp64)", default="float32")
     fast_math: bool = _build("build with -cl-fast-relaxed-math (an accuracy knob: measure it)", default=False)
 
@@ -105,3 +108,6 @@ def _check_settings(s: RasterSettings) -> None:
     _choice("alpha_agg", s.alpha_agg, ALPHA_AGGS)
     _choice("texture", s.texture, TEXTURES)
     _choice("dtype", s.dtype, DTYPES)
+    _choice("lighting", s.lighting, LIGHTINGS)
+    if s.lighting != "none" and s.texture != "vertex":
+        raise ValueError(f"lighting={s.lighting!r} (per-pixel) needs texture='vertex', got {s.texture!r}")

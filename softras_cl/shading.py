@@ -23,6 +23,9 @@ from .corners import gather_corners, scatter_corners
 # Ramamoorthi-Hanrahan: basis constants in the order of docs/scene.md, and A_l per basis function.
 SH_Y0, SH_Y1, SH_Y2, SH_Y2_ZZ, SH_Y2_XXYY = 0.282095, 0.488603, 1.092548, 0.315392, 0.546274
 SH_A = np.array([np.pi] + [2.0 * np.pi / 3.0] * 3 + [np.pi / 4.0] * 5)
+# A_l times each basis function's constant: irradiance = sum_i L_i SH_POLY_SCALE_i P_i(n) with
+# the polynomials P = [1, y, z, x, xy, yz, 3z^2 - 1, xz, x^2 - y^2] (the per-pixel kernel's form)
+SH_POLY_SCALE = SH_A * np.array([SH_Y0, SH_Y1, SH_Y1, SH_Y1, SH_Y2, SH_Y2, SH_Y2_ZZ, SH_Y2, SH_Y2_XXYY])
 
 
 # ----------------------------------------------------------------------------- checks and helpers

@@ -69,8 +69,11 @@ def _assert_close(analytic, numeric, what):
     np.testing.assert_allclose(analytic, numeric, rtol=0, atol=1e-6 * scale, err_msg=what)
 
 
-@pytest.mark.parametrize("shading", ["vertex", "face"])
-@pytest.mark.parametrize("light_name", sorted(LIGHTS))
+CASES = [(shading, light) for shading in ("vertex", "face") for light in sorted(LIGHTS)]
+CASES += [("pixel", "lambert"), ("pixel", "sh")]
+
+
+@pytest.mark.parametrize("shading,light_name", CASES)
 def test_render_path_gradients_match_finite_differences(shading, light_name):
     v, f, albedo = scene()
     cams, light = cameras(), LIGHTS[light_name]
@@ -152,3 +155,21 @@ def test_bad_scene_input_is_named():
         renderer.forward(v, np.zeros((0, 3), int), cameras()[0], albedo=albedo)
     with pytest.raises(ValueError, match="shading"):
         Renderer(settings(), shading="per-pixel-magic")
+
+
+def test_per_pixel_shading_agrees_with_per_vertex_on_a_fine_mesh():
+    """On a finely tessellated sphere, lighting per pixel and per vertex give nearly the same
+    image (they differ by the interpolation of a smooth function)."""
+    v, f = icosphere(4, radius=0.6)
+    albedo = np.full(v.shape, 0.8)
+    light = LIGHTS["sh"]
+    cam = cameras()[0]
+    images = [Renderer(settings(outputs=("rgb",)), shading=mode).forward(v, f, cam, albedo=albedo, light=light).rgb
+              for mode in ("vertex", "pixel")]
+    assert np.abs(images[0] - images[1]).max() < 0.02
+
+
+def test_per_pixel_shading_rejects_phong():
+    v, f, albedo = scene()
+    with pytest.raises(ValueError, match="light"):
+        Renderer(settings(), shading="pixel").forward(v, f, cameras()[0], albedo=albedo, light=LIGHTS["phong"])
