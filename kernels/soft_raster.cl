@@ -277,6 +277,11 @@ inline void face_color(__global const real *attr, __global const real *tex_image
     VSTORE(r->a[2], 0, a2);
 #if SR_TEXTURE == 1
     __global const real *tex = attr + (size_t)face * tex_res * tex_res * 3;
+    if (tex_res == 1) {           /* flat colour per face (e.g. per-face shading): no lookups */
+        for (int c = 0; c < 3; ++c)
+            C[c] = (realv)tex[c];
+        return;
+    }
     for (int l = 0; l < SR_VEC; ++l) {
         int texel = face_texel(a0[l], a1[l], tex_res) * 3;
         for (int c = 0; c < 3; ++c)
@@ -673,6 +678,11 @@ inline void add_vertex_color_grads(const Frag *r, const realv gC[3], maskv valid
 inline void add_face_texel_grads(const Frag *r, const realv gC[3], int tex_res,
                                  __global real *slot_tex)
 {
+    if (tex_res == 1) {           /* one texel: sum the lanes once */
+        for (int c = 0; c < 3; ++c)
+            slot_tex[c] += lane_sum(keep(gC[c], r->valid));
+        return;
+    }
     real a0[SR_VEC], a1[SR_VEC], g[3][SR_VEC];
     VSTORE(r->a[0], 0, a0);
     VSTORE(r->a[1], 0, a1);

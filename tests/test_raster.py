@@ -257,3 +257,19 @@ def test_per_pixel_lighting_forward_and_gradients(lighting):
         num = _central_difference(lambda x: loss(**{key: x}), value, idx)
         got = g["vertices" if key == "v" else key].ravel()[idx]
         np.testing.assert_allclose(got, num, rtol=0, atol=1e-6 * np.abs(num).max(), err_msg=key)
+
+
+def test_flat_face_colours_fast_path():
+    """R = 1 face textures (flat colour per face) take a lookup-free path in both kernels."""
+    s = settings(texture="face")
+    vertices, faces, _ = random_scene(16)
+    textures = np.random.default_rng(17).uniform(0, 1, (2, len(faces), 1, 1, 3))
+    raster = SoftRasterizer(s)
+    out = raster.forward(vertices, faces, face_textures=textures, grads=("vertices", "colors"))
+    ref = reference.soft_rasterize(vertices, faces, s, face_textures=textures)
+    np.testing.assert_allclose(out.rgb, ref["rgb"], rtol=1e-9, atol=1e-9)
+    cot = _cotangents(s, 18)
+    g = raster.backward(out, **cot)
+    f = lambda x: _loss(raster, vertices, faces, {"face_textures": x}, cot)
+    num = _central_difference(f, textures, np.arange(textures.size))
+    np.testing.assert_allclose(g["colors"].ravel(), num, rtol=0, atol=1e-6 * np.abs(num).max())
