@@ -117,8 +117,9 @@ def metrics(rgb, alpha, depth, ref_rgb, ref: RayCastImage) -> dict:
                 ssim=float(structural_similarity(ref_rgb, np.clip(rgb, 0, 1), channel_axis=2, data_range=1.0)))
 
 
-def save_comparison(result: Comparison, path: Path, title: str = "") -> None:
-    """PNG: ours | ray cast | |difference| (x10) | depth difference, with the metrics as title."""
+def save_comparison(result: Comparison, path: Path, title: str = "",
+                    reference: str = "ray cast (trimesh/Embree)") -> None:
+    """PNG: ours | reference | |difference| (x10) | depth difference, with the metrics as title."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -129,7 +130,7 @@ def save_comparison(result: Comparison, path: Path, title: str = "") -> None:
     m = result.metrics
     fig, axes = plt.subplots(1, 4, figsize=(16, 4.6))
     panels = [(to_srgb(np.clip(result.ours_rgb, 0, 1)), "softras-cl (sigma 1e-7, gamma 1e-6)"),
-              (to_srgb(np.clip(result.ref_rgb, 0, 1)), "ray cast (trimesh/Embree)"),
+              (to_srgb(np.clip(result.ref_rgb, 0, 1)), reference),
               (np.clip(10 * np.abs(result.ours_rgb - result.ref_rgb), 0, 1), "|difference| x 10")]
     for ax, (img, name) in zip(axes, panels):
         ax.imshow(img)
@@ -140,9 +141,11 @@ def save_comparison(result: Comparison, path: Path, title: str = "") -> None:
     fig.colorbar(im, ax=axes[3], fraction=0.046)
     for ax in axes:
         ax.axis("off")
+    extra = f"   shadowed px {m['shadowed_pixels']}" if "shadowed_pixels" in m else ""
     fig.suptitle(f"{title}  IoU {m['silhouette_iou']:.4f}   depth rel. err. max {m['depth_rel_err_max']:.1e}   "
-                 f"PSNR {m['psnr_db']:.1f} dB   SSIM {m['ssim']:.4f}")
+                 f"PSNR {m['psnr_db']:.1f} dB   SSIM {m['ssim']:.4f}{extra}")
     fig.tight_layout()
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -152,18 +152,25 @@ def _run_compare(args: argparse.Namespace) -> int:
 
     try:
         mesh, camera = _load_view(args)
-        result = compare_mesh(mesh, camera, dist_eps=args.dist_eps)
-        save_comparison(result, args.out, args.mesh.name)
+        if args.reference == "mitsuba":
+            from .mitsuba_ref import compare_mitsuba
+            result = compare_mitsuba(mesh, camera, dist_eps=args.dist_eps)
+            save_comparison(result, args.out, args.mesh.name, reference="Mitsuba 3 (scalar_rgb)")
+        else:
+            result = compare_mesh(mesh, camera, dist_eps=args.dist_eps)
+            save_comparison(result, args.out, args.mesh.name)
     except (ValueError, OSError, RuntimeError) as e:
         print(f"softras-cl compare: {e}", file=sys.stderr)
         return 1
     m = result.metrics
     if args.json:
-        print(json.dumps(dict(mesh=str(args.mesh), dist_eps=args.dist_eps, **m), indent=2))
+        print(json.dumps(dict(mesh=str(args.mesh), reference=args.reference, dist_eps=args.dist_eps, **m), indent=2))
     else:
         print(f"{args.mesh.name}: silhouette IoU {m['silhouette_iou']:.4f}, depth relative error on "
               f"{m['interior_pixels']} interior pixels max {m['depth_rel_err_max']:.2e} mean "
               f"{m['depth_rel_err_mean']:.2e}, PSNR {m['psnr_db']:.2f} dB, SSIM {m['ssim']:.4f}")
+        if "shadowed_pixels" in m:
+            print(f"{m['shadowed_pixels']} pixels in Mitsuba's shadows (the rasteriser casts none)")
         print(f"wrote {args.out}")
     return 0
 
@@ -181,5 +188,10 @@ def register_compare(sub) -> None:
                    help="cut-off on the probability map (default 0.49: each face's footprint ends "
                         "0.008 px past its edges at 256^2, the sharp limit; at 1e-4, the rendering "
                         "default, it reaches 0.12 px, where the nearer face wins as gamma -> 0)")
+    p.add_argument("--reference", choices=("raycast", "mitsuba"), default="raycast",
+                   help="independent renderer: raycast (trimesh/Embree, Lambert per vertex; default) or "
+                        "mitsuba (Mitsuba 3 scalar_rgb, optional extra softras-cl[mitsuba]: flat Lambert "
+                        "under a headlight, no ambient, black background, both renderers shading with "
+                        "face normals and per-face albedo)")
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")
     p.set_defaults(func=_run_compare)
