@@ -1,0 +1,534 @@
+"""Loss terms for fitting (issue 4), each a pure float64 numpy function with an exact gradient.
+
+Every loss returns ``(value, grads)``: ``value`` a Python float and ``grads`` a dict mapping the
+name of each differentiable argument (``"pred"``, ``"points"``, ``"coeffs"``, ``"vertices"``) to a
+float64 array of that argument's shape. Targets, masks, weights and sigmas are constants (no
+gradient). Weights between terms are applied in one place, :func:`weighted_sum`.
+
+Invalid inputs raise ``ValueError`` whose message starts with the argument's name: wrong shapes,
+NaN or infinite values, negative weights or masks, non-positive sigmas, bad face indices.
+
+Mesh terms (:func:`laplacian`, :func:`flatten`, :func:`edge_length`) share a topology (unique
+edges, vertex degrees, interior edges with their two opposite vertices) computed once per face
+array by :func:`mesh_topology` and cached, so calling them every iteration of a fit costs only
+the vectorised arithmetic (``np.bincount`` scatters, no Python loop over vertices or edges).
+"""
+from __future__ import annotations
+
+import hashlib
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+__all__ = [
+    "MeshTopology", "mesh_topology",
+    "image_l2", "image_l1", "silhouette_iou", "silhouette_l2", "landmarks_2d",
+    "gaussian_prior", "laplacian_coordinates", "laplacian", "flatten", "edge_length",
+    "weighted_sum",
+]
+
+
+# ---------------------------------------------------------------------------------------------
+# validation helpers
+# ---------------------------------------------------------------------------------------------
+
+def _array(x, name: str) -> np.ndarray:
+    """``x`` as a finite float64 array, else ValueError naming ``name``."""
+    try:
+        a = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: cannot convert to a float64 array ({exc})") from None
+    if not np.isfinite(a).all():
+        bad = "NaN" if np.isnan(a).any() else "infinite"
+        raise ValueError(f"{name}: contains {bad} values")
+    return a
+
+
+def _same_shape(a: np.ndarray, b: np.ndarray, name_a: str, name_b: str) -> None:
+    if a.shape != b.shape:
+        raise ValueError(f"{name_b}: shape {b.shape} does not match {name_a} shape {a.shape}")
+
+
+def _nonnegative(a: np.ndarray, name: str) -> None:
+    if (a < 0).any():
+        raise ValueError(f"{name}: must be >= 0 (min {a.min():g})")
+
+
+def _positive(a: np.ndarray, name: str) -> None:
+    if (a <= 0).any():
+        raise ValueError(f"{name}: must be > 0 (min {a.min():g})")
+
+
+def _image_pair(pred, target) -> tuple[np.ndarray, np.ndarray]:
+    p = _array(pred, "pred")
+    t = _array(target, "target")
+    _same_shape(p, t, "pred", "target")
+    return p, t
+
+
+def _image_mask(mask, shape: tuple) -> np.ndarray | None:
+    """Mask as float64 broadcast to ``shape`` (H, W) or (H, W, C); None for no mask."""
+    if mask is None:
+        return None
+    m = _array(mask, "mask")
+    _nonnegative(m, "mask")
+    if len(shape) == 3 and m.shape == shape[:2]:
+        m = m[:, :, None]                    # an (H, W) mask applies to every channel
+    try:
+        return np.broadcast_to(m, shape)
+    except ValueError:
+        raise ValueError(f"mask: shape {np.shape(mask)} is neither pred's (H, W) = {shape[:2]} "
+                         f"nor broadcastable to pred's shape {shape}") from None
+
+
+# ---------------------------------------------------------------------------------------------
+# image terms
+# ---------------------------------------------------------------------------------------------
+
+def _masked_mean(elementwise: np.ndarray, d_elementwise: np.ndarray, m: np.ndarray | None,
+                 ) -> tuple[float, dict]:
+    if m is None:
+        n = elementwise.size
+        if n == 0:
+            return 0.0, {"pred": np.zeros_like(elementwise)}
+        return float(elementwise.sum() / n), {"pred": d_elementwise / n}
+    total = float(m.sum())
+    if total == 0.0:
+        return 0.0, {"pred": np.zeros_like(elementwise)}
+    return float((m * elementwise).sum() / total), {"pred": m * d_elementwise / total}
+
+
+def image_l2(pred, target, mask=None) -> tuple[float, dict]:
+    """Mean squared error between two images.
+
+    ``pred`` and ``target``: arrays of the same shape, (H, W) or (H, W, C) (any shape is
+    accepted; the mean then runs over all elements). ``mask``: None, an (H, W) array applied to
+    every channel of an (H, W, C) image, or any array broadcastable to ``pred``'s shape; its
+    values are non-negative per-pixel weights (boolean or 0/1 for a plain mask).
+
+    With ``m`` the mask broadcast to ``pred``'s shape (all ones when None)::
+
+        value = sum(m * (pred - target)**2) / sum(m)
+
+    i.e. the mean over masked pixels *and* channels (a pixel of an (H, W, C) image counts C
+    times). An all-zero mask (or an empty image) gives 0 and a zero gradient.
+    Returns ``(value, {"pred": 2 * m * (pred - target) / sum(m)})``.
+    """
+    p, t = _image_pair(pred, target)
+    m = _image_mask(mask, p.shape)
+    r = p - t
+    return _masked_mean(r * r, 2.0 * r, m)
+
+
+def image_l1(pred, target, mask=None) -> tuple[float, dict]:
+    """Mean absolute error between two images: ``sum(m * |pred - target|) / sum(m)``.
+
+    Shapes, the mask and the normalisation exactly as in :func:`image_l2`. The gradient wrt
+    ``pred`` is ``m * sign(pred - target) / sum(m)``, taking the subgradient 0 where
+    ``pred == target``.
+    """
+    p, t = _image_pair(pred, target)
+    m = _image_mask(mask, p.shape)
+    r = p - t
+    return _masked_mean(np.abs(r), np.sign(r), m)
+
+
+def silhouette_iou(pred, target, eps: float = 1e-6) -> tuple[float, dict]:
+    """Soft IoU loss of the paper (sec. 4.1): ``1 - sum(p t) / sum(p + t - p t)``.
+
+    ``pred``, ``target``: silhouettes (alpha in [0, 1]) of the same shape, e.g. (H, W); the sums
+    run over all elements (stacked views are pooled into one IoU). With ``I = sum(p t)`` and
+    ``U = sum(p + t - p t)`` the value computed is::
+
+        value = (U - I) / (U + eps)  =  1 - (I + eps) / (U + eps)
+
+    which is the paper's loss up to ``eps`` (in units of summed pixel values, so negligible for
+    any non-trivial silhouette): identical binary masks give exactly 0, disjoint ones
+    ``U / (U + eps)`` ~ 1, and an empty union (both all zero) gives 0 with a finite gradient
+    (of size ~1/eps: the unguarded loss is discontinuous there). ``eps`` must be > 0.
+    Returns ``(value, {"pred": d value / d pred})``; the gradient is exact for the guarded
+    formula: ``((1 - 2t)(U + eps) - (U - I)(1 - t)) / (U + eps)**2``.
+    """
+    p, t = _image_pair(pred, target)
+    eps = float(_array(eps, "eps"))
+    _positive(np.asarray(eps), "eps")
+    inter = float((p * t).sum())
+    union = float((p + t - p * t).sum())
+    den = union + eps
+    value = (union - inter) / den
+    grad = ((1.0 - 2.0 * t) * den - (union - inter) * (1.0 - t)) / (den * den)
+    return float(value), {"pred": grad}
+
+
+def silhouette_l2(pred, target, mask=None) -> tuple[float, dict]:
+    """Mean squared error between two silhouettes; identical to :func:`image_l2`.
+
+    ``value = sum(m * (pred - target)**2) / sum(m)`` (``m`` all ones without a mask), so 0 for
+    equal silhouettes and 1 for complementary binary ones. Returns ``(value, {"pred": ...})``.
+    """
+    return image_l2(pred, target, mask)
+
+
+# ---------------------------------------------------------------------------------------------
+# landmarks and priors
+# ---------------------------------------------------------------------------------------------
+
+def landmarks_2d(points, target, weights=None, robust_sigma=None) -> tuple[float, dict]:
+    """2D landmark reprojection error, optionally with a Geman-McClure robust kernel.
+
+    ``points``: projected landmarks (N, 2) in pixels (differentiable); ``target``: (N, 2)
+    observed positions; ``weights``: None (all 1), a scalar, or (N,) non-negative per-point
+    weights; ``robust_sigma``: None or a scale s > 0 in pixels. With ``r2_i = |points_i -
+    target_i|^2``::
+
+        rho(r2) = r2                     (robust_sigma None: squared distance, pixels^2)
+        rho(r2) = r2 / (r2 + s**2)       (Geman-McClure: ~r2/s^2 for small residuals,
+                                          saturating at 1 for r >> s; dimensionless)
+        value   = (1/N) * sum_i weights_i * rho(r2_i)
+
+    (the mean over points, not normalised by the weights' sum). N = 0 gives 0.
+    Returns ``(value, {"points": (N, 2) gradient})``.
+    """
+    p = _array(points, "points")
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise ValueError(f"points: expected shape (N, 2), got {p.shape}")
+    t = _array(target, "target")
+    _same_shape(p, t, "points", "target")
+    n = p.shape[0]
+    if weights is None:
+        w = np.ones(n)
+    else:
+        w = _array(weights, "weights")
+        if w.ndim == 0:
+            w = np.full(n, float(w))
+        elif w.shape != (n,):
+            raise ValueError(f"weights: expected a scalar or shape ({n},), got {w.shape}")
+        _nonnegative(w, "weights")
+    if n == 0:
+        return 0.0, {"points": np.zeros_like(p)}
+    d = p - t
+    r2 = np.einsum("ij,ij->i", d, d)
+    if robust_sigma is None:
+        rho = r2
+        drho = np.ones(n)
+    else:
+        s = _array(robust_sigma, "robust_sigma")
+        if s.ndim != 0:
+            raise ValueError(f"robust_sigma: expected a scalar, got shape {s.shape}")
+        _positive(s, "robust_sigma")
+        s2 = float(s) ** 2
+        den = r2 + s2
+        rho = r2 / den
+        drho = s2 / (den * den)
+    value = float((w * rho).sum() / n)
+    grad = (2.0 / n) * (w * drho)[:, None] * d
+    return value, {"points": grad}
+
+
+def gaussian_prior(coeffs, sigma, mean=0.0) -> tuple[float, dict]:
+    """Gaussian prior (negative log-likelihood up to a factor 1/2): ``sum(((c - mean) / sigma)**2)``.
+
+    ``coeffs``: any shape (differentiable). ``sigma``: a scalar or an array broadcastable to
+    ``coeffs``' shape (per-coefficient standard deviations), all > 0. ``mean``: scalar or
+    broadcastable, default 0. Returns ``(value, {"coeffs": 2 (c - mean) / sigma**2})``.
+    """
+    c = _array(coeffs, "coeffs")
+    s = _array(sigma, "sigma")
+    _positive(s, "sigma")
+    mu = _array(mean, "mean")
+    for a, name in ((s, "sigma"), (mu, "mean")):
+        try:
+            if np.broadcast_shapes(a.shape, c.shape) != c.shape:
+                raise ValueError
+        except ValueError:
+            raise ValueError(f"{name}: shape {a.shape} does not broadcast to coeffs shape "
+                             f"{c.shape}") from None
+    z = (c - mu) / s
+    return float((z * z).sum()), {"coeffs": np.broadcast_to(2.0 * z / s, c.shape).copy()}
+
+
+# ---------------------------------------------------------------------------------------------
+# mesh topology
+# ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class MeshTopology:
+    """Connectivity of a triangle mesh, shared by the mesh regularisers (arrays read-only).
+
+    n_vertices: V.
+    edges: (E, 2) int64, each undirected edge once, ``edges[:, 0] < edges[:, 1]``.
+    degree: (V,) int64, number of distinct neighbours of each vertex (0 if in no face).
+    interior: (I, 4) int64 rows ``(v0, v1, a, b)`` for each edge shared by exactly two faces:
+        the edge's endpoints and the vertices opposite it in the two faces. Boundary edges (one
+        face) and non-manifold edges (three or more faces) are not listed.
+    """
+    n_vertices: int
+    edges: np.ndarray
+    degree: np.ndarray
+    interior: np.ndarray
+
+
+_TOPOLOGY_CACHE: OrderedDict = OrderedDict()
+_TOPOLOGY_CACHE_SIZE = 16
+
+
+def _faces(faces, n_vertices: int) -> np.ndarray:
+    f = np.asarray(faces)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise ValueError(f"faces: expected shape (F, 3), got {f.shape}")
+    if f.size and not np.issubdtype(f.dtype, np.integer):
+        raise ValueError(f"faces: expected an integer array, got dtype {f.dtype}")
+    f = f.astype(np.int64, copy=False)
+    if f.size:
+        if f.min() < 0 or f.max() >= n_vertices:
+            raise ValueError(f"faces: indices must be in [0, {n_vertices}), got "
+                             f"[{f.min()}, {f.max()}]")
+        rep = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
+        if rep.any():
+            raise ValueError(f"faces: face {int(np.argmax(rep))} repeats a vertex index "
+                             f"{f[np.argmax(rep)].tolist()}")
+    return f
+
+
+def _build_topology(f: np.ndarray, n_vertices: int) -> MeshTopology:
+    # Half-edges (i, j) of every face with the vertex opposite them.
+    start = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
+    end = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
+    opposite = np.concatenate([f[:, 2], f[:, 0], f[:, 1]])
+    lo, hi = np.minimum(start, end), np.maximum(start, end)
+    key = lo * np.int64(max(n_vertices, 1)) + hi
+    uniq, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    edges = np.stack([uniq // max(n_vertices, 1), uniq % max(n_vertices, 1)], axis=1)
+    degree = np.bincount(edges.reshape(-1), minlength=n_vertices).astype(np.int64)
+    order = np.argsort(inverse, kind="stable")          # half-edges grouped by undirected edge
+    first = np.cumsum(counts) - counts
+    inner = np.flatnonzero(counts == 2)
+    h1, h2 = order[first[inner]], order[first[inner] + 1]
+    interior = np.stack([edges[inner, 0], edges[inner, 1], opposite[h1], opposite[h2]], axis=1)
+    edges, interior = edges.reshape(-1, 2), interior.reshape(-1, 4)
+    for a in (edges, degree, interior):
+        a.flags.writeable = False
+    return MeshTopology(int(n_vertices), edges, degree, interior)
+
+
+def mesh_topology(faces, n_vertices: int) -> MeshTopology:
+    """Topology of ``faces`` (F, 3) integer indices into ``n_vertices`` vertices (cached).
+
+    The cache holds the last few distinct face arrays (keyed by their content), so a fit that
+    calls the mesh losses each iteration with the same faces builds it once.
+    """
+    n_vertices = int(n_vertices)
+    f = _faces(faces, n_vertices)
+    f = np.ascontiguousarray(f)
+    key = (n_vertices, f.shape, hashlib.blake2b(f.tobytes(), digest_size=16).digest())
+    topo = _TOPOLOGY_CACHE.get(key)
+    if topo is None:
+        topo = _build_topology(f, n_vertices)
+        _TOPOLOGY_CACHE[key] = topo
+        while len(_TOPOLOGY_CACHE) > _TOPOLOGY_CACHE_SIZE:
+            _TOPOLOGY_CACHE.popitem(last=False)
+    else:
+        _TOPOLOGY_CACHE.move_to_end(key)
+    return topo
+
+
+def _mesh(vertices, faces) -> tuple[np.ndarray, MeshTopology]:
+    v = _array(vertices, "vertices")
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"vertices: expected shape (V, 3), got {v.shape}")
+    if isinstance(faces, MeshTopology):
+        if faces.n_vertices != len(v):
+            raise ValueError(f"faces: topology is for {faces.n_vertices} vertices, "
+                             f"vertices has {len(v)}")
+        return v, faces
+    return v, mesh_topology(faces, len(v))
+
+
+def _scatter(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """``out[index[k]] += values[k]`` for (K, 3) values into an (n, 3) array."""
+    out = np.empty((n, values.shape[1]))
+    for c in range(values.shape[1]):
+        out[:, c] = np.bincount(index, weights=values[:, c], minlength=n)
+    return out
+
+
+def _neighbour_sum(x: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """``sum_{j in N(i)} x_j`` for every vertex i (x (V, 3))."""
+    i, j = edges[:, 0], edges[:, 1]
+    return _scatter(np.concatenate([i, j]), np.concatenate([x[j], x[i]]), len(x))
+
+
+# ---------------------------------------------------------------------------------------------
+# mesh regularisers
+# ---------------------------------------------------------------------------------------------
+
+def laplacian_coordinates(vertices, faces) -> np.ndarray:
+    """Uniform Laplacian coordinates ``delta_i = v_i - mean_{j in N(i)} v_j``, (V, 3).
+
+    ``N(i)``: the distinct vertices sharing a mesh edge with i. A vertex in no face has
+    ``delta = 0``. ``faces`` may also be a :class:`MeshTopology`.
+    """
+    v, topo = _mesh(vertices, faces)
+    return _delta(v, topo)[0]
+
+
+def _delta(v: np.ndarray, topo: MeshTopology) -> tuple[np.ndarray, np.ndarray]:
+    deg = topo.degree
+    inv_deg = np.divide(1.0, deg, out=np.zeros(len(v)), where=deg > 0)
+    delta = v - _neighbour_sum(v, topo.edges) * inv_deg[:, None]
+    delta[deg == 0] = 0.0
+    return delta, inv_deg
+
+
+def laplacian(vertices, faces) -> tuple[float, dict]:
+    """Uniform-Laplacian smoothness: ``sum_i |v_i - mean_{j in N(i)} v_j|^2``.
+
+    ``vertices`` (V, 3) float (differentiable); ``faces`` (F, 3) integer indices (or a
+    :class:`MeshTopology`); neighbours from the mesh's unique edges (see
+    :func:`laplacian_coordinates`). With ``delta = L v``, ``L = I - D^-1 A``, the gradient is
+    ``2 L^T delta = 2 (delta_i - sum_{j in N(i)} delta_j / deg_j)``.
+    Returns ``(value, {"vertices": (V, 3)})``.
+    """
+    v, topo = _mesh(vertices, faces)
+    delta, inv_deg = _delta(v, topo)
+    grad = 2.0 * (delta - _neighbour_sum(delta * inv_deg[:, None], topo.edges))
+    return float((delta * delta).sum()), {"vertices": grad}
+
+
+def flatten(vertices, faces, eps: float = 1e-12) -> tuple[float, dict]:
+    """Flatten regulariser: ``sum over interior edges of (cos(phi) + 1)^2``.
+
+    For each edge (v0, v1) shared by exactly two faces, with opposite vertices a and b
+    (see :class:`MeshTopology`; boundary and non-manifold edges contribute nothing):
+    ``e = v1 - v0``, ``u_a`` = component of ``a - v0`` perpendicular to e, ``u_b`` likewise,
+    ``cos(phi) = u_a . u_b / (|u_a| |u_b|)``; phi is the interior angle between the two faces
+    at the edge (pi for a flat surface, giving 0; 4 for a face folded onto its neighbour). It
+    does not depend on face orientation.
+
+    Zero lengths are guarded with ``eps`` (squared-length units, > 0): the projection uses
+    ``(p . e) / (e . e + eps)`` and the cosine ``u_a . u_b / sqrt((|u_a|^2 + eps)(|u_b|^2 +
+    eps))``, so degenerate edges or faces give finite values and gradients (a collinear
+    opposite vertex gives cos = 0). The gradient returned is exact for this guarded formula.
+    Returns ``(value, {"vertices": (V, 3)})``.
+    """
+    v, topo = _mesh(vertices, faces)
+    eps = float(_array(eps, "eps"))
+    _positive(np.asarray(eps), "eps")
+    i0, i1, ia, ib = topo.interior.T
+    if len(i0) == 0:
+        return 0.0, {"vertices": np.zeros_like(v)}
+    x0 = v[i0]
+    e = v[i1] - x0
+    pa = v[ia] - x0
+    pb = v[ib] - x0
+
+    def dot(x, y):
+        return np.einsum("ij,ij->i", x, y)
+
+    ee = dot(e, e) + eps
+    ta = dot(pa, e) / ee
+    tb = dot(pb, e) / ee
+    ua = pa - ta[:, None] * e
+    ub = pb - tb[:, None] * e
+    na = dot(ua, ua) + eps
+    nb = dot(ub, ub) + eps
+    den = np.sqrt(na * nb)
+    d = dot(ua, ub)
+    cos = d / den
+    value = float(((cos + 1.0) ** 2).sum())
+
+    # Backward pass through the expressions above.
+    g_cos = 2.0 * (cos + 1.0)
+    g_d = g_cos / den
+    g_na = -0.5 * g_cos * cos / na
+    g_nb = -0.5 * g_cos * cos / nb
+    g_ua = g_d[:, None] * ub + (2.0 * g_na)[:, None] * ua
+    g_ub = g_d[:, None] * ua + (2.0 * g_nb)[:, None] * ub
+    g_ta = -dot(g_ua, e)
+    g_tb = -dot(g_ub, e)
+    g_pa = g_ua + (g_ta / ee)[:, None] * e
+    g_pb = g_ub + (g_tb / ee)[:, None] * e
+    g_ee = -(g_ta * ta + g_tb * tb) / ee
+    g_e = (-ta[:, None] * g_ua - tb[:, None] * g_ub
+           + (g_ta / ee)[:, None] * pa + (g_tb / ee)[:, None] * pb
+           + (2.0 * g_ee)[:, None] * e)
+    g_x0 = -(g_e + g_pa + g_pb)
+    grad = _scatter(np.concatenate([i0, i1, ia, ib]),
+                    np.concatenate([g_x0, g_e, g_pa, g_pb]), len(v))
+    return value, {"vertices": grad}
+
+
+def edge_length(vertices, faces) -> tuple[float, dict]:
+    """Edge-length regulariser: ``sum over unique undirected edges (i, j) of |v_i - v_j|^2``.
+
+    Each edge counts once however many faces share it. Returns ``(value, {"vertices": (V, 3)})``
+    with gradient ``2 sum_{j in N(i)} (v_i - v_j)``.
+    """
+    v, topo = _mesh(vertices, faces)
+    i, j = topo.edges[:, 0], topo.edges[:, 1]
+    d = v[i] - v[j]
+    grad = _scatter(np.concatenate([i, j]), np.concatenate([2.0 * d, -2.0 * d]), len(v))
+    return float((d * d).sum()), {"vertices": grad}
+
+
+# ---------------------------------------------------------------------------------------------
+# combination
+# ---------------------------------------------------------------------------------------------
+
+def weighted_sum(terms: Mapping[str, tuple], weights: Mapping[str, float],
+                 ) -> tuple[float, dict, dict]:
+    """Combine loss terms with weights by name.
+
+    ``terms``: name -> ``(value, grads)`` as returned by the losses above. ``weights``: name ->
+    float >= 0. A term whose weight is 0 or which has no weight is skipped (its value and
+    gradients are not even read). A positive weight naming a term absent from ``terms`` raises
+    ValueError (a requested loss that was not computed); a negative or NaN weight too.
+
+    Returns ``(total, grads, weighted)``: ``total = sum_k w_k value_k`` over the used terms;
+    ``grads[key] = sum_k w_k grads_k[key]`` (arrays under the same key, e.g. several terms'
+    ``"vertices"``, are summed and must have the same shape); ``weighted = {name: w_k value_k}``
+    for the used terms only. NaN values or gradients are passed through (the solver reports
+    them). The inputs are not modified.
+    """
+    for name, w in weights.items():
+        try:
+            wf = float(w)
+        except (TypeError, ValueError):
+            raise ValueError(f"weights[{name!r}]: not a number ({w!r})") from None
+        if not wf >= 0.0 or not np.isfinite(wf):
+            raise ValueError(f"weights[{name!r}]: must be finite and >= 0, got {w!r}")
+        if wf > 0.0 and name not in terms:
+            raise ValueError(f"weights[{name!r}]: positive weight but no such term "
+                             f"(terms: {sorted(terms)})")
+    total = 0.0
+    grads: dict = {}
+    owner: dict = {}
+    weighted: dict = {}
+    for name, term in terms.items():
+        w = float(weights.get(name, 0.0))
+        if w == 0.0:
+            continue
+        try:
+            value, g = term
+        except (TypeError, ValueError):
+            raise ValueError(f"terms[{name!r}]: expected a (value, grads) pair") from None
+        if not isinstance(g, Mapping):
+            raise ValueError(f"terms[{name!r}]: grads must be a dict, got {type(g).__name__}")
+        wv = w * float(value)
+        weighted[name] = wv
+        total += wv
+        for key, arr in g.items():
+            a = np.asarray(arr, dtype=np.float64)
+            if key in grads:
+                if grads[key].shape != a.shape:
+                    raise ValueError(f"terms[{name!r}]: grads[{key!r}] shape {a.shape} does not "
+                                     f"match shape {grads[key].shape} from term "
+                                     f"{owner[key]!r}")
+                grads[key] += w * a
+            else:
+                grads[key] = w * a           # a new array: the caller's is never modified
+                owner[key] = name
+    return float(total), grads, weighted

@@ -1,0 +1,515 @@
+"""Staged nlopt L-BFGS over a :class:`~softras_cl.fitting.params.ParamSet` (docs/fitting.md).
+
+``fit(params, objective, stages)`` runs one ``nlopt.LD_LBFGS`` optimisation per :class:`Stage`,
+over that stage's free blocks only (the others stay at their current values). Each stage starts
+from the best point of the previous one.
+
+The objective
+-------------
+``objective(values, stage) -> (loss, grads, terms)``:
+
+- ``values``: dict block name -> float64 array (all blocks; free ones at the point nlopt asks
+  for). Do not modify these arrays in place.
+- ``stage``: the :class:`Stage` being run. **The solver never renders**: ``stage.sigma`` and
+  ``stage.gamma`` (and ``stage.weights``) are data for the objective, which is responsible for
+  configuring its rasteriser with them (``None`` means "leave unchanged") and for weighting its
+  loss terms (e.g. with ``losses.weighted_sum(terms, stage.weights)``).
+- returns ``loss`` (float), ``grads`` (dict block name -> d loss / d value, block-shaped; a free
+  block missing from it has gradient zero) and ``terms`` (dict term name -> float, the weighted
+  term values, recorded in the history and plotted; may be empty).
+
+Outcomes
+--------
+Every evaluation with a finite loss is compared with the best so far (L-BFGS also evaluates
+line-search points, which may be the lowest ones seen); the best point is what a stage returns,
+whatever nlopt returns, and what the next stage starts from.
+``FitResult.outcomes[stage.name]`` is the nlopt result name:
+
+- normal returns: ``SUCCESS``, ``STOPVAL_REACHED``, ``FTOL_REACHED``, ``XTOL_REACHED``,
+  ``MAXEVAL_REACHED``, ``MAXTIME_REACHED``;
+- ``ROUNDOFF_LIMITED`` (``nlopt.RoundoffLimited``): the best point is kept and the fit goes on;
+- ``FORCED_STOP`` (``nlopt.ForcedStop``, e.g. raised by the objective to end a stage early);
+- generic failures (``FAILURE``, ``INVALID_ARGS``, ``OUT_OF_MEMORY``; nlopt's LD_LBFGS reports
+  a line search that cannot make progress, typical of a noisy or inconsistent gradient, as
+  ``FAILURE``): the best point is kept and the fit goes on; ``FitError`` only when the stage
+  made no finite evaluation at all;
+- ``INTERRUPTED``: Ctrl-C / ``KeyboardInterrupt`` (see below).
+
+A NaN or infinite loss, or a non-finite gradient in a free block, raises :class:`FitError`
+whose message names the stage, the evaluation and the block(s) whose gradient is not finite
+(and the non-finite terms, if any). Any other exception raised by the objective is re-raised
+unchanged (after the checkpoint is written). In both cases ``params`` holds the best values of
+the last stage that had a finite evaluation.
+
+Ctrl-C
+------
+A ``KeyboardInterrupt`` raised inside the objective, or a first Ctrl-C anywhere during ``fit``
+(in the main thread, when Python's default SIGINT handler is installed; the running evaluation
+is allowed to finish), stops the fit: the best values are kept and written to the checkpoint,
+and ``fit`` returns normally with ``interrupted=True``. A second Ctrl-C raises at once.
+
+Files (``out_dir``)
+-------------------
+- ``checkpoint.npz``: the best values so far (one array per block name) plus ``__stage__``
+  (stage name), ``__iter__`` (evaluation of that stage at which the best was found), ``__loss__``
+  (its loss) and ``__evals__`` (evaluations so far, all stages). Written atomically (temp file,
+  then ``os.replace``) when the best improves, at most every ``CHECKPOINT_INTERVAL`` seconds,
+  and always at the end of each stage, on interruption and before raising. Read it with
+  :func:`load_checkpoint` or ``np.load``.
+- ``history.json``: ``{"stages": [...], "outcomes": {...}, "interrupted": bool, "history": [...]}``
+  where each history entry is ``{"stage", "iter", "loss", "terms"}``, one per evaluation.
+- ``loss_curve.png``: total loss and each term against the evaluation index, log y axis, stage
+  boundaries marked.
+
+A tqdm bar on stderr shows the stage, evaluation and loss (``progress=False`` disables it).
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import nlopt
+import numpy as np
+
+from .params import ParamSet
+
+__all__ = ["Stage", "FitResult", "FitError", "Objective", "fit", "load_checkpoint",
+           "CHECKPOINT_INTERVAL"]
+
+CHECKPOINT_INTERVAL = 0.5       # seconds between two checkpoint writes during a stage
+_META_KEYS = ("__stage__", "__iter__", "__loss__", "__evals__")
+
+_RESULT_NAMES = {getattr(nlopt, n): n for n in (
+    "SUCCESS", "STOPVAL_REACHED", "FTOL_REACHED", "XTOL_REACHED", "MAXEVAL_REACHED",
+    "MAXTIME_REACHED", "FAILURE", "INVALID_ARGS", "OUT_OF_MEMORY", "ROUNDOFF_LIMITED",
+    "FORCED_STOP") if hasattr(nlopt, n)}
+
+
+@dataclass
+class Stage:
+    """One optimisation stage, given as data.
+
+    name:     unique among the stages of a fit (keys ``FitResult.outcomes``).
+    free:     blocks optimised in this stage (a single name is accepted too).
+    weights:  loss-term weights by name, for the objective to apply.
+    sigma, gamma: rasteriser sharpness for this stage, for the objective to apply (None: leave
+              the rasteriser as it is). The solver itself never renders.
+    max_iters: nlopt ``maxeval``, i.e. objective evaluations (line-search points included); a
+              hard cap (nlopt's L-BFGS can overshoot maxeval inside a line search; the solver
+              stops it at the cap and reports MAXEVAL_REACHED).
+    ftol_rel, xtol_rel: nlopt relative tolerances (x in scaled units, see params.py).
+    """
+    name: str
+    free: tuple[str, ...]
+    weights: dict = field(default_factory=dict)
+    sigma: float | None = None
+    gamma: float | None = None
+    max_iters: int = 100
+    ftol_rel: float = 1e-7
+    xtol_rel: float = 1e-9
+
+    def __post_init__(self):
+        if isinstance(self.free, str):
+            self.free = (self.free,)
+        self.free = tuple(self.free)
+
+
+Objective = Callable[[dict, Stage], "tuple[float, dict, dict]"]
+
+
+@dataclass
+class FitResult:
+    """values: best values (all blocks) at the end; loss: their loss in the last stage that made
+    a finite evaluation; history: one dict(stage, iter, loss, terms) per evaluation; outcomes:
+    stage name -> nlopt result name (stages never started are absent); interrupted: Ctrl-C."""
+    values: dict
+    loss: float
+    history: list
+    outcomes: dict
+    interrupted: bool = False
+
+
+class FitError(RuntimeError):
+    """A fit cannot go on: non-finite loss or gradient, or an nlopt failure with no finite
+    evaluation. ``stage``: stage name; ``blocks``: blocks with a non-finite gradient (may be
+    empty); ``iter``: evaluation within the stage (None when not tied to one)."""
+
+    def __init__(self, message, stage=None, blocks=(), iter=None):
+        super().__init__(message)
+        self.stage, self.blocks, self.iter = stage, tuple(blocks), iter
+
+
+class _NonFinite(Exception):
+    pass
+
+
+def load_checkpoint(path) -> tuple[dict, dict]:
+    """Read ``checkpoint.npz`` -> (values: name -> array, meta: dict(stage, iter, loss, evals))."""
+    with np.load(path, allow_pickle=False) as z:
+        values = {k: np.array(z[k]) for k in z.files if k not in _META_KEYS}
+        meta = {"stage": str(z["__stage__"]), "iter": int(z["__iter__"]),
+                "loss": float(z["__loss__"]), "evals": int(z["__evals__"])}
+    return values, meta
+
+
+def _new_opt(n: int):
+    """The optimiser of one stage (a function so tests can substitute it)."""
+    return nlopt.opt(nlopt.LD_LBFGS, n)
+
+
+def _atomic_write(path: Path, write: Callable) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}-", suffix=path.suffix + ".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def _float_or_none(v):
+    return float(v) if math.isfinite(v) else None
+
+
+class _SigintToFlag:
+    """While active, a first Ctrl-C sets a flag and forces nlopt to stop (instead of raising in
+    the middle of nlopt's callback, where nlopt would swallow it); a second one raises."""
+
+    def __init__(self, state):
+        self.state, self.prev, self.active = state, None, False
+
+    def __enter__(self):
+        if (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+            self.prev = signal.signal(signal.SIGINT, self._handler)
+            self.active = True
+        return self
+
+    def _handler(self, signum, frame):
+        self.state.interrupt = True
+        if self.state.opt is not None:
+            try:
+                self.state.opt.force_stop()
+            except Exception:
+                pass
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+    def __exit__(self, *exc):
+        if self.active:
+            signal.signal(signal.SIGINT, self.prev)
+        return False
+
+
+class _State:
+    def __init__(self):
+        self.interrupt = False
+        self.opt = None
+
+
+class _Fit:
+    def __init__(self, params, objective, stages, out_dir, progress):
+        self.params, self.objective, self.stages = params, objective, stages
+        self.out = Path(out_dir) if out_dir is not None else None
+        self.history: list[dict] = []
+        self.outcomes: dict[str, str] = {}
+        self.boundaries: list[tuple[int, str]] = []   # (first evaluation index, stage name)
+        self.state = _State()
+        self.evals = 0
+        self.last_write = -math.inf
+        self.current = params.values()        # best values so far (start of the next stage)
+        self.current_loss = math.inf
+        self.ckpt_meta = ("", 0, math.inf)    # (stage, iter, loss) of self.current
+        self.bar = None
+        self.progress = progress
+
+    # ---- files -----------------------------------------------------------------------------
+    def write_checkpoint(self, values, stage, it, loss):
+        if self.out is None:
+            return
+        arrays = {k: np.asarray(v, dtype=np.float64) for k, v in values.items()}
+        arrays.update(__stage__=np.array(stage), __iter__=np.array(it, dtype=np.int64),
+                      __loss__=np.array(loss, dtype=np.float64),
+                      __evals__=np.array(self.evals, dtype=np.int64))
+        _atomic_write(self.out / "checkpoint.npz", lambda f: np.savez(f, **arrays))
+        self.last_write = time.monotonic()
+
+    def write_history(self, interrupted):
+        if self.out is None:
+            return
+        doc = {
+            "stages": [{**asdict(s), "free": list(s.free)} for s in self.stages],
+            "outcomes": self.outcomes,
+            "interrupted": interrupted,
+            "history": [{"stage": h["stage"], "iter": h["iter"], "loss": _float_or_none(h["loss"]),
+                         "terms": {k: _float_or_none(v) for k, v in h["terms"].items()}}
+                        for h in self.history],
+        }
+        # one line per history entry: readable, and small for long fits
+        head = json.dumps({k: v for k, v in doc.items() if k != "history"}, indent=1, default=str)
+        rows = ",\n".join("  " + json.dumps(h, default=str) for h in doc["history"])
+        text = (head[:-2] + ',\n "history": [\n' + rows + "\n ]\n}\n").encode()
+        _atomic_write(self.out / "history.json", lambda f: f.write(text))
+
+    def write_plot(self):
+        if self.out is None:
+            return
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        fig = Figure(figsize=(8, 4.5), dpi=100)
+        FigureCanvasAgg(fig)
+        ax = fig.add_subplot(1, 1, 1)
+        n = len(self.history)
+        xs = np.arange(1, n + 1)
+        series = {"total": np.array([h["loss"] for h in self.history], dtype=np.float64)}
+        names = []
+        for h in self.history:
+            for k in h["terms"]:
+                if k not in names:
+                    names.append(k)
+        for k in names:
+            series[k] = np.array([h["terms"].get(k, np.nan) for h in self.history], dtype=np.float64)
+        allv = np.concatenate([v[np.isfinite(v)] for v in series.values()]) if n else np.zeros(0)
+        negative = bool(np.any(allv < 0))
+        for k, v in series.items():
+            if not n:
+                continue
+            if not negative:                 # log axis: zeros cannot be drawn, leave gaps
+                v = np.where(v > 0, v, np.nan)
+            ax.plot(xs, v, lw=2.0 if k == "total" else 1.0,
+                    color="k" if k == "total" else None, label=k)
+        if n:                                # running best of the total within each stage
+            run = series["total"].copy()
+            for i in range(1, n):
+                if self.history[i]["stage"] == self.history[i - 1]["stage"]:
+                    run[i] = min(run[i], run[i - 1])
+            ax.plot(xs, run if negative else np.where(run > 0, run, np.nan), color="k", lw=1.0,
+                    ls=":", label="best in stage")
+        if negative:
+            ax.set_yscale("symlog", linthresh=max(1e-12, 1e-3 * float(np.max(np.abs(allv)))))
+        elif np.any(allv > 0):
+            ax.set_yscale("log")
+        for first, name in self.boundaries:
+            ax.axvline(first - 0.5, color="0.6", ls="--", lw=0.8)
+            ax.text(first - 0.5, 1.01, name, transform=ax.get_xaxis_transform(), va="bottom",
+                    ha="left", fontsize=8, color="0.3", rotation=30, clip_on=False)
+        ax.set_xlabel("evaluation")
+        ax.set_ylabel("loss (weighted terms)")
+        ax.grid(True, which="both", alpha=0.3)
+        if n:
+            ax.legend(fontsize=8, loc="upper right")
+        fig.tight_layout()
+        _atomic_write(self.out / "loss_curve.png", lambda f: fig.savefig(f, format="png"))
+
+    def write_all(self, interrupted):
+        self.write_checkpoint(self.current, *self.ckpt_meta)
+        self.write_history(interrupted)
+        self.write_plot()
+
+    # ---- one stage -------------------------------------------------------------------------
+    def run_stage(self, stage: Stage):
+        p = self.params
+        free = p._free(stage.free)
+        base = self.current
+        x0 = p.pack(base, free)
+        lo, hi = p.bounds(free)
+        best = {"loss": math.inf, "values": None, "iter": 0}
+        abort: list[BaseException] = []
+        k = [0]
+        budget, over_budget = int(stage.max_iters), [False]
+        self.boundaries.append((self.evals + 1, stage.name))
+        opt = _new_opt(x0.size)
+        self.state.opt = opt
+
+        def f(x, grad):
+            # Everything inside try: an exception escaping to nlopt's wrapper would be turned
+            # into a bare ForcedStop and its cause lost.
+            try:
+                if k[0] >= budget:          # nlopt may overshoot maxeval inside a line search
+                    over_budget[0] = True
+                if abort or self.state.interrupt or over_budget[0]:
+                    opt.force_stop()
+                    if grad.size:
+                        grad[:] = 0.0
+                    return best["loss"] if math.isfinite(best["loss"]) else 0.0
+                k[0] += 1
+                self.evals += 1
+                values = p.unpack(x, free, base)
+                loss, grads, terms = self.objective(values, stage)
+                grads = {} if grads is None else grads
+                terms = {} if terms is None else {str(t): float(v) for t, v in dict(terms).items()}
+                loss = float(loss)
+                g = p.pack_grad(grads, free)
+                bad_blocks = [n for n, sl in p.slices(free).items()
+                              if not np.all(np.isfinite(g[sl]))]
+                if not math.isfinite(loss) or bad_blocks:
+                    bad_terms = [t for t, v in terms.items() if not math.isfinite(v)]
+                    msg = (f"stage {stage.name!r}, evaluation {k[0]}: "
+                           + (f"loss is {loss}" if not math.isfinite(loss) else "loss is finite")
+                           + "; " + (f"gradient not finite in block(s) "
+                                     f"{', '.join(repr(b) for b in bad_blocks)}" if bad_blocks
+                                     else "gradients of all free blocks are finite")
+                           + (f"; non-finite term(s): {', '.join(bad_terms)}" if bad_terms else ""))
+                    raise FitError(msg, stage=stage.name, blocks=bad_blocks, iter=k[0])
+                self.history.append({"stage": stage.name, "iter": k[0], "loss": loss,
+                                     "terms": terms})
+                if loss < best["loss"]:
+                    best["loss"], best["iter"] = loss, k[0]
+                    best["values"] = {n: values[n].copy() for n in free}
+                    if time.monotonic() - self.last_write >= CHECKPOINT_INTERVAL:
+                        self.write_checkpoint({**base, **best["values"]}, stage.name, k[0], loss)
+                if self.bar is not None:
+                    self.bar.set_description(stage.name, refresh=False)
+                    self.bar.set_postfix(iter=k[0], loss=f"{loss:.6g}",
+                                         best=f"{best['loss']:.6g}", refresh=False)
+                    self.bar.update(1)
+                if grad.size:
+                    grad[:] = g
+                return loss
+            except nlopt.ForcedStop:
+                abort.append(_ForcedStopRequest())
+            except KeyboardInterrupt:
+                self.state.interrupt = True
+            except BaseException as exc:     # FitError or a bug in the objective
+                abort.append(exc)
+            opt.force_stop()
+            if grad.size:
+                grad[:] = 0.0
+            return best["loss"] if math.isfinite(best["loss"]) else 0.0
+
+        outcome = None
+        error = None
+        try:
+            opt.set_lower_bounds(lo)
+            opt.set_upper_bounds(hi)
+            opt.set_min_objective(f)
+            opt.set_maxeval(int(stage.max_iters))
+            opt.set_ftol_rel(float(stage.ftol_rel))
+            opt.set_xtol_rel(float(stage.xtol_rel))
+            opt.optimize(x0)
+            outcome = _RESULT_NAMES.get(opt.last_optimize_result(), str(opt.last_optimize_result()))
+        except nlopt.RoundoffLimited:
+            outcome = "ROUNDOFF_LIMITED"
+        except nlopt.ForcedStop:
+            outcome = "FORCED_STOP"
+        except KeyboardInterrupt:
+            self.state.interrupt = True
+        except MemoryError as exc:
+            outcome, error = "OUT_OF_MEMORY", exc
+        except ValueError as exc:
+            outcome, error = "INVALID_ARGS", exc
+        except Exception as exc:            # nlopt's runtime_error / RuntimeError: FAILURE
+            outcome, error = "FAILURE", exc
+        finally:
+            self.state.opt = None
+
+        if self.state.interrupt:
+            outcome = "INTERRUPTED"
+        elif over_budget[0] and outcome == "FORCED_STOP" and not abort:
+            outcome = "MAXEVAL_REACHED"
+        self.outcomes[stage.name] = outcome
+        # Carry the stage's best point on, whatever happened.
+        if best["values"] is not None:
+            self.current = {**base, **best["values"]}
+            self.current_loss = best["loss"]
+            self.ckpt_meta = (stage.name, best["iter"], best["loss"])
+            self.params.set(best["values"])
+        if self.bar is not None:      # keep the bar's total consistent with an early stop
+            self.bar.update(max(0, int(stage.max_iters) - k[0]))
+
+        real = [e for e in abort if not isinstance(e, _ForcedStopRequest)]
+        if real:
+            self.write_all(False)
+            raise real[0]
+        if abort:
+            self.outcomes[stage.name] = outcome = "FORCED_STOP"
+        if error is not None and best["values"] is None and not self.state.interrupt:
+            self.write_all(False)
+            raise FitError(f"stage {stage.name!r}: nlopt stopped with {outcome} "
+                           f"({type(error).__name__}: {error}) before any finite evaluation",
+                           stage=stage.name) from error
+        self.write_checkpoint(self.current, *self.ckpt_meta)
+
+    def run(self) -> FitResult:
+        from tqdm import tqdm
+        total = sum(int(s.max_iters) for s in self.stages)
+        self.bar = tqdm(total=total, file=sys.stderr, disable=not self.progress, leave=True,
+                        dynamic_ncols=True, unit="eval")
+        if self.bar.disable:
+            self.bar = None
+        try:
+            with _SigintToFlag(self.state):
+                for stage in self.stages:
+                    if self.state.interrupt:
+                        break
+                    self.run_stage(stage)
+        finally:
+            if self.bar is not None:
+                self.bar.close()
+        self.write_all(self.state.interrupt)
+        return FitResult(values={k: np.array(v, copy=True) for k, v in self.current.items()},
+                         loss=self.current_loss, history=self.history, outcomes=dict(self.outcomes),
+                         interrupted=self.state.interrupt)
+
+
+class _ForcedStopRequest(Exception):
+    """The objective raised nlopt.ForcedStop: end the stage, keep the best, go on."""
+
+
+def _check_stages(params: ParamSet, stages) -> list[Stage]:
+    stages = list(stages)
+    if not stages:
+        raise ValueError("fit needs at least one stage")
+    seen = set()
+    for s in stages:
+        if not isinstance(s, Stage):
+            raise ValueError(f"stages must be Stage objects, got {type(s).__name__}")
+        if not isinstance(s.name, str) or not s.name:
+            raise ValueError(f"stage name must be a non-empty string, got {s.name!r}")
+        if s.name in seen:
+            raise ValueError(f"duplicate stage name {s.name!r}")
+        seen.add(s.name)
+        if not s.free:
+            raise ValueError(f"stage {s.name!r}: no free blocks")
+        try:
+            params._free(s.free)
+        except ValueError as exc:
+            raise ValueError(f"stage {s.name!r}: {exc}") from None
+        if int(s.max_iters) < 1:
+            raise ValueError(f"stage {s.name!r}: max_iters must be >= 1")
+        if not (s.ftol_rel >= 0 and s.xtol_rel >= 0):
+            raise ValueError(f"stage {s.name!r}: ftol_rel and xtol_rel must be >= 0")
+    return stages
+
+
+def fit(params: ParamSet, objective: Objective, stages: Sequence[Stage], out_dir=None,
+        progress: bool = True) -> FitResult:
+    """Run the stages in order from ``params``' current values; see the module docstring.
+
+    On return (and on interruption) ``params`` holds the best values found, and so does
+    ``FitResult.values``.
+    """
+    if not isinstance(params, ParamSet):
+        raise ValueError(f"params must be a ParamSet, got {type(params).__name__}")
+    if not callable(objective):
+        raise ValueError("objective must be callable")
+    stages = _check_stages(params, stages)
+    clash = [n for n in params.names if n in _META_KEYS]
+    if clash:
+        raise ValueError(f"block name(s) {clash} are reserved for checkpoint metadata")
+    if out_dir is not None:
+        os.makedirs(out_dir, exist_ok=True)
+    return _Fit(params, objective, stages, out_dir, progress).run()
