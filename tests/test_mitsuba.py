@@ -20,6 +20,8 @@ from softras_cl.mitsuba_ref import compare_mitsuba, mitsuba_available, render_mi
 from softras_cl.raycast import raycast
 from softras_cl.renderer import SHADINGS
 
+import comparison_meshes
+
 SIZE = 128
 
 
@@ -29,26 +31,13 @@ def _coloured(vertices, faces):
 
 
 def icosphere():
-    m = trimesh.creation.icosphere(3)
-    return _coloured(np.asarray(m.vertices, float), np.asarray(m.faces))
-
-
-def torus():
-    """Non-convex, with self-occlusion at the elevation used below."""
-    m = trimesh.creation.torus(0.7, 0.3)
-    plain = Mesh(np.asarray(m.vertices, float), np.asarray(m.faces)).normalized()
+    plain = comparison_meshes.icosphere()
     return _coloured(plain.vertices, plain.faces)
 
 
-def textured_sphere():
-    m = trimesh.creation.icosphere(3)
-    v = np.asarray(m.vertices, float)
-    uvs = np.stack([0.5 + np.arctan2(v[:, 0], v[:, 2]) / (2 * np.pi),
-                    0.5 + np.arcsin(np.clip(v[:, 1], -1, 1)) / np.pi], 1)
-    yy, xx = np.mgrid[0:64, 0:128]
-    texture = np.stack([0.5 + 0.4 * np.sin(xx / 7.0), 0.5 + 0.4 * np.cos(yy / 5.0),
-                        0.5 + 0.3 * np.sin((xx + yy) / 11.0)], -1)
-    return Mesh(v, np.asarray(m.faces), uvs=uvs, texture=texture)
+def torus():
+    plain = comparison_meshes.torus()
+    return _coloured(plain.vertices, plain.faces)
 
 
 MESHES = {"icosphere": icosphere, "torus": torus}
@@ -131,7 +120,7 @@ def test_per_pixel_shading_matches_smooth_normals():
 
 def test_textured_unlit():
     """Unlit texture: Mitsuba's area emitter with a bilinear bitmap radiance at the hit's uv."""
-    m = compare_mitsuba(textured_sphere(), default_camera(256, elevation_deg=40)).metrics
+    m = compare_mitsuba(comparison_meshes.textured_sphere(), default_camera(256, elevation_deg=40)).metrics
     assert m["silhouette_iou"] >= 0.995
     assert m["depth_rel_err_max"] < 1e-3
     assert m["psnr_db"] >= 40.0
