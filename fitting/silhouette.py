@@ -40,7 +40,7 @@ from ..renderer import Renderer
 from ..settings import RasterSettings
 from . import losses
 from .params import Block, ParamSet
-from .solver import FitResult, Stage, fit
+from .solver import Stage, fit
 
 __all__ = ["orbit_cameras", "silhouette_settings", "target_silhouettes", "default_stages",
            "silhouette_objective", "deformed_vertices", "fit_to_silhouettes", "sample_surface",

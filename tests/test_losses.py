@@ -310,7 +310,7 @@ def test_weighted_sum():
     assert set(grads) == {"vertices", "pred"}
     np.testing.assert_allclose(grads["vertices"], 0.5 + 2 * v)
     np.testing.assert_allclose(grads["pred"], 1.5)
-    for k, (val, g) in before.items():                               # inputs untouched
+    for k, (_, g) in before.items():                               # inputs untouched
         for kk, a in g.items():
             np.testing.assert_array_equal(terms[k][1][kk], a)
     # Works end to end with real losses on the same mesh.
