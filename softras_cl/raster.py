@@ -260,7 +260,7 @@ class SoftRasterizer:
     # ---- buffers ---------------------------------------------------------------------------
     def _upload(self, mesh: MeshInputs, geom: np.ndarray, bins: Bins) -> dict:
         ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-        arrays = dict(geom=geom.astype(self.real), attr=mesh.face_attributes().astype(self.real),
+        arrays = dict(geom=geom.astype(self.real, order="C"), attr=mesh.face_attributes().astype(self.real),
                       tex_image=mesh.texture_image_array().astype(self.real),
                       light=(mesh.light if mesh.light is not None else np.zeros(0)).astype(self.real),
                       tile_start=bins.tile_start, tile_faces=bins.tile_faces,
@@ -342,7 +342,8 @@ def _grid(s: RasterSettings) -> Grid:
 def face_setup(mesh: MeshInputs, s: RasterSettings) -> tuple[np.ndarray, np.ndarray]:
     """Per-face constants for the kernel and which faces can be drawn at all.
 
-    Returns geom (B*F, FACE_STRIDE) float64 (layout: Face in soft_raster.cl) and drawable (B*F,) bool.
+    Returns geom (B*F, FACE_STRIDE) float64 (layout: Face in soft_raster.cl; a transposed view,
+    made contiguous when cast to the kernel dtype) and drawable (B*F,) bool.
     """
     # one contiguous (B*F,) array per coordinate of each corner: x[k], y[k], z[k]
     x, y, z = np.moveaxis(mesh.triangles().reshape(-1, 3, 3), (2, 1), (0, 1)).copy()
@@ -362,7 +363,7 @@ def face_setup(mesh: MeshInputs, s: RasterSettings) -> tuple[np.ndarray, np.ndar
     rows[18:21] = [1.0 / np.where(drawable & (l2 > 0), l2, 1.0) for l2 in edge_len2]
     rows[24:28] = _footprint_boxes(x, y, s)
     rows[:, ~drawable] = 0.0
-    return np.ascontiguousarray(rows.T), drawable
+    return rows.T, drawable
 
 
 def footprint_margin(s: RasterSettings) -> float:
