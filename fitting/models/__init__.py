@@ -1,0 +1,6 @@
+"""Shape models for fitting, installed as ``softras_cl.fitting.models``.
+
+Morphable face models and skinned body models, their file-format loaders, and the demo models
+that ship with the project under ``data/`` (built by scripts in ``scripts/``; attribution in
+``data/ATTRIBUTION.md``). Import the submodules directly.
+"""
