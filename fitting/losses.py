@@ -25,7 +25,7 @@ import numpy as np
 __all__ = [
     "MeshTopology", "mesh_topology",
     "image_l2", "image_l1", "silhouette_iou", "silhouette_l2", "landmarks_2d",
-    "gaussian_prior", "laplacian_coordinates", "laplacian", "flatten", "edge_length",
+    "gaussian_prior", "sh_white", "laplacian_coordinates", "laplacian", "flatten", "edge_length",
     "weighted_sum",
 ]
 
@@ -272,6 +272,21 @@ class MeshTopology:
 
 _TOPOLOGY_CACHE: OrderedDict = OrderedDict()
 _TOPOLOGY_CACHE_SIZE = 16
+
+
+def sh_white(coeffs) -> tuple[float, dict]:
+    """Keeps spherical-harmonic light near white: the spread of each SH coefficient over the
+    colour channels, ``sum_i sum_c (L[c, i] - mean_c L[c, i])**2``.
+
+    ``coeffs``: (3, 9) SH coefficients (channel, basis). Zero for any grey light, whatever its
+    brightness or direction; so the albedo, not the light, explains the colour of the skin.
+    Returns ``(value, {"coeffs": (3, 9) gradient})``.
+    """
+    c = _array(coeffs, "coeffs")
+    if c.shape != (3, 9):
+        raise ValueError(f"coeffs: expected SH coefficients of shape (3, 9), got {c.shape}")
+    d = c - c.mean(axis=0, keepdims=True)
+    return float((d * d).sum()), {"coeffs": 2.0 * d}
 
 
 def _faces(faces, n_vertices: int) -> np.ndarray:

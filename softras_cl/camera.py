@@ -372,6 +372,24 @@ class Camera:
                     rotation=rodrigues_vjp(self.rotation, g_R),
                     translation=g_cam.sum(axis=(0, 1)), focal=focal)
 
+    def project_pixels(self, points) -> tuple[np.ndarray, ProjectionContext]:
+        """World points (N, 3) -> (pixel coordinates (N, 2) float64 [u, v], ctx): u right, v down,
+        (0, 0) the centre of the top-left pixel (OpenCV). For landmarks and 2D joints."""
+        screen, ctx = self.project(points)
+        if ctx.batched:
+            raise ValueError(f"points must have shape (N, 3), got {np.shape(points)}")
+        h, w = self.image_size
+        s = min(h, w)
+        uv = np.stack([(screen[0, :, 0] * s + w) / 2.0 - 0.5, (h - screen[0, :, 1] * s) / 2.0 - 0.5], -1)
+        return uv, ctx
+
+    def project_pixels_vjp(self, ctx: ProjectionContext, grad_uv) -> dict:
+        """dL/d(uv) (N, 2) -> dict(vertices (N, 3), rotation (3,), translation (3,), focal (2,))."""
+        g = _cotangent("grad_uv", grad_uv, (1, ctx.cam_points.shape[1], 2), False)[0]
+        s = min(self.image_size)
+        grad_screen = np.stack([g[:, 0] * s / 2.0, -g[:, 1] * s / 2.0, np.zeros(len(g))], -1)
+        return self.project_vjp(ctx, grad_screen)
+
     # -- view directions (for specular shading) --
     def view_direction(self, points) -> tuple[np.ndarray, ViewDirectionContext]:
         """World points (V, 3) or (B, V, 3) -> (unit vectors (B, V, 3) towards the camera, ctx).

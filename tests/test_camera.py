@@ -446,3 +446,42 @@ def test_rodrigues_series_meets_closed_form():
     above = _rodrigues_coeffs(_SMALL_ANGLE * (1 + 1e-12))
     np.testing.assert_allclose(below, above, rtol=1e-11)
     np.testing.assert_allclose(_rodrigues_coeffs(0.0), [1, 0.5, -1 / 3, -1 / 12], rtol=1e-15)
+
+
+# ---- pixel projection (landmarks, 2D joints) ---------------------------------------------------
+@pytest.mark.parametrize("size", [(64, 64), (48, 80)])
+def test_project_pixels_matches_pinhole_formula(size):
+    cam = Camera.from_opencv([[70.0, 0, 30.5], [0, 60.0, 20.0], [0, 0, 1]], np.eye(3), [0.1, -0.2, 3.0], size)
+    pts = np.array([[0.0, 0.0, 0.0], [0.3, -0.4, 1.0], [-0.5, 0.2, -1.0]])
+    uv, _ = cam.project_pixels(pts)
+    X = pts + [0.1, -0.2, 3.0]
+    np.testing.assert_allclose(uv, np.stack([70 * X[:, 0] / X[:, 2] + 30.5, 60 * X[:, 1] / X[:, 2] + 20.0], -1),
+                               atol=1e-10)
+
+
+def test_project_pixels_vjp_vs_fd():
+    rng = np.random.default_rng(3)
+    cam = Camera.look_at([0.3, 0.2, 4.0], [0, 0, 0], image_size=(40, 56))
+    pts = rng.normal(scale=0.5, size=(7, 3))
+    G = rng.normal(size=(7, 2))
+    uv, ctx = cam.project_pixels(pts)
+    g = cam.project_pixels_vjp(ctx, G)
+    h = 1e-6
+    fd = np.zeros_like(pts)
+    for i in np.ndindex(pts.shape):
+        d = np.zeros_like(pts)
+        d[i] = h
+        fd[i] = (np.sum(G * cam.project_pixels(pts + d)[0]) - np.sum(G * cam.project_pixels(pts - d)[0])) / (2 * h)
+    np.testing.assert_allclose(g["vertices"], fd, rtol=1e-6, atol=1e-8)
+    f_fd = (np.sum(G * cam.with_params(fx=cam.fx + h, fy=cam.fy + h).project_pixels(pts)[0])
+            - np.sum(G * cam.with_params(fx=cam.fx - h, fy=cam.fy - h).project_pixels(pts)[0])) / (2 * h)
+    np.testing.assert_allclose(g["focal"].sum(), f_fd, rtol=1e-6)
+
+
+def test_project_pixels_rejects_batches_and_bad_cotangents():
+    cam = Camera.look_at([0, 0, 4.0], [0, 0, 0])
+    with pytest.raises(ValueError, match="points must have shape"):
+        cam.project_pixels(np.zeros((2, 3, 3)))
+    _, ctx = cam.project_pixels(np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="grad_uv must have shape"):
+        cam.project_pixels_vjp(ctx, np.zeros((3, 3)))

@@ -94,6 +94,17 @@ def test_gaussian_prior_grad(rng, sigma_kind):
     check_grad(losses.gaussian_prior, c, "coeffs", sigma=rng.uniform(0.5, 2, 4), mean=0.3)
 
 
+def test_sh_white_grad_and_values(rng):
+    check_grad(losses.sh_white, rng.normal(0, 1, (3, 9)), "coeffs")
+    grey = np.tile(rng.normal(0, 1, 9), (3, 1))
+    assert losses.sh_white(grey)[0] == 0.0
+    tinted = grey.copy()
+    tinted[0, 0] += 3.0                       # red ambient raised by 3: spread 3 * (2/3, -1/3, -1/3)
+    assert losses.sh_white(tinted)[0] == pytest.approx(9.0 * (4 + 1 + 1) / 9)
+    with pytest.raises(ValueError, match="shape \\(3, 9\\)"):
+        losses.sh_white(np.zeros(27))
+
+
 def random_meshes(rng):
     v, f = icosphere(1)
     v = v + rng.normal(0, 0.05, v.shape)            # closed, every edge interior
