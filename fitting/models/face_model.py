@@ -1,0 +1,250 @@
+"""Linear morphable face model: shape (identity + expression), albedo and landmarks.
+
+A ``FaceModel`` holds float64 numpy arrays in one convention whatever file it came from:
+
+- geometry in metres, model frame with y up and the face looking along +z;
+- ``faces`` counter-clockwise seen from outside (the visible side), so face normals
+  ``cross(v1 - v0, v2 - v0)`` point toward +z on the front of the face;
+- albedo in linear RGB, nominally in [0, 1] (never clipped here);
+- every coefficient in units of one standard deviation: ``shape(c_id, c_exp) = mean_shape +
+  sum_k c_id[k] id_std[k] id_basis[k] + sum_k c_exp[k] exp_std[k] exp_basis[k]``, so the
+  Gaussian prior of a model is simply ``sum(c ** 2)``.
+
+Every map from coefficients is linear and comes with its exact vector-Jacobian product
+(``shape_vjp``, ``albedo_vjp``, ``landmarks_vjp``). Bases are used through (K, 3V) views of the
+(K, V, 3) arrays, with the standard deviations applied to the K-vector: the same BLAS matvec as a
+pre-scaled matrix, without a second copy of bases that reach hundreds of megabytes.
+
+Loaders for the file formats users bring (BFM 2009, BFM 2017, FLAME, the project's .npz) live in
+``face_loaders``; ``load_face_model`` picks one from the file's content.
+"""
+from __future__ import annotations
+
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+FORMAT = "softras-cl-face-1"
+
+_ARRAY_FIELDS = ("mean_shape", "id_basis", "id_std", "exp_basis", "exp_std", "albedo_mean",
+                 "albedo_basis", "albedo_std", "faces", "landmark_faces", "landmark_bary")
+_INT_FIELDS = ("faces", "landmark_faces")
+
+
+def _as_float(name: str, value, shape: tuple, expected: str) -> np.ndarray:
+    """Contiguous float64 copy (or the array itself if it already is one), shape-checked.
+
+    ``shape`` holds ints and None (any size); ``expected`` is the human-readable shape.
+    """
+    array = np.ascontiguousarray(value, dtype=np.float64)
+    if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
+        raise ValueError(f"FaceModel: {name} must have shape {expected}, got {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"FaceModel: {name} contains NaN or infinite values")
+    return array
+
+
+def _as_index(name: str, value, shape: tuple, expected: str, upper: int, what: str) -> np.ndarray:
+    """int32 index array, shape-checked, every entry in [0, upper)."""
+    array = np.asarray(value)
+    if array.size and not np.issubdtype(array.dtype, np.integer):
+        raise ValueError(f"FaceModel: {name} must hold integers, got dtype {array.dtype}")
+    array = np.ascontiguousarray(array, dtype=np.int32)
+    if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
+        raise ValueError(f"FaceModel: {name} must have shape {expected}, got {array.shape}")
+    if array.size and (array.min() < 0 or array.max() >= upper):
+        raise ValueError(f"FaceModel: {name} must index {what} in [0, {upper}), "
+                         f"got values in [{array.min()}, {array.max()}]")
+    return array
+
+
+def _basis_and_std(prefix: str, basis, std, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    basis = _as_float(f"{prefix}_basis", basis, (None, n_vertices, 3), f"(K_{prefix}, {n_vertices}, 3)")
+    k = basis.shape[0]
+    std = _as_float(f"{prefix}_std", std, (k,), f"({k},) to match {prefix}_basis")
+    if np.any(std < 0):
+        raise ValueError(f"FaceModel: {prefix}_std must be >= 0 (standard deviations)")
+    return basis, std
+
+
+def _coeffs(name: str, value, k: int) -> np.ndarray:
+    c = np.asarray(value, dtype=np.float64)
+    if c.shape != (k,):
+        raise ValueError(f"{name} must have shape ({k},), got {c.shape}")
+    return c
+
+
+class FaceModel:
+    """A linear morphable face model (see the module docstring for every convention).
+
+    Fields (float64 unless said otherwise; V vertices, F faces, L landmarks):
+        mean_shape (V, 3) metres; id_basis (K_id, V, 3), id_std (K_id,);
+        exp_basis (K_exp, V, 3), exp_std (K_exp,) (K_exp may be 0);
+        albedo_mean (V, 3) linear RGB; albedo_basis (K_alb, V, 3), albedo_std (K_alb,) (K_alb may be 0);
+        faces (F, 3) int32, counter-clockwise from outside;
+        landmark_faces (L,) int32 face index per landmark; landmark_bary (L, 3) barycentric
+        weights in that face (L may be 0; 68 in iBUG 300-W order when known);
+        name, attribution: free text, kept through ``save``/``load_face_model``.
+    Every field is validated here; a ValueError names the field and the expected shape.
+    """
+
+    def __init__(self, mean_shape, id_basis, id_std, exp_basis, exp_std, albedo_mean,
+                 albedo_basis, albedo_std, faces, landmark_faces=None, landmark_bary=None,
+                 name: str = "", attribution: str = ""):
+        self.mean_shape = _as_float("mean_shape", mean_shape, (None, 3), "(V, 3)")
+        v = self.mean_shape.shape[0]
+        if v == 0:
+            raise ValueError("FaceModel: mean_shape must have at least one vertex, got shape (0, 3)")
+        self.id_basis, self.id_std = _basis_and_std("id", id_basis, id_std, v)
+        self.exp_basis, self.exp_std = _basis_and_std("exp", exp_basis, exp_std, v)
+        self.albedo_mean = _as_float("albedo_mean", albedo_mean, (v, 3), f"({v}, 3)")
+        self.albedo_basis, self.albedo_std = _basis_and_std("albedo", albedo_basis, albedo_std, v)
+        self.faces = _as_index("faces", faces, (None, 3), "(F, 3)", v, "vertices")
+        if self.faces.shape[0] == 0:
+            raise ValueError("FaceModel: faces must have at least one triangle, got shape (0, 3)")
+        if landmark_faces is None:
+            landmark_faces = np.zeros(0, np.int32)
+        if landmark_bary is None:
+            landmark_bary = np.zeros((0, 3))
+        self.landmark_faces = _as_index("landmark_faces", landmark_faces, (None,), "(L,)",
+                                        self.faces.shape[0], "faces")
+        n_lmk = self.landmark_faces.shape[0]
+        self.landmark_bary = _as_float("landmark_bary", landmark_bary, (n_lmk, 3),
+                                       f"({n_lmk}, 3) to match landmark_faces")
+        sums = self.landmark_bary.sum(axis=1)
+        if n_lmk and not np.allclose(sums, 1.0, atol=1e-4):
+            bad = int(np.argmax(np.abs(sums - 1.0)))
+            raise ValueError(f"FaceModel: landmark_bary row {bad} sums to {sums[bad]:.6g}, "
+                             "expected 1 (barycentric weights)")
+        self.name, self.attribution = str(name), str(attribution)
+        self._id_flat = self.id_basis.reshape(self.n_id, 3 * v)          # (K, 3V) views
+        self._exp_flat = self.exp_basis.reshape(self.n_exp, 3 * v)
+        self._alb_flat = self.albedo_basis.reshape(self.n_albedo, 3 * v)
+        self._lmk_vertices = self.faces[self.landmark_faces]             # (L, 3) vertex indices
+
+    # -- sizes ------------------------------------------------------------------------------
+    @property
+    def n_vertices(self) -> int:
+        return self.mean_shape.shape[0]
+
+    @property
+    def n_id(self) -> int:
+        return self.id_basis.shape[0]
+
+    @property
+    def n_exp(self) -> int:
+        return self.exp_basis.shape[0]
+
+    @property
+    def n_albedo(self) -> int:
+        return self.albedo_basis.shape[0]
+
+    @property
+    def n_landmarks(self) -> int:
+        return self.landmark_faces.shape[0]
+
+    def __repr__(self) -> str:
+        return (f"FaceModel({self.name!r}: {self.n_vertices} vertices, {self.faces.shape[0]} faces, "
+                f"id {self.n_id}, exp {self.n_exp}, albedo {self.n_albedo}, "
+                f"{self.n_landmarks} landmarks)")
+
+    # -- shape ------------------------------------------------------------------------------
+    def shape(self, id_coeffs, exp_coeffs) -> np.ndarray:
+        """Vertices (V, 3) float64 for coefficients in standard deviations: id (K_id,), exp (K_exp,)."""
+        c_id = _coeffs("id_coeffs", id_coeffs, self.n_id)
+        c_exp = _coeffs("exp_coeffs", exp_coeffs, self.n_exp)
+        flat = self.mean_shape.reshape(-1) + (c_id * self.id_std) @ self._id_flat
+        if self.n_exp:
+            flat = flat + (c_exp * self.exp_std) @ self._exp_flat
+        return flat.reshape(self.n_vertices, 3)
+
+    def shape_vjp(self, grad_vertices) -> tuple[np.ndarray, np.ndarray]:
+        """(g_id (K_id,), g_exp (K_exp,)) = J^T grad for grad_vertices (V, 3) = dL/d(vertices)."""
+        g = _as_float("grad_vertices", grad_vertices, (self.n_vertices, 3),
+                      f"({self.n_vertices}, 3)").reshape(-1)
+        return self.id_std * (self._id_flat @ g), self.exp_std * (self._exp_flat @ g)
+
+    # -- albedo -----------------------------------------------------------------------------
+    def albedo(self, coeffs) -> np.ndarray:
+        """Per-vertex albedo (V, 3) float64, linear RGB, not clipped; coeffs (K_alb,) in std units."""
+        c = _coeffs("albedo coeffs", coeffs, self.n_albedo)
+        flat = self.albedo_mean.reshape(-1) + (c * self.albedo_std) @ self._alb_flat
+        return flat.reshape(self.n_vertices, 3)
+
+    def albedo_vjp(self, grad) -> np.ndarray:
+        """(K_alb,) = J^T grad for grad (V, 3) = dL/d(albedo)."""
+        g = _as_float("grad", grad, (self.n_vertices, 3), f"({self.n_vertices}, 3)").reshape(-1)
+        return self.albedo_std * (self._alb_flat @ g)
+
+    # -- landmarks --------------------------------------------------------------------------
+    def landmarks(self, vertices) -> np.ndarray:
+        """3D landmarks (L, 3) float64: barycentric interpolation of vertices (V, 3) in each face."""
+        verts = _as_float("vertices", vertices, (self.n_vertices, 3), f"({self.n_vertices}, 3)")
+        return np.einsum("lj,ljc->lc", self.landmark_bary, verts[self._lmk_vertices])
+
+    def landmarks_vjp(self, grad) -> np.ndarray:
+        """(V, 3) = J^T grad for grad (L, 3) = dL/d(landmarks)."""
+        g = _as_float("grad", grad, (self.n_landmarks, 3), f"({self.n_landmarks}, 3)")
+        out = np.zeros((self.n_vertices, 3))
+        np.add.at(out, self._lmk_vertices.reshape(-1),
+                  (self.landmark_bary[:, :, None] * g[:, None, :]).reshape(-1, 3))
+        return out
+
+    # -- derived models ---------------------------------------------------------------------
+    def _fields(self) -> dict:
+        return {k: getattr(self, k) for k in _ARRAY_FIELDS} | {"name": self.name,
+                                                               "attribution": self.attribution}
+
+    def truncated(self, n_id: int | None = None, n_exp: int | None = None,
+                  n_albedo: int | None = None) -> "FaceModel":
+        """A model keeping the first n_id / n_exp / n_albedo components (None: keep all)."""
+        fields = self._fields()
+        for prefix, n, total in (("id", n_id, self.n_id), ("exp", n_exp, self.n_exp),
+                                 ("albedo", n_albedo, self.n_albedo)):
+            if n is None:
+                continue
+            if not 0 <= n <= total:
+                raise ValueError(f"truncated: n_{prefix} must be in [0, {total}], got {n}")
+            fields[f"{prefix}_basis"] = fields[f"{prefix}_basis"][:n]
+            fields[f"{prefix}_std"] = fields[f"{prefix}_std"][:n]
+        return FaceModel(**fields)
+
+    def with_landmarks(self, faces_idx, bary) -> "FaceModel":
+        """The same model with landmarks faces_idx (L,) int and bary (L, 3) (rows summing to 1)."""
+        return FaceModel(**(self._fields() | {"landmark_faces": faces_idx, "landmark_bary": bary}))
+
+    # -- file -------------------------------------------------------------------------------
+    def save(self, path) -> None:
+        """Write the project's .npz (key 'format' = 'softras-cl-face-1' plus one key per field)."""
+        arrays = {k: getattr(self, k) for k in _ARRAY_FIELDS}
+        np.savez_compressed(Path(path), format=np.str_(FORMAT), name=np.str_(self.name),
+                            attribution=np.str_(self.attribution), **arrays)
+
+
+def load_face_model(path, landmarks=None) -> FaceModel:
+    """Load a face model, detecting the layout from the file's content.
+
+    Layouts: the project's .npz (``FaceModel.save``), BFM 2009 ``01_MorphableModel.mat`` (MATLAB
+    v5 or v7.3), BFM 2017 ``.h5``, FLAME ``generic_model.pkl``. ``landmarks``: optional
+    landmark-mapping file (see ``face_loaders.read_landmark_mapping``) that replaces the model's
+    own landmark definition. Raises ValueError "unknown face model layout" (listing the keys or
+    groups found and the layouts supported) for anything else, FileNotFoundError if missing.
+    """
+    from . import face_loaders
+    return face_loaders.load_face_model(path, landmarks)
+
+
+def load_demo_face_model() -> FaceModel:
+    """The demo face model shipped as package data (``softras_cl.fitting.models/data/demo_face.npz``).
+
+    Raises FileNotFoundError if the file is not in the installed package.
+    """
+    ref = resources.files("softras_cl.fitting.models").joinpath("data/demo_face.npz")
+    if not ref.is_file():
+        raise FileNotFoundError(
+            "the demo face model data/demo_face.npz is missing from the installed package "
+            "softras_cl.fitting.models; it is built by the demo face model script in scripts/ "
+            "(reinstall the package after building it)")
+    with resources.as_file(ref) as path:
+        return load_face_model(path)
