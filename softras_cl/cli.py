@@ -69,6 +69,13 @@ def register_scene_commands(sub) -> None:
     register_compare(sub)
 
 
+def register_detect_landmarks(sub) -> None:
+    """`softras-cl detect-landmarks`: options and runner live in softras_cl/landmark_detect.py."""
+    from .landmark_detect import register
+
+    register(sub)
+
+
 # name -> registration function. `demo` (render a built-in mesh to a PNG) and `bench`
 # (`softras-cl bench raster`) are added here by their modules' register functions.
 SUBCOMMANDS = {
@@ -76,6 +83,7 @@ SUBCOMMANDS = {
     "demo": register_demo,
     "bench": register_bench,
     "render, compare": register_scene_commands,
+    "detect-landmarks": register_detect_landmarks,
 }
 
 
