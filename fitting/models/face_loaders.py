@@ -266,12 +266,22 @@ def _read_flame(path: Path) -> FaceModel:
 
 
 # -- landmark-mapping files --------------------------------------------------------------------
+class _TorchStub:
+    """Stand-in for any torch object in a pickle; those entries are not used."""
+
+    def __init__(self, *args, **kwargs):
+        pass
+
+    def __setstate__(self, state):
+        pass
+
+
 class _NoTorchUnpickler(pickle.Unpickler):
-    """Unpickles DECA-style .npy dicts without torch: torch objects become None (unused entries)."""
+    """Unpickles DECA-style .npy dicts without torch: torch objects become _TorchStub."""
 
     def find_class(self, module, name):
         if module.split(".")[0] == "torch":
-            return lambda *args, **kwargs: None
+            return _TorchStub
         if module.startswith("numpy.core"):  # numpy 2 moved numpy.core to numpy._core
             module = "numpy._core" + module[len("numpy.core"):]
         return super().find_class(module, name)
@@ -319,8 +329,10 @@ def _raw_mapping(path: Path):
         if isinstance(table, dict):
             return _mapping_from_dict(table, path)
     else:
+        if not path.read_bytes().strip():
+            raise ValueError(f"landmark-mapping file {path}: no landmarks (empty file)")
         try:
-            table = np.loadtxt(path, ndmin=2, delimiter=None)
+            table = np.loadtxt(path, ndmin=2)
         except ValueError as e:
             raise ValueError(f"landmark-mapping file {path}: not a table of numbers ({e})") from e
     table = np.asarray(table, dtype=np.float64)
