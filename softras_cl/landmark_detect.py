@@ -19,7 +19,7 @@ vertex semantics from MediaPipe's published mesh topology (eye-lid, lip, brow an
 vertex loops, e.g. 33/133 right-eye corners, 61/291 mouth corners, 152 chin, 4 nose tip), then
 checked against dlib's 68-point predictor (an iBUG-trained model, used for this comparison only)
 on the two example photos in examples/data: the mean distance between the chosen vertices and
-dlib's points is 0.05 of the inter-ocular distance (worst point 0.15, on the jaw). Left/right
+dlib's points is 0.05 of the inter-ocular distance (worst 0.15: outer brow end, jaw). Left/right
 pairs use mirror-image mesh vertices. Known differences to hand-made iBUG annotations:
 the jaw points follow MediaPipe's face oval (its upper part, points 0-1 and 15-16, lies
 towards the ears), the brows are the upper brow edge, and on a closed mouth the inner-lip
