@@ -62,6 +62,13 @@ def register_demo(sub) -> None:
     register(sub)
 
 
+def register_fit_face(sub) -> None:
+    """`softras-cl fit-face`: options and runner live in fitting/face_cli.py."""
+    from .fitting.face_cli import register
+
+    register(sub)
+
+
 def register_scene_commands(sub) -> None:
     from .scene_cli import register_compare, register_render
 
@@ -84,6 +91,7 @@ SUBCOMMANDS = {
     "bench": register_bench,
     "render, compare": register_scene_commands,
     "detect-landmarks": register_detect_landmarks,
+    "fit-face": register_fit_face,
 }
 
 
