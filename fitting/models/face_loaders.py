@@ -245,6 +245,8 @@ def _read_bfm2017(f: h5py.File, path: Path) -> FaceModel:
 
 # -- FLAME -------------------------------------------------------------------------------------
 def _read_flame(path: Path) -> FaceModel:
+    """FLAME pickle -> FaceModel: shapedirs[..., :300] identity, the rest expression (none if
+    K <= 300), all with std 1; grey albedo; pose entries ignored (module docstring)."""
     data = load_legacy_pickle(path)
     if not all(k in data for k in _FLAME_KEYS):
         raise _unknown(path, data.keys())
