@@ -892,7 +892,7 @@ def register(sub) -> None:
     bench = sub.add_parser("bench", help="benchmarks (speed, memory, accuracy)",
                            description="Benchmarks of softras-cl; results go to --out as JSON and PNG.")
     which = bench.add_subparsers(dest="benchmark", metavar="BENCHMARK", required=True,
-                                 help="one of: raster, render, pose")
+                                 help="one of: raster, render, pose, face")
     p = which.add_parser("raster", help="soft rasteriser speed, memory and accuracy (issue 2)",
                          description="\n\n".join(__doc__.split("\n\n")[:2]))
     p.add_argument("--sizes", type=_int_list, default=None,
@@ -909,6 +909,8 @@ def register(sub) -> None:
                    help="directory for raster.json and raster.png (default out/bench)")
     p.set_defaults(func=run_raster)
     register_render(which)
+    from .fitting.face_bench import register as register_face
     from .fitting.pose_bench import register as register_pose
 
     register_pose(which)
+    register_face(which)
