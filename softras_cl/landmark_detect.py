@@ -120,7 +120,9 @@ def detect_landmarks(image) -> np.ndarray:
 
 def format_pts(points) -> str:
     """iBUG .pts text for (N, 2) 0-based pixel coordinates. The .pts convention is 1-based
-    (the top-left pixel's centre is (1, 1)), so 1 is added to each coordinate."""
+    (the top-left pixel's centre is (1, 1)), so 1 is added to each coordinate. Same convention as
+    softras_cl.fitting.landmarks.write_pts (which the CLI uses); this copy, with 3 decimals, needs
+    only numpy, for scripts/make_example_landmarks.py's mediapipe-only environment."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2 or not np.isfinite(pts).all():
         raise ValueError(f"expected finite (N, 2) points, got shape {pts.shape}")
@@ -140,7 +142,7 @@ def draw_landmarks(image, points, scale: float = 1.0, numbers: bool = True):
         img = img.resize((round(img.width * scale), round(img.height * scale)), Image.LANCZOS)
     d = ImageDraw.Draw(img)
     p = (np.asarray(points, dtype=np.float64) + 0.5) * scale  # pixel centres -> PIL's continuous coords
-    parts = [(range(0, 17), False, (255, 255, 0)), (range(17, 22), False, (255, 128, 0)),
+    parts = [(range(17), False, (255, 255, 0)), (range(17, 22), False, (255, 128, 0)),
              (range(22, 27), False, (255, 128, 0)), (range(27, 31), False, (0, 255, 255)),
              (range(31, 36), False, (0, 255, 255)), (range(36, 42), True, (0, 255, 0)),
              (range(42, 48), True, (0, 255, 0)), (range(48, 60), True, (255, 0, 255)),
@@ -171,8 +173,9 @@ def _run_detect(args: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"softras-cl: {args.photo}: {e}", file=sys.stderr)
         return 1
-    with open(args.out, "w") as f:
-        f.write(format_pts(points))
+    from .fitting.landmarks import write_pts
+
+    write_pts(args.out, points)
     print(f"wrote {args.out} (68 iBUG points, 1-based .pts pixel coordinates)")
     if args.overlay:
         draw_landmarks(image, points, scale=args.overlay_scale).save(args.overlay)

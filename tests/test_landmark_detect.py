@@ -82,6 +82,14 @@ def test_shipped_pts_match_writer_format(face):
     assert (DATA / f"{name}.pts").read_text() == ld.format_pts(p)
 
 
+def test_shipped_pts_read_by_fitting_reader(face):
+    """fit-face's reader gives the same 0-based points, all on the image."""
+    from softras_cl.fitting.landmarks import read_landmarks
+
+    name, p, (w, h) = face
+    np.testing.assert_allclose(read_landmarks(DATA / f"{name}.pts", image_size=(h, w)), p, atol=1e-9)
+
+
 def test_mapping_table():
     m = ld.MP468_TO_IBUG68
     assert m.shape == (68,) and np.issubdtype(m.dtype, np.integer)
