@@ -219,18 +219,25 @@ def initial_pose(points_3d, points_2d, focal: float, image_size) -> tuple[np.nda
 
 def initial_light(scene: FaceScene, values: dict, image: np.ndarray, ridge: float = 1e-2) -> np.ndarray:
     """SH coefficients (3, 9) by linear least squares, channel by channel: the photo's colour
-    at each visible vertex ~ albedo * sum_i L_i A_i Y_i(n). Visible: facing the camera (cosine
-    > 0.3) and inside the image; the ridge pulls towards a uniform light of the mean level."""
+    (bilinear) at each visible vertex ~ albedo * sum_i L_i A_i Y_i(n). Visible: facing the
+    camera (cosine > 0.3) and at least 2 px inside the rendered face (silhouette vertices would
+    sample the background). Over a face the normals barely span the sphere,
+    so the constant and z terms are nearly collinear: the ridge pulls towards a uniform light
+    of the photo's mean level, and the result is a starting point, not an identification."""
+    from scipy.ndimage import binary_erosion, map_coordinates
+
     _, _, world = scene.geometry(values)
     normals = vertex_normals(world[None], scene.model.faces)[0][0]
     uv, _ = scene.camera(values["focal"][0]).project_pixels(world)
     h, w = scene.image_size
-    px = np.round(uv).astype(int)
     facing = np.einsum("vi,vi->v", normals, -world / np.linalg.norm(world, axis=1, keepdims=True))
-    keep = (facing > 0.3) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+    inside = binary_erosion(scene.render(dict(values, sh=sh_ambient(1.0)), 1e-6, 1e-4).alpha[0] > 0.5,
+                            iterations=2)
+    px = np.clip(np.round(uv).astype(int), 0, [w - 1, h - 1])
+    keep = (facing > 0.3) & inside[px[:, 1], px[:, 0]]
     if keep.sum() < 9:
         return sh_ambient(0.5)
-    seen = image[px[keep, 1], px[keep, 0]]                       # (N, 3)
+    seen = np.stack([map_coordinates(image[..., c], uv[keep, ::-1].T, order=1) for c in range(3)], -1)
     albedo = scene.model.albedo(values["albedo"])[keep]
     basis = sh_basis(normals[keep]) * SH_A                        # (N, 9)
     level = np.clip(seen.mean() / max(albedo.mean(), 1e-3), 0.05, 10.0)
