@@ -204,10 +204,23 @@ def build_surface(data: AnnyData, base: np.ndarray, n_faces: int):
     tris = to_base[triangulate(polys)]
     dec_v, dec_f = fast_simplification.simplify(base, tris.astype(np.int32),
                                                 target_count=n_faces, agg=5)
+    dec_f = drop_folds(dec_f)
     used = np.unique(dec_f)
     remap = np.full(len(dec_v), -1)
     remap[used] = np.arange(len(used))
-    return surface_map(dec_v[used], base, tris, N_BASE), remap[dec_f].astype(np.int32)
+    faces = remap[dec_f].astype(np.int32)
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    if np.any(np.unique(edges, axis=0, return_counts=True)[1] != 2):
+        raise SystemExit("decimated surface is not a closed manifold; try another --faces")
+    return surface_map(dec_v[used], base, tris, N_BASE), faces
+
+
+def drop_folds(faces: np.ndarray) -> np.ndarray:
+    """Faces (F, 3) without triangles whose vertex set occurs more than once (the back-to-back
+    pairs edge collapse can leave: zero-volume fins); every copy is removed."""
+    key = np.sort(faces, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return faces[counts[inverse.ravel()] == 1]
 
 
 def macro_factors(value: float, names: tuple) -> dict:
