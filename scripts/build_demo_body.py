@@ -41,7 +41,6 @@ import numpy as np
 import scipy.optimize
 import scipy.sparse
 from scipy.spatial import cKDTree
-
 from softras_cl.fitting.models.body_loaders import SMPL_JOINT_NAMES
 from softras_cl.fitting.models.body_model import BodyModel
 
@@ -146,7 +145,10 @@ def closest_barycentric(points, a, b, c) -> np.ndarray:
     """Barycentric coordinates (n, 3) of the point of triangle (a, b, c) closest to ``points``
     (all (n, 3)); Voronoi-region test (vertex, edge or face region)."""
     ab, ac = b - a, c - a
-    dot = lambda u, v: np.einsum("ij,ij->i", u, v)  # noqa: E731
+
+    def dot(u, v):
+        return np.einsum("ij,ij->i", u, v)
+
     d1, d2 = dot(ab, points - a), dot(ac, points - a)
     d3, d4 = dot(ab, points - b), dot(ac, points - b)
     d5, d6 = dot(ab, points - c), dot(ac, points - c)

@@ -9,16 +9,13 @@ import argparse
 import colorsys
 from pathlib import Path
 
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
+from softras_cl.fitting.models.body_loaders import load_demo_body_model
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from softras_cl.camera import Camera  # noqa: E402
-from softras_cl.fitting.models.body_loaders import load_demo_body_model  # noqa: E402
-from softras_cl.renderer import Renderer  # noqa: E402
-from softras_cl.settings import RasterSettings  # noqa: E402
+from softras_cl.camera import Camera
+from softras_cl.renderer import Renderer
+from softras_cl.settings import RasterSettings
 
 SIZE = (480, 320)  # (H, W)
 

@@ -4,7 +4,6 @@ import pickle
 import numpy as np
 import pytest
 import scipy.sparse
-
 from legacy_files import write_chumpy_pickle
 from softras_cl.fitting.models.body_loaders import SMPL_JOINT_NAMES, load_body_model
 from test_body_model import random_model, random_params

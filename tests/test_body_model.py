@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 import scipy.sparse
+from softras_cl.fitting.models.body_loaders import load_body_model
+from softras_cl.fitting.models.body_model import BodyModel
 
 from softras_cl.camera import rodrigues
-from softras_cl.fitting.models.body_model import BodyModel
-from softras_cl.fitting.models.body_loaders import load_body_model
 
 V, J, B = 40, 5, 3
 PARENTS = np.array([-1, 0, 1, 1, 3])
@@ -30,8 +30,8 @@ def random_model(seed=0, sparse=True, posedirs=True) -> BodyModel:
 
 def random_params(seed=1, scale=0.7):
     rng = np.random.default_rng(seed)
-    return dict(betas=rng.normal(size=B), body_pose=scale * rng.normal(size=(J - 1, 3)),
-                global_rotation=scale * rng.normal(size=3), translation=rng.normal(size=3))
+    return {"betas": rng.normal(size=B), "body_pose": scale * rng.normal(size=(J - 1, 3)),
+            "global_rotation": scale * rng.normal(size=3), "translation": rng.normal(size=3)}
 
 
 def loss_parts(model, params, gv, gj):
@@ -156,9 +156,9 @@ def test_save_and_load_round_trip(tmp_path):
 
 
 def _fields(model):
-    return dict(v_template=model.v_template, shapedirs=model.shapedirs,
-                J_regressor=model.J_regressor, parents=model.parents, weights=model.weights,
-                faces=model.faces, posedirs=model.posedirs)
+    return {"v_template": model.v_template, "shapedirs": model.shapedirs,
+            "J_regressor": model.J_regressor, "parents": model.parents,
+            "weights": model.weights, "faces": model.faces, "posedirs": model.posedirs}
 
 
 @pytest.mark.parametrize("field, value, message", [

@@ -1,8 +1,10 @@
 """The shipped demo body model (fitting/models/data/demo_body.npz) is complete and sane."""
 import numpy as np
 import pytest
-
-from softras_cl.fitting.models.body_loaders import SMPL_JOINT_NAMES, load_demo_body_model
+from softras_cl.fitting.models.body_loaders import (
+    SMPL_JOINT_NAMES,
+    load_demo_body_model,
+)
 
 
 @pytest.fixture(scope="module")
