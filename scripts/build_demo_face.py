@@ -298,8 +298,9 @@ def zip_cap(loop, pos, corner):
     bot = [loop[(a - k) % n] for k in range((a - b) % n + 1)]            # a -> b against it
     tris, i, j = [], 0, 0
     while i < len(top) - 1 or j < len(bot) - 1:
-        up = [top[i + 1], top[i], bot[j]] if i < len(top) - 1 else None      # loop edge top[i] -> top[i+1]
-        down = [bot[j], bot[j + 1], top[i]] if j < len(bot) - 1 else None     # loop edge bot[j+1] -> bot[j]
+        # up uses loop edge top[i] -> top[i+1], down uses bot[j+1] -> bot[j], both reversed
+        up = [top[i + 1], top[i], bot[j]] if i < len(top) - 1 else None
+        down = [bot[j], bot[j + 1], top[i]] if j < len(bot) - 1 else None
         take_up = down is None or (up is not None and pos[top[i + 1], 0] <= pos[bot[j + 1], 0])
         if take_up and down is not None and _area(pos, up) < 1e-9:           # straight run
             take_up = False
@@ -591,12 +592,13 @@ def expression_model(assets, W, n_base):
                   for u in names])
     a = sample_unit_activations(np.random.default_rng(EXP_SEED), names, N_EXP_SAMPLES)
     _, basis, std = pca(np.tensordot(a, U, 1).reshape(N_EXP_SAMPLES, -1), K_EXP, centre=False)
-    return basis.reshape(K_EXP, -1, 3), std, names, U
+    return basis.reshape(K_EXP, -1, 3), std, names
 
 
 # ----------------------------------------------------------------------------- albedo
 
-SKIN, LIPS, BROWS = np.array([0.62, 0.36, 0.27]), np.array([0.42, 0.14, 0.12]), np.array([0.12, 0.07, 0.05])
+SKIN, LIPS = np.array([0.62, 0.36, 0.27]), np.array([0.42, 0.14, 0.12])
+BROWS = np.array([0.12, 0.07, 0.05])
 SCLERA, IRIS = np.array([0.70, 0.65, 0.62]), np.array([0.10, 0.06, 0.04])
 
 
@@ -627,8 +629,8 @@ def regions(pos, W, apexes, lm):
                     - lips, 0, 1)
     under = sum(bump(pos, (p[k, 0], p[k, 1] - 0.008), 0.007) for k in (40, 47))
     nose = bump(pos, p[30, :2], 0.008)
-    return dict(eye=eye, iris=iris, lips=lips * (1 - eye), brows=brows * (1 - eye),
-                cheeks=cheeks, beard=beard, under=under * (1 - eye), nose=nose)
+    return {"eye": eye, "iris": iris, "lips": lips * (1 - eye), "brows": brows * (1 - eye),
+            "cheeks": cheeks, "beard": beard, "under": under * (1 - eye), "nose": nose}
 
 
 def albedo_model(pos, reg):
@@ -656,8 +658,10 @@ def albedo_model(pos, reg):
         "iris colour": np.outer(reg["iris"], [0.05, 0.07, 0.09]),
         "forehead-chin": np.outer(skin * y, [0.02, 0.02, 0.02]),
         "left-right": np.outer(skin * x, [0.015, 0.015, 0.015]),
-        "low frequency 1": np.outer(skin * np.cos(np.pi * x) * np.cos(np.pi * y), [0.02, 0.015, 0.01]),
-        "low frequency 2": np.outer(skin * np.sin(np.pi * x / 2) * np.sin(np.pi * y), [0.015, 0.01, 0.01]),
+        "low frequency 1": np.outer(skin * np.cos(np.pi * x) * np.cos(np.pi * y),
+                                    [0.02, 0.015, 0.01]),
+        "low frequency 2": np.outer(skin * np.sin(np.pi * x / 2) * np.sin(np.pi * y),
+                                    [0.015, 0.01, 0.01]),
     }
     F = np.stack([f.ravel() for f in fields.values()], 1)
     q, r = np.linalg.qr(F)
@@ -696,7 +700,7 @@ def build(assets: Assets) -> dict:
     mirror = read_mirror(assets, len(verts))
     W, tris, holes = build_mesh(verts, quads, groups, vgroups, mirror)
     mean_dm, id_basis, id_std, id_files = identity_model(assets, W, verts, len(verts))
-    exp_basis, exp_std, units, _ = expression_model(assets, W, len(verts))
+    exp_basis, exp_std, units = expression_model(assets, W, len(verts))
     origin = 0.5 * (mean_dm[holes["eye_l"]].mean(0) + mean_dm[holes["eye_r"]].mean(0))
     origin[0] = 0.0
     mean = (mean_dm - origin) * DM_TO_M

@@ -15,7 +15,6 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from softras_cl.camera import Camera
-from softras_cl.images import write_image
 from softras_cl.renderer import Renderer
 from softras_cl.settings import RasterSettings
 from softras_cl.shading import LambertLight
@@ -53,7 +52,7 @@ def draw_landmarks(img: Image.Image, points, depth, cam) -> Image.Image:
     z = (points @ cam.rotation_matrix().T + cam.translation)[:, 2]
     draw, font = ImageDraw.Draw(img), ImageFont.load_default()
     for k, ((u, v), zk) in enumerate(zip(uv, z)):
-        iu, iv = int(round(u)), int(round(v))
+        iu, iv = round(u), round(v)
         hidden = zk > depth[iv, iu] + 2e-3
         draw.ellipse([u - 2.5, v - 2.5, u + 2.5, v + 2.5], outline=(200, 0, 0),
                      fill=None if hidden else (230, 20, 20))

@@ -63,9 +63,9 @@ def test_single_component_no_degenerate_consistent_winding(model):
     assert connected_components(adj, directed=False)[0] == 1
     area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
     assert area.min() > 1e-9                           # m^2
-    directed, counts = np.unique(edges, axis=0, return_counts=True)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
     assert counts.max() == 1                           # no directed edge twice: consistent winding
-    undirected, uc = np.unique(np.sort(edges, 1), axis=0, return_counts=True)
+    _, uc = np.unique(np.sort(edges, 1), axis=0, return_counts=True)
     assert uc.max() <= 2                               # manifold
 
 
