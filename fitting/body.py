@@ -64,13 +64,16 @@ __all__ = ["BUDGETS", "POSE_SIGMA", "HINGE_LIMITS", "BodyFitConfig", "BodyTarget
 # purpose: on a mesh with several faces per pixel the occupancy alpha of the many faces near
 # the outline adds up to a halo (on the demo body at 128 px, alpha summed outside the
 # silhouette is 23% of its area at sigma 1e-4 and 90% at 1e-3) that biases the fit towards a
-# smaller body. gamma starts large so that faces hidden behind others take part in the colour.
+# smaller body. gamma starts at 1e-2 (with the 5 m near-far range: surfaces ~5 cm apart in
+# depth mix) so that faces hidden behind others take part in the colour and get gradients; a
+# larger gamma mixes every layer of the body and raises the loss between a hidden and a seen
+# hand (see docs/body_fitting.md), a smaller one gives the hidden faces no gradient.
 BUDGETS = {
-    "fast": dict(joint_iters=60, image_stages=((1e-4, 1e-1, 60), (1e-5, 1e-3, 60))),
+    "fast": dict(joint_iters=60, image_stages=((1e-4, 1e-2, 60), (1e-5, 1e-3, 60))),
     "default": dict(joint_iters=100,
-                    image_stages=((1e-4, 1e-1, 100), (3e-5, 1e-2, 100), (1e-5, 1e-3, 100))),
+                    image_stages=((1e-4, 1e-2, 100), (3e-5, 3e-3, 100), (1e-5, 1e-3, 100))),
     "thorough": dict(joint_iters=150,
-                     image_stages=((3e-4, 1e-1, 150), (1e-4, 3e-2, 150), (3e-5, 1e-2, 150),
+                     image_stages=((1e-4, 3e-2, 150), (1e-4, 1e-2, 150), (3e-5, 3e-3, 150),
                                    (1e-5, 1e-3, 150))),
 }
 
@@ -118,17 +121,20 @@ def pose_sigmas(model) -> np.ndarray:
     return np.array([[POSE_SIGMA.get(n, DEFAULT_POSE_SIGMA)] for n in model.joint_names[1:]])
 
 
-def hinge_frames(model) -> tuple[np.ndarray, np.ndarray]:
-    """Hinge joints of the model: (rows (K,) int into body_pose, frames (K, 3, 3) float64).
+def hinge_frames(model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Hinge joints of the model: (rows (K,) int into body_pose, frames (K, 3, 3) float64,
+    rest flexion (K,) float64 rad).
 
-    Frame rows: the flexion axis ``a = d x b`` (d the rest bone direction from the joint to its
-    child at the mean shape, b the HINGE_BEND direction: a positive rotation about a moves the
-    child towards b), the bone d, and ``a x d``. ``frames @ omega`` gives (flexion, twist,
-    sideways) of an axis-angle omega (the model's rest frames are world-aligned, so the local
-    rotation's axis is expressed in these coordinates).
+    Frame rows: the flexion axis ``a = d x b`` (d the rest direction of the bone from the joint
+    to its child at the mean shape, b the HINGE_BEND direction: a positive rotation about a
+    moves the child towards b), the bone d, and ``a x d``. ``frames @ omega`` gives (flexion,
+    twist, sideways) of an axis-angle omega (the model's rest frames are world-aligned, so the
+    local rotation's axis is expressed in these coordinates). The rest flexion is the angle
+    about a from the parent bone to d: the rest pose's own bend (0 for SMPL's straight limbs,
+    ~0.7 rad at the demo model's elbows), added to the flexion before the limits apply.
     """
     rest = model.rest_joints(np.zeros(model.n_betas))
-    rows, frames = [], []
+    rows, frames, bends = [], [], []
     for name, bend in HINGE_BEND.items():
         if name not in model.joint_names:
             continue
@@ -140,21 +146,25 @@ def hinge_frames(model) -> tuple[np.ndarray, np.ndarray]:
         d /= np.linalg.norm(d)
         a = np.cross(d, bend)
         a /= np.linalg.norm(a)
+        up = rest[j] - rest[model.parents[j]]
         rows.append(j - 1)
         frames.append(np.stack([a, d, np.cross(a, d)]))
-    return np.array(rows, dtype=np.int64), np.array(frames).reshape(-1, 3, 3)
+        bends.append(np.arctan2(np.cross(up, d) @ a, up @ d))
+    return np.array(rows, dtype=np.int64), np.array(frames).reshape(-1, 3, 3), np.array(bends)
 
 
-def joint_limits(body_pose, rows, frames, limits=HINGE_LIMITS) -> tuple[float, dict]:
+def joint_limits(body_pose, rows, frames, rest_flexion, limits=HINGE_LIMITS) -> tuple[float, dict]:
     """Squared-hinge joint-angle limits.
 
-    body_pose (J-1, 3) float64; rows (K,) int and frames (K, 3, 3) from :func:`hinge_frames`;
-    limits (2, 3) lower/upper of (flexion, twist, sideways) in rad. With ``c = frames @
-    body_pose[rows]``: value = ``sum max(0, lo - c)^2 + max(0, c - hi)^2`` (rad^2), returned with
-    ``{"coeffs": d value / d body_pose (J-1, 3)}`` (exact; the penalty is C1).
+    body_pose (J-1, 3) float64; rows (K,), frames (K, 3, 3) and rest_flexion (K,) from
+    :func:`hinge_frames`; limits (2, 3) lower/upper of (flexion, twist, sideways) in rad. With
+    ``c = frames @ body_pose[rows]`` and the rest flexion added to ``c[:, 0]``: value =
+    ``sum max(0, lo - c)^2 + max(0, c - hi)^2`` (rad^2), returned with ``{"coeffs": d value /
+    d body_pose (J-1, 3)}`` (exact; the penalty is C1).
     """
     pose = np.asarray(body_pose, np.float64)
     c = np.einsum("kab,kb->ka", frames, pose[rows])
+    c[:, 0] += rest_flexion
     below, above = np.minimum(c - limits[0], 0.0), np.maximum(c - limits[1], 0.0)
     grad = np.zeros_like(pose)
     np.add.at(grad, rows, np.einsum("kab,ka->kb", frames, 2.0 * (below + above)))
@@ -338,7 +348,7 @@ class BodyObjective:
                  observer: Callable | None = None):
         self.scene, self.target, self.robust_px, self.observer = scene, target, robust_px, observer
         self.sigmas = pose_sigmas(scene.model)
-        self.hinge_rows, self.hinge_frames = hinge_frames(scene.model)
+        self.hinges = hinge_frames(scene.model)
 
     def __call__(self, values: dict, stage: Stage):
         if self.observer is not None:
@@ -398,7 +408,7 @@ class BodyObjective:
                 value, g = losses.gaussian_prior(values[block], sigma)
                 terms[name] = (value, {block: g["coeffs"]})
         if w.get("limits"):
-            value, g = joint_limits(values["body_pose"], self.hinge_rows, self.hinge_frames)
+            value, g = joint_limits(values["body_pose"], *self.hinges)
             terms["limits"] = (value, {"body_pose": g["coeffs"]})
         return terms
 

@@ -909,8 +909,10 @@ def register(sub) -> None:
                    help="directory for raster.json and raster.png (default out/bench)")
     p.set_defaults(func=run_raster)
     register_render(which)
+    from .fitting.body_bench import register as register_body
     from .fitting.face_bench import register as register_face
     from .fitting.pose_bench import register as register_pose
 
     register_pose(which)
     register_face(which)
+    register_body(which)

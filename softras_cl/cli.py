@@ -69,6 +69,13 @@ def register_fit_face(sub) -> None:
     register(sub)
 
 
+def register_fit_body(sub) -> None:
+    """`softras-cl fit-body`: options and runner live in fitting/body_cli.py."""
+    from .fitting.body_cli import register
+
+    register(sub)
+
+
 def register_scene_commands(sub) -> None:
     from .scene_cli import register_compare, register_render
 
@@ -92,6 +99,7 @@ SUBCOMMANDS = {
     "render, compare": register_scene_commands,
     "detect-landmarks": register_detect_landmarks,
     "fit-face": register_fit_face,
+    "fit-body": register_fit_body,
 }
 
 
