@@ -28,8 +28,10 @@ see fitting/rigid.py), weighted by the stage:
   prior).
 - ``limits``: squared hinge ``sum max(0, lo - c)^2 + max(0, c - hi)^2`` over the components
   ``c = F_j body_pose_j`` of the knees and elbows in their hinge frames (:func:`hinge_frames`):
-  flexion, twist about the bone, sideways bend, with the ranges :data:`HINGE_LIMITS`. Knees and
-  elbows bend one way only (flexion >= 0), and barely twist or bend sideways.
+  flexion (plus the rest pose's own bend), twist about the bone, sideways bend, with the ranges
+  :data:`HINGE_LIMITS`: knees and elbows bend one way only (total flexion in [0, 2.6] rad),
+  twist at most 0.5 rad and bend sideways at most 0.2 rad. Other joints have no hard limits,
+  only the pose prior.
 
 Stages (:func:`default_stages`, as data): an optional ``joints`` stage (pose and translation from
 the 2D joints and the priors, no rendering), then ``image-k`` stages over all blocks with a
@@ -40,8 +42,8 @@ from __future__ import annotations
 
 import colorsys
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -201,7 +203,7 @@ class BodyFitConfig:
     dtype: str = "float64"
 
     @classmethod
-    def from_budget(cls, name: str, **changes) -> "BodyFitConfig":
+    def from_budget(cls, name: str, **changes) -> BodyFitConfig:
         if name not in BUDGETS:
             raise ValueError(f"budget must be one of {sorted(BUDGETS)}, got {name!r}")
         return cls(**{**BUDGETS[name], **changes})

@@ -31,7 +31,7 @@ DEFAULT_BUDGETS = ("fast", "default")
 def random_pose(model, rng: np.random.Generator) -> dict:
     """Random plausible blocks (betas, body_pose, global_rotation, translation), see the module
     docstring."""
-    from ..camera import rodrigues, matrix_to_axis_angle
+    from ..camera import matrix_to_axis_angle, rodrigues
     from .body import hinge_frames, pose_sigmas, rest_values
 
     sigma = pose_sigmas(model)
@@ -142,8 +142,8 @@ def save_strip(samples: list[dict], rows: list[dict], path: Path, n: int = 5) ->
         fit = rows[i]["fit"]
         fitted = fit.scene.composite(fit.scene.render(fit.scene.pose(fit.values).vertices, *SHARP))
         for ax, img, title in ((axes[0, i], samples[i]["image"], "target"),
-                               (axes[1, i], fitted, f"fit: {rows[i]['mpjpe_pelvis_mm']:.0f} mm, "
-                                                    f"IoU {rows[i]['silhouette_iou']:.2f}")):
+                               (axes[1, i], fitted, (f"fit: {rows[i]['mpjpe_pelvis_mm']:.0f} mm, "
+                                                     f"IoU {rows[i]['silhouette_iou']:.2f}"))):
             ax.imshow(to_srgb(np.clip(img, 0, 1)))
             ax.set_title(title, fontsize=8)
             ax.axis("off")

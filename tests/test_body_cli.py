@@ -2,17 +2,16 @@
 interrupted run leaves behind, and `softras-cl bench body --quick`."""
 import json
 import threading
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-from softras_cl.cli import main
 from softras_cl.fitting import body
 from softras_cl.fitting.models.body_loaders import load_demo_body_model
 from softras_cl.fitting.solver import load_checkpoint
-from softras_cl.images import write_image
 from test_face_cli import _interrupt_once_running
+
+from softras_cl.cli import main
+from softras_cl.images import write_image
 
 SMALL = ["--size", "40", "--budget", "fast", "--no-progress"]
 
@@ -91,7 +90,7 @@ def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path, target):
     assert code == 130
     doc = json.loads((out / "params.json").read_text())
     assert doc["interrupted"] is True
-    values, meta = load_checkpoint(out / "checkpoint.npz")
+    values, _ = load_checkpoint(out / "checkpoint.npz")
     assert np.isfinite(values["body_pose"]).all()
     np.testing.assert_allclose(np.load(out / "params.npz")["body_pose"], values["body_pose"])
     assert (out / "overlay.png").exists() and (out / "body.ply").exists()

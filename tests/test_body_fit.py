@@ -2,7 +2,6 @@
 checks, the schedule, and recovery of a known pose from its image and joints."""
 import numpy as np
 import pytest
-
 from softras_cl.fitting import body
 from softras_cl.fitting.models.body_loaders import load_demo_body_model
 from softras_cl.fitting.solver import Stage
