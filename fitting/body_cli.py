@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import io
 import sys
 import time
 from pathlib import Path
@@ -34,7 +35,7 @@ def read_joints(path, n_joints: int) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     try:
         rows = np.load(path) if path.suffix.lower() == ".npy" else np.loadtxt(
-            path, delimiter=None if "," not in path.read_text() else ",", ndmin=2)
+            io.StringIO(path.read_text().replace(",", " ")), ndmin=2)
     except (OSError, ValueError) as e:
         raise ValueError(f"joints file {path}: cannot read it ({e})") from e
     rows = np.asarray(rows, np.float64)
