@@ -1,6 +1,8 @@
 """`softras-cl fit-body` end to end on a rendered target, its bad-input messages, what an
 interrupted run leaves behind, and `softras-cl bench body --quick`."""
 import json
+import os
+import signal
 import threading
 
 import numpy as np
@@ -8,7 +10,6 @@ import pytest
 from softras_cl.fitting import body
 from softras_cl.fitting.models.body_loaders import load_demo_body_model
 from softras_cl.fitting.solver import load_checkpoint
-from test_face_cli import _interrupt_once_running
 
 from softras_cl.cli import main
 from softras_cl.images import write_image
@@ -74,6 +75,16 @@ def test_bad_input_is_reported_before_fitting(tmp_path, capsys, target, case, ma
     err = capsys.readouterr().err
     assert "fit-body" in err and match in err
     assert not (tmp_path / "o").exists()
+
+
+def _interrupt_once_running(checkpoint, stop: threading.Event) -> None:
+    """Send a real SIGINT to this process once the solver has written its first checkpoint."""
+    while not stop.is_set():
+        if checkpoint.exists():
+            stop.wait(0.5)
+            os.kill(os.getpid(), signal.SIGINT)
+            return
+        stop.wait(0.05)
 
 
 def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path, target):
