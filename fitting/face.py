@@ -13,8 +13,9 @@ deviation; sh (3, 9); rotation (3,) axis-angle; translation (3,); focal (1,) pix
 
 The fit, as the paper and its anchors do it, in stages given as data (:func:`default_stages`):
 
-1. ``landmarks``: pose, focal (unless given), identity and expression from the 68 landmarks
-   and the coefficient priors, starting from a closed-form scaled-orthographic alignment of
+1. ``landmarks``: pose, focal (unless given; a log-normal prior keeps it within about a
+   factor 2 of a 30 degree field of view: landmarks barely tell focal length from distance),
+   identity and expression from the 68 landmarks and the coefficient priors, starting from a closed-form scaled-orthographic alignment of
    the mean face's landmarks (:func:`initial_pose`).
 2. The SH light, frozen until then, starts from a linear least-squares fit to the visible
    vertices at the initial pose (:func:`initial_light`).
@@ -23,14 +24,19 @@ The fit, as the paper and its anchors do it, in stages given as data (:func:`def
    white, under a decreasing sigma/gamma schedule. The face region is the rendered alpha
    (> 0.5, eroded by ``mask_erosion`` pixels) at the start of each stage, held fixed within
    the stage so that every stage minimises one fixed function: hair and background outside
-   the rendered face never pull the fit.
+   the rendered face never pull the fit. Likewise near/far are fitted to the face's distance
+   at each stage start (:func:`depth_range`), so that gamma means the same at any distance.
 
 Every term is a sum, not a mean (nlopt's L-BFGS sizes its first step from the gradient; see
 fitting/rigid.py): ``photo`` = sum over face-region pixels and channels of squared error,
 ``landmarks`` = sum over points of weighted squared pixel distances, priors = sum of squared
-coefficients. The weights make them comparable: ``w_photo ~ 1 / noise_rgb^2`` and
-``w_landmarks ~ 1 / noise_px^2`` turn the sum into a negative log-likelihood (up to 1/2), whose
-priors have weight 1.
+coefficients. Read as negative log-likelihoods, ``w_landmarks = 1 / noise_px^2`` (2 px) and
+``w_photo = 1 / noise_rgb^2``; the priors have weight 1. The default photo weight 10 (noise
+~0.3) is far below what a synthetic photo would allow: on real photos the residuals (hair,
+glasses, wrinkles, what the model cannot represent) are large and correlated over many pixels,
+and a higher weight let them bend the shape (astronaut: landmark error 8.7 px at weight 100,
+3.3 px at 10), while synthetic faces still reach a third of the mean face's error. The SH
+term (weight 1000) keeps the light grey so that colour goes into the albedo.
 """
 from __future__ import annotations
 
@@ -48,22 +54,24 @@ from . import losses
 from .params import Block, ParamSet
 from .solver import FitResult, Stage, fit
 
-__all__ = ["FaceFitConfig", "FaceScene", "FaceFit", "BUDGETS", "landmark_weights", "default_stages",
-           "initial_pose", "initial_light", "prepare_photo", "face_params", "FaceObjective",
+__all__ = ["FaceFitConfig", "Crop", "FaceScene", "FaceFit", "BUDGETS", "landmark_weights", "default_stages",
+           "depth_range", "initial_pose", "initial_light", "prepare_photo", "face_params", "FaceObjective",
            "fit_face", "psnr"]
 
 N_LANDMARKS = 68
 JAW = slice(0, 17)          # iBUG 300-W: jaw line; a fixed-vertex contour only approximates it
+# iBUG outlines of what a skin model cannot explain: the eyes and the inside of the mouth
+EXCLUDED_OUTLINES = (range(36, 42), range(42, 48), range(60, 68))
 CAMERA_ROTATION = np.diag([1.0, -1.0, -1.0])   # world (y up, camera looks down -z) -> OpenCV
 
 # Schedules: (sigma, gamma, evaluations) per photometric stage, and the landmark stage's budget.
 BUDGETS = {
     "fast": dict(landmark_iters=100, photo_stages=((1e-4, 3e-3, 40), (1e-5, 1e-3, 60))),
     "default": dict(landmark_iters=150,
-                    photo_stages=((1e-4, 1e-2, 60), (3e-5, 3e-3, 60), (1e-5, 1e-3, 100))),
+                    photo_stages=((1e-4, 3e-3, 60), (3e-5, 1e-3, 60), (1e-5, 1e-3, 100))),
     "thorough": dict(landmark_iters=200,
-                     photo_stages=((3e-4, 1e-2, 80), (1e-4, 3e-3, 80), (3e-5, 1e-3, 100),
-                                   (1e-5, 1e-3, 150))),
+                     photo_stages=((1e-4, 3e-3, 80), (3e-5, 1e-3, 100), (1e-5, 1e-3, 150),
+                                   (3e-6, 1e-3, 100))),
 }
 
 
@@ -71,7 +79,8 @@ BUDGETS = {
 class FaceFitConfig:
     """Every knob of :func:`fit_face`.
 
-    size: the photo is resized so its longer side is at most this many pixels (never enlarged).
+    size: the working image is a square around the landmarks (see :func:`prepare_photo`)
+        shrunk to at most this many pixels a side (never enlarged).
     focal: focal length in pixels of the full photo, or None to fit it (initial guess from
         ``fov_deg`` across the longer side).
     landmark_iters / photo_stages: the schedule (see BUDGETS; photo_stages holds
@@ -86,9 +95,9 @@ class FaceFitConfig:
     landmark_iters: int = BUDGETS["default"]["landmark_iters"]
     photo_stages: tuple = BUDGETS["default"]["photo_stages"]
     weights: dict = field(default_factory=lambda: dict(
-        landmarks=1.0 / 4.0, photo=1.0 / 0.03 ** 2, id_prior=1.0, exp_prior=1.0,
-        albedo_prior=1.0, sh_white=10.0))
-    landmark_weight_photo: float = 0.25   # landmark weight in the photometric stages, relative
+        landmarks=1.0 / 4.0, photo=10.0, id_prior=1.0, exp_prior=1.0,
+        albedo_prior=1.0, sh_white=1000.0, focal_prior=1.0))
+    landmark_weight_photo: float = 1.0    # landmark weight in the photometric stages, relative
     mask_erosion: int = 2
     n_id: int | None = None
     n_exp: int | None = None
@@ -114,15 +123,24 @@ def landmark_weights() -> np.ndarray:
 # inputs
 # ---------------------------------------------------------------------------------------------
 
-def prepare_photo(photo, landmarks, size: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """Check and shrink the inputs to the working resolution.
+@dataclass(frozen=True)
+class Crop:
+    """Full photo -> working image: ``u_work = (u_full + 0.5 - x0) * scale - 0.5`` (and v with
+    y0), pixel centres at integers in both."""
+    x0: float
+    y0: float
+    scale: float
 
-    photo (H, W, 3) linear RGB float; landmarks (68, 2) pixels (u right, v down, 0 = centre of
-    the first pixel). Returns (image (h, w, 3) float64, landmarks (68, 2) float64, scale), with
-    ``scale = h / H`` (<= 1) and landmark pixel centres mapped consistently.
-    """
-    from skimage.transform import resize
+    def to_work(self, points) -> np.ndarray:
+        """(N, 2) full-photo pixels -> working-image pixels."""
+        return (np.asarray(points, np.float64) + 0.5 - [self.x0, self.y0]) * self.scale - 0.5
 
+    def to_full(self, points) -> np.ndarray:
+        """(N, 2) working-image pixels -> full-photo pixels."""
+        return (np.asarray(points, np.float64) + 0.5) / self.scale - 0.5 + [self.x0, self.y0]
+
+
+def _check_inputs(photo, landmarks) -> tuple[np.ndarray, np.ndarray]:
     img = np.asarray(photo, np.float64)
     if img.ndim != 3 or img.shape[2] != 3:
         raise ValueError(f"photo must be an (H, W, 3) RGB image, got shape {img.shape}")
@@ -137,12 +155,32 @@ def prepare_photo(photo, landmarks, size: int) -> tuple[np.ndarray, np.ndarray, 
         i = int(np.argmax(outside | ~np.isfinite(pts).all(1)))
         raise ValueError(f"landmark {i} at {pts[i].tolist()} is outside the {w}x{h} photo "
                          "(do the landmarks belong to this photo?)")
-    scale = min(1.0, size / max(h, w))
-    if scale < 1.0:
-        shape = (max(1, round(h * scale)), max(1, round(w * scale)))
-        img = resize(img, shape, order=1, anti_aliasing=True)
-        scale = shape[0] / h
-    return img, (pts + 0.5) * scale - 0.5, scale
+    return img, pts
+
+
+def prepare_photo(photo, landmarks, size: int, margin: float = 2.0) -> tuple[np.ndarray, np.ndarray, Crop]:
+    """Check the inputs and cut the working image: a square around the landmarks, ``margin``
+    times their extent (forehead and some background included), shrunk to at most ``size``
+    pixels a side; parts outside the photo repeat its edge pixels.
+
+    photo (H, W, 3) linear RGB float; landmarks (68, 2) pixels (u right, v down, 0 = centre of
+    the first pixel). Returns (image (s, s, 3) float64, landmarks (68, 2) float64 in working
+    pixels, the Crop).
+    """
+    from skimage.transform import resize
+
+    img, pts = _check_inputs(photo, landmarks)
+    lo, hi = pts.min(0), pts.max(0)
+    side = max(int(np.ceil(margin * np.max(hi - lo))), 8)
+    x0, y0 = (np.round((lo + hi) / 2 - side / 2)).astype(int)
+    h, w = img.shape[:2]
+    pad = max(0, -x0, -y0, x0 + side - w, y0 + side - h)
+    padded = np.pad(img, ((pad, pad), (pad, pad), (0, 0)), mode="edge") if pad else img
+    window = padded[y0 + pad:y0 + pad + side, x0 + pad:x0 + pad + side]
+    out = min(int(size), side)
+    image = resize(window, (out, out), order=1, anti_aliasing=True) if out < side else window.copy()
+    crop = Crop(float(x0), float(y0), out / side)
+    return image, crop.to_work(pts), crop
 
 
 # ---------------------------------------------------------------------------------------------
@@ -152,26 +190,40 @@ def prepare_photo(photo, landmarks, size: int) -> tuple[np.ndarray, np.ndarray, 
 class FaceScene:
     """The model, the fixed camera frame and a renderer for one working image size.
 
-    model: a fitting.models.face_model.FaceModel; image_size (H, W); dtype of the rasteriser.
+    model: a fitting.models.face_model.FaceModel; image_size (H, W); dtype of the rasteriser;
+    alpha_agg: "occupancy" (soft, for fitting) or "hard" (1 wherever the face is: for
+    compositing a render over a photo, where occupancy alpha would let the background show
+    through the seams between triangles, docs/conventions.md); depth_range (near, far) in
+    metres: gamma acts on depth normalised by far - near (eq. 10), so a range fitted to the
+    face (see :func:`depth_range`) makes a gamma mean the same at any distance; principal
+    (cx, cy): the principal point in pixels (default: the image centre).
     """
 
-    def __init__(self, model, image_size, dtype: str = "float64"):
+    def __init__(self, model, image_size, dtype: str = "float64", alpha_agg: str = "occupancy",
+                 depth_range=(0.01, 20.0), principal=None):
         self.model = model
         self.image_size = tuple(int(n) for n in image_size)
+        h, w = self.image_size
+        self.principal = (w / 2.0 - 0.5, h / 2.0 - 0.5) if principal is None else tuple(map(float, principal))
+        near, far = (float(d) for d in depth_range)
         self.settings = RasterSettings(image_size=self.image_size, outputs=("rgb", "alpha"),
-                                       near=0.01, far=20.0, dtype=dtype)
+                                       near=near, far=far, dtype=dtype, alpha_agg=alpha_agg)
         self.renderer = Renderer(self.settings, shading="vertex")
 
+    def set_depth_range(self, translation) -> None:
+        """Fit near/far to a face at ``translation`` (see :func:`depth_range`)."""
+        near, far = depth_range(translation)
+        self.settings = dataclasses.replace(self.settings, near=near, far=far)
+
     def camera(self, focal: float) -> Camera:
-        h, w = self.image_size
-        K = [[focal, 0.0, w / 2.0 - 0.5], [0.0, focal, h / 2.0 - 0.5], [0.0, 0.0, 1.0]]
+        cx, cy = self.principal
+        K = [[focal, 0.0, cx], [0.0, focal, cy], [0.0, 0.0, 1.0]]
         return Camera.from_opencv(K, CAMERA_ROTATION, np.zeros(3), self.image_size)
 
-    def geometry(self, values: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """-> (shape (V, 3) model frame, rotation matrix (3, 3), world vertices (V, 3))."""
+    def geometry(self, values: dict) -> tuple[np.ndarray, np.ndarray]:
+        """-> (shape (V, 3) model frame, world vertices (V, 3))."""
         shape = self.model.shape(values["id"], values["exp"])
-        R = rodrigues(values["rotation"])
-        return shape, R, shape @ R.T + values["translation"]
+        return shape, shape @ rodrigues(values["rotation"]).T + values["translation"]
 
     def geometry_vjp(self, values: dict, shape: np.ndarray, g_world: np.ndarray) -> dict:
         """dL/d(world vertices) (V, 3) -> dL/d(id, exp, rotation, translation)."""
@@ -181,38 +233,46 @@ class FaceScene:
                     rotation=rodrigues_vjp(values["rotation"], g_world.T @ shape))
 
     def render(self, values: dict, sigma: float, gamma: float, grads=(), albedo=None,
-               light=None):
-        """Render the face; albedo (V, 3) / light override the model's (for the report)."""
+               light=None, world=None):
+        """Render the face; albedo (V, 3) / light override the model's (for the report);
+        world: the world vertices if already computed."""
         self.renderer.settings = dataclasses.replace(self.settings, sigma=sigma, gamma=gamma)
-        _, _, world = self.geometry(values)
+        world = self.geometry(values)[1] if world is None else world
         albedo = self.model.albedo(values["albedo"]) if albedo is None else albedo
         light = SHLight(values["sh"]) if light is None else light
         return self.renderer.forward(world, self.model.faces, self.camera(values["focal"][0]),
                                      albedo=albedo, light=light, grads=grads)
 
 
+def depth_range(translation) -> tuple[float, float]:
+    """(near, far) = (0.5, 2) x the face's distance: room for the fit to move the face while a
+    face's own depth (~0.1 m) spans a good part of the normalised depth."""
+    distance = float(np.linalg.norm(translation))
+    return 0.5 * distance, 2.0 * distance
+
+
 # ---------------------------------------------------------------------------------------------
 # initialisation
 # ---------------------------------------------------------------------------------------------
 
-def initial_pose(points_3d, points_2d, focal: float, image_size) -> tuple[np.ndarray, np.ndarray]:
+def initial_pose(points_3d, points_2d, focal: float, principal) -> tuple[np.ndarray, np.ndarray]:
     """Closed-form pose from 3D model points (N, 3) and their pixels (N, 2), N >= 4.
 
     Fits a scaled-orthographic (affine) camera by least squares, takes the nearest rotation
-    (SVD) and the depth at which the scale matches ``focal``. Returns (rotation (3,) axis-angle,
-    translation (3,)) of the model in the world frame of :class:`FaceScene`.
+    (SVD) and the depth at which the scale matches ``focal``; principal (cx, cy) pixels.
+    Returns (rotation (3,) axis-angle, translation (3,)) of the model in the world frame of
+    :class:`FaceScene`.
     """
     X = np.asarray(points_3d, np.float64)
     x = np.asarray(points_2d, np.float64)
-    h, w = image_size
+    cx, cy = principal
     Xc, xc = X - X.mean(0), x - x.mean(0)
     M = np.linalg.lstsq(Xc, xc, rcond=None)[0].T                 # (2, 3): xc ~ M Xc
     U, S, Vt = np.linalg.svd(M, full_matrices=False)
     rows = U @ Vt
     R_cam = np.stack([rows[0], rows[1], np.cross(rows[0], rows[1])])
     depth = focal / S.mean()
-    centre = np.array([(x[:, 0].mean() - (w / 2.0 - 0.5)) * depth / focal,
-                       (x[:, 1].mean() - (h / 2.0 - 0.5)) * depth / focal, depth])
+    centre = np.array([(x[:, 0].mean() - cx) * depth / focal, (x[:, 1].mean() - cy) * depth / focal, depth])
     t_cam = centre - R_cam @ X.mean(0)
     return matrix_to_axis_angle(CAMERA_ROTATION @ R_cam), CAMERA_ROTATION @ t_cam
 
@@ -226,7 +286,7 @@ def initial_light(scene: FaceScene, values: dict, image: np.ndarray, ridge: floa
     of the photo's mean level, and the result is a starting point, not an identification."""
     from scipy.ndimage import binary_erosion, map_coordinates
 
-    _, _, world = scene.geometry(values)
+    _, world = scene.geometry(values)
     normals = vertex_normals(world[None], scene.model.faces)[0][0]
     uv, _ = scene.camera(values["focal"][0]).project_pixels(world)
     h, w = scene.image_size
@@ -268,7 +328,8 @@ def default_stages(config: FaceFitConfig, fit_focal: bool) -> list[Stage]:
     w = config.weights
     priors = dict(id_prior=w["id_prior"], exp_prior=w["exp_prior"])
     pose = ("rotation", "translation") + (("focal",) if fit_focal else ())
-    stages = [Stage("landmarks", pose + ("id", "exp"), dict(landmarks=w["landmarks"], **priors),
+    focal_prior = dict(focal_prior=w["focal_prior"]) if fit_focal else {}
+    stages = [Stage("landmarks", pose + ("id", "exp"), dict(landmarks=w["landmarks"], **priors, **focal_prior),
                     max_iters=config.landmark_iters)]
     for k, (sigma, gamma, iters) in enumerate(config.photo_stages):
         weights = dict(landmarks=w["landmarks"] * config.landmark_weight_photo, photo=w["photo"],
@@ -285,26 +346,31 @@ def default_stages(config: FaceFitConfig, fit_focal: bool) -> list[Stage]:
 class FaceObjective:
     """``(values, stage) -> (loss, grads, terms)`` for fitting.solver.fit.
 
-    image (H, W, 3) linear RGB; landmarks (68, 2) pixels; the face-region mask is taken from
-    the render at the first evaluation of each photometric stage (see the module docstring).
+    image (H, W, 3) linear RGB; landmarks (68, 2) pixels; focal0: the focal length the
+    focal prior is centred on. At the first evaluation of each photometric stage the depth
+    range is fitted to the face and the face-region mask is taken from the render; both stay
+    fixed within the stage (see the module docstring).
     """
 
-    def __init__(self, scene: FaceScene, image, landmarks, mask_erosion: int = 2):
+    def __init__(self, scene: FaceScene, image, landmarks, mask_erosion: int = 2, focal0: float = 1.0):
         self.scene, self.image, self.target = scene, image, np.asarray(landmarks, np.float64)
+        self.focal0 = float(focal0)
         self.landmark_weights = landmark_weights()
         self.mask_erosion = mask_erosion
         self.mask, self._mask_stage = None, None
 
     def __call__(self, values: dict, stage: Stage):
         w = stage.weights
+        shape, world = self.scene.geometry(values)
         terms = {}
         if w.get("landmarks"):
-            terms["landmarks"] = self.landmark_term(values)
+            terms["landmarks"] = self.landmark_term(values, world)
         if w.get("photo"):
             if self._mask_stage != stage.name:
+                self.scene.set_depth_range(values["translation"])
                 self.mask = self.face_region(values, stage.sigma, stage.gamma)
                 self._mask_stage = stage.name
-            terms["photo"] = self.photo_term(values, stage.sigma, stage.gamma)
+            terms["photo"] = self.photo_term(values, world, stage.sigma, stage.gamma)
         for name, block in (("id_prior", "id"), ("exp_prior", "exp"), ("albedo_prior", "albedo")):
             if w.get(name):
                 value, g = losses.gaussian_prior(values[block], 1.0)
@@ -312,41 +378,60 @@ class FaceObjective:
         if w.get("sh_white"):
             value, g = losses.sh_white(values["sh"])
             terms["sh_white"] = (value, {"sh": g["coeffs"]})
-        return losses.weighted_sum(terms, w)
+        if w.get("focal_prior"):
+            terms["focal_prior"] = self.focal_prior(values["focal"])
+        loss, grads, weighted = losses.weighted_sum(terms, w)
+        g_world = grads.pop("world", None)
+        if g_world is not None:                     # one pass through the model for all terms
+            for name, g in self.scene.geometry_vjp(values, shape, g_world).items():
+                grads[name] = grads.get(name, 0.0) + g
+        return loss, grads, weighted
 
-    def landmark_term(self, values: dict) -> tuple[float, dict]:
-        """Sum over the 68 points of weighted squared pixel distances, with its block gradients."""
-        shape, _, world = self.scene.geometry(values)
+    def landmark_term(self, values: dict, world: np.ndarray) -> tuple[float, dict]:
+        """Sum over the 68 points of weighted squared pixel distances; gradients wrt the world
+        vertices ("world") and focal."""
         camera = self.scene.camera(values["focal"][0])
         points, ctx = camera.project_pixels(self.scene.model.landmarks(world))
         value, g = losses.landmarks_2d(points, self.target, self.landmark_weights)
         n = len(points)
         g_cam = camera.project_pixels_vjp(ctx, g["points"] * n)
-        grads = self.scene.geometry_vjp(values, shape, self.scene.model.landmarks_vjp(g_cam["vertices"]))
-        grads["focal"] = np.array([g_cam["focal"].sum()])
-        return value * n, grads
+        return value * n, dict(world=self.scene.model.landmarks_vjp(g_cam["vertices"]),
+                               focal=np.array([g_cam["focal"].sum()]))
+
+    def focal_prior(self, focal) -> tuple[float, dict]:
+        """``(ln(f / f0) / ln 2)^2``: halving or doubling the initial focal length f0 costs 1."""
+        r = math.log(focal[0] / self.focal0) / math.log(2.0)
+        return r * r, dict(focal=np.array([2.0 * r / (math.log(2.0) * focal[0])]))
 
     def face_region(self, values: dict, sigma: float, gamma: float) -> np.ndarray:
-        """(H, W) bool: rendered alpha > 0.5, eroded by mask_erosion pixels."""
-        from scipy.ndimage import binary_erosion
+        """(H, W) bool: rendered alpha > 0.5, eroded by mask_erosion pixels, less the eyes
+        and the inside of the mouth as outlined by the photo's landmarks (grown by the same
+        erosion): open mouths, teeth and eyes are not skin, and a skin model would bend the
+        shape trying to explain them."""
+        from scipy.ndimage import binary_dilation, binary_erosion
+        from skimage.draw import polygon
 
-        alpha = self.scene.render(values, sigma, gamma).alpha[0] > 0.5
+        region = self.scene.render(values, sigma, gamma).alpha[0] > 0.5
+        holes = np.zeros_like(region)
+        for outline in EXCLUDED_OUTLINES:
+            pts = self.target[list(outline)]
+            holes[polygon(pts[:, 1], pts[:, 0], region.shape)] = True
         if self.mask_erosion > 0:
-            alpha = binary_erosion(alpha, iterations=self.mask_erosion)
-        return alpha
+            region = binary_erosion(region, iterations=self.mask_erosion)
+            holes = binary_dilation(holes, iterations=self.mask_erosion)
+        return region & ~holes
 
-    def photo_term(self, values: dict, sigma: float, gamma: float) -> tuple[float, dict]:
-        """Sum of squared linear-RGB errors over the face region, with its block gradients."""
-        out = self.scene.render(values, sigma, gamma, grads=("vertices", "albedo", "light", "camera"))
+    def photo_term(self, values: dict, world: np.ndarray, sigma: float, gamma: float) -> tuple[float, dict]:
+        """Sum of squared linear-RGB errors over the face region; gradients wrt the world
+        vertices ("world"), albedo, sh and focal."""
+        out = self.scene.render(values, sigma, gamma, grads=("vertices", "albedo", "light", "camera"),
+                                world=world)
         value, g = losses.image_l2(out.rgb[0], self.image, self.mask)
         count = 3.0 * max(int(self.mask.sum()), 1)
         g_img = self.scene.renderer.backward(out, grad_rgb=g["pred"][None] * count)
-        shape, _, _ = self.scene.geometry(values)
-        grads = self.scene.geometry_vjp(values, shape, g_img["vertices"])
-        grads["albedo"] = self.scene.model.albedo_vjp(g_img["albedo"])
-        grads["sh"] = g_img["light"]["coefficients"]
-        grads["focal"] = np.array([g_img["camera"]["focal"].sum()])
-        return value * count, grads
+        return value * count, dict(world=g_img["vertices"], albedo=self.scene.model.albedo_vjp(g_img["albedo"]),
+                                   sh=g_img["light"]["coefficients"],
+                                   focal=np.array([g_img["camera"]["focal"].sum()]))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -358,15 +443,15 @@ class FaceFit:
     """What :func:`fit_face` returns.
 
     values: the fitted blocks (focal in working-image pixels); scene: the FaceScene used;
-    image (h, w, 3) / landmarks (68, 2): the working-resolution inputs; scale: working/full
-    pixels; mask (h, w) bool: the face region of the last stage; result: the solver's
-    FitResult (history, outcomes, interrupted).
+    image (s, s, 3) / landmarks (68, 2): the working inputs; crop: full photo -> working image;
+    mask (s, s) bool: the face region of the last stage; result: the solver's FitResult
+    (history, outcomes, interrupted).
     """
     values: dict
     scene: FaceScene
     image: np.ndarray
     landmarks: np.ndarray
-    scale: float
+    crop: Crop
     mask: np.ndarray
     result: FitResult
 
@@ -377,12 +462,12 @@ class FaceFit:
 
         objective = FaceObjective(self.scene, self.image, self.landmarks)
         camera = self.scene.camera(self.values["focal"][0])
-        _, _, world = self.scene.geometry(self.values)
+        _, world = self.scene.geometry(self.values)
         points, _ = camera.project_pixels(self.scene.model.landmarks(world))
         err = float(np.linalg.norm(points - self.landmarks, axis=1).mean())
         rgb = self.scene.render(self.values, 1e-6, 1e-4).rgb[0]
         mask = objective.face_region(self.values, 1e-6, 1e-4)
-        return dict(landmark_error_px=err, landmark_error_px_full=err / self.scale,
+        return dict(landmark_error_px=err, landmark_error_px_full=err / self.crop.scale,
                     psnr_face_db=psnr(to_srgb(np.clip(rgb, 0, 1)), to_srgb(np.clip(self.image, 0, 1)), mask),
                     face_pixels=int(mask.sum()))
 
@@ -407,21 +492,24 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
         raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
                          f"{N_LANDMARKS} iBUG points (pass a landmark mapping file with the model)")
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
-    image, target, scale = prepare_photo(photo, landmarks, config.size)
-    scene = FaceScene(model, image.shape[:2], config.dtype)
+    image, target, crop = prepare_photo(photo, landmarks, config.size)
+    h, w = np.shape(photo)[:2]
+    principal = crop.to_work([[w / 2.0 - 0.5, h / 2.0 - 0.5]])[0]
     if config.focal is None:
-        focal = 0.5 * max(image.shape[:2]) / math.tan(math.radians(config.fov_deg) / 2.0)
+        focal = 0.5 * max(h, w) / math.tan(math.radians(config.fov_deg) / 2.0) * crop.scale
     else:
-        focal = float(config.focal) * scale
+        focal = float(config.focal) * crop.scale
     zero = dict(id=np.zeros(model.n_id), exp=np.zeros(model.n_exp), albedo=np.zeros(model.n_albedo))
     mean_landmarks = model.landmarks(model.shape(zero["id"], zero["exp"]))
-    rotation, translation = initial_pose(mean_landmarks, target, focal, image.shape[:2])
+    rotation, translation = initial_pose(mean_landmarks, target, focal, principal)
+    scene = FaceScene(model, image.shape[:2], config.dtype, depth_range=depth_range(translation),
+                      principal=principal)
+    objective = FaceObjective(scene, image, target, config.mask_erosion, focal0=focal)
     values = dict(zero, rotation=rotation, translation=translation, focal=np.array([focal]))
     sh = initial_light(scene, values, image)
     params = face_params(model, focal, rotation, translation, sh)
-    objective = FaceObjective(scene, image, target, config.mask_erosion)
     stages = default_stages(config, fit_focal=config.focal is None)
     result = fit(params, objective, stages, out_dir=out_dir, progress=progress)
     mask = objective.mask if objective.mask is not None else objective.face_region(result.values, 1e-6, 1e-4)
-    return FaceFit(result.values, scene, image, target, scale, mask, result)
+    return FaceFit(result.values, scene, image, target, crop, mask, result)
 

@@ -25,9 +25,24 @@ OVERLAY_MAX = 1024       # longest side of overlay.png (the photo's own size whe
 SHARP = (1e-6, 1e-4)     # sigma, gamma of the report renders: the fitted surface, drawn sharp
 
 
-def full_size_values(fit: FaceFit, scale: float) -> dict:
-    """The fitted blocks with the focal length for an image ``scale`` times the working one."""
-    return dict(fit.values, focal=fit.values["focal"] / fit.scale * scale)
+def photo_scene(fit: FaceFit, photo_size, scale: float = 1.0) -> tuple[FaceScene, dict]:
+    """A hard-alpha scene of the full photo (H, W) resized by ``scale``, and the fitted values
+    with the focal length of that image."""
+    settings = fit.scene.settings
+    h, w = (max(1, round(n * scale)) for n in photo_size)
+    cx, cy = fit.crop.to_full([fit.scene.principal])[0]
+    scene = FaceScene(fit.scene.model, (h, w), settings.dtype, alpha_agg="hard",
+                      depth_range=(settings.near, settings.far),
+                      principal=((cx + 0.5) * scale - 0.5, (cy + 0.5) * scale - 0.5))
+    return scene, dict(fit.values, focal=fit.values["focal"] / fit.crop.scale * scale)
+
+
+def display_scene(fit: FaceFit) -> FaceScene:
+    """The working image's scene with hard alpha (no seams between triangles): for pictures."""
+    size = fit.image.shape[:2]
+    settings = fit.scene.settings
+    return FaceScene(fit.scene.model, size, settings.dtype, alpha_agg="hard",
+                     depth_range=(settings.near, settings.far), principal=fit.scene.principal)
 
 
 def render_over(fit: FaceFit, photo: np.ndarray, max_side: int = OVERLAY_MAX) -> np.ndarray:
@@ -37,17 +52,16 @@ def render_over(fit: FaceFit, photo: np.ndarray, max_side: int = OVERLAY_MAX) ->
 
     h, w = photo.shape[:2]
     scale = min(1.0, max_side / max(h, w))
-    size = (max(1, round(h * scale)), max(1, round(w * scale)))
-    image = resize(photo, size, order=1, anti_aliasing=True) if scale < 1.0 else photo
-    scene = FaceScene(fit.scene.model, size, fit.scene.settings.dtype)
-    out = scene.render(full_size_values(fit, size[0] / h), *SHARP)
+    scene, values = photo_scene(fit, (h, w), scale)
+    image = resize(photo, scene.image_size, order=1, anti_aliasing=True) if scale < 1.0 else photo
+    out = scene.render(values, *SHARP)
     alpha = out.alpha[0][..., None]
     return alpha * out.rgb[0] + (1.0 - alpha) * image
 
 
 def _panels(fit: FaceFit) -> dict:
     """name -> (h, w, 3) sRGB or (h, w) error image, all at the working resolution."""
-    scene, values = fit.scene, fit.values
+    scene, values = display_scene(fit), fit.values
     n = scene.model.n_vertices
     fitted = scene.render(values, *SHARP)
     albedo = scene.render(values, *SHARP, light=SHLight.ambient(1.0))
@@ -65,7 +79,7 @@ def _panels(fit: FaceFit) -> dict:
 
 def fitted_landmarks(fit: FaceFit) -> np.ndarray:
     """(68, 2) fitted landmarks in working-image pixels."""
-    _, _, world = fit.scene.geometry(fit.values)
+    _, world = fit.scene.geometry(fit.values)
     points, _ = fit.scene.camera(fit.values["focal"][0]).project_pixels(fit.scene.model.landmarks(world))
     return points
 
@@ -96,14 +110,13 @@ def save_figure(fit: FaceFit, path: Path, metrics: dict) -> None:
     plt.close(fig)
 
 
-def camera_matrices(fit: FaceFit, full_size) -> dict:
-    """The fitted camera for the full-size photo in OpenCV form, with the head pose folded in:
-    X_cam = R X_model + t, pixel = K X_cam / Z."""
-    h, w = full_size
-    f = float(fit.values["focal"][0] / fit.scale)
-    K = np.array([[f, 0.0, w / 2.0 - 0.5], [0.0, f, h / 2.0 - 0.5], [0.0, 0.0, 1.0]])
-    R = CAMERA_ROTATION @ rodrigues(fit.values["rotation"])
-    return dict(K=K, R=R, t=CAMERA_ROTATION @ fit.values["translation"])
+def camera_matrices(fit: FaceFit, photo_size) -> dict:
+    """The fitted camera for the full photo (H, W) in OpenCV form, with the head pose folded
+    in: X_cam = R X_model + t, pixel = K X_cam / Z."""
+    scene, values = photo_scene(fit, photo_size)
+    f, (cx, cy) = values["focal"][0], scene.principal
+    return dict(K=np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]]), R=CAMERA_ROTATION @ rodrigues(values["rotation"]),
+                t=CAMERA_ROTATION @ values["translation"])
 
 
 def write_outputs(fit: FaceFit, photo: np.ndarray, out_dir, extra: dict | None = None) -> dict:
