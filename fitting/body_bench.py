@@ -128,28 +128,16 @@ def save_chart(summary: dict, rest: dict, path: Path) -> None:
 
 def save_strip(samples: list[dict], rows: list[dict], path: Path, n: int = 5) -> None:
     """Target over fit for the first n targets of a budget."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..images import to_srgb
+    from .bench_figures import save_image_strip
     from .face_report import SHARP
 
-    n = min(n, len(rows))
-    fig, axes = plt.subplots(2, n, figsize=(2.2 * n, 4.8), squeeze=False)
-    for i in range(n):
-        fit = rows[i]["fit"]
+    columns = []
+    for sample, row in zip(samples[:n], rows[:n]):
+        fit = row["fit"]
         fitted = fit.scene.composite(fit.scene.render(fit.scene.pose(fit.values).vertices, *SHARP))
-        for ax, img, title in ((axes[0, i], samples[i]["image"], "target"),
-                               (axes[1, i], fitted, (f"fit: {rows[i]['mpjpe_pelvis_mm']:.0f} mm, "
-                                                     f"IoU {rows[i]['silhouette_iou']:.2f}"))):
-            ax.imshow(to_srgb(np.clip(img, 0, 1)))
-            ax.set_title(title, fontsize=8)
-            ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+        columns.append((sample["image"], fitted, "target",
+                        f"fit: {row['mpjpe_pelvis_mm']:.0f} mm, IoU {row['silhouette_iou']:.2f}"))
+    save_image_strip(columns, path, cell=(2.2, 2.4))
 
 
 def rest_baseline(model, samples: list[dict], size: int) -> dict:

@@ -176,32 +176,19 @@ def save_chart(summary: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def save_strip(samples: list[dict], rows: list[dict], path: Path, n: int = 4) -> None:
+def save_strip(rows: list[dict], path: Path, n: int = 4) -> None:
     """Photo over fit for the first n faces of a budget."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..images import to_srgb
+    from .bench_figures import save_image_strip
     from .face_report import SHARP, display_scene
 
-    n = min(n, len(rows))
-    fig, axes = plt.subplots(2, n, figsize=(2.6 * n, 5.4), squeeze=False)
-    for i in range(n):
-        fit = rows[i]["fit"]
+    columns = []
+    for row in rows[:n]:
+        fit = row["fit"]
         out = display_scene(fit).render(fit.values, *SHARP)
         a = out.alpha[0][..., None]
-        composite = a * out.rgb[0] + (1 - a) * fit.image
-        for ax, img, title in ((axes[0, i], fit.image, "synthetic photo"),
-                               (axes[1, i], composite, f"fit: {rows[i]['rmse_mm']:.2f} mm, "
-                                                       f"{rows[i]['psnr_face_db']:.1f} dB")):
-            ax.imshow(to_srgb(np.clip(img, 0, 1)))
-            ax.set_title(title, fontsize=8)
-            ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+        columns.append((fit.image, a * out.rgb[0] + (1 - a) * fit.image, "synthetic photo",
+                        f"fit: {row['rmse_mm']:.2f} mm, {row['psnr_face_db']:.1f} dB"))
+    save_image_strip(columns, path, cell=(2.6, 2.7))
 
 
 def format_table(summary: dict) -> str:
@@ -241,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
                       for b, rows in per_budget.items()})
     (out / "face.json").write_text(json.dumps(doc, indent=2))
     save_chart(summary, out / "face.png")
-    save_strip(samples, per_budget[budgets[-1]], out / "face_strip.png")
+    save_strip(per_budget[budgets[-1]], out / "face_strip.png")
     print(json.dumps(doc, indent=2) if args.json else format_table(summary))
     return 0
 

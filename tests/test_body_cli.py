@@ -1,9 +1,6 @@
 """`softras-cl fit-body` end to end on a rendered target, its bad-input messages, what an
 interrupted run leaves behind, and `softras-cl bench body --quick`."""
 import json
-import os
-import signal
-import threading
 
 import numpy as np
 import pytest
@@ -11,6 +8,7 @@ from softras_cl.fitting import body
 from softras_cl.fitting.models.body_loaders import load_demo_body_model
 from softras_cl.fitting.solver import load_checkpoint
 
+from interrupt import sigint_once_written
 from softras_cl.cli import main
 from softras_cl.images import write_image
 
@@ -77,27 +75,11 @@ def test_bad_input_is_reported_before_fitting(tmp_path, capsys, target, case, ma
     assert not (tmp_path / "o").exists()
 
 
-def _interrupt_once_running(checkpoint, stop: threading.Event) -> None:
-    """Send a real SIGINT to this process once the solver has written its first checkpoint."""
-    while not stop.is_set():
-        if checkpoint.exists():
-            stop.wait(0.5)
-            os.kill(os.getpid(), signal.SIGINT)
-            return
-        stop.wait(0.05)
-
-
 def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path, target):
     out = tmp_path / "fit"
-    stop = threading.Event()
-    watcher = threading.Thread(target=_interrupt_once_running, args=(out / "checkpoint.npz", stop))
-    watcher.start()
-    try:
+    with sigint_once_written(out / "checkpoint.npz"):
         code = main(["fit-body", str(target[0]), "--out", str(out), "--size", "48", "--budget", "thorough",
                      "--no-progress"])
-    finally:
-        stop.set()
-        watcher.join()
     assert code == 130
     doc = json.loads((out / "params.json").read_text())
     assert doc["interrupted"] is True

@@ -1,14 +1,12 @@
 """`softras-cl fit-face` end to end on a shipped photo, its bad-input messages, and what an
 interrupted run leaves behind."""
 import json
-import os
-import signal
-import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from interrupt import sigint_once_written
 from softras_cl.cli import main
 from softras_cl.fitting.solver import load_checkpoint
 
@@ -64,27 +62,11 @@ def test_bad_input_is_reported_before_fitting(tmp_path, capsys, case, match):
     assert not (tmp_path / "o").exists()
 
 
-def _interrupt_once_running(checkpoint: Path, stop: threading.Event) -> None:
-    """Send a real SIGINT to this process once the solver has written its first checkpoint."""
-    while not stop.is_set():
-        if checkpoint.exists():
-            stop.wait(0.5)
-            os.kill(os.getpid(), signal.SIGINT)
-            return
-        stop.wait(0.05)
-
-
 def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path):
     out = tmp_path / "fit"
-    stop = threading.Event()
-    watcher = threading.Thread(target=_interrupt_once_running, args=(out / "checkpoint.npz", stop))
-    watcher.start()
-    try:
+    with sigint_once_written(out / "checkpoint.npz"):
         code = main(["fit-face", str(PHOTO), "--landmarks", str(LANDMARKS), "--out", str(out),
                      "--size", "96", "--budget", "thorough", "--no-progress"])
-    finally:
-        stop.set()
-        watcher.join()
     assert code == 130
     doc = json.loads((out / "params.json").read_text())
     assert doc["interrupted"] is True
