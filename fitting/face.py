@@ -60,7 +60,9 @@ __all__ = ["FaceFitConfig", "Crop", "FaceScene", "FaceFit", "BUDGETS", "landmark
 
 N_LANDMARKS = 68
 JAW = slice(0, 17)          # iBUG 300-W: jaw line; a fixed-vertex contour only approximates it
-# iBUG outlines of what a skin model cannot explain: the eyes and the inside of the mouth
+# iBUG outlines: the face (jaw line, then the brows back) and what a skin model cannot explain
+# inside it (the eyes and the inside of the mouth)
+FACE_OUTLINE = tuple(range(0, 17)) + tuple(range(26, 16, -1))
 EXCLUDED_OUTLINES = (range(36, 42), range(42, 48), range(60, 68))
 CAMERA_ROTATION = np.diag([1.0, -1.0, -1.0])   # world (y up, camera looks down -z) -> OpenCV
 
@@ -86,6 +88,7 @@ class FaceFitConfig:
     landmark_iters / photo_stages: the schedule (see BUDGETS; photo_stages holds
         (sigma, gamma, evaluations) per stage).
     weights: loss-term weights by name (see the module docstring for their meaning).
+    mask_erosion / forehead: the face region (see FaceObjective.face_region).
     n_id / n_exp / n_albedo: use only the first components of the model (None: all).
     dtype: rasteriser precision; float64 keeps line searches clean.
     """
@@ -99,6 +102,7 @@ class FaceFitConfig:
         albedo_prior=1.0, sh_white=1000.0, focal_prior=1.0))
     landmark_weight_photo: float = 1.0    # landmark weight in the photometric stages, relative
     mask_erosion: int = 2
+    forehead: float = 0.15
     n_id: int | None = None
     n_exp: int | None = None
     n_albedo: int | None = None
@@ -347,14 +351,16 @@ class FaceObjective:
     """``(values, stage) -> (loss, grads, terms)`` for fitting.solver.fit.
 
     image (H, W, 3) linear RGB; landmarks (68, 2) pixels; focal0: the focal length the
-    focal prior is centred on. At the first evaluation of each photometric stage the depth
+    focal prior is centred on; forehead: how far above the brows the face region reaches, in
+    chin-to-nose-bridge distances. At the first evaluation of each photometric stage the depth
     range is fitted to the face and the face-region mask is taken from the render; both stay
     fixed within the stage (see the module docstring).
     """
 
-    def __init__(self, scene: FaceScene, image, landmarks, mask_erosion: int = 2, focal0: float = 1.0):
+    def __init__(self, scene: FaceScene, image, landmarks, mask_erosion: int = 2, focal0: float = 1.0,
+                 forehead: float = 0.15):
         self.scene, self.image, self.target = scene, image, np.asarray(landmarks, np.float64)
-        self.focal0 = float(focal0)
+        self.focal0, self.forehead = float(focal0), float(forehead)
         self.landmark_weights = landmark_weights()
         self.mask_erosion = mask_erosion
         self.mask, self._mask_stage = None, None
@@ -404,22 +410,37 @@ class FaceObjective:
         return r * r, dict(focal=np.array([2.0 * r / (math.log(2.0) * focal[0])]))
 
     def face_region(self, values: dict, sigma: float, gamma: float) -> np.ndarray:
-        """(H, W) bool: rendered alpha > 0.5, eroded by mask_erosion pixels, less the eyes
-        and the inside of the mouth as outlined by the photo's landmarks (grown by the same
-        erosion): open mouths, teeth and eyes are not skin, and a skin model would bend the
-        shape trying to explain them."""
+        """(H, W) bool: where the face is rendered (alpha > 0.5) and the photo's landmarks
+        outline the face (jaw line and brows raised by ``forehead``), eroded by mask_erosion pixels, less the eyes and
+        the inside of the mouth (grown by as much). The landmark outline keeps hair, hats and
+        background out even when the rendered face grows over them, and open mouths, teeth
+        and eyes are not skin: a skin model would bend the shape trying to explain them."""
         from scipy.ndimage import binary_dilation, binary_erosion
-        from skimage.draw import polygon
 
-        region = self.scene.render(values, sigma, gamma).alpha[0] > 0.5
-        holes = np.zeros_like(region)
-        for outline in EXCLUDED_OUTLINES:
-            pts = self.target[list(outline)]
-            holes[polygon(pts[:, 1], pts[:, 0], region.shape)] = True
+        region = (self.scene.render(values, sigma, gamma).alpha[0] > 0.5) & self._outlined(
+            [FACE_OUTLINE], self._forehead_points())
+        holes = self._outlined(EXCLUDED_OUTLINES, self.target)
         if self.mask_erosion > 0:
             region = binary_erosion(region, iterations=self.mask_erosion)
             holes = binary_dilation(holes, iterations=self.mask_erosion)
         return region & ~holes
+
+    def _forehead_points(self) -> np.ndarray:
+        """The landmarks with the brows (17-26) raised by ``forehead`` times the chin (8) to
+        nose-bridge (27) distance, along that direction: the outline then takes in the forehead."""
+        pts = self.target.copy()
+        pts[17:27] += self.forehead * (pts[27] - pts[8])
+        return pts
+
+    def _outlined(self, outlines, points) -> np.ndarray:
+        """(H, W) bool: inside any of the polygons through the given indices of points (68, 2)."""
+        from skimage.draw import polygon
+
+        inside = np.zeros(self.image.shape[:2], bool)
+        for outline in outlines:
+            pts = points[list(outline)]
+            inside[polygon(pts[:, 1], pts[:, 0], inside.shape)] = True
+        return inside
 
     def photo_term(self, values: dict, world: np.ndarray, sigma: float, gamma: float) -> tuple[float, dict]:
         """Sum of squared linear-RGB errors over the face region; gradients wrt the world
@@ -504,7 +525,8 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
     rotation, translation = initial_pose(mean_landmarks, target, focal, principal)
     scene = FaceScene(model, image.shape[:2], config.dtype, depth_range=depth_range(translation),
                       principal=principal)
-    objective = FaceObjective(scene, image, target, config.mask_erosion, focal0=focal)
+    objective = FaceObjective(scene, image, target, config.mask_erosion, focal0=focal,
+                              forehead=config.forehead)
     values = dict(zero, rotation=rotation, translation=translation, focal=np.array([focal]))
     sh = initial_light(scene, values, image)
     params = face_params(model, focal, rotation, translation, sh)

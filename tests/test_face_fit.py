@@ -51,7 +51,7 @@ def test_face_region_is_fixed_within_a_stage_and_renewed_per_stage(toy):
     rng = np.random.default_rng(2)
     scene = face.FaceScene(toy, (40, 40))
     values = toy_values(toy, rng)
-    objective = face.FaceObjective(scene, np.zeros((40, 40, 3)), np.zeros((68, 2)))
+    objective = face.FaceObjective(scene, np.zeros((40, 40, 3)), _spread_landmarks(40))
     stage = Stage("photo-1", ("id",), dict(photo=1.0), sigma=1e-4, gamma=1e-3)
     objective(values, stage)
     first = objective.mask.copy()
@@ -61,6 +61,36 @@ def test_face_region_is_fixed_within_a_stage_and_renewed_per_stage(toy):
     np.testing.assert_array_equal(objective.mask, first)
     objective(moved, Stage("photo-2", ("id",), dict(photo=1.0), sigma=1e-4, gamma=1e-3))
     assert not np.array_equal(objective.mask, first)
+
+
+def _spread_landmarks(size: int) -> np.ndarray:
+    """68 points whose face outline (jaw 0-16, brows 17-26) covers the whole image and whose
+    eyes (36-47) and inner lips (60-67) outline small boxes."""
+    pts = np.full((68, 2), size / 2.0)
+    pts[0:17] = np.column_stack([np.linspace(-1, size, 17), np.full(17, size)])
+    pts[17:27] = np.column_stack([np.linspace(-1, size, 10), np.full(10, -1.0)])
+    box = np.array([[0, 0], [1, 0], [4, 0], [4, 3], [1, 3], [0, 3], [0, 2], [0, 1]])
+    pts[36:42] = box[:6] + [8, 10]
+    pts[42:48] = box[:6] + [26, 10]
+    pts[60:68] = box + [16, 28]
+    return pts
+
+
+def test_face_region_is_the_render_inside_the_landmark_outline_less_eyes_and_mouth(toy):
+    rng = np.random.default_rng(2)
+    scene = face.FaceScene(toy, (40, 40))
+    values = toy_values(toy, rng)
+    landmarks = _spread_landmarks(40)
+    rendered = scene.render(values, 1e-4, 1e-3).alpha[0] > 0.5
+    full = face.FaceObjective(scene, np.zeros((40, 40, 3)), landmarks, mask_erosion=0)
+    region = full.face_region(values, 1e-4, 1e-3)
+    holes = full._outlined(face.EXCLUDED_OUTLINES, landmarks)
+    assert holes[11, 10] and holes[29, 18] and holes.sum() <= 60  # an eye, the mouth: small boxes
+    assert np.array_equal(region, rendered & ~holes)
+    assert region.sum() > 100
+    landmarks[0:17, 1] = 20.0                                     # jaw line raised to mid-image
+    lower = face.FaceObjective(scene, np.zeros((40, 40, 3)), landmarks, mask_erosion=0)
+    assert not lower.face_region(values, 1e-4, 1e-3)[25:].any()
 
 
 def test_initial_pose_recovers_a_distant_pose(toy):
