@@ -15,8 +15,9 @@ The fit, as the paper and its anchors do it, in stages given as data (:func:`def
 
 1. ``landmarks``: pose, focal (unless given; a log-normal prior keeps it within about a
    factor 2 of a 30 degree field of view: landmarks barely tell focal length from distance),
-   identity and expression from the 68 landmarks and the coefficient priors, starting from a closed-form scaled-orthographic alignment of
-   the mean face's landmarks (:func:`initial_pose`).
+   identity and expression from the 68 landmarks and the coefficient priors, starting from
+   a closed-form scaled-orthographic alignment of the mean face's landmarks
+   (:func:`initial_pose`).
 2. The SH light, frozen until then, starts from a linear least-squares fit to the visible
    vertices at the initial pose (:func:`initial_light`).
 3. ``photo-k``: identity, expression, albedo, SH light and pose from the photometric L2 loss in

@@ -12,8 +12,9 @@ several schedule budgets: what accuracy costs in time.
 Reported per budget: vertex RMSE of the recovered shape (identity + expression, model frame)
 against the true shape in mm, after a similarity (Procrustes with scale) alignment, since one
 photo does not tell a face's absolute size, and the same for the mean face as the baseline; the
-ratio of the two; the same ratio after a rigid alignment only (scale errors included); the landmark error in pixels against the noise-free
-landmarks; the PSNR of the fit in the face region (sRGB); the time per fit.
+ratio of the two; the same ratio after a rigid alignment only (scale errors included); the
+landmark error in pixels against the noise-free landmarks; the PSNR of the fit in the face
+region (sRGB); the time per fit.
 """
 from __future__ import annotations
 

@@ -115,7 +115,8 @@ def camera_matrices(fit: FaceFit, photo_size) -> dict:
     in: X_cam = R X_model + t, pixel = K X_cam / Z."""
     scene, values = photo_scene(fit, photo_size)
     f, (cx, cy) = values["focal"][0], scene.principal
-    return dict(K=np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]]), R=CAMERA_ROTATION @ rodrigues(values["rotation"]),
+    return dict(K=np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]]),
+                R=CAMERA_ROTATION @ rodrigues(values["rotation"]),
                 t=CAMERA_ROTATION @ values["translation"])
 
 
