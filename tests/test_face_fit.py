@@ -189,7 +189,7 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     landmark noise, is fitted from the photo and landmarks alone. Stated tolerances: landmark
     error under 1.5 px against the noise-free points, shape RMSE (up to scale) under half the
     mean face's, PSNR in the face region above 30 dB (sRGB)."""
-    from softras_cl.fitting.face_report import fitted_landmarks
+    from softras_cl.fitting.face_report import camera_matrices, fitted_landmarks
 
     sample = synthetic_face(demo, np.random.default_rng(5), size=128)
     config = face.FaceFitConfig.from_budget("fast", size=128)
@@ -205,4 +205,8 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     assert rmse < 0.5 * baseline
     assert metrics["psnr_face_db"] > 30.0
     assert (tmp_path / "checkpoint.npz").exists() and (tmp_path / "loss_curve.png").exists()
+    cam = camera_matrices(fit, sample["photo"].shape[:2])      # the exported camera of the photo
+    X = demo.landmarks(demo.shape(fit.values["id"], fit.values["exp"])) @ cam["R"].T + cam["t"]
+    x = X @ cam["K"].T
+    np.testing.assert_allclose(x[:, :2] / x[:, 2:], points, atol=1e-6)
     assert [h["stage"] for h in fit.result.history][0] == "landmarks"
