@@ -110,10 +110,16 @@ class FaceFitConfig:
     dtype: str = "float64"
 
     @classmethod
-    def from_budget(cls, name: str, **changes) -> "FaceFitConfig":
+    def from_budget(cls, name: str, photo_weight: float | None = None, **changes) -> "FaceFitConfig":
+        """The config of a schedule budget (BUDGETS), optionally with another photo weight."""
         if name not in BUDGETS:
             raise ValueError(f"budget must be one of {sorted(BUDGETS)}, got {name!r}")
-        return cls(**{**BUDGETS[name], **changes})
+        config = cls(**{**BUDGETS[name], **changes})
+        if photo_weight is None:
+            return config
+        if not photo_weight > 0:
+            raise ValueError(f"photo_weight must be > 0, got {photo_weight!r}")
+        return dataclasses.replace(config, weights={**config.weights, "photo": float(photo_weight)})
 
 
 def landmark_weights() -> np.ndarray:

@@ -135,12 +135,13 @@ def summarise(rows: list[dict]) -> dict:
 # the run
 # ---------------------------------------------------------------------------------------------
 
-def run_budget(model, samples: list[dict], budget: str, size: int, progress: bool) -> list[dict]:
+def run_budget(model, samples: list[dict], budget: str, size: int, progress: bool,
+               photo_weight: float | None = None) -> list[dict]:
     from tqdm import tqdm
 
     from .face import FaceFitConfig, fit_face
 
-    config = FaceFitConfig.from_budget(budget, size=size)
+    config = FaceFitConfig.from_budget(budget, photo_weight=photo_weight, size=size)
     rows = []
     for sample in tqdm(samples, desc=f"bench face [{budget}]", disable=not progress):
         start = time.perf_counter()
@@ -220,11 +221,13 @@ def run(args: argparse.Namespace) -> int:
     model = load_demo_face_model() if args.model is None else load_face_model(args.model)
     rng = np.random.default_rng(args.seed)
     samples = [synthetic_face(model, rng, args.size) for _ in range(args.faces)]
-    per_budget = {b: run_budget(model, samples, b, args.size, not args.json) for b in budgets}
+    per_budget = {b: run_budget(model, samples, b, args.size, not args.json, args.photo_weight)
+                  for b in budgets}
     summary = {b: summarise(rows) for b, rows in per_budget.items()}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    doc = dict(size=args.size, seed=args.seed, model=model.name, summary=summary,
+    doc = dict(size=args.size, seed=args.seed, model=model.name, photo_weight=args.photo_weight,
+               summary=summary,
                faces={b: [{k: v for k, v in r.items() if k != "fit"} for r in rows]
                       for b, rows in per_budget.items()})
     (out / "face.json").write_text(json.dumps(doc, indent=2))
@@ -243,6 +246,8 @@ def register(which) -> None:
     p.add_argument("--budgets", default=",".join(DEFAULT_BUDGETS),
                    help=f"comma-separated schedule budgets to compare (default {','.join(DEFAULT_BUDGETS)})")
     p.add_argument("--seed", type=int, default=0, help="random seed of the synthetic faces (default 0)")
+    p.add_argument("--photo-weight", type=float, default=None,
+                   help="photometric weight of the fits (default: the fit's own default, 10)")
     p.add_argument("--model", default=None, help="face model file (default: the shipped demo model)")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
     p.add_argument("--out", default="out/bench",

@@ -40,6 +40,10 @@ def register(sub) -> None:
                         "`softras-cl bench face` shows what each costs and gains")
     p.add_argument("--size", type=int, default=256,
                    help="longest side in pixels of the working image the fit runs at (default 256)")
+    p.add_argument("--photo-weight", type=float, default=None,
+                   help="weight of the photometric term (default 10, i.e. pixel noise ~0.3; higher "
+                        "trusts the photo more: better on clean images, worse with hair, glasses "
+                        "or expressions the model lacks; see `softras-cl bench face`)")
     p.add_argument("--focal", type=float, default=None,
                    help="focal length in pixels of the photo, if known (default: fitted)")
     p.add_argument("--n-id", type=int, default=None, help="identity components to use (default: all)")
@@ -72,8 +76,9 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         photo, landmarks, model = _load_inputs(args)
-        config = FaceFitConfig.from_budget(args.budget, size=args.size, focal=args.focal,
-                                           n_id=args.n_id, n_exp=args.n_exp, n_albedo=args.n_albedo)
+        config = FaceFitConfig.from_budget(args.budget, photo_weight=args.photo_weight, size=args.size,
+                                           focal=args.focal, n_id=args.n_id, n_exp=args.n_exp,
+                                           n_albedo=args.n_albedo)
     except (ValueError, OSError) as e:
         print(f"softras-cl fit-face: {e}", file=sys.stderr)
         return 2

@@ -73,3 +73,20 @@ def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path):
     values, meta = load_checkpoint(out / "checkpoint.npz")
     assert np.isfinite(values["id"]).all()
     assert (out / "overlay.png").exists() and (out / "face.ply").exists()
+
+
+def test_bench_face_reports_accuracy_against_time(tmp_path, capsys):
+    out = tmp_path / "bench"
+    assert main(["bench", "face", "--faces", "1", "--size", "96", "--budgets", "fast", "--json",
+                 "--out", str(out)]) == 0
+    doc = json.loads((out / "face.json").read_text())
+    fast = doc["summary"]["fast"]
+    assert fast["faces"] == 1 and fast["median_seconds"] > 0
+    assert fast["rmse_ratio"] < 0.8 and fast["psnr_face_db"] > 25      # far better than the mean face
+    assert (out / "face.png").exists() and (out / "face_strip.png").exists()
+    assert json.loads(capsys.readouterr().out)["summary"]["fast"]["faces"] == 1
+
+
+def test_bench_face_rejects_unknown_budgets(capsys):
+    assert main(["bench", "face", "--budgets", "fast,quick"]) == 2
+    assert "--budgets must name some of" in capsys.readouterr().err

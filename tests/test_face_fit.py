@@ -172,9 +172,15 @@ def test_model_without_68_landmarks_is_refused_before_fitting(toy):
         face.fit_face(np.zeros((32, 32, 3)), np.zeros((68, 2)), bare)
 
 
-def test_budgets_are_validated():
+def test_budgets_and_photo_weight_are_validated_and_applied():
     with pytest.raises(ValueError, match="budget must be one of"):
         face.FaceFitConfig.from_budget("quick")
+    with pytest.raises(ValueError, match="photo_weight must be > 0"):
+        face.FaceFitConfig.from_budget("fast", photo_weight=0.0)
+    config = face.FaceFitConfig.from_budget("fast", photo_weight=100.0, size=64)
+    assert config.weights["photo"] == 100.0 and config.size == 64
+    assert config.photo_stages == face.BUDGETS["fast"]["photo_stages"]
+    assert face.FaceFitConfig().weights["photo"] == 10.0
 
 
 @pytest.fixture(scope="module")
