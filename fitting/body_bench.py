@@ -128,7 +128,7 @@ def save_chart(summary: dict, rest: dict, path: Path) -> None:
 
 def save_strip(samples: list[dict], rows: list[dict], path: Path, n: int = 5) -> None:
     """Target over fit for the first n targets of a budget."""
-    from .bench_figures import save_image_strip
+    from .bench_tools import save_image_strip
     from .face_report import SHARP
 
     columns = []
@@ -176,11 +176,12 @@ def run(args: argparse.Namespace) -> int:
 
     if args.quick:
         args.poses, args.size, args.budgets = 1, 32, "fast"
-    budgets = [b.strip() for b in args.budgets.split(",") if b.strip()]
-    unknown = [b for b in budgets if b not in BUDGETS]
-    if unknown or not budgets:
-        print(f"softras-cl bench body: --budgets must name some of {sorted(BUDGETS)}, got {args.budgets!r}",
-              file=sys.stderr)
+    from .bench_tools import parse_budgets
+
+    try:
+        budgets = parse_budgets(args.budgets, BUDGETS)
+    except ValueError as e:
+        print(f"softras-cl bench body: {e}", file=sys.stderr)
         return 2
     if args.poses < 1 or args.size < 16:
         print("softras-cl bench body: --poses must be >= 1 and --size >= 16", file=sys.stderr)

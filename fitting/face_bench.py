@@ -180,7 +180,7 @@ def save_chart(summary: dict, path: Path) -> None:
 
 def save_strip(rows: list[dict], path: Path, n: int = 4) -> None:
     """Photo over fit for the first n faces of a budget."""
-    from .bench_figures import save_image_strip
+    from .bench_tools import save_image_strip
     from .face_report import SHARP, display_scene
 
     columns = []
@@ -209,11 +209,12 @@ def run(args: argparse.Namespace) -> int:
     from .face import BUDGETS
     from .models.face_model import load_demo_face_model, load_face_model
 
-    budgets = [b.strip() for b in args.budgets.split(",") if b.strip()]
-    unknown = [b for b in budgets if b not in BUDGETS]
-    if unknown or not budgets:
-        print(f"softras-cl bench face: --budgets must name some of {sorted(BUDGETS)}, got {args.budgets!r}",
-              file=sys.stderr)
+    from .bench_tools import parse_budgets
+
+    try:
+        budgets = parse_budgets(args.budgets, BUDGETS)
+    except ValueError as e:
+        print(f"softras-cl bench face: {e}", file=sys.stderr)
         return 2
     if args.faces < 1 or args.size < 16:
         print("softras-cl bench face: --faces must be >= 1 and --size >= 16", file=sys.stderr)

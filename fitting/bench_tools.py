@@ -1,4 +1,4 @@
-"""Pictures shared by the fitting benchmarks (`softras-cl bench face|body`)."""
+"""Pieces shared by the fitting benchmarks (`softras-cl bench face|body`)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -26,3 +26,11 @@ def save_image_strip(columns, path: Path, cell=(2.4, 2.6)) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def parse_budgets(text: str, known) -> list[str]:
+    """'fast,default' -> ['fast', 'default']; ValueError unless every name is in ``known``."""
+    budgets = [b.strip() for b in text.split(",") if b.strip()]
+    if not budgets or any(b not in known for b in budgets):
+        raise ValueError(f"--budgets must name some of {sorted(known)}, got {text!r}")
+    return budgets
