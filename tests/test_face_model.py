@@ -165,20 +165,14 @@ def test_grid_face_fixture_faces_point_toward_plus_z():
     assert np.all(face_normals(vertices, faces)[:, 2] > 0)
 
 
-def _demo_present() -> bool:
-    from importlib import resources
-    return resources.files("softras_cl.fitting.models").joinpath("data/demo_face.npz").is_file()
-
-
 def test_demo_face_model_loads():
-    if not _demo_present():
-        pytest.skip("data/demo_face.npz is not built yet")
     m = load_demo_face_model()
     assert isinstance(m, FaceModel) and m.n_vertices > 0 and m.attribution
 
 
-def test_demo_face_model_missing_says_so():
-    if _demo_present():
-        pytest.skip("data/demo_face.npz exists")
+def test_demo_face_model_missing_says_so(monkeypatch, tmp_path):
+    from importlib import resources
+
+    monkeypatch.setattr(resources, "files", lambda package: tmp_path)     # an empty package folder
     with pytest.raises(FileNotFoundError, match="demo_face.npz is missing"):
         load_demo_face_model()
