@@ -473,7 +473,8 @@ class FaceFit:
     values: the fitted blocks (focal in working-image pixels); scene: the FaceScene used;
     image (s, s, 3) / landmarks (68, 2): the working inputs; crop: full photo -> working image;
     mask (s, s) bool: the face region of the last stage; result: the solver's FitResult
-    (history, outcomes, interrupted).
+    (history, outcomes, interrupted); objective: the FaceObjective used (its face-region
+    settings serve the metrics).
     """
     values: dict
     scene: FaceScene
@@ -482,19 +483,22 @@ class FaceFit:
     crop: Crop
     mask: np.ndarray
     result: FitResult
+    objective: FaceObjective
+
+    def fitted_landmarks(self) -> np.ndarray:
+        """(68, 2) fitted landmarks in working-image pixels."""
+        _, world = self.scene.geometry(self.values)
+        points, _ = self.scene.camera(self.values["focal"][0]).project_pixels(self.scene.model.landmarks(world))
+        return points
 
     def metrics(self) -> dict:
         """Landmark error (mean pixel distance, working and full resolution) and the PSNR of
         the final render in the face region, in sRGB (what a viewer sees), dB."""
         from ..images import to_srgb
 
-        objective = FaceObjective(self.scene, self.image, self.landmarks)
-        camera = self.scene.camera(self.values["focal"][0])
-        _, world = self.scene.geometry(self.values)
-        points, _ = camera.project_pixels(self.scene.model.landmarks(world))
-        err = float(np.linalg.norm(points - self.landmarks, axis=1).mean())
+        err = float(np.linalg.norm(self.fitted_landmarks() - self.landmarks, axis=1).mean())
         rgb = self.scene.render(self.values, 1e-6, 1e-4).rgb[0]
-        mask = objective.face_region(self.values, 1e-6, 1e-4)
+        mask = self.objective.face_region(self.values, 1e-6, 1e-4)
         return dict(landmark_error_px=err, landmark_error_px_full=err / self.crop.scale,
                     psnr_face_db=psnr(to_srgb(np.clip(rgb, 0, 1)), to_srgb(np.clip(self.image, 0, 1)), mask),
                     face_pixels=int(mask.sum()))
@@ -540,5 +544,5 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
     stages = default_stages(config, fit_focal=config.focal is None)
     result = fit(params, objective, stages, out_dir=out_dir, progress=progress)
     mask = objective.mask if objective.mask is not None else objective.face_region(result.values, 1e-6, 1e-4)
-    return FaceFit(result.values, scene, image, target, crop, mask, result)
+    return FaceFit(result.values, scene, image, target, crop, mask, result, objective)
 

@@ -101,17 +101,16 @@ def aligned_rmse(a: np.ndarray, b: np.ndarray, scale: bool = True) -> float:
 
 def evaluate(fit, sample: dict, model, seconds: float) -> dict:
     """The bench's numbers for one fit of one synthetic face."""
-    from .face_report import fitted_landmarks
-
     truth = sample["truth"]
     true_shape = model.shape(truth["id"], truth["exp"])
     shape = fit.scene.model.shape(fit.values["id"], fit.values["exp"])
     metrics = fit.metrics()
+    landmarks = fit.crop.to_full(fit.fitted_landmarks())
     return dict(rmse_mm=1e3 * aligned_rmse(shape, true_shape),
                 mean_face_rmse_mm=1e3 * aligned_rmse(model.mean_shape, true_shape),
                 rigid_rmse_mm=1e3 * aligned_rmse(shape, true_shape, scale=False),
                 rigid_mean_face_rmse_mm=1e3 * aligned_rmse(model.mean_shape, true_shape, scale=False),
-                landmark_error_px=float(np.linalg.norm(fit.crop.to_full(fitted_landmarks(fit)) - sample["clean_landmarks"],
+                landmark_error_px=float(np.linalg.norm(landmarks - sample["clean_landmarks"],
                                                        axis=1).mean()),
                 psnr_face_db=metrics["psnr_face_db"], seconds=seconds,
                 interrupted=fit.result.interrupted)

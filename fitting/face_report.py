@@ -77,13 +77,6 @@ def _panels(fit: FaceFit) -> dict:
             "|error| in the face region (sRGB)": error}
 
 
-def fitted_landmarks(fit: FaceFit) -> np.ndarray:
-    """(68, 2) fitted landmarks in working-image pixels."""
-    _, world = fit.scene.geometry(fit.values)
-    points, _ = fit.scene.camera(fit.values["focal"][0]).project_pixels(fit.scene.model.landmarks(world))
-    return points
-
-
 def save_figure(fit: FaceFit, path: Path, metrics: dict) -> None:
     """photo / fit / albedo / shading / error map, one row, with the landmarks drawn."""
     import matplotlib
@@ -102,7 +95,7 @@ def save_figure(fit: FaceFit, path: Path, metrics: dict) -> None:
         ax.set_title(title, fontsize=9)
         ax.axis("off")
     axes[0].scatter(*fit.landmarks.T, s=4, c="lime")
-    axes[1].scatter(*fitted_landmarks(fit).T, s=4, c="cyan")
+    axes[1].scatter(*fit.fitted_landmarks().T, s=4, c="cyan")
     fig.suptitle(f"landmark error {metrics['landmark_error_px_full']:.2f} px (full size), "
                  f"face-region PSNR {metrics['psnr_face_db']:.1f} dB (sRGB)", fontsize=10)
     fig.tight_layout()

@@ -195,7 +195,7 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     landmark noise, is fitted from the photo and landmarks alone. Stated tolerances: landmark
     error under 1.5 px against the noise-free points, shape RMSE (up to scale) under half the
     mean face's, PSNR in the face region above 30 dB (sRGB)."""
-    from softras_cl.fitting.face_report import camera_matrices, fitted_landmarks
+    from softras_cl.fitting.face_report import camera_matrices
 
     sample = synthetic_face(demo, np.random.default_rng(5), size=128)
     config = face.FaceFitConfig.from_budget("fast", size=128)
@@ -204,7 +204,7 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     true_shape = demo.shape(truth["id"], truth["exp"])
     rmse = aligned_rmse(demo.shape(fit.values["id"], fit.values["exp"]), true_shape)
     baseline = aligned_rmse(demo.mean_shape, true_shape)
-    points = fit.crop.to_full(fitted_landmarks(fit))
+    points = fit.crop.to_full(fit.fitted_landmarks())
     landmark_error = np.linalg.norm(points - sample["clean_landmarks"], axis=1).mean()
     metrics = fit.metrics()
     assert landmark_error < 1.5
