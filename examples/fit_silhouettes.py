@@ -25,13 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.fitting import silhouette as sil
-from softras_cl.meshes import icosphere
-from softras_cl.meshio import save_mesh
+from softras_cl.fitting.recipes import silhouette as sil
+from softras_cl.scene.meshes import icosphere
+from softras_cl.io.meshes import save_mesh
 
 
 def _rotation(axis, degrees) -> np.ndarray:
-    from softras_cl.camera import rodrigues
+    from softras_cl.scene.camera import rodrigues
     axis = np.asarray(axis, float)
     return rodrigues(axis / np.linalg.norm(axis) * math.radians(degrees))
 
@@ -171,10 +171,10 @@ def comparison_image(path: Path, target_alpha, fitted_alpha, template_alpha, his
 
 def shaded_views(meshes: list, size: int = 160) -> list:
     """Face-shaded renders (sRGB uint8) of each (label, vertices, faces) from two directions."""
-    from softras_cl.camera import Camera
-    from softras_cl.images import to_srgb
-    from softras_cl.renderer import Renderer
-    from softras_cl.settings import RasterSettings
+    from softras_cl.scene.camera import Camera
+    from softras_cl.io.images import to_srgb
+    from softras_cl.scene.renderer import Renderer
+    from softras_cl.raster.settings import RasterSettings
     settings = RasterSettings(image_size=(size, size), sigma=1e-7, gamma=1e-5, double_sided=True,
                               outputs=("rgb", "alpha"), background=(1.0, 1.0, 1.0))
     renderer = Renderer(settings, shading="face")

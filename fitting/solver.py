@@ -80,7 +80,7 @@ from typing import Callable, Sequence
 import nlopt
 import numpy as np
 
-from .params import ParamSet
+from softras_cl.fitting.params import ParamSet
 
 __all__ = ["Stage", "FitResult", "FitError", "Objective", "fit", "load_checkpoint",
            "CHECKPOINT_INTERVAL"]

@@ -5,7 +5,7 @@ Run it with a Python that has mediapipe (the `landmarks` extra, numpy<2), e.g.
     python3.11 -m venv /tmp/lmkvenv && /tmp/lmkvenv/bin/pip install "mediapipe==0.10.21" pillow
     /tmp/lmkvenv/bin/python scripts/make_example_landmarks.py
 
-softras_cl/landmark_detect.py is loaded by file path, so that environment needs neither pyopencl
+fitting/landmark_detect.py is loaded by file path, so that environment needs neither pyopencl
 nor the rest of softras-cl.
 """
 import importlib.util
@@ -16,7 +16,7 @@ from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "examples" / "data"
-spec = importlib.util.spec_from_file_location("landmark_detect", ROOT / "softras_cl" / "landmark_detect.py")
+spec = importlib.util.spec_from_file_location("landmark_detect", ROOT / "fitting" / "landmark_detect.py")
 ld = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(ld)
 

@@ -13,9 +13,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 from softras_cl.fitting.models.body_loaders import load_demo_body_model
 
-from softras_cl.camera import Camera
-from softras_cl.renderer import Renderer
-from softras_cl.settings import RasterSettings
+from softras_cl.scene.camera import Camera
+from softras_cl.scene.renderer import Renderer
+from softras_cl.raster.settings import RasterSettings
 
 SIZE = (480, 320)  # (H, W)
 

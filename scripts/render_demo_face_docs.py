@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from softras_cl.camera import Camera
-from softras_cl.renderer import Renderer
-from softras_cl.settings import RasterSettings
-from softras_cl.shading import LambertLight
+from softras_cl.scene.camera import Camera
+from softras_cl.scene.renderer import Renderer
+from softras_cl.raster.settings import RasterSettings
+from softras_cl.scene.shading import LambertLight
 
 ROOT = Path(__file__).resolve().parents[1]
 LIGHT = LambertLight(ambient=0.35, directional=0.65, direction=(0.3, 0.5, 1.0))

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .body_model import FORMAT, BodyModel
-from .legacy_pickle import load_legacy_pickle
+from softras_cl.fitting.models.body_model import FORMAT, BodyModel
+from softras_cl.fitting.models.legacy_pickle import load_legacy_pickle
 
 SMPL_KEYS = ("v_template", "shapedirs", "posedirs", "J_regressor", "kintree_table", "weights",
              "f")

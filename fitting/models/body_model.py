@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse
 
-from softras_cl.camera import rodrigues, rodrigues_vjp
+from softras_cl.scene.camera import rodrigues, rodrigues_vjp
 
 FORMAT = "softras-cl-body-1"
 

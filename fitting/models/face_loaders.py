@@ -29,14 +29,15 @@ from __future__ import annotations
 
 import pickle
 import zipfile
+from importlib import resources
 from pathlib import Path
 
 import h5py
 import numpy as np
 import scipy.io
 
-from .face_model import FORMAT, FaceModel
-from .legacy_pickle import load_legacy_pickle
+from softras_cl.fitting.models.face_model import FORMAT, FaceModel
+from softras_cl.fitting.models.legacy_pickle import load_legacy_pickle
 
 SUPPORTED_LAYOUTS = ("project .npz (FaceModel.save, key 'format' = 'softras-cl-face-1')",
                      "BFM 2009 .mat (01_MorphableModel.mat: shapeMU, shapePC, shapeEV, texMU, "
@@ -397,3 +398,18 @@ def read_landmark_mapping(path, faces, n_vertices: int) -> tuple[np.ndarray, np.
         raise ValueError(f"landmark-mapping file {path}: barycentric weights of landmark {bad[0]} "
                          f"sum to {sums[bad[0]]:.6g}, expected 1")
     return faces_idx.astype(np.int32), bary
+
+
+def load_demo_face_model() -> FaceModel:
+    """The demo face model shipped as package data (``softras_cl.fitting.models/data/demo_face.npz``).
+
+    Raises FileNotFoundError if the file is not in the installed package.
+    """
+    ref = resources.files("softras_cl.fitting.models").joinpath("data/demo_face.npz")
+    if not ref.is_file():
+        raise FileNotFoundError(
+            "the demo face model data/demo_face.npz is missing from the installed package "
+            "softras_cl.fitting.models; it is built by the demo face model script in scripts/ "
+            "(reinstall the package after building it)")
+    with resources.as_file(ref) as path:
+        return load_face_model(path)

@@ -20,7 +20,6 @@ Loaders for the file formats users bring (BFM 2009, BFM 2017, FLAME, the project
 """
 from __future__ import annotations
 
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -220,31 +219,3 @@ class FaceModel:
         arrays = {k: getattr(self, k) for k in _ARRAY_FIELDS}
         np.savez_compressed(Path(path), format=np.str_(FORMAT), name=np.str_(self.name),
                             attribution=np.str_(self.attribution), **arrays)
-
-
-def load_face_model(path, landmarks=None) -> FaceModel:
-    """Load a face model, detecting the layout from the file's content.
-
-    Layouts: the project's .npz (``FaceModel.save``), BFM 2009 ``01_MorphableModel.mat`` (MATLAB
-    v5 or v7.3), BFM 2017 ``.h5``, FLAME ``generic_model.pkl``. ``landmarks``: optional
-    landmark-mapping file (see ``face_loaders.read_landmark_mapping``) that replaces the model's
-    own landmark definition. Raises ValueError "unknown face model layout" (listing the keys or
-    groups found and the layouts supported) for anything else, FileNotFoundError if missing.
-    """
-    from . import face_loaders
-    return face_loaders.load_face_model(path, landmarks)
-
-
-def load_demo_face_model() -> FaceModel:
-    """The demo face model shipped as package data (``softras_cl.fitting.models/data/demo_face.npz``).
-
-    Raises FileNotFoundError if the file is not in the installed package.
-    """
-    ref = resources.files("softras_cl.fitting.models").joinpath("data/demo_face.npz")
-    if not ref.is_file():
-        raise FileNotFoundError(
-            "the demo face model data/demo_face.npz is missing from the installed package "
-            "softras_cl.fitting.models; it is built by the demo face model script in scripts/ "
-            "(reinstall the package after building it)")
-    with resources.as_file(ref) as path:
-        return load_face_model(path)

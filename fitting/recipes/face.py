@@ -1,0 +1,540 @@
+"""Face fitting from one photo and its 68 landmarks (issue 5; paper sec. 5.3, figure 14).
+
+The scene (float64 throughout)::
+
+    shape  = model.shape(id, exp)                         (V, 3) model frame: y up, face along +z
+    world  = shape @ rodrigues(rotation).T + translation  (V, 3) metres
+    camera : fixed at the origin looking down -z (OpenCV R = diag(1, -1, -1), t = 0), square
+             pixels of focal length ``focal``, principal point at the image centre
+    colour : model.albedo(albedo) lit per vertex by the SH light ``sh`` (3, 9), linear RGB
+
+Parameter blocks: id (K_id,), exp (K_exp,), albedo (K_alb,) in units of one standard
+deviation; sh (3, 9); rotation (3,) axis-angle; translation (3,); focal (1,) pixels.
+
+The fit, as the paper and its anchors do it, in stages given as data (:func:`default_stages`):
+
+1. ``landmarks``: pose, focal (unless given; a log-normal prior keeps it within about a
+   factor 2 of a 30 degree field of view: landmarks barely tell focal length from distance),
+   identity and expression from the 68 landmarks and the coefficient priors, starting from
+   a closed-form scaled-orthographic alignment of the mean face's landmarks
+   (:func:`initial_pose`).
+2. The SH light, frozen until then, starts from a linear least-squares fit to the visible
+   vertices at the initial pose (:func:`initial_light`).
+3. ``photo-k``: identity, expression, albedo, SH light and pose from the photometric L2 loss in
+   linear RGB over the face region + landmarks + priors + an SH term keeping the light near
+   white, under a decreasing sigma/gamma schedule. The face region is the rendered alpha
+   (> 0.5, eroded by ``mask_erosion`` pixels) at the start of each stage, held fixed within
+   the stage so that every stage minimises one fixed function: hair and background outside
+   the rendered face never pull the fit. Likewise near/far are fitted to the face's distance
+   at each stage start (:func:`depth_range`), so that gamma means the same at any distance.
+
+Every term is a sum, not a mean (nlopt's L-BFGS sizes its first step from the gradient; see
+fitting/rigid.py): ``photo`` = sum over face-region pixels and channels of squared error,
+``landmarks`` = sum over points of weighted squared pixel distances, priors = sum of squared
+coefficients. Read as negative log-likelihoods, ``w_landmarks = 1 / noise_px^2`` (2 px) and
+``w_photo = 1 / noise_rgb^2``; the priors have weight 1. The default photo weight 10 (noise
+~0.3) is far below what a synthetic photo would allow: on real photos the residuals (hair,
+glasses, wrinkles, what the model cannot represent) are large and correlated over many pixels,
+and a higher weight let them bend the shape (astronaut: landmark error 8.7 px at weight 100,
+3.3 px at 10), while synthetic faces still reach a third of the mean face's error. The SH
+term (weight 1000) keeps the light grey so that colour goes into the albedo.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from softras_cl.scene.camera import Camera, matrix_to_axis_angle, rodrigues, rodrigues_vjp
+from softras_cl.scene.renderer import Renderer
+from softras_cl.raster.settings import RasterSettings
+from softras_cl.scene.shading import SH_A, SHLight, sh_ambient, sh_basis, vertex_normals
+from softras_cl.fitting import losses
+from softras_cl.fitting.metrics import psnr
+from softras_cl.fitting.params import Block, ParamSet
+from softras_cl.fitting.solver import FitResult, Stage, fit
+
+__all__ = ["FaceFitConfig", "Crop", "FaceScene", "FaceFit", "BUDGETS", "landmark_weights", "default_stages",
+           "depth_range", "initial_pose", "initial_light", "prepare_photo", "face_params", "FaceObjective",
+           "fit_face", "psnr"]
+
+N_LANDMARKS = 68
+JAW = slice(0, 17)          # iBUG 300-W: jaw line; a fixed-vertex contour only approximates it
+# iBUG outlines: the face (jaw line, then the brows back) and what a skin model cannot explain
+# inside it (the eyes and the inside of the mouth)
+FACE_OUTLINE = tuple(range(0, 17)) + tuple(range(26, 16, -1))
+EXCLUDED_OUTLINES = (range(36, 42), range(42, 48), range(60, 68))
+CAMERA_ROTATION = np.diag([1.0, -1.0, -1.0])   # world (y up, camera looks down -z) -> OpenCV
+
+# Schedules: (sigma, gamma, evaluations) per photometric stage, and the landmark stage's budget.
+BUDGETS = {
+    "fast": dict(landmark_iters=100, photo_stages=((1e-4, 3e-3, 40), (1e-5, 1e-3, 60))),
+    "default": dict(landmark_iters=150,
+                    photo_stages=((1e-4, 3e-3, 60), (3e-5, 1e-3, 60), (1e-5, 1e-3, 100))),
+    "thorough": dict(landmark_iters=200,
+                     photo_stages=((1e-4, 3e-3, 80), (3e-5, 1e-3, 100), (1e-5, 1e-3, 150),
+                                   (3e-6, 1e-3, 100))),
+}
+
+
+@dataclass(frozen=True)
+class FaceFitConfig:
+    """Every knob of :func:`fit_face`.
+
+    size: the working image is a square around the landmarks (see :func:`prepare_photo`)
+        shrunk to at most this many pixels a side (never enlarged).
+    focal: focal length in pixels of the full photo, or None to fit it (initial guess from
+        ``fov_deg`` across the longer side).
+    landmark_iters / photo_stages: the schedule (see BUDGETS; photo_stages holds
+        (sigma, gamma, evaluations) per stage).
+    weights: loss-term weights by name (see the module docstring for their meaning).
+    mask_erosion / forehead: the face region (see FaceObjective.face_region).
+    n_id / n_exp / n_albedo: use only the first components of the model (None: all).
+    dtype: rasteriser precision; float64 keeps line searches clean.
+    """
+    size: int = 256
+    focal: float | None = None
+    fov_deg: float = 30.0
+    landmark_iters: int = BUDGETS["default"]["landmark_iters"]
+    photo_stages: tuple = BUDGETS["default"]["photo_stages"]
+    weights: dict = field(default_factory=lambda: dict(
+        landmarks=1.0 / 4.0, photo=10.0, id_prior=1.0, exp_prior=1.0,
+        albedo_prior=1.0, sh_white=1000.0, focal_prior=1.0))
+    landmark_weight_photo: float = 1.0    # landmark weight in the photometric stages, relative
+    mask_erosion: int = 2
+    forehead: float = 0.15
+    n_id: int | None = None
+    n_exp: int | None = None
+    n_albedo: int | None = None
+    dtype: str = "float64"
+
+    @classmethod
+    def from_budget(cls, name: str, photo_weight: float | None = None, **changes) -> "FaceFitConfig":
+        """The config of a schedule budget (BUDGETS), optionally with another photo weight."""
+        if name not in BUDGETS:
+            raise ValueError(f"budget must be one of {sorted(BUDGETS)}, got {name!r}")
+        config = cls(**{**BUDGETS[name], **changes})
+        if photo_weight is None:
+            return config
+        if not photo_weight > 0:
+            raise ValueError(f"photo_weight must be > 0, got {photo_weight!r}")
+        return dataclasses.replace(config, weights={**config.weights, "photo": float(photo_weight)})
+
+
+def landmark_weights() -> np.ndarray:
+    """(68,) per-landmark weights: the jaw line counts half (its 3D points are fixed vertices,
+    while the photo's contour slides over the cheek as the head turns)."""
+    w = np.ones(N_LANDMARKS)
+    w[JAW] = 0.5
+    return w
+
+
+# ---------------------------------------------------------------------------------------------
+# inputs
+# ---------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Crop:
+    """Full photo -> working image: ``u_work = (u_full + 0.5 - x0) * scale - 0.5`` (and v with
+    y0), pixel centres at integers in both."""
+    x0: float
+    y0: float
+    scale: float
+
+    def to_work(self, points) -> np.ndarray:
+        """(N, 2) full-photo pixels -> working-image pixels."""
+        return (np.asarray(points, np.float64) + 0.5 - [self.x0, self.y0]) * self.scale - 0.5
+
+    def to_full(self, points) -> np.ndarray:
+        """(N, 2) working-image pixels -> full-photo pixels."""
+        return (np.asarray(points, np.float64) + 0.5) / self.scale - 0.5 + [self.x0, self.y0]
+
+
+def _check_inputs(photo, landmarks) -> tuple[np.ndarray, np.ndarray]:
+    img = np.asarray(photo, np.float64)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"photo must be an (H, W, 3) RGB image, got shape {img.shape}")
+    if not np.isfinite(img).all():
+        raise ValueError("photo contains NaN or Inf")
+    pts = np.asarray(landmarks, np.float64)
+    if pts.shape != (N_LANDMARKS, 2):
+        raise ValueError(f"landmarks must have shape ({N_LANDMARKS}, 2), got {pts.shape}")
+    h, w = img.shape[:2]
+    outside = (pts[:, 0] < -0.5) | (pts[:, 0] > w - 0.5) | (pts[:, 1] < -0.5) | (pts[:, 1] > h - 0.5)
+    if not np.isfinite(pts).all() or outside.any():
+        i = int(np.argmax(outside | ~np.isfinite(pts).all(1)))
+        raise ValueError(f"landmark {i} at {pts[i].tolist()} is outside the {w}x{h} photo "
+                         "(do the landmarks belong to this photo?)")
+    return img, pts
+
+
+def prepare_photo(photo, landmarks, size: int, margin: float = 2.0) -> tuple[np.ndarray, np.ndarray, Crop]:
+    """Check the inputs and cut the working image: a square around the landmarks, ``margin``
+    times their extent (forehead and some background included), shrunk to at most ``size``
+    pixels a side; parts outside the photo repeat its edge pixels.
+
+    photo (H, W, 3) linear RGB float; landmarks (68, 2) pixels (u right, v down, 0 = centre of
+    the first pixel). Returns (image (s, s, 3) float64, landmarks (68, 2) float64 in working
+    pixels, the Crop).
+    """
+    from skimage.transform import resize
+
+    img, pts = _check_inputs(photo, landmarks)
+    lo, hi = pts.min(0), pts.max(0)
+    side = max(int(np.ceil(margin * np.max(hi - lo))), 8)
+    x0, y0 = (np.round((lo + hi) / 2 - side / 2)).astype(int)
+    h, w = img.shape[:2]
+    pad = max(0, -x0, -y0, x0 + side - w, y0 + side - h)
+    padded = np.pad(img, ((pad, pad), (pad, pad), (0, 0)), mode="edge") if pad else img
+    window = padded[y0 + pad:y0 + pad + side, x0 + pad:x0 + pad + side]
+    out = min(int(size), side)
+    image = resize(window, (out, out), order=1, anti_aliasing=True) if out < side else window.copy()
+    crop = Crop(float(x0), float(y0), out / side)
+    return image, crop.to_work(pts), crop
+
+
+# ---------------------------------------------------------------------------------------------
+# scene
+# ---------------------------------------------------------------------------------------------
+
+class FaceScene:
+    """The model, the fixed camera frame and a renderer for one working image size.
+
+    model: a fitting.models.face_model.FaceModel; image_size (H, W); dtype of the rasteriser;
+    alpha_agg: "occupancy" (soft, for fitting) or "hard" (1 wherever the face is: for
+    compositing a render over a photo, where occupancy alpha would let the background show
+    through the seams between triangles, docs/conventions.md); depth_range (near, far) in
+    metres: gamma acts on depth normalised by far - near (eq. 10), so a range fitted to the
+    face (see :func:`depth_range`) makes a gamma mean the same at any distance; principal
+    (cx, cy): the principal point in pixels (default: the image centre).
+    """
+
+    def __init__(self, model, image_size, dtype: str = "float64", alpha_agg: str = "occupancy",
+                 depth_range=(0.01, 20.0), principal=None):
+        self.model = model
+        self.image_size = tuple(int(n) for n in image_size)
+        h, w = self.image_size
+        self.principal = (w / 2.0 - 0.5, h / 2.0 - 0.5) if principal is None else tuple(map(float, principal))
+        near, far = (float(d) for d in depth_range)
+        self.settings = RasterSettings(image_size=self.image_size, outputs=("rgb", "alpha"),
+                                       near=near, far=far, dtype=dtype, alpha_agg=alpha_agg)
+        self.renderer = Renderer(self.settings, shading="vertex")
+
+    def set_depth_range(self, translation) -> None:
+        """Fit near/far to a face at ``translation`` (see :func:`depth_range`)."""
+        near, far = depth_range(translation)
+        self.settings = dataclasses.replace(self.settings, near=near, far=far)
+
+    def camera(self, focal: float) -> Camera:
+        cx, cy = self.principal
+        K = [[focal, 0.0, cx], [0.0, focal, cy], [0.0, 0.0, 1.0]]
+        return Camera.from_opencv(K, CAMERA_ROTATION, np.zeros(3), self.image_size)
+
+    def geometry(self, values: dict) -> tuple[np.ndarray, np.ndarray]:
+        """-> (shape (V, 3) model frame, world vertices (V, 3))."""
+        shape = self.model.shape(values["id"], values["exp"])
+        return shape, shape @ rodrigues(values["rotation"]).T + values["translation"]
+
+    def geometry_vjp(self, values: dict, shape: np.ndarray, g_world: np.ndarray) -> dict:
+        """dL/d(world vertices) (V, 3) -> dL/d(id, exp, rotation, translation)."""
+        R = rodrigues(values["rotation"])
+        g_id, g_exp = self.model.shape_vjp(g_world @ R)
+        return dict(id=g_id, exp=g_exp, translation=g_world.sum(axis=0),
+                    rotation=rodrigues_vjp(values["rotation"], g_world.T @ shape))
+
+    def render(self, values: dict, sigma: float, gamma: float, grads=(), albedo=None,
+               light=None, world=None):
+        """Render the face; albedo (V, 3) / light override the model's (for the report);
+        world: the world vertices if already computed."""
+        self.renderer.settings = dataclasses.replace(self.settings, sigma=sigma, gamma=gamma)
+        world = self.geometry(values)[1] if world is None else world
+        albedo = self.model.albedo(values["albedo"]) if albedo is None else albedo
+        light = SHLight(values["sh"]) if light is None else light
+        return self.renderer.forward(world, self.model.faces, self.camera(values["focal"][0]),
+                                     albedo=albedo, light=light, grads=grads)
+
+
+def depth_range(translation) -> tuple[float, float]:
+    """(near, far) = (0.5, 2) x the face's distance: room for the fit to move the face while a
+    face's own depth (~0.1 m) spans a good part of the normalised depth."""
+    distance = float(np.linalg.norm(translation))
+    return 0.5 * distance, 2.0 * distance
+
+
+# ---------------------------------------------------------------------------------------------
+# initialisation
+# ---------------------------------------------------------------------------------------------
+
+def initial_pose(points_3d, points_2d, focal: float, principal) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form pose from 3D model points (N, 3) and their pixels (N, 2), N >= 4.
+
+    Fits a scaled-orthographic (affine) camera by least squares, takes the nearest rotation
+    (SVD) and the depth at which the scale matches ``focal``; principal (cx, cy) pixels.
+    Returns (rotation (3,) axis-angle, translation (3,)) of the model in the world frame of
+    :class:`FaceScene`.
+    """
+    X = np.asarray(points_3d, np.float64)
+    x = np.asarray(points_2d, np.float64)
+    cx, cy = principal
+    Xc, xc = X - X.mean(0), x - x.mean(0)
+    M = np.linalg.lstsq(Xc, xc, rcond=None)[0].T                 # (2, 3): xc ~ M Xc
+    U, S, Vt = np.linalg.svd(M, full_matrices=False)
+    rows = U @ Vt
+    R_cam = np.stack([rows[0], rows[1], np.cross(rows[0], rows[1])])
+    depth = focal / S.mean()
+    centre = np.array([(x[:, 0].mean() - cx) * depth / focal, (x[:, 1].mean() - cy) * depth / focal, depth])
+    t_cam = centre - R_cam @ X.mean(0)
+    return matrix_to_axis_angle(CAMERA_ROTATION @ R_cam), CAMERA_ROTATION @ t_cam
+
+
+def initial_light(scene: FaceScene, values: dict, image: np.ndarray, ridge: float = 1e-2) -> np.ndarray:
+    """SH coefficients (3, 9) by linear least squares, channel by channel: the photo's colour
+    (bilinear) at each visible vertex ~ albedo * sum_i L_i A_i Y_i(n). Visible: facing the
+    camera (cosine > 0.3) and at least 2 px inside the rendered face (silhouette vertices would
+    sample the background). Over a face the normals barely span the sphere,
+    so the constant and z terms are nearly collinear: the ridge pulls towards a uniform light
+    of the photo's mean level, and the result is a starting point, not an identification."""
+    from scipy.ndimage import binary_erosion, map_coordinates
+
+    _, world = scene.geometry(values)
+    normals = vertex_normals(world[None], scene.model.faces)[0][0]
+    uv, _ = scene.camera(values["focal"][0]).project_pixels(world)
+    h, w = scene.image_size
+    facing = np.einsum("vi,vi->v", normals, -world / np.linalg.norm(world, axis=1, keepdims=True))
+    inside = binary_erosion(scene.render(dict(values, sh=sh_ambient(1.0)), 1e-6, 1e-4).alpha[0] > 0.5,
+                            iterations=2)
+    px = np.clip(np.round(uv).astype(int), 0, [w - 1, h - 1])
+    keep = (facing > 0.3) & inside[px[:, 1], px[:, 0]]
+    if keep.sum() < 9:
+        return sh_ambient(0.5)
+    seen = np.stack([map_coordinates(image[..., c], uv[keep, ::-1].T, order=1) for c in range(3)], -1)
+    albedo = scene.model.albedo(values["albedo"])[keep]
+    basis = sh_basis(normals[keep]) * SH_A                        # (N, 9)
+    level = np.clip(seen.mean() / max(albedo.mean(), 1e-3), 0.05, 10.0)
+    prior = sh_ambient(level)
+    coeffs = np.empty((3, 9))
+    for c in range(3):
+        A = albedo[:, c:c + 1] * basis
+        lhs = A.T @ A + ridge * len(A) * np.eye(9)
+        coeffs[c] = np.linalg.solve(lhs, A.T @ seen[:, c] + ridge * len(A) * prior[c])
+    return coeffs
+
+
+def face_params(model, focal: float, rotation, translation, sh) -> ParamSet:
+    """The parameter blocks, scaled so one optimiser unit is a sensible step of each."""
+    return ParamSet([
+        Block("id", np.zeros(model.n_id), -4.0, 4.0),
+        Block("exp", np.zeros(model.n_exp), -4.0, 4.0),
+        Block("albedo", np.zeros(model.n_albedo), -4.0, 4.0),
+        Block("sh", np.asarray(sh, np.float64), scale=0.1),
+        Block("rotation", np.asarray(rotation, np.float64), scale=0.05),
+        Block("translation", np.asarray(translation, np.float64), scale=0.01),
+        Block("focal", np.array([float(focal)]), 0.2 * focal, 5.0 * focal, scale=0.05 * focal),
+    ])
+
+
+def default_stages(config: FaceFitConfig, fit_focal: bool) -> list[Stage]:
+    """The landmark stage, then one photometric stage per (sigma, gamma, evaluations)."""
+    w = config.weights
+    priors = dict(id_prior=w["id_prior"], exp_prior=w["exp_prior"])
+    pose = ("rotation", "translation") + (("focal",) if fit_focal else ())
+    focal_prior = dict(focal_prior=w["focal_prior"]) if fit_focal else {}
+    stages = [Stage("landmarks", pose + ("id", "exp"), dict(landmarks=w["landmarks"], **priors, **focal_prior),
+                    max_iters=config.landmark_iters)]
+    for k, (sigma, gamma, iters) in enumerate(config.photo_stages):
+        weights = dict(landmarks=w["landmarks"] * config.landmark_weight_photo, photo=w["photo"],
+                       albedo_prior=w["albedo_prior"], sh_white=w["sh_white"], **priors)
+        stages.append(Stage(f"photo-{k + 1}", ("id", "exp", "albedo", "sh", "rotation", "translation"),
+                            weights, sigma=sigma, gamma=gamma, max_iters=iters))
+    return stages
+
+
+# ---------------------------------------------------------------------------------------------
+# objective
+# ---------------------------------------------------------------------------------------------
+
+class FaceObjective:
+    """``(values, stage) -> (loss, grads, terms)`` for fitting.solver.fit.
+
+    image (H, W, 3) linear RGB; landmarks (68, 2) pixels; focal0: the focal length the
+    focal prior is centred on; forehead: how far above the brows the face region reaches, in
+    chin-to-nose-bridge distances. At the first evaluation of each photometric stage the depth
+    range is fitted to the face and the face-region mask is taken from the render; both stay
+    fixed within the stage (see the module docstring).
+    """
+
+    def __init__(self, scene: FaceScene, image, landmarks, mask_erosion: int = 2, focal0: float = 1.0,
+                 forehead: float = 0.15):
+        self.scene, self.image, self.target = scene, image, np.asarray(landmarks, np.float64)
+        self.focal0, self.forehead = float(focal0), float(forehead)
+        self.landmark_weights = landmark_weights()
+        self.mask_erosion = mask_erosion
+        self.mask, self._mask_stage = None, None
+
+    def __call__(self, values: dict, stage: Stage):
+        w = stage.weights
+        shape, world = self.scene.geometry(values)
+        terms = {}
+        if w.get("landmarks"):
+            terms["landmarks"] = self.landmark_term(values, world)
+        if w.get("photo"):
+            if self._mask_stage != stage.name:
+                self.scene.set_depth_range(values["translation"])
+                self.mask = self.face_region(values, stage.sigma, stage.gamma)
+                self._mask_stage = stage.name
+            terms["photo"] = self.photo_term(values, world, stage.sigma, stage.gamma)
+        for name, block in (("id_prior", "id"), ("exp_prior", "exp"), ("albedo_prior", "albedo")):
+            if w.get(name):
+                value, g = losses.gaussian_prior(values[block], 1.0)
+                terms[name] = (value, {block: g["coeffs"]})
+        if w.get("sh_white"):
+            value, g = losses.sh_white(values["sh"])
+            terms["sh_white"] = (value, {"sh": g["coeffs"]})
+        if w.get("focal_prior"):
+            terms["focal_prior"] = self.focal_prior(values["focal"])
+        loss, grads, weighted = losses.weighted_sum(terms, w)
+        g_world = grads.pop("world", None)
+        if g_world is not None:                     # one pass through the model for all terms
+            for name, g in self.scene.geometry_vjp(values, shape, g_world).items():
+                grads[name] = grads.get(name, 0.0) + g
+        return loss, grads, weighted
+
+    def landmark_term(self, values: dict, world: np.ndarray) -> tuple[float, dict]:
+        """Sum over the 68 points of weighted squared pixel distances; gradients wrt the world
+        vertices ("world") and focal."""
+        camera = self.scene.camera(values["focal"][0])
+        points, ctx = camera.project_pixels(self.scene.model.landmarks(world))
+        value, g = losses.landmarks_2d(points, self.target, self.landmark_weights)
+        n = len(points)
+        g_cam = camera.project_pixels_vjp(ctx, g["points"] * n)
+        return value * n, dict(world=self.scene.model.landmarks_vjp(g_cam["vertices"]),
+                               focal=np.array([g_cam["focal"].sum()]))
+
+    def focal_prior(self, focal) -> tuple[float, dict]:
+        """``(ln(f / f0) / ln 2)^2``: halving or doubling the initial focal length f0 costs 1."""
+        r = math.log(focal[0] / self.focal0) / math.log(2.0)
+        return r * r, dict(focal=np.array([2.0 * r / (math.log(2.0) * focal[0])]))
+
+    def face_region(self, values: dict, sigma: float, gamma: float) -> np.ndarray:
+        """(H, W) bool: where the face is rendered (alpha > 0.5) and the photo's landmarks
+        outline the face (jaw line and brows raised by ``forehead``), eroded by mask_erosion pixels, less the eyes and
+        the inside of the mouth (grown by as much). The landmark outline keeps hair, hats and
+        background out even when the rendered face grows over them, and open mouths, teeth
+        and eyes are not skin: a skin model would bend the shape trying to explain them."""
+        from scipy.ndimage import binary_dilation, binary_erosion
+
+        region = (self.scene.render(values, sigma, gamma).alpha[0] > 0.5) & self._outlined(
+            [FACE_OUTLINE], self._forehead_points())
+        holes = self._outlined(EXCLUDED_OUTLINES, self.target)
+        if self.mask_erosion > 0:
+            region = binary_erosion(region, iterations=self.mask_erosion)
+            holes = binary_dilation(holes, iterations=self.mask_erosion)
+        return region & ~holes
+
+    def _forehead_points(self) -> np.ndarray:
+        """The landmarks with the brows (17-26) raised by ``forehead`` times the chin (8) to
+        nose-bridge (27) distance, along that direction: the outline then takes in the forehead."""
+        pts = self.target.copy()
+        pts[17:27] += self.forehead * (pts[27] - pts[8])
+        return pts
+
+    def _outlined(self, outlines, points) -> np.ndarray:
+        """(H, W) bool: inside any of the polygons through the given indices of points (68, 2)."""
+        from skimage.draw import polygon
+
+        inside = np.zeros(self.image.shape[:2], bool)
+        for outline in outlines:
+            pts = points[list(outline)]
+            inside[polygon(pts[:, 1], pts[:, 0], inside.shape)] = True
+        return inside
+
+    def photo_term(self, values: dict, world: np.ndarray, sigma: float, gamma: float) -> tuple[float, dict]:
+        """Sum of squared linear-RGB errors over the face region; gradients wrt the world
+        vertices ("world"), albedo, sh and focal."""
+        out = self.scene.render(values, sigma, gamma, grads=("vertices", "albedo", "light", "camera"),
+                                world=world)
+        value, g = losses.image_l2(out.rgb[0], self.image, self.mask)
+        count = 3.0 * max(int(self.mask.sum()), 1)
+        g_img = self.scene.renderer.backward(out, grad_rgb=g["pred"][None] * count)
+        return value * count, dict(world=g_img["vertices"], albedo=self.scene.model.albedo_vjp(g_img["albedo"]),
+                                   sh=g_img["light"]["coefficients"],
+                                   focal=np.array([g_img["camera"]["focal"].sum()]))
+
+
+# ---------------------------------------------------------------------------------------------
+# the fit
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class FaceFit:
+    """What :func:`fit_face` returns.
+
+    values: the fitted blocks (focal in working-image pixels); scene: the FaceScene used;
+    image (s, s, 3) / landmarks (68, 2): the working inputs; crop: full photo -> working image;
+    mask (s, s) bool: the face region of the last stage; result: the solver's FitResult
+    (history, outcomes, interrupted); objective: the FaceObjective used (its face-region
+    settings serve the metrics).
+    """
+    values: dict
+    scene: FaceScene
+    image: np.ndarray
+    landmarks: np.ndarray
+    crop: Crop
+    mask: np.ndarray
+    result: FitResult
+    objective: FaceObjective
+
+    def fitted_landmarks(self) -> np.ndarray:
+        """(68, 2) fitted landmarks in working-image pixels."""
+        _, world = self.scene.geometry(self.values)
+        points, _ = self.scene.camera(self.values["focal"][0]).project_pixels(self.scene.model.landmarks(world))
+        return points
+
+    def metrics(self) -> dict:
+        """Landmark error (mean pixel distance, working and full resolution) and the PSNR of
+        the final render in the face region, in sRGB (what a viewer sees), dB."""
+        from softras_cl.io.images import to_srgb
+
+        err = float(np.linalg.norm(self.fitted_landmarks() - self.landmarks, axis=1).mean())
+        rgb = self.scene.render(self.values, 1e-6, 1e-4).rgb[0]
+        mask = self.objective.face_region(self.values, 1e-6, 1e-4)
+        return dict(landmark_error_px=err, landmark_error_px_full=err / self.crop.scale,
+                    psnr_face_db=psnr(to_srgb(np.clip(rgb, 0, 1)), to_srgb(np.clip(self.image, 0, 1)), mask),
+                    face_pixels=int(mask.sum()))
+
+
+def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), out_dir=None,
+             progress: bool = True) -> FaceFit:
+    """Fit ``model`` to a photo (H, W, 3) linear RGB and its 68 landmarks (68, 2) pixels.
+
+    With ``out_dir`` the solver writes checkpoint.npz (best values so far) as it goes,
+    history.json and loss_curve.png; Ctrl-C stops and keeps the best values (result.interrupted).
+    """
+    if model.n_landmarks != N_LANDMARKS:
+        raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
+                         f"{N_LANDMARKS} iBUG points (pass a landmark mapping file with the model)")
+    model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
+    image, target, crop = prepare_photo(photo, landmarks, config.size)
+    h, w = np.shape(photo)[:2]
+    principal = crop.to_work([[w / 2.0 - 0.5, h / 2.0 - 0.5]])[0]
+    if config.focal is None:
+        focal = 0.5 * max(h, w) / math.tan(math.radians(config.fov_deg) / 2.0) * crop.scale
+    else:
+        focal = float(config.focal) * crop.scale
+    zero = dict(id=np.zeros(model.n_id), exp=np.zeros(model.n_exp), albedo=np.zeros(model.n_albedo))
+    mean_landmarks = model.landmarks(model.shape(zero["id"], zero["exp"]))
+    rotation, translation = initial_pose(mean_landmarks, target, focal, principal)
+    scene = FaceScene(model, image.shape[:2], config.dtype, depth_range=depth_range(translation),
+                      principal=principal)
+    objective = FaceObjective(scene, image, target, config.mask_erosion, focal0=focal,
+                              forehead=config.forehead)
+    values = dict(zero, rotation=rotation, translation=translation, focal=np.array([focal]))
+    sh = initial_light(scene, values, image)
+    params = face_params(model, focal, rotation, translation, sh)
+    stages = default_stages(config, fit_focal=config.focal is None)
+    result = fit(params, objective, stages, out_dir=out_dir, progress=progress)
+    mask = objective.mask if objective.mask is not None else objective.face_region(result.values, 1e-6, 1e-4)
+    return FaceFit(result.values, scene, image, target, crop, mask, result, objective)
+

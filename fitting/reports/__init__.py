@@ -1,0 +1,1 @@
+"""Figures and output files of the fitting recipes (overlays, figures, loss curves)."""

@@ -1,0 +1,468 @@
+"""`softras-cl bench raster`: speed, memory and accuracy of the soft rasteriser (issue 2).
+
+Scene: `meshes.screen_space_sphere` (icosphere, radius 0.8, depth 2..3.6, vertex colours) with
+1280..81920 faces at 256^2 and 1024^2, sigma 1e-5, gamma 1e-4, dist_eps 1e-4, rgb + alpha.
+
+Three results, printed as aligned tables and written to OUT/raster.json and OUT/raster.png:
+1. per (faces, size): median forward and forward+backward ms, pixel-face pairs inside the
+   cut-off (counted exactly on the host with the formulas of `reference.py`), ns per pair,
+   pairs/(H*W*F), (tile, face) bin entries, bytes kept for backward, process peak RSS;
+2. the dense float64 reference's forward time and our speed-up, where it fits in memory;
+3. accuracy against time on one scene: dist_eps x dtype x fast_math, errors against the exact
+   float64 result (dist_eps=0, float64, exact maths).
+Module-level imports are light so `softras-cl --help` stays fast; the heavy ones are local.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import statistics
+import sys
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from softras_cl.bench.tools import device_info, format_table, relative_inf_error
+
+SIZES = (256, 1024)
+FACES = (1280, 5120, 20480, 81920)
+REPEATS = 5
+BASE_SETTINGS = dict(sigma=1e-5, gamma=1e-4, dist_eps=1e-4, outputs=("rgb", "alpha"))
+GRADS = ("vertices", "colors")
+ACCURACY_SCENE = (5120, 256)                     # (faces, image size)
+ACCURACY_EPS = (1e-2, 1e-3, 1e-4, 1e-6, 0.0)
+EXACT = (0.0, "float64", False)                  # (dist_eps, dtype, fast_math) of the ground truth
+QUICK = dict(sizes=(64,), faces=(1280,), repeats=1, scene=(1280, 64),
+             variants=(EXACT, (0.0, "float32", False)))
+REF_MAX_FACES, REF_MAX_SIZE = 5120, 256          # the dense reference runs only up to here ...
+REF_BYTES_PER_PAIR = 170                         # ... and if its measured peak (~161-165 B per
+REF_MEMORY_FRACTION = 0.7                        # pixel-face pair) fits in 70% of free memory
+PAIR_CHUNK = 1 << 20                             # pixel-face pairs per numpy chunk when counting
+ZERO_FLOOR = 1e-17                               # where zero errors sit on the log-axis chart
+
+
+@dataclass
+class Scene:
+    """One benchmark input: screen-space sphere, image size, fixed random cotangents."""
+    n_faces: int
+    size: int
+    vertices: np.ndarray     # (V, 3) float64
+    faces: np.ndarray        # (F, 3) int32
+    colors: np.ndarray       # (V, 3) float64
+    grad_rgb: np.ndarray     # (1, H, W, 3) float64
+    grad_alpha: np.ndarray   # (1, H, W) float64
+
+
+def subdivisions_for(n_faces: int) -> int:
+    """Icosphere subdivision level s with 20 * 4**s == n_faces (ValueError otherwise)."""
+    s = round(math.log(max(n_faces, 1) / 20, 4)) if n_faces >= 20 else -1
+    if s < 0 or 20 * 4 ** s != n_faces:
+        raise ValueError(f"--faces: {n_faces} is not an icosphere face count 20*4**s (20, 80, 320, 1280, ...)")
+    return s
+
+
+def make_scene(n_faces: int, size: int, seed: int = 0) -> Scene:
+    """The sphere with `n_faces` faces at size x size pixels and seeded standard-normal cotangents."""
+    from softras_cl.scene.meshes import screen_space_sphere
+
+    v, f, c = screen_space_sphere(subdivisions_for(n_faces))
+    rng = np.random.default_rng(seed)
+    return Scene(n_faces, size, v, f, c, rng.standard_normal((1, size, size, 3)),
+                 rng.standard_normal((1, size, size)))
+
+
+def settings_for(size: int, **changes):
+    """BASE_SETTINGS at size x size, with `changes` (e.g. dist_eps, dtype, fast_math)."""
+    from softras_cl.raster.settings import RasterSettings
+
+    return RasterSettings(image_size=(size, size), **{**BASE_SETTINGS, **changes})
+
+
+# ---- measurements ------------------------------------------------------------------------
+def run_once(raster, scene: Scene):
+    """One forward (with GRADS saved) and backward: (forward s, forward+backward s, output, grads)."""
+    t0 = time.perf_counter()
+    out = raster.forward(scene.vertices, scene.faces, colors=scene.colors, grads=GRADS)
+    t1 = time.perf_counter()
+    grads = raster.backward(out, grad_rgb=scene.grad_rgb, grad_alpha=scene.grad_alpha)
+    return t1 - t0, time.perf_counter() - t0, out, grads
+
+
+def time_raster(raster, scene: Scene, repeats: int) -> dict:
+    """Median forward and forward+backward ms of `repeats` runs after one warm-up (which compiles).
+
+    Returns dict(fwd_ms, fwdbwd_ms, out, grads) with the last run's output and gradients.
+    """
+    run_once(raster, scene)
+    runs = [run_once(raster, scene) for _ in range(max(repeats, 1))]
+    return dict(fwd_ms=1e3 * statistics.median(r[0] for r in runs),
+                fwdbwd_ms=1e3 * statistics.median(r[1] for r in runs), out=runs[-1][2], grads=runs[-1][3])
+
+
+def footprint_pixel_boxes(tri: np.ndarray, settings) -> np.ndarray:
+    """(F, 4) inclusive pixel boxes (row0, row1, col0, col1), clipped to the image, holding every
+    pixel centre within the cut-off distance of each triangle (F, 3, 3); a superset by <= 1 pixel."""
+    from softras_cl.raster.rasterizer import footprint_margin
+
+    h, w = settings.height, settings.width
+    half = min(h, w) / 2.0
+    margin = min(footprint_margin(settings), 4.0 * max(h, w) / min(h, w))   # inf -> whole image
+    x0, x1 = tri[..., 0].min(1) - margin, tri[..., 0].max(1) + margin
+    y0, y1 = tri[..., 1].min(1) - margin, tri[..., 1].max(1) + margin
+    col0, col1 = np.floor(x0 * half + w / 2 - 0.5), np.ceil(x1 * half + w / 2 - 0.5)
+    row0, row1 = np.floor(h / 2 - 0.5 - y1 * half), np.ceil(h / 2 - 0.5 - y0 * half)
+    return np.stack([np.clip(row0, 0, h - 1), np.clip(row1, -1, h - 1),
+                     np.clip(col0, 0, w - 1), np.clip(col1, -1, w - 1)], 1).astype(np.int64)
+
+
+def count_used_pairs_in_block(tri: np.ndarray, boxes: np.ndarray, settings, centres: np.ndarray) -> int:
+    """Pairs (pixel, face) with D >= dist_eps and depth in [near, far] for a chunk of faces.
+
+    Each face is shifted by its box's top-left pixel so that all faces share one (bh, bw) grid of
+    pixel centres (`centres`, the image's top-left block), which lets the dense formulas of
+    reference.py run on the chunk. Pixels past a face's own box are masked out.
+    """
+    from softras_cl.raster import reference as ref
+
+    bh, bw = centres.shape[:2]
+    scale = 2.0 / min(settings.height, settings.width)
+    shifted = tri.copy()
+    shifted[:, :, 0] -= (boxes[:, 2] * scale)[:, None]
+    shifted[:, :, 1] += (boxes[:, 0] * scale)[:, None]
+    shifted = shifted[None]                                            # (1, C, 3, 3)
+    b = ref.barycentrics(centres, shifted, ref.doubled_area(shifted))  # (1, bh, bw, C, 3)
+    d2 = ref.squared_edge_distance(centres, shifted)
+    x = np.where(b.min(-1) >= 0, d2, -d2) / settings.sigma
+    depth, _ = ref.interpolation_weights(b, shifted[..., 2], settings.perspective_correct)
+    used = ((depth >= settings.near) & (depth <= settings.far)
+            & ~(np.exp(ref.log_sigmoid(x)) < settings.dist_eps))[0]   # (bh, bw, C)
+    rows = np.arange(bh)[:, None, None] <= (boxes[:, 1] - boxes[:, 0])
+    cols = np.arange(bw)[None, :, None] <= (boxes[:, 3] - boxes[:, 2])
+    return int(np.count_nonzero(used & rows & cols))
+
+
+def count_pairs(scene: Scene, settings) -> int:
+    """Exact number of (pixel, face) pairs the rasteriser evaluates inside the cut-off.
+
+    Same maths as reference.soft_rasterize's `used` mask (Euclidean distance, D >= dist_eps,
+    clipped depth in [near, far], drawn faces only), evaluated in float64 on each face's
+    footprint pixels only, in chunks of faces with similar footprints.
+    """
+    from softras_cl.raster import reference as ref
+
+    tri = scene.vertices[scene.faces]
+    tri = tri[ref.drawn_faces(tri[None], settings)[0]]
+    boxes = footprint_pixel_boxes(tri, settings)
+    heights, widths = boxes[:, 1] - boxes[:, 0] + 1, boxes[:, 3] - boxes[:, 2] + 1
+    keep = (heights > 0) & (widths > 0)
+    order = np.lexsort((widths[keep], heights[keep]))
+    tri, boxes, heights, widths = (a[keep][order] for a in (tri, boxes, heights, widths))
+    centres = ref.pixel_centers(settings.height, settings.width)
+    total = 0
+    for start, stop in face_chunks(heights, widths):
+        bh, bw = heights[start:stop].max(), widths[start:stop].max()
+        total += count_used_pairs_in_block(tri[start:stop], boxes[start:stop], settings, centres[:bh, :bw])
+    return total
+
+
+def face_chunks(heights: np.ndarray, widths: np.ndarray, budget: int = PAIR_CHUNK):
+    """(start, stop) runs of faces, sorted by ascending height, whose padded (count, max height,
+    max width) grid stays within `budget` pairs (a single face may exceed it)."""
+    start, n = 0, len(heights)
+    while start < n:
+        stop, bw = start + 1, widths[start]
+        while stop < n and (stop + 1 - start) * heights[stop] * max(bw, widths[stop]) <= budget:
+            bw, stop = max(bw, widths[stop]), stop + 1
+        yield start, stop
+        start = stop
+
+
+def saved_bytes(out) -> int:
+    """Bytes a forward keeps for its backward: bin arrays (host), uploaded buffers and per-pixel
+    state buffers (device), each buffer counted once."""
+    saved = out.saved
+    bins = saved["bins"]
+    host = sum(getattr(bins, name).nbytes for name in ("tile_start", "tile_faces", "tile_slots", "face_start"))
+    buffers = {id(b): b.size for b in (*saved["bufs"].values(), *saved["images"]["state"].values())}
+    return host + sum(buffers.values())
+
+
+def peak_rss_mib() -> float:
+    """Peak resident set size of this process so far (Linux reports KiB, macOS bytes)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / (2 ** 20 if sys.platform == "darwin" else 2 ** 10)
+
+
+def available_memory_bytes() -> int:
+    """Memory available to new allocations: /proc/meminfo's MemAvailable, else free pages."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+
+
+def reference_skip_reason(n_faces: int, size: int) -> str | None:
+    """Why the dense reference is not run for this config, or None if it is."""
+    if n_faces > REF_MAX_FACES or size > REF_MAX_SIZE:
+        return f"only run for <= {REF_MAX_FACES} faces at <= {REF_MAX_SIZE}^2"
+    need, free = REF_BYTES_PER_PAIR * n_faces * size * size, available_memory_bytes()
+    if need > REF_MEMORY_FRACTION * free:
+        return f"needs ~{need / 2 ** 30:.1f} GiB, {free / 2 ** 30:.1f} GiB available"
+    return None
+
+
+def reference_result(scene: Scene, settings, ours) -> dict:
+    """Time the dense float64 reference forward once; its speed ratio and max error against ours."""
+    from softras_cl.raster import reference as ref
+
+    t0 = time.perf_counter()
+    expected = ref.soft_rasterize(scene.vertices, scene.faces, settings, colors=scene.colors)
+    ref_ms = 1e3 * (time.perf_counter() - t0)
+    err = max(float(np.abs(ours["out"].rgb - expected["rgb"]).max()),
+              float(np.abs(ours["out"].alpha - expected["alpha"]).max()))
+    return dict(ref_ms=ref_ms, ref_ratio=ref_ms / ours["fwd_ms"], ref_max_err=err)
+
+
+# ---- the three parts ---------------------------------------------------------------------
+def raster_row(scene: Scene, repeats: int) -> tuple[dict, dict]:
+    """Speed/memory row of one config (and the timing result, for the reference comparison)."""
+    from softras_cl.raster.rasterizer import SoftRasterizer
+
+    settings = settings_for(scene.size)
+    timing = time_raster(SoftRasterizer(settings), scene, repeats)
+    pairs = count_pairs(scene, settings)
+    row = dict(faces=scene.n_faces, size=scene.size, fwd_ms=timing["fwd_ms"], fwdbwd_ms=timing["fwdbwd_ms"],
+               pairs=pairs, ns_per_pair=1e6 * timing["fwdbwd_ms"] / pairs if pairs else None,
+               pairs_frac=pairs / (scene.size * scene.size * scene.n_faces),
+               bin_entries=timing["out"].saved["bins"].n_entries,
+               saved_mib=saved_bytes(timing["out"]) / 2 ** 20, peak_rss_mib=peak_rss_mib(),
+               ref_ms=None, ref_ratio=None, ref_max_err=None,
+               ref_note=reference_skip_reason(scene.n_faces, scene.size))
+    return row, timing
+
+
+def accuracy_variants(quick: bool) -> list[tuple]:
+    """(dist_eps, dtype, fast_math) rows: EXACT first; within each dist_eps, float64 with exact
+    maths first (the same-dist_eps reference of the rows after it)."""
+    if quick:
+        return list(QUICK["variants"])
+    eps = sorted(ACCURACY_EPS)
+    return [(e, d, fm) for e in eps for d in ("float64", "float32") for fm in (False, True)]
+
+
+def errors_against(timing: dict, truth: dict | None, prefix: str) -> dict:
+    """{prefix+'rgb', prefix+'alpha'}: max abs image errors; prefix+'grad': relative inf-norm
+    error of dL/d(vertices); all None without a truth."""
+    if truth is None:
+        return {prefix + k: None for k in ("rgb", "alpha", "grad")}
+    out, ref = timing["out"], truth["out"]
+    return {prefix + "rgb": float(np.abs(out.rgb.astype(np.float64) - ref.rgb).max()),
+            prefix + "alpha": float(np.abs(out.alpha.astype(np.float64) - ref.alpha).max()),
+            prefix + "grad": relative_inf_error(timing["grads"]["vertices"], truth["grads"]["vertices"])}
+
+
+def accuracy_rows(scene: Scene, variants: list[tuple], repeats: int, progress) -> list[dict]:
+    """Times and errors of each (dist_eps, dtype, fast_math) variant: err_* against the exact
+    float64 result (EXACT, the first variant), prec_* against float64 with exact maths at the same
+    dist_eps (the precision and fast-maths error alone; None if that variant is not in the list)."""
+    from softras_cl.raster.rasterizer import SoftRasterizer
+
+    truths, rows = {}, []
+    for variant in variants:
+        dist_eps, dtype, fast_math = variant
+        progress.set_description(f"accuracy eps={dist_eps:g} {dtype} fast_math={fast_math}")
+        settings = settings_for(scene.size, dist_eps=dist_eps, dtype=dtype, fast_math=fast_math)
+        timing = time_raster(SoftRasterizer(settings), scene, repeats)
+        if dtype == "float64" and not fast_math:
+            truths[dist_eps] = timing
+        rows.append(dict(dist_eps=dist_eps, dtype=dtype, fast_math=fast_math, fwd_ms=timing["fwd_ms"],
+                         fwdbwd_ms=timing["fwdbwd_ms"], **errors_against(timing, truths.get(EXACT[0]), "err_"),
+                         **errors_against(timing, truths.get(dist_eps), "prec_")))
+        progress.update()
+    return rows
+
+
+# ---- output --------------------------------------------------------------------------------
+RASTER_COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("fwd ms", "fwd_ms", ".2f"),
+                  ("fwd+bwd ms", "fwdbwd_ms", ".2f"), ("pairs", "pairs", ",d"), ("ns/pair", "ns_per_pair", ".2f"),
+                  ("pairs/(HWF)", "pairs_frac", ".2e"), ("bin entries", "bin_entries", ",d"),
+                  ("saved MiB", "saved_mib", ".1f"), ("peak RSS MiB", "peak_rss_mib", ".0f"),
+                  ("ref ms", "ref_ms", ".0f"), ("ref/fwd", "ref_ratio", ",.0f"), ("ref err", "ref_max_err", ".1e")]
+ACCURACY_COLUMNS = [("dist_eps", "dist_eps", "g"), ("dtype", "dtype", "s"), ("fast_math", "fast_math", ""),
+                    ("fwd ms", "fwd_ms", ".2f"), ("fwd+bwd ms", "fwdbwd_ms", ".2f"),
+                    ("err rgb", "err_rgb", ".2e"), ("err alpha", "err_alpha", ".2e"),
+                    ("err dL/dv", "err_grad", ".2e"), ("prec rgb", "prec_rgb", ".2e"),
+                    ("prec alpha", "prec_alpha", ".2e"), ("prec dL/dv", "prec_grad", ".2e")]
+
+
+def report_text(result: dict) -> str:
+    """The printed report: both tables, with titles and the reference notes."""
+    acc = result["accuracy_scene"]
+    notes = [f"  {r['faces']} faces at {r['size']}^2: reference not run ({r['ref_note']})"
+             for r in result["raster"] if r["ref_note"]]
+    return "\n".join([
+        f"device: {result['device']['name']} ({result['device']['platform_version']})",
+        f"soft raster, float32, sigma={BASE_SETTINGS['sigma']:g} gamma={BASE_SETTINGS['gamma']:g} "
+        f"dist_eps={BASE_SETTINGS['dist_eps']:g}, median of {result['repeats']}; ref = dense numpy "
+        "float64 forward, timed once; saved = bins + device buffers kept for backward",
+        format_table(result["raster"], RASTER_COLUMNS), *notes, "",
+        f"accuracy vs exact float64 (dist_eps=0, fast_math off): {acc['faces']} faces at {acc['size']}^2",
+        format_table(result["accuracy"], ACCURACY_COLUMNS)])
+
+
+MARKERS = {("float64", False): "o", ("float64", True): "s", ("float32", False): "^", ("float32", True): "v"}
+
+
+def accuracy_legend(ax, eps_colours: dict) -> None:
+    """Legend of the accuracy panels: colour = dist_eps, marker = dtype and maths, fill = reference."""
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], ls="", marker="o", color=c, label=f"dist_eps={e:g}") for e, c in eps_colours.items()]
+    handles += [Line2D([], [], ls="", marker=m, color="grey", label=f"{d}{', fast maths' if fm else ''}")
+                for (d, fm), m in MARKERS.items()]
+    handles += [Line2D([], [], ls="", marker="o", color="k", label="vs exact float64 (dist_eps=0)"),
+                Line2D([], [], ls="", marker="o", color="k", markerfacecolor="none",
+                       label="vs float64 at the same dist_eps")]
+    ax.legend(handles=handles, fontsize=7, loc="center right")
+
+
+def save_chart(result: dict, path: Path) -> None:
+    """PNG with three log-log panels: image error and gradient error against forward+backward
+    time for the accuracy rows (filled: against exact float64; hollow: against float64 at the
+    same dist_eps), and forward+backward time against pixel-face pairs for the speed rows."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(19, 6.5))
+    scene, acc = result["accuracy_scene"], result["accuracy"]
+    eps_values = sorted({r["dist_eps"] for r in acc})
+    eps_colours = {e: plt.cm.viridis(i / max(len(eps_values) - 1, 1)) for i, e in enumerate(eps_values)}
+    # rgb is left out of the first panel: against the exact result its error is ~1 at every
+    # cut-off (docs/conventions.md: the cut-off shapes the softmax image), which hides the rest
+    for ax, keys, title in ((axes[0], ("alpha",), "max abs error of alpha"),
+                            (axes[1], ("grad",), "relative error of dL/d(vertices)")):
+        for row in acc:
+            for prefix, filled in (("err_", True), ("prec_", False)):
+                errs = [row[prefix + k] for k in keys]
+                if None in errs:
+                    continue
+                colour = eps_colours[row["dist_eps"]]
+                ax.scatter(row["fwdbwd_ms"], max(max(errs), ZERO_FLOOR), s=36,
+                           marker=MARKERS[row["dtype"], row["fast_math"]],
+                           facecolors=colour if filled else "none", edgecolors=colour)
+        ax.set(xscale="log", yscale="log", xlabel="forward+backward ms",
+               ylabel=f"{title} (0 drawn at {ZERO_FLOOR:g})",
+               title=f"{title}\n{scene['faces']} faces at {scene['size']}^2")
+        accuracy_legend(ax, eps_colours)
+    rows = [r for r in result["raster"] if r["pairs"]]
+    for size in sorted({r["size"] for r in rows}):
+        pts = [r for r in rows if r["size"] == size]
+        axes[2].plot([r["pairs"] for r in pts], [r["fwdbwd_ms"] for r in pts], "o-", label=f"{size}^2")
+        for r in pts:
+            axes[2].annotate(f"{r['faces']} faces", (r["pairs"], r["fwdbwd_ms"]), fontsize=7,
+                             xytext=(3, 3), textcoords="offset points")
+    axes[2].set(xscale="log", yscale="log", xlabel="pixel-face pairs inside the cut-off",
+                ylabel="forward+backward ms", title="speed table: time against pairs (float32)")
+    axes[2].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+# ---- driver --------------------------------------------------------------------------------
+def plan(args: argparse.Namespace) -> dict:
+    """Sizes, face counts, repeats, accuracy scene and variants from the options (--quick defaults)."""
+    quick = QUICK if args.quick else dict(sizes=SIZES, faces=FACES, repeats=REPEATS, scene=ACCURACY_SCENE)
+    faces = args.faces or quick["faces"]
+    for n in faces:
+        subdivisions_for(n)
+    if any(s < 1 for s in args.sizes or ()):
+        raise ValueError(f"--sizes must be >= 1, got {args.sizes}")
+    if args.repeats is not None and args.repeats < 1:
+        raise ValueError(f"--repeats must be >= 1, got {args.repeats}")
+    return dict(sizes=args.sizes or quick["sizes"], faces=faces,
+                repeats=args.repeats or quick["repeats"], scene=quick["scene"],
+                variants=accuracy_variants(args.quick))
+
+
+def run_benchmark(p: dict, progress) -> dict:
+    """Run the three parts of `plan` p; `progress` is a tqdm bar advanced once per step."""
+    settings = {k: v for k, v in asdict(settings_for(1)).items() if k != "image_size"}
+    result = dict(device=device_info(), repeats=p["repeats"], settings=settings, raster=[], accuracy=[],
+                  accuracy_scene=dict(faces=p["scene"][0], size=p["scene"][1]))
+    to_compare = []                    # (row, timing) of the configs the dense reference runs on
+    for size in p["sizes"]:
+        for n in p["faces"]:
+            progress.set_description(f"raster {n} faces {size}^2")
+            row, timing = raster_row(make_scene(n, size), p["repeats"])
+            result["raster"].append(row)
+            if row["ref_note"] is None:
+                to_compare.append((row, timing))
+            progress.update()
+    for row, timing in to_compare:     # after all speed rows: the reference's peak RSS is big
+        progress.set_description(f"dense reference {row['faces']} faces {row['size']}^2")
+        row.update(reference_result(make_scene(row["faces"], row["size"]), settings_for(row["size"]), timing))
+        progress.update()
+    progress.update(len(result["raster"]) - len(to_compare))
+    result["accuracy"] = accuracy_rows(make_scene(*p["scene"]), p["variants"], p["repeats"], progress)
+    return result
+
+
+def run_raster(args: argparse.Namespace) -> int:
+    """`softras-cl bench raster`: run, print the tables (or JSON), write OUT/raster.{json,png}."""
+    from tqdm import tqdm
+
+    try:
+        p = plan(args)
+    except ValueError as e:
+        print(f"softras-cl bench raster: {e}", file=sys.stderr)
+        return 2
+    steps = 2 * len(p["sizes"]) * len(p["faces"]) + len(p["variants"])
+    with tqdm(total=steps, file=sys.stderr, unit="step") as progress:
+        result = run_benchmark(p, progress)
+    result["tables"] = report_text(result)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "raster.json").write_text(json.dumps(result, indent=2))
+    save_chart(result, out / "raster.png")
+    print(json.dumps(result, indent=2) if args.json else result["tables"])
+    print(f"wrote {out / 'raster.json'} and {out / 'raster.png'}", file=sys.stderr)
+    return 0
+
+
+def _int_list(text: str) -> tuple[int, ...]:
+    """'256,1024' -> (256, 1024), for argparse."""
+    try:
+        return tuple(int(t) for t in text.split(",") if t.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
+
+
+def register(which) -> None:
+    """Add `raster` to the `bench` subparsers `which`."""
+    p = which.add_parser("raster", help="soft rasteriser speed, memory and accuracy (issue 2)",
+                         description="\n\n".join(__doc__.split("\n\n")[:2]))
+    p.add_argument("--sizes", type=_int_list, default=None,
+                   help=f"square image sizes in pixels, comma-separated (default {','.join(map(str, SIZES))})")
+    p.add_argument("--faces", type=_int_list, default=None,
+                   help="icosphere face counts 20*4**s, comma-separated "
+                        f"(default {','.join(map(str, FACES))})")
+    p.add_argument("--repeats", type=int, default=None,
+                   help=f"timed runs per configuration after one warm-up; the median is reported (default {REPEATS})")
+    p.add_argument("--quick", action="store_true",
+                   help="tiny run for tests/CI: 1280 faces at 64^2, 1 repeat, two accuracy rows")
+    p.add_argument("--json", action="store_true", help="print the results as JSON instead of tables")
+    p.add_argument("--out", default="out/bench",
+                   help="directory for raster.json and raster.png (default out/bench)")
+    p.set_defaults(func=run_raster)

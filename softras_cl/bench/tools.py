@@ -1,0 +1,60 @@
+"""Pieces shared by the benchmarks: device description, text tables, error measures, image strips."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def save_image_strip(columns, path: Path, cell=(2.4, 2.6)) -> None:
+    """Two rows of images, one column per fit: ``columns`` is a list of (top image, bottom
+    image, top title, bottom title) with (H, W, 3) linear-RGB images, shown in sRGB."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from softras_cl.io.images import to_srgb
+
+    n = len(columns)
+    fig, axes = plt.subplots(2, n, figsize=(cell[0] * n, 2 * cell[1]), squeeze=False)
+    for i, (top, bottom, top_title, bottom_title) in enumerate(columns):
+        for ax, img, title in ((axes[0, i], top, top_title), (axes[1, i], bottom, bottom_title)):
+            ax.imshow(to_srgb(np.clip(img, 0, 1)))
+            ax.set_title(title, fontsize=8)
+            ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def parse_budgets(text: str, known) -> list[str]:
+    """'fast,default' -> ['fast', 'default']; ValueError unless every name is in ``known``."""
+    budgets = [b.strip() for b in text.split(",") if b.strip()]
+    if not budgets or any(b not in known for b in budgets):
+        raise ValueError(f"--budgets must name some of {sorted(known)}, got {text!r}")
+    return budgets
+
+
+def device_info() -> dict:
+    """Name and platform of the device the benchmark runs on."""
+    from softras_cl.cl.device import select_device
+
+    d = select_device()
+    return dict(name=d.name, platform=d.platform.name, platform_version=d.platform.version,
+                driver_version=d.driver_version)
+
+
+def format_table(rows: list[dict], columns: list[tuple]) -> str:
+    """Rows as aligned text; columns are (header, key, format spec); None prints as '-'."""
+    cells = [[h for h, _, _ in columns]]
+    cells += [["-" if r.get(k) is None else format(r[k], spec) for _, k, spec in columns] for r in rows]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(columns))]
+    return "\n".join("  ".join(c.rjust(w) for c, w in zip(row, widths)) for row in cells)
+
+
+def relative_inf_error(a: np.ndarray, b: np.ndarray) -> float:
+    """||a - b||_inf / ||b||_inf (0 when both are 0)."""
+    scale = float(np.abs(b).max())
+    diff = float(np.abs(a - b).max())
+    return diff / scale if scale else diff

@@ -1,0 +1,42 @@
+"""`softras-cl devices`: list OpenCL platforms and devices and mark the one softras-cl uses."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def _run(args: argparse.Namespace) -> int:
+    from softras_cl.cl import device
+
+    try:
+        rows = device.list_devices()
+    except RuntimeError as e:
+        print(f"softras-cl: {e}", file=sys.stderr)
+        return 1
+    if args.json:
+        print(json.dumps(rows, indent=2))
+    else:
+        yn = {True: "yes", False: "no"}
+        table = [("used", "P:D", "type", "platform", "version", "device", "CUs", "fp64", "int64 atomics")]
+        table += [("*" if r["chosen"] else "", f"{r['platform_index']}:{r['device_index']}", r["type"],
+                   r["platform_name"], r["platform_version"].split("  ")[0][:40], r["device_name"],
+                   str(r["compute_units"]), yn[r["fp64"]], yn[r["int64_atomics"]]) for r in rows]
+        widths = [max(len(row[i]) for row in table) for i in range(len(table[0]))]
+        for row in table:
+            print("  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip())
+    try:
+        device.select_device()
+    except ValueError as e:  # a bad SOFTRAS_CL_DEVICE / PYOPENCL_CTX: listed above, none used
+        print(f"softras-cl: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("devices", help="list OpenCL platforms/devices and mark the one used",
+                       description="List every OpenCL platform and device with fp64 and 64-bit "
+                                   "atomics support; '*' marks the device softras-cl uses "
+                                   "(choose with SOFTRAS_CL_DEVICE='P:D' or a name substring).")
+    p.add_argument("--json", action="store_true", help="print the list as JSON instead of a table")
+    p.set_defaults(func=_run)

@@ -1,0 +1,151 @@
+"""`softras-cl fit-body TARGET [--model FILE] --out DIR [--joints FILE]`."""
+from __future__ import annotations
+
+import argparse
+import io
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+DESCRIPTION = """\
+Fit an SMPL-like body model (shape betas, joint rotations, global rotation, translation) to one
+image seen by one frontal camera (paper sec. 5.3, figure 13). The target is a part-coloured
+image (the model's part colours as fitting.body.part_colours draws them, the right hand red, on
+--background), the same with an alpha channel, or with --silhouette a mask of the body; 2D
+joints (--joints) add a reprojection term and a first joints-only stage. The image stages
+follow a sigma/gamma schedule (--budget). Writes into --out: body.ply (fitted posed mesh with
+part colours), overlay.png (fit blended over the target, joints drawn), params.json and
+params.npz (fitted blocks, 3D joints and their pixels, camera K, R, t, metrics),
+loss_curve.png, history.json and checkpoint.npz (best values so far, written as the fit goes).
+Ctrl-C stops the fit and still writes every output from the best values found so far.
+
+Camera: at (0, --height, --distance) looking at (0, --height, 0) (the model's y up, the body
+facing +z and standing near the origin), --fov degrees across the shorter image side."""
+
+
+def read_joints(path, n_joints: int) -> tuple[np.ndarray, np.ndarray]:
+    """2D joints file -> (points (J, 2) float64 pixels, weights (J,) float64).
+
+    Text: one row per model joint, 'x y' or 'x y weight' (whitespace or commas; '#' comments;
+    0-based pixel centres, x right, y down; weight 0 = not seen, its x y may be nan). .npy: an
+    (J, 2) or (J, 3) array. ValueError naming the file on anything else or a wrong row count.
+    """
+    path = Path(path)
+    try:
+        rows = np.load(path) if path.suffix.lower() == ".npy" else np.loadtxt(
+            io.StringIO(path.read_text().replace(",", " ")), ndmin=2)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"joints file {path}: cannot read it ({e})") from e
+    rows = np.asarray(rows, np.float64)
+    if rows.ndim != 2 or rows.shape[1] not in (2, 3):
+        raise ValueError(f"joints file {path}: expected rows 'x y' or 'x y weight', got shape {rows.shape}")
+    if len(rows) != n_joints:
+        raise ValueError(f"joints file {path}: has {len(rows)} joints, the model has {n_joints}")
+    weights = rows[:, 2] if rows.shape[1] == 3 else np.ones(n_joints)
+    return rows[:, :2], weights
+
+
+def read_target(path, silhouette: bool) -> np.ndarray:
+    """The target as fit_body takes it: an image file (sRGB, decoded to linear; RGBA keeps its
+    alpha) or an .npy of linear values; with ``silhouette`` an (H, W) mask (the alpha channel
+    when there is one, else the mean of the colour channels)."""
+    from softras_cl.io.images import read_image
+
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        try:
+            img = np.load(path)
+        except (OSError, ValueError) as e:
+            raise ValueError(f"cannot read target {path}: {e}") from e
+    else:
+        img = read_image(path)
+    img = np.asarray(img, np.float64)
+    if silhouette and img.ndim == 3 and img.shape[2] in (3, 4):
+        img = img[..., 3] if img.shape[2] == 4 else img.mean(-1)
+    return img
+
+
+def register(sub) -> None:
+    """Add `fit-body` to the `softras-cl` subparsers `sub`."""
+    from softras_cl.fitting.recipes.body import BUDGETS, BodyFitConfig
+
+    d = BodyFitConfig()
+    p = sub.add_parser("fit-body", help="fit a body model to a part-coloured image or silhouette",
+                       description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("target", help="target image (PNG/JPEG/..., or .npy of linear values): part colours "
+                                  "on --background, RGBA, or a mask with --silhouette")
+    p.add_argument("--model", default=None,
+                   help="body model file: SMPL .pkl/.npz or the project's .npz "
+                        "(default: the demo model shipped with softras-cl)")
+    p.add_argument("--out", required=True, help="output directory (created if missing)")
+    p.add_argument("--joints", default=None,
+                   help="2D joints of the target, one row per model joint in the model's order: "
+                        ".txt rows 'x y' or 'x y weight' (0-based pixels; weight 0 = unseen) or .npy")
+    p.add_argument("--silhouette", action="store_true",
+                   help="the target is a mask of the body (alpha channel, or mean of the channels)")
+    p.add_argument("--background", default="0,0,0",
+                   help="background colour of a part-coloured target, linear RGB 'r,g,b' (default 0,0,0)")
+    p.add_argument("--budget", choices=sorted(BUDGETS), default="default",
+                   help="schedule: evaluations and sigma/gamma steps (default: default); "
+                        "`softras-cl bench body` shows what each costs and gains")
+    p.add_argument("--size", type=int, default=d.size,
+                   help=f"longest side in pixels of the working image (default {d.size})")
+    p.add_argument("--distance", type=float, default=d.distance,
+                   help=f"camera distance from the body in metres (default {d.distance})")
+    p.add_argument("--height", type=float, default=d.height,
+                   help=f"camera and aim height in metres (default {d.height})")
+    p.add_argument("--fov", type=float, default=d.fov_deg,
+                   help=f"field of view in degrees across the shorter image side (default {d.fov_deg})")
+    p.add_argument("--robust-joints", type=float, default=None, metavar="PX",
+                   help="Geman-McClure scale in pixels for the joint term (default: plain squares)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def _load_inputs(args):
+    """(target, joints (J, 2) or None, joint weights or None, model, config); ValueError/OSError
+    on bad input."""
+    from softras_cl.fitting.recipes.body import BodyFitConfig
+    from softras_cl.fitting.models.body_loaders import load_body_model, load_demo_body_model
+
+    model = load_demo_body_model() if args.model is None else load_body_model(args.model)
+    target = read_target(args.target, args.silhouette)
+    joints, weights = (None, None) if args.joints is None else read_joints(args.joints, model.n_joints)
+    try:
+        background = tuple(float(c) for c in args.background.split(","))
+    except ValueError:
+        background = ()
+    if len(background) != 3:
+        raise ValueError(f"--background must be 'r,g,b', got {args.background!r}")
+    if args.size < 16:
+        raise ValueError(f"--size must be >= 16, got {args.size}")
+    config = BodyFitConfig.from_budget(args.budget, size=args.size, distance=args.distance,
+                                       height=args.height, fov_deg=args.fov, background=background,
+                                       robust_px=args.robust_joints)
+    return target, joints, weights, model, config
+
+
+def run(args: argparse.Namespace) -> int:
+    from softras_cl.fitting.recipes.body import fit_body, prepare_target
+    from softras_cl.fitting.reports.body import write_outputs
+
+    try:
+        target, joints, weights, model, config = _load_inputs(args)
+        prepare_target(target, config.size, config.background, joints, weights, model.n_joints)
+    except (ValueError, OSError) as e:
+        print(f"softras-cl fit-body: {e}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    start = time.perf_counter()
+    fit = fit_body(target, model, config, joints, weights, out_dir=out, progress=not args.no_progress)
+    seconds = time.perf_counter() - start
+    metrics = write_outputs(fit, target, out, extra=dict(target=str(args.target), seconds=seconds,
+                                                          budget=args.budget))
+    state = "interrupted; outputs are from the best values so far" if fit.result.interrupted else "done"
+    joints_msg = (f", joint error {metrics['joint_error_px_full']:.1f} px" if "joint_error_px_full" in metrics
+                  else "")
+    print(f"fit-body {state} in {seconds:.1f} s: silhouette IoU {metrics['silhouette_iou']:.3f}{joints_msg}; "
+          f"outputs in {out}/")
+    return 130 if fit.result.interrupted else 0

@@ -1,0 +1,1 @@
+"""Files in and out: images (sRGB <-> linear), meshes (trimesh), landmark files."""

@@ -1,0 +1,206 @@
+"""Image files in and out, in linear RGB.
+
+All shading and losses in softras-cl work in linear RGB; files hold sRGB-encoded values. The
+transfer functions are colour-science's (`colour.cctf_decoding` / `colour.cctf_encoding` with
+function="sRGB", IEC 61966-2-1). Alpha is never encoded: it is stored and returned linear.
+
+- `read_image(path)`: (H, W, 3) or (H, W, 4) float64, linear RGB (+ alpha as stored, in [0, 1]).
+  8-bit and 16-bit files; greyscale becomes 3 equal channels (grey + alpha: RGBA); palette
+  images are expanded. 16-bit PNGs are decoded with pypng (Pillow reduces 16-bit colour PNGs to
+  8 bits); everything else with Pillow. Embedded ICC profiles are ignored (files are taken as
+  sRGB); JPEG EXIF orientation is applied.
+- `write_image(path, image, bits=8)`: one (H, W, 3), (H, W, 4) or (H, W) linear image, clipped
+  to [0, 1], sRGB-encoded, rounded to 8 bits (any format Pillow writes, chosen by the
+  extension) or 16 bits (PNG only).
+- `to_srgb(linear)` / `to_linear(srgb)`: the transfer functions alone, on every value of any
+  array (no clipping: values outside [0, 1] follow the curves' extensions).
+"""
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["read_image", "write_image", "to_srgb", "to_linear"]
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+@functools.lru_cache(maxsize=1)
+def _colour():
+    """colour-science, imported on first use (its import takes about a second)."""
+    import colour
+    return colour
+
+
+def to_linear(srgb) -> np.ndarray:
+    """sRGB-encoded values (any shape) -> linear values, float64 (IEC 61966-2-1 decoding)."""
+    x = np.asarray(srgb, dtype=np.float64)
+    return np.asarray(_colour().cctf_decoding(x, function="sRGB"), dtype=np.float64)
+
+
+def to_srgb(linear) -> np.ndarray:
+    """Linear values (any shape) -> sRGB-encoded values, float64 (IEC 61966-2-1 encoding)."""
+    x = np.asarray(linear, dtype=np.float64)
+    return np.asarray(_colour().cctf_encoding(x, function="sRGB"), dtype=np.float64)
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading
+
+def _png_bit_depth(path: Path) -> int | None:
+    """Bit depth from a PNG's IHDR chunk, or None if the file is not a PNG."""
+    with open(path, "rb") as f:
+        head = f.read(26)
+    if len(head) < 26 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        return None
+    return head[24]
+
+
+def _read_png16(path: Path) -> tuple[np.ndarray, float]:
+    """16-bit PNG -> (H, W, C) uint16 with C in {1, 2, 3, 4}, and its maximum value."""
+    import png  # pypng
+
+    with open(path, "rb") as f:
+        width, height, rows, info = png.Reader(file=f).asDirect()
+        data = np.vstack([np.asarray(row, dtype=np.uint16) for row in rows])
+    data = data.reshape(height, width, info["planes"])
+    return data, float(2 ** info["bitdepth"] - 1)
+
+
+def pil_to_array(img) -> tuple[np.ndarray, float]:
+    """A PIL image -> ((H, W, C) integer array with C in {1, 2, 3, 4}, maximum value).
+
+    Channels: 1 grey, 2 grey + alpha, 3 RGB, 4 RGBA. Palette, bilevel, CMYK, YCbCr, ... images
+    are converted to RGB or RGBA (RGBA when the image has an alpha band or transparency).
+    Also used by softras_cl.io.meshes for texture images loaded by trimesh.
+    """
+    mode = img.mode
+    if mode.startswith("I;16"):
+        return np.asarray(img).astype(np.uint16)[..., None], 65535.0
+    if mode == "I":
+        a = np.asarray(img)
+        if a.size and (a.min() < 0 or a.max() > 65535):
+            raise ValueError(f"32-bit integer image with values outside [0, 65535] "
+                             f"(min {a.min()}, max {a.max()}) is not supported")
+        return a.astype(np.uint16)[..., None], 65535.0
+    if mode == "F":
+        raise ValueError("floating-point images (Pillow mode 'F') are not supported")
+    if mode not in ("L", "LA", "RGB", "RGBA"):
+        has_alpha = "A" in img.getbands() or "a" in img.getbands() or "transparency" in img.info
+        img = img.convert("RGBA" if has_alpha else "RGB")
+    elif mode == "L" and "transparency" in img.info:
+        img = img.convert("LA")
+    elif mode == "RGB" and "transparency" in img.info:
+        img = img.convert("RGBA")
+    a = np.asarray(img)
+    if a.ndim == 2:
+        a = a[..., None]
+    return a, 255.0
+
+
+def _to_linear_rgb(data: np.ndarray, maxval: float) -> np.ndarray:
+    """(H, W, C) integers, C in {1, 2, 3, 4}, sRGB -> (H, W, 3|4) float64 linear (+ alpha)."""
+    x = data.astype(np.float64) / maxval
+    channels = x.shape[-1]
+    if channels in (1, 2):                            # grey (+ alpha) -> RGB (+ alpha)
+        x = np.concatenate([np.repeat(x[..., :1], 3, axis=-1), x[..., 1:]], axis=-1)
+    rgb = to_linear(x[..., :3])
+    if x.shape[-1] == 4:
+        return np.concatenate([rgb, x[..., 3:]], axis=-1)
+    return rgb
+
+
+def read_image(path) -> np.ndarray:
+    """Read an image file as linear RGB.
+
+    Returns (H, W, 3) float64 linear RGB, or (H, W, 4) when the file has alpha (or a
+    transparency entry); alpha is returned as stored, scaled to [0, 1], not decoded.
+    Raises FileNotFoundError for a missing file and ValueError (naming the path) for a file
+    that cannot be decoded.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image file not found: {path}")
+    try:
+        if _png_bit_depth(path) == 16:
+            data, maxval = _read_png16(path)
+        else:
+            from PIL import Image, ImageOps
+
+            with Image.open(path) as img:
+                img.load()
+                img = ImageOps.exif_transpose(img)
+                data, maxval = pil_to_array(img)
+    except Exception as e:   # Pillow and pypng raise many kinds (OSError, SyntaxError, ...)
+        raise ValueError(f"cannot read image {path}: {type(e).__name__}: {e}") from e
+    if data.shape[0] == 0 or data.shape[1] == 0:
+        raise ValueError(f"cannot read image {path}: it is empty ({data.shape[1]}x{data.shape[0]})")
+    return _to_linear_rgb(data, maxval)
+
+
+# ---------------------------------------------------------------------------------------------
+# Writing
+
+def _check_image(image) -> np.ndarray:
+    a = np.asarray(image)
+    if a.dtype == object or not (np.issubdtype(a.dtype, np.floating)
+                                 or np.issubdtype(a.dtype, np.integer)
+                                 or a.dtype == np.bool_):
+        raise ValueError(f"image must be a numeric array, got dtype {a.dtype}")
+    if a.ndim == 4:
+        raise ValueError(f"write_image writes one image, got shape {a.shape} (a batch?); "
+                         "write each image of the batch separately")
+    if not (a.ndim == 2 or (a.ndim == 3 and a.shape[-1] in (3, 4))):
+        raise ValueError(f"image must have shape (H, W, 3), (H, W, 4) or (H, W), got {a.shape}")
+    if a.shape[0] == 0 or a.shape[1] == 0:
+        raise ValueError(f"image is empty: shape {a.shape}")
+    a = a.astype(np.float64)
+    if not np.isfinite(a).all():
+        raise ValueError(f"image has {int((~np.isfinite(a)).sum())} non-finite values "
+                         "(NaN or inf)")
+    return a
+
+
+def write_image(path, image, bits: int = 8) -> None:
+    """Write one linear-RGB image, sRGB-encoded.
+
+    image: (H, W, 3) linear RGB, (H, W, 4) linear RGB + alpha, or (H, W) linear grey; values are
+    clipped to [0, 1], colour channels encoded with the sRGB curve (alpha stored as is) and
+    rounded to `bits` = 8 (any format Pillow writes, chosen by the extension: .png, .jpg, ...)
+    or 16 (.png only).
+    """
+    path = Path(path)
+    if bits not in (8, 16):
+        raise ValueError(f"bits must be 8 or 16, got {bits!r}")
+    a = _check_image(image)
+    a = np.clip(a, 0.0, 1.0)
+    if a.ndim == 2:
+        enc = to_srgb(a)
+    else:
+        enc = np.concatenate([to_srgb(a[..., :3]), a[..., 3:]], axis=-1)
+    suffix = path.suffix.lower()
+    if bits == 16:
+        if suffix != ".png":
+            raise ValueError(f"16-bit images are written as PNG only, got {path}")
+        import png  # pypng
+
+        q = np.round(np.clip(enc, 0.0, 1.0) * 65535.0).astype(np.uint16)
+        h, w = q.shape[:2]
+        channels = 1 if q.ndim == 2 else q.shape[-1]
+        writer = png.Writer(width=w, height=h, greyscale=channels == 1, alpha=channels == 4,
+                            bitdepth=16)
+        with open(path, "wb") as f:
+            writer.write(f, q.reshape(h, w * channels))
+        return
+    from PIL import Image
+
+    q = np.round(np.clip(enc, 0.0, 1.0) * 255.0).astype(np.uint8)
+    if q.ndim == 3 and q.shape[-1] == 4 and suffix in (".jpg", ".jpeg"):
+        raise ValueError(f"JPEG cannot store alpha: write an (H, W, 3) image to {path}, "
+                         "or use .png")
+    try:
+        Image.fromarray(q).save(path)
+    except (KeyError, ValueError) as e:   # Pillow: unknown extension, or mode not writable
+        raise ValueError(f"cannot write image {path}: {e}") from e

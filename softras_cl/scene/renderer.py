@@ -1,0 +1,238 @@
+"""The whole differentiable render path: mesh -> camera -> shading -> soft rasteriser, and back.
+
+    world vertices ──Camera.project──▶ screen vertices ─┐
+          │                                              ├─▶ SoftRasterizer ─▶ rgb, alpha, depth
+          └─normals──▶ light.shade(albedo) ─▶ colours ──┘
+
+`Renderer.backward` runs the vector-Jacobian products of those stages in reverse and returns
+gradients for exactly the groups asked for in `forward(grads=...)`: "vertices" (world),
+"albedo" (or the unlit colour input), "camera" (rotation, translation, focal per view) and
+"light" (its parameters). Conventions: docs/scene.md and docs/conventions.md.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from softras_cl.scene import shading
+from softras_cl.scene.camera import Camera, rodrigues_vjp
+from softras_cl.raster.corners import scatter_corners
+from softras_cl.raster.rasterizer import SoftRasterizer
+from softras_cl.raster.settings import RasterSettings
+
+SHADINGS = ("vertex", "face", "pixel", "none")
+GRAD_GROUPS = ("vertices", "albedo", "camera", "light")
+
+
+@dataclass
+class RenderOutput:
+    """Images (B, H, W[, 3]) of one forward call (None where not in settings.outputs)."""
+    rgb: np.ndarray | None
+    alpha: np.ndarray | None
+    depth: np.ndarray | None
+    saved: dict = field(default_factory=dict, repr=False)
+
+    def rgba(self) -> np.ndarray:
+        return np.concatenate([self.rgb, self.alpha[..., None]], axis=-1)
+
+
+class Renderer:
+    """Renders meshes seen by cameras under a light, with gradients for every scene parameter.
+
+    settings: RasterSettings (its `texture`, `lighting` and `perspective_correct` are set by the
+    renderer); shading: "vertex" (vertex normals and albedo, Gouraud), "face" (face normals,
+    flat; albedo averaged over each face's corners), "pixel" (albedo and normals interpolated
+    and lit per pixel in the kernel; Lambert or SH lights) or "none" (unlit: the colour input is
+    drawn as it is, with any texture mode); device: a pyopencl.Device or None for the default.
+    """
+
+    def __init__(self, settings: RasterSettings, shading: str = "vertex", device=None):
+        if shading not in SHADINGS:
+            raise ValueError(f"shading must be one of {SHADINGS}, got {shading!r}")
+        self.settings, self.shading, self.device = settings, shading, device
+        self._rasterizers: dict = {}
+
+    def forward(self, vertices, faces, cameras, albedo=None, light=None, face_textures=None,
+                texture_image=None, uvs=None, grads=()) -> RenderOutput:
+        """Render B views.
+
+        vertices (V, 3) or (B, V, 3) world; faces (F, 3) int; cameras: a Camera or a list of B;
+        albedo (V, 3) or (B, V, 3) linear RGB (vertex/face shading, or unlit vertex colours);
+        light: shading.LambertLight / PhongLight / SHLight (default: the paper's Lambert);
+        face_textures / texture_image + uvs: unlit textures (shading="none");
+        grads: subset of GRAD_GROUPS that backward() will return.
+        """
+        grads = _check_grad_groups(grads, self.shading)
+        single_camera = isinstance(cameras, Camera)
+        cameras, verts, batched = _views(cameras, vertices, self.settings.image_size)
+        faces = np.asarray(faces)
+        if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+            raise ValueError(f"faces must be a non-empty (F, 3) array: the mesh has no faces (got shape {faces.shape})")
+        light = light if light is not None else shading.LambertLight()
+        screen, cam_ctx = zip(*(cam.project(v) for cam, v in zip(cameras, verts)))
+        screen = np.concatenate(screen, 0)
+        colour_args, shade_ctx = self._colours(verts, faces, cameras, albedo, light, face_textures,
+                                               texture_image, uvs)
+        raster = self._rasterizer(cameras[0].projection, colour_args, light)
+        out = raster.forward(screen, faces, grads=_raster_grads(grads, self.shading), **colour_args)
+        saved = dict(raster=raster, raster_out=out, cameras=cameras, cam_ctx=cam_ctx,
+                     shade_ctx=shade_ctx, light=light, grads=grads, batched=batched,
+                     single_camera=single_camera,
+                     albedo_shape=np.shape(albedo) if albedo is not None else None)
+        return RenderOutput(out.rgb, out.alpha, out.depth, saved)
+
+    def backward(self, output: RenderOutput, grad_rgb=None, grad_alpha=None, grad_depth=None) -> dict:
+        """Gradients of a scalar loss given dL/d(rgb, alpha, depth) (each None or the output's
+        shape). Returns {group: gradient} for the groups passed to forward(grads=...):
+        vertices (shape given), albedo (shape given; for unlit textures the texture's shape),
+        camera (a dict of rotation (3,), translation (3,), focal (2,) per view: a list when a
+        list of cameras was given), light (dict of the light's parameters)."""
+        saved = output.saved
+        if not saved.get("grads"):
+            raise ValueError("output: forward() was called without grads=...; nothing to differentiate")
+        g_raster = saved["raster"].backward(saved["raster_out"], grad_rgb, grad_alpha, grad_depth)
+        saved["raster_grads"] = g_raster
+        g_shade = self._shading_vjp(saved, g_raster.get("colors"))
+        g_cams = [cam.project_vjp(ctx, g_raster["vertices"][b:b + 1]) if "vertices" in g_raster else None
+                  for b, (cam, ctx) in enumerate(zip(saved["cameras"], saved["cam_ctx"]))]
+        return self._collect(saved, g_raster, g_shade, g_cams)
+
+    # ---- stages ----------------------------------------------------------------------------
+    def _colours(self, verts, faces, cameras, albedo, light, face_textures, texture_image, uvs):
+        """Raster colour arguments and the shading context (None when unlit)."""
+        if self.shading == "none":
+            given = dict(colors=albedo, face_textures=face_textures, texture_image=texture_image, uvs=uvs)
+            return {k: v for k, v in given.items() if v is not None}, None
+        if albedo is None:
+            raise ValueError(f"albedo is required with shading={self.shading!r}")
+        centres = np.stack([cam.center() for cam in cameras])
+        batch_albedo = np.broadcast_to(np.asarray(albedo, np.float64), verts.shape).copy() \
+            if np.ndim(albedo) == 2 else np.asarray(albedo, np.float64)
+        if self.shading == "vertex":
+            colours, ctx = shading.shade_vertices(verts, faces, batch_albedo, light, centres)
+            return dict(colors=colours), ctx
+        if self.shading == "pixel":
+            normals, ctx = shading.vertex_normals(verts, faces)
+            return dict(colors=batch_albedo, normals=normals, light=_light_vector(light)), ctx
+        face_albedo = batch_albedo[:, faces].mean(axis=2)
+        colours, ctx = shading.shade_faces(verts, faces, face_albedo, light, centres)
+        return dict(face_textures=colours[:, :, None, None, :]), ctx
+
+    def _rasterizer(self, projection: str, colour_args: dict, light) -> SoftRasterizer:
+        texture = ("face" if "face_textures" in colour_args else
+                   "uv" if "texture_image" in colour_args else "vertex")
+        lighting = ("none" if self.shading != "pixel" else
+                    "sh" if isinstance(light, shading.SHLight) else "lambert")
+        s = self.settings.replace(texture=texture, lighting=lighting,
+                                  perspective_correct=projection == "perspective")
+        if s not in self._rasterizers:
+            self._rasterizers[s] = SoftRasterizer(s, device=self.device)
+        return self._rasterizers[s]
+
+    def _shading_vjp(self, saved: dict, g_colours) -> dict:
+        """Shading vjp (vertices, albedo, camera_center, light parameters), or {} when unlit."""
+        if saved["shade_ctx"] is None or g_colours is None:
+            return {}
+        if self.shading == "pixel":
+            g_raster = saved["raster_grads"]
+            return dict(shading.vertex_normals_vjp(saved["shade_ctx"], g_raster["normals"]),
+                        albedo=g_colours, **_light_vector_vjp(saved["light"], g_raster["light"]))
+        if self.shading == "vertex":
+            return shading.shade_vertices_vjp(saved["shade_ctx"], g_colours)
+        return shading.shade_faces_vjp(saved["shade_ctx"], g_colours[:, :, 0, 0, :])
+
+    def _collect(self, saved: dict, g_raster: dict, g_shade: dict, g_cams: list) -> dict:
+        grads, out = saved["grads"], {}
+        if "vertices" in grads:
+            g = np.stack([c["vertices"] for c in g_cams]) + g_shade.get("vertices", 0.0)
+            out["vertices"] = g if saved["batched"] else g.sum(0)
+        if "albedo" in grads:
+            out["albedo"] = self._albedo_grad(saved, g_raster, g_shade)
+        if "camera" in grads:
+            centres = g_shade.get("camera_center")
+            per_view = [_camera_grads(cam, g, None if centres is None else centres[b])
+                        for b, (cam, g) in enumerate(zip(saved["cameras"], g_cams))]
+            out["camera"] = ({k: sum(v[k] for v in per_view) for k in per_view[0]}
+                             if saved["single_camera"] else per_view)
+        if "light" in grads:
+            out["light"] = {k: g_shade[k] for k in saved["light"].params()}
+        return out
+
+    def _albedo_grad(self, saved: dict, g_raster: dict, g_shade: dict) -> np.ndarray:
+        if self.shading == "none":
+            return g_raster["colors"]
+        g = g_shade["albedo"]
+        if self.shading == "face":   # face albedo = mean of its corners
+            raster = saved["raster_out"].saved["mesh"]
+            per_corner = np.repeat(g[:, :, None, :] / 3.0, 3, axis=2)
+            g = scatter_corners(per_corner, raster.faces, raster.n_vertices)
+        return g if len(saved["albedo_shape"]) == 3 else g.sum(0)
+
+
+def _light_vector(light) -> np.ndarray:
+    """The 27 light parameters of the per-pixel kernel (settings.lighting, docs/scene.md)."""
+    if isinstance(light, shading.SHLight):
+        return (light.coefficients * shading.SH_POLY_SCALE).ravel()
+    if type(light) is shading.LambertLight:
+        direction = light.direction / np.linalg.norm(light.direction)
+        return np.concatenate([light.ambient, light.directional, direction, np.zeros(18)])
+    raise ValueError(f"light: shading='pixel' supports LambertLight and SHLight, got {type(light).__name__}")
+
+
+def _light_vector_vjp(light, grad: np.ndarray) -> dict:
+    """Gradient of the 27 kernel light parameters -> the light's own parameters."""
+    if isinstance(light, shading.SHLight):
+        return dict(coefficients=grad.reshape(3, 9) * shading.SH_POLY_SCALE)
+    length = np.linalg.norm(light.direction)
+    unit = light.direction / length
+    g_unit = grad[6:9]
+    return dict(ambient=grad[0:3], directional=grad[3:6], direction=(g_unit - unit * (unit @ g_unit)) / length)
+
+
+def _camera_grads(camera: Camera, g_proj: dict, g_center) -> dict:
+    """Projection gradients plus those reaching the camera centre c = -R^T t through shading."""
+    out = {k: g_proj[k] for k in ("rotation", "translation", "focal")}
+    if g_center is not None:
+        rot = camera.rotation_matrix()
+        out["translation"] = out["translation"] - rot @ g_center
+        out["rotation"] = out["rotation"] + rodrigues_vjp(camera.rotation, -np.outer(camera.translation, g_center))
+    return out
+
+
+def _views(cameras, vertices, image_size: tuple):
+    """(list of B cameras, (B, V, 3) float64 vertices, whether the vertices had a batch axis)."""
+    single = isinstance(cameras, Camera)
+    cams = [cameras] if single else list(cameras)
+    if not cams or not all(isinstance(c, Camera) for c in cams):
+        raise TypeError("cameras must be a Camera or a non-empty list of Camera objects")
+    verts = np.asarray(vertices, np.float64)
+    if verts.ndim not in (2, 3) or verts.shape[-1] != 3:
+        raise ValueError(f"vertices must have shape (V, 3) or (B, V, 3), got {verts.shape}")
+    batched = verts.ndim == 3
+    batch = verts.shape[0] if batched else len(cams)
+    if single:
+        cams = cams * batch
+    if len(cams) != batch:
+        raise ValueError(f"{len(cams)} cameras for a batch of {batch} meshes")
+    sizes = {tuple(c.image_size) for c in cams}
+    if sizes != {tuple(image_size)}:
+        raise ValueError(f"cameras have image_size {sorted(sizes)} but settings.image_size is {image_size}")
+    return cams, np.broadcast_to(verts, (batch, *verts.shape[-2:])), batched
+
+
+def _check_grad_groups(grads, shading_mode: str) -> tuple:
+    grads = tuple(grads)
+    bad = [g for g in grads if g not in GRAD_GROUPS]
+    if bad:
+        raise ValueError(f"grads must be a subset of {GRAD_GROUPS}, got {grads!r}")
+    if "light" in grads and shading_mode == "none":
+        raise ValueError("grads asks for 'light' but shading='none' uses no light")
+    return grads
+
+
+def _raster_grads(grads: tuple, shading_mode: str) -> tuple:
+    """What the rasteriser must differentiate for the requested groups."""
+    positions = {"vertices", "camera"} & set(grads)
+    colours = {"albedo", "light"} & set(grads) or (positions and shading_mode != "none")
+    return (("vertices",) if positions else ()) + (("colors",) if colours else ())

@@ -1,0 +1,462 @@
+"""Normals and lighting with their vector-Jacobian products (docs/scene.md), pure numpy float64.
+
+Every stage is a forward returning ``(output, ctx)`` and a vjp taking ``(ctx, grad_output)`` and
+returning a dict of input gradients. Arrays are batched: ``B`` leads every per-mesh array.
+
+- ``face_normals`` / ``face_normals_vjp``: unit face normals ``normalize(cross(v1 - v0, v2 - v0))``.
+- ``vertex_normals`` / ``vertex_normals_vjp``: area-weighted vertex normals.
+- ``LambertLight``, ``PhongLight``, ``SHLight``: ``light.shade(normals, albedo, view_dirs)`` and
+  ``light.shade_vjp(ctx, grad_colours)``.
+- ``shade_vertices`` / ``shade_faces`` (and their ``*_vjp``): normals -> shaded colours.
+
+Zero-length normals (degenerate faces, unreferenced vertices) stay zero, never NaN, and pass a zero
+gradient back.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from softras_cl.raster.corners import gather_corners, scatter_corners
+
+# Ramamoorthi-Hanrahan: basis constants in the order of docs/scene.md, and A_l per basis function.
+SH_Y0, SH_Y1, SH_Y2, SH_Y2_ZZ, SH_Y2_XXYY = 0.282095, 0.488603, 1.092548, 0.315392, 0.546274
+SH_A = np.array([np.pi] + [2.0 * np.pi / 3.0] * 3 + [np.pi / 4.0] * 5)
+# A_l times each basis function's constant: irradiance = sum_i L_i SH_POLY_SCALE_i P_i(n) with
+# the polynomials P = [1, y, z, x, xy, yz, 3z^2 - 1, xz, x^2 - y^2] (the per-pixel kernel's form)
+SH_POLY_SCALE = SH_A * np.array([SH_Y0, SH_Y1, SH_Y1, SH_Y1, SH_Y2, SH_Y2, SH_Y2_ZZ, SH_Y2, SH_Y2_XXYY])
+
+
+# ----------------------------------------------------------------------------- checks and helpers
+
+def _array(value, name: str) -> np.ndarray:
+    """`value` as a finite float64 array, or ValueError naming `name`."""
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be numeric, got {value!r}") from exc
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite (no NaN or inf)")
+    return arr
+
+
+def _rgb(value, name: str) -> np.ndarray:
+    """A colour-like parameter: scalar or RGB triple -> (3,) float64."""
+    arr = _array(value, name)
+    if arr.size == 1:
+        return np.full(3, arr.item())
+    if arr.shape != (3,):
+        raise ValueError(f"{name} must be a scalar or an RGB triple, got shape {arr.shape}")
+    return arr.copy()
+
+
+def _direction(value, name: str) -> np.ndarray:
+    """A non-zero 3-vector -> (3,) float64 (not normalised)."""
+    arr = _array(value, name)
+    if arr.shape != (3,):
+        raise ValueError(f"{name} must be a 3-vector, got shape {arr.shape}")
+    if not np.linalg.norm(arr) > 0:
+        raise ValueError(f"{name} must be non-zero")
+    return arr.copy()
+
+
+def _points(value, name: str, batch: int | None = None, count: int | None = None) -> np.ndarray:
+    """A (B, N, 3) float64 array, optionally with a given batch size and count."""
+    arr = _array(value, name)
+    if arr.ndim != 3 or arr.shape[-1] != 3:
+        raise ValueError(f"{name} must have shape (B, N, 3), got {arr.shape}")
+    if batch is not None and arr.shape[0] != batch:
+        raise ValueError(f"{name} has batch size {arr.shape[0]}, expected {batch}")
+    if count is not None and arr.shape[1] != count:
+        raise ValueError(f"{name} has {arr.shape[1]} rows, expected {count}")
+    return arr
+
+
+def _faces(faces, batch: int, n_vertices: int) -> np.ndarray:
+    """(F, 3) or (B, F, 3) integer faces -> (B, F, 3) int64, indices checked against V."""
+    arr = np.asarray(faces)
+    if arr.size and not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"faces must be integer indices, got dtype {arr.dtype}")
+    arr = arr.astype(np.int64)
+    if arr.ndim == 2:
+        arr = np.broadcast_to(arr, (batch,) + arr.shape)
+    if arr.ndim != 3 or arr.shape[-1] != 3 or arr.shape[0] != batch:
+        raise ValueError(f"faces must have shape (F, 3) or ({batch}, F, 3), got {np.shape(faces)}")
+    if arr.size and (arr.min() < 0 or arr.max() >= n_vertices):
+        raise ValueError(f"faces index vertices outside [0, {n_vertices})")
+    return arr
+
+
+def _normalize(x: np.ndarray):
+    """Unit vectors along the last axis -> (unit, length); zero-length vectors stay zero."""
+    length = np.linalg.norm(x, axis=-1, keepdims=True)
+    safe = np.where(length > 0, length, 1.0)
+    return np.where(length > 0, x / safe, 0.0), length
+
+
+def _normalize_vjp(unit: np.ndarray, length: np.ndarray, grad: np.ndarray) -> np.ndarray:
+    """Gradient of `_normalize` at x = unit * length (zero where length is zero)."""
+    safe = np.where(length > 0, length, 1.0)
+    proj = grad - unit * np.sum(unit * grad, -1, keepdims=True)
+    return np.where(length > 0, proj / safe, 0.0)
+
+
+def _cross_vjp(e1: np.ndarray, e2: np.ndarray, grad: np.ndarray):
+    """Gradients of cross(e1, e2) with respect to e1 and e2."""
+    return np.cross(e2, grad), np.cross(grad, e1)
+
+
+def _face_cross(vertices: np.ndarray, faces: np.ndarray):
+    """Unnormalised face normals cross(v1 - v0, v2 - v0): (B, F, 3), and the edges."""
+    tri = gather_corners(vertices, faces)
+    e1, e2 = tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0]
+    return np.cross(e1, e2), e1, e2
+
+
+def _face_cross_vjp(ctx: dict, grad_cross: np.ndarray) -> np.ndarray:
+    """(B, F, 3) gradient of the face cross products -> (B, V, 3) vertex gradient."""
+    g1, g2 = _cross_vjp(ctx["e1"], ctx["e2"], grad_cross)
+    corner = np.stack([-(g1 + g2), g1, g2], axis=2)
+    return scatter_corners(corner, ctx["faces"], ctx["n_vertices"])
+
+
+# ----------------------------------------------------------------------------- normals
+
+def face_normals(vertices, faces):
+    """Unit face normals, outward for counter-clockwise faces seen from outside.
+
+    vertices (B, V, 3) float; faces (F, 3) or (B, F, 3) int -> normals (B, F, 3) float64, ctx.
+    Degenerate (zero-area) faces get a zero normal.
+    """
+    vertices = _points(vertices, "vertices")
+    faces = _faces(faces, vertices.shape[0], vertices.shape[1])
+    cross, e1, e2 = _face_cross(vertices, faces)
+    normals, length = _normalize(cross)
+    ctx = dict(faces=faces, n_vertices=vertices.shape[1], e1=e1, e2=e2, unit=normals, length=length)
+    return normals, ctx
+
+
+def face_normals_vjp(ctx: dict, grad_normals) -> dict:
+    """grad_normals (B, F, 3) -> {"vertices": (B, V, 3)} float64."""
+    grad_cross = _normalize_vjp(ctx["unit"], ctx["length"], np.asarray(grad_normals, np.float64))
+    return {"vertices": _face_cross_vjp(ctx, grad_cross)}
+
+
+def vertex_normals(vertices, faces):
+    """Area-weighted vertex normals: normalised sum of the adjacent faces' cross products.
+
+    vertices (B, V, 3) float; faces (F, 3) or (B, F, 3) int -> normals (B, V, 3) float64, ctx.
+    Vertices with a zero sum (unreferenced, or only degenerate faces) get a zero normal.
+    """
+    vertices = _points(vertices, "vertices")
+    n_vertices = vertices.shape[1]
+    faces = _faces(faces, vertices.shape[0], n_vertices)
+    cross, e1, e2 = _face_cross(vertices, faces)
+    total = scatter_corners(np.repeat(cross[:, :, None], 3, axis=2), faces, n_vertices)
+    normals, length = _normalize(total)
+    ctx = dict(faces=faces, n_vertices=n_vertices, e1=e1, e2=e2, unit=normals, length=length)
+    return normals, ctx
+
+
+def vertex_normals_vjp(ctx: dict, grad_normals) -> dict:
+    """grad_normals (B, V, 3) -> {"vertices": (B, V, 3)} float64."""
+    grad_total = _normalize_vjp(ctx["unit"], ctx["length"], np.asarray(grad_normals, np.float64))
+    grad_cross = gather_corners(grad_total, ctx["faces"]).sum(axis=2)
+    return {"vertices": _face_cross_vjp(ctx, grad_cross)}
+
+
+# ----------------------------------------------------------------------------- lights
+
+def _shade_inputs(normals, albedo, view_dirs, needs_view: bool):
+    """Checks shade() arguments: (B, N, 3) arrays of one shape; view_dirs only when needed."""
+    normals = _points(normals, "normals")
+    albedo = _points(albedo, "albedo", *normals.shape[:2])
+    if not needs_view:
+        return normals, albedo, None
+    if view_dirs is None:
+        raise ValueError("view_dirs (or camera_center) is required for specular shading")
+    return normals, albedo, _points(view_dirs, "view_dirs", *normals.shape[:2])
+
+
+@dataclass(eq=False)
+class LambertLight:
+    """Ambient + directional Lambert: colour = albedo * (ambient + directional * max(0, n . l)).
+
+    ambient, directional: scalar or RGB triple; direction: 3-vector towards the light (normalised
+    internally, default +y). Stored as float64 arrays of shape (3,).
+    """
+    ambient: object = (0.5, 0.5, 0.5)
+    directional: object = (0.5, 0.5, 0.5)
+    direction: object = (0.0, 1.0, 0.0)
+
+    def __post_init__(self):
+        self.ambient = _rgb(self.ambient, "ambient")
+        self.directional = _rgb(self.directional, "directional")
+        self.direction = _direction(self.direction, "direction")
+
+    def params(self) -> dict:
+        """The light's parameters by name (the keys its shade_vjp returns gradients for)."""
+        return dict(ambient=self.ambient, directional=self.directional, direction=self.direction)
+
+    def _diffuse(self, normals, albedo):
+        """Lambert forward part: colours (B, N, 3) and its context."""
+        light, light_len = _normalize(self.direction)
+        cos = normals @ light
+        lit = cos > 0
+        irradiance = self.ambient + self.directional * np.where(lit, cos, 0.0)[..., None]
+        ctx = dict(normals=normals, albedo=albedo, light=light, light_len=light_len, cos=cos,
+                   lit=lit, irradiance=irradiance)
+        return albedo * irradiance, ctx
+
+    def _diffuse_vjp(self, ctx, grad):
+        """Lambert backward part: gradients and the (3,) gradient of the unit light vector."""
+        grad_irr = grad * ctx["albedo"]
+        clamped = np.where(ctx["lit"], ctx["cos"], 0.0)
+        grad_cos = np.where(ctx["lit"], grad_irr @ self.directional, 0.0)
+        grads = dict(normals=grad_cos[..., None] * ctx["light"], albedo=grad * ctx["irradiance"],
+                     ambient=grad_irr.sum(axis=(0, 1)),
+                     directional=np.einsum("bnc,bn->c", grad_irr, clamped))
+        grad_light = np.einsum("bn,bnk->k", grad_cos, ctx["normals"])
+        return grads, grad_light
+
+    def shade(self, normals, albedo, view_dirs=None):
+        """normals (B, N, 3) (used as given), albedo (B, N, 3); view_dirs ignored.
+
+        Returns colours (B, N, 3) float64 and ctx for shade_vjp.
+        """
+        normals, albedo, _ = _shade_inputs(normals, albedo, view_dirs, needs_view=False)
+        return self._diffuse(normals, albedo)
+
+    def shade_vjp(self, ctx, grad_colours) -> dict:
+        """grad_colours (B, N, 3) -> dict normals, albedo (B, N, 3); ambient, directional,
+        direction (3,)."""
+        grads, grad_light = self._diffuse_vjp(ctx, np.asarray(grad_colours, np.float64))
+        grads["direction"] = _normalize_vjp(ctx["light"], ctx["light_len"], grad_light)
+        return grads
+
+
+@dataclass(eq=False)
+class PhongLight(LambertLight):
+    """Lambert plus Blinn-Phong specular ``specular * max(0, n . h)^shininess`` (not multiplied by
+    the albedo), ``h = normalize(l + v)``, v the unit direction to the camera.
+
+    specular: scalar or RGB triple; shininess: scalar >= 0.
+    """
+    specular: object = (0.2, 0.2, 0.2)
+    shininess: object = 32.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        self.specular = _rgb(self.specular, "specular")
+        shininess = _array(self.shininess, "shininess")
+        if shininess.size != 1:
+            raise ValueError(f"shininess must be a scalar, got shape {shininess.shape}")
+        if shininess.item() < 0:
+            raise ValueError(f"shininess must be >= 0, got {shininess.item()}")
+        self.shininess = float(shininess.item())
+
+    def params(self) -> dict:
+        return dict(super().params(), specular=self.specular, shininess=self.shininess)
+
+    def shade(self, normals, albedo, view_dirs=None):
+        """normals, albedo, view_dirs (B, N, 3); view_dirs point from the surface to the camera
+        (normalised here, so camera_center - point may be passed). -> colours (B, N, 3), ctx."""
+        normals, albedo, view_dirs = _shade_inputs(normals, albedo, view_dirs, needs_view=True)
+        colours, ctx = self._diffuse(normals, albedo)
+        view, view_len = _normalize(view_dirs)
+        half, half_len = _normalize(ctx["light"] + view)
+        cos_h = np.sum(normals * half, -1)
+        on = cos_h > 0
+        base = np.where(on, cos_h, 1.0)                       # no 0**p or log(0) where off
+        power = np.where(on, base ** self.shininess, 0.0)
+        ctx.update(view=view, view_len=view_len, half=half, half_len=half_len, on=on, base=base,
+                   power=power)
+        return colours + self.specular * power[..., None], ctx
+
+    def shade_vjp(self, ctx, grad_colours) -> dict:
+        """grad_colours (B, N, 3) -> dict normals, albedo, view_dirs (B, N, 3); ambient,
+        directional, direction, specular (3,); shininess (float)."""
+        grad = np.asarray(grad_colours, np.float64)
+        grads, grad_light = self._diffuse_vjp(ctx, grad)
+        p, on, base = self.shininess, ctx["on"], ctx["base"]
+        grad_power = grad @ self.specular
+        grad_cos = np.where(on, grad_power * p * base ** (p - 1.0), 0.0)
+        grads["specular"] = np.einsum("bnc,bn->c", grad, ctx["power"])
+        grad_log = np.where(on, grad_power * ctx["power"] * np.log(base), 0.0)   # d(t^p)/dp
+        grads["shininess"] = float(np.sum(grad_log))
+        grads["normals"] = grads["normals"] + grad_cos[..., None] * ctx["half"]
+        grad_half = grad_cos[..., None] * ctx["normals"]
+        grad_sum = _normalize_vjp(ctx["half"], ctx["half_len"], grad_half)   # of l + v
+        grads["view_dirs"] = _normalize_vjp(ctx["view"], ctx["view_len"], grad_sum)
+        grad_light = grad_light + grad_sum.sum(axis=(0, 1))
+        grads["direction"] = _normalize_vjp(ctx["light"], ctx["light_len"], grad_light)
+        return grads
+
+
+def sh_basis(normals) -> np.ndarray:
+    """(..., 3) normals (used as given) -> (..., 9) real SH basis in the order of docs/scene.md."""
+    x, y, z = np.moveaxis(np.asarray(normals, np.float64), -1, 0)
+    return np.stack([np.full_like(x, SH_Y0), SH_Y1 * y, SH_Y1 * z, SH_Y1 * x, SH_Y2 * x * y,
+                     SH_Y2 * y * z, SH_Y2_ZZ * (3 * z * z - 1), SH_Y2 * x * z,
+                     SH_Y2_XXYY * (x * x - y * y)], -1)
+
+
+def sh_basis_vjp(normals, grad_basis) -> np.ndarray:
+    """Gradient of sh_basis: normals (..., 3), grad_basis (..., 9) -> (..., 3)."""
+    x, y, z = np.moveaxis(np.asarray(normals, np.float64), -1, 0)
+    g = np.moveaxis(grad_basis, -1, 0)
+    gx = SH_Y1 * g[3] + SH_Y2 * (y * g[4] + z * g[7]) + 2 * SH_Y2_XXYY * x * g[8]
+    gy = SH_Y1 * g[1] + SH_Y2 * (x * g[4] + z * g[5]) - 2 * SH_Y2_XXYY * y * g[8]
+    gz = SH_Y1 * g[2] + SH_Y2 * (y * g[5] + x * g[7]) + 6 * SH_Y2_ZZ * z * g[6]
+    return np.stack([gx, gy, gz], -1)
+
+
+def sh_ambient(grey=1.0) -> np.ndarray:
+    """(3, 9) SH coefficients whose shading is the constant `grey` (scalar or RGB) times albedo."""
+    coefficients = np.zeros((3, 9))
+    coefficients[:, 0] = _rgb(grey, "grey") / (SH_A[0] * SH_Y0)
+    return coefficients
+
+
+@dataclass(eq=False)
+class SHLight:
+    """Second-order SH irradiance (Ramamoorthi-Hanrahan):
+    ``colour_c = albedo_c * sum_i L[c, i] A_l(i) Y_i(n)``.
+
+    coefficients: (3, 9) (channel, basis), or 27 values channel-major, or (9,) for all channels;
+    stored as (3, 9) float64.
+    """
+    coefficients: object
+
+    def __post_init__(self):
+        arr = _array(self.coefficients, "coefficients")
+        if arr.shape == (9,):
+            arr = np.tile(arr, (3, 1))
+        elif arr.shape == (27,):
+            arr = arr.reshape(3, 9)
+        if arr.shape != (3, 9):
+            raise ValueError("coefficients must have shape (3, 9) (27 values, 9 per colour "
+                             f"channel) or (9,), got shape {arr.shape}")
+        self.coefficients = arr.copy()
+
+    @classmethod
+    def ambient(cls, grey=1.0) -> "SHLight":
+        """The SH light whose shading is the constant `grey` (scalar or RGB) times albedo."""
+        return cls(sh_ambient(grey))
+
+    def params(self) -> dict:
+        return dict(coefficients=self.coefficients)
+
+    def shade(self, normals, albedo, view_dirs=None):
+        """normals (B, N, 3) (used as given), albedo (B, N, 3); view_dirs ignored.
+        -> colours (B, N, 3) float64, ctx."""
+        normals, albedo, _ = _shade_inputs(normals, albedo, view_dirs, needs_view=False)
+        basis = sh_basis(normals)
+        irradiance = basis @ (self.coefficients * SH_A).T
+        ctx = dict(normals=normals, albedo=albedo, basis=basis, irradiance=irradiance)
+        return albedo * irradiance, ctx
+
+    def shade_vjp(self, ctx, grad_colours) -> dict:
+        """grad_colours (B, N, 3) -> dict normals, albedo (B, N, 3); coefficients (3, 9)."""
+        grad = np.asarray(grad_colours, np.float64)
+        grad_irr = grad * ctx["albedo"]
+        grad_basis = grad_irr @ (self.coefficients * SH_A)
+        return dict(normals=sh_basis_vjp(ctx["normals"], grad_basis),
+                    albedo=grad * ctx["irradiance"],
+                    coefficients=np.einsum("bnc,bni->ci", grad_irr, ctx["basis"]) * SH_A)
+
+
+# ----------------------------------------------------------------------------- scene helpers
+
+def _camera_center(camera_center, batch: int):
+    """None, (3,) or (B, 3) -> None or (B, 1, 3) float64, and whether it was batched."""
+    if camera_center is None:
+        return None, False
+    arr = _array(camera_center, "camera_center")
+    if arr.shape == (3,):
+        return np.broadcast_to(arr, (batch, 1, 3)), False
+    if arr.shape != (batch, 3):
+        raise ValueError(f"camera_center must have shape (3,) or ({batch}, 3), got {arr.shape}")
+    return arr[:, None, :], True
+
+
+def _light(light):
+    if not hasattr(light, "shade") or not hasattr(light, "shade_vjp"):
+        raise ValueError(f"light must be a LambertLight, PhongLight or SHLight, got {type(light)}")
+    return light
+
+
+def _shade_points(normals, points, albedo, light, camera_center):
+    """Shades (B, N, 3) normals at (B, N, 3) points; view directions camera_center - point."""
+    centre, batched = _camera_center(camera_center, points.shape[0])
+    view = None if centre is None else centre - points
+    colours, light_ctx = light.shade(normals, albedo, view)
+    return colours, dict(light=light, light_ctx=light_ctx, camera_batched=batched,
+                         has_camera=centre is not None, batch=points.shape[0])
+
+
+def _shade_points_vjp(ctx, grad_colours):
+    """Light vjp, plus gradients to the points and the camera centre through the view dirs."""
+    grads = ctx["light"].shade_vjp(ctx["light_ctx"], grad_colours)
+    grad_view = grads.pop("view_dirs", None)
+    grad_points = None if grad_view is None else -grad_view
+    if ctx["has_camera"]:
+        grad_c = np.zeros((ctx["batch"], 3)) if grad_view is None else grad_view.sum(axis=1)
+        grads["camera_center"] = grad_c if ctx["camera_batched"] else grad_c.sum(axis=0)
+    return grads, grad_points
+
+
+def shade_vertices(vertices, faces, albedo, light, camera_center=None):
+    """Per-vertex shading with area-weighted vertex normals.
+
+    vertices (B, V, 3); faces (F, 3) or (B, F, 3) int; albedo (B, V, 3); light: a LambertLight,
+    PhongLight or SHLight; camera_center (3,) or (B, 3) (needed by PhongLight).
+    Returns colours (B, V, 3) float64 and ctx for shade_vertices_vjp.
+    """
+    light = _light(light)
+    vertices = _points(vertices, "vertices")
+    albedo = _points(albedo, "albedo", *vertices.shape[:2])
+    normals, normal_ctx = vertex_normals(vertices, faces)
+    colours, ctx = _shade_points(normals, vertices, albedo, light, camera_center)
+    ctx["normal_ctx"] = normal_ctx
+    return colours, ctx
+
+
+def shade_vertices_vjp(ctx, grad_colours) -> dict:
+    """grad_colours (B, V, 3) -> dict vertices, albedo (B, V, 3), camera_center (as passed, when
+    given), and one entry per light parameter (see the light's shade_vjp)."""
+    grads, grad_points = _shade_points_vjp(ctx, grad_colours)
+    grad_vertices = vertex_normals_vjp(ctx["normal_ctx"], grads.pop("normals"))["vertices"]
+    if grad_points is not None:
+        grad_vertices = grad_vertices + grad_points
+    return dict(grads, vertices=grad_vertices)
+
+
+def shade_faces(vertices, faces, albedo, light, camera_center=None):
+    """Per-face shading with face normals, viewed from each face's centroid.
+
+    vertices (B, V, 3); faces (F, 3) or (B, F, 3) int; albedo (B, F, 3); light and camera_center
+    as in shade_vertices. Returns colours (B, F, 3) float64 and ctx for shade_faces_vjp.
+    """
+    light = _light(light)
+    vertices = _points(vertices, "vertices")
+    normals, normal_ctx = face_normals(vertices, faces)
+    albedo = _points(albedo, "albedo", *normals.shape[:2])
+    centroids = gather_corners(vertices, normal_ctx["faces"]).mean(axis=2)
+    colours, ctx = _shade_points(normals, centroids, albedo, light, camera_center)
+    ctx["normal_ctx"] = normal_ctx
+    return colours, ctx
+
+
+def shade_faces_vjp(ctx, grad_colours) -> dict:
+    """grad_colours (B, F, 3) -> dict vertices (B, V, 3), albedo (B, F, 3), camera_center (when
+    given), and one entry per light parameter."""
+    grads, grad_centroids = _shade_points_vjp(ctx, grad_colours)
+    normal_ctx = ctx["normal_ctx"]
+    grad_vertices = face_normals_vjp(normal_ctx, grads.pop("normals"))["vertices"]
+    if grad_centroids is not None:
+        corner = np.repeat(grad_centroids[:, :, None] / 3.0, 3, axis=2)
+        grad_vertices = grad_vertices + scatter_corners(corner, normal_ctx["faces"],
+                                                         normal_ctx["n_vertices"])
+    return dict(grads, vertices=grad_vertices)

@@ -1,0 +1,101 @@
+"""Device choice: environment variables, default ranking, errors."""
+import pyopencl as cl
+import pytest
+
+from softras_cl.cl import device
+
+
+@pytest.fixture(autouse=True)
+def clean_env(monkeypatch):
+    monkeypatch.delenv(device.ENV_VAR, raising=False)
+    monkeypatch.delenv("PYOPENCL_CTX", raising=False)
+
+
+def _same(dev, row):
+    return dev == cl.get_platforms()[row["platform_index"]].get_devices()[row["device_index"]]
+
+
+def test_list_devices_has_one_chosen():
+    rows = device.list_devices()
+    assert rows
+    assert sum(r["chosen"] for r in rows) == 1
+    for r in rows:
+        assert r["type"] in ("CPU", "GPU", "ACCELERATOR", "OTHER")
+        assert isinstance(r["fp64"], bool) and isinstance(r["int64_atomics"], bool)
+    assert _same(device.select_device(), next(r for r in rows if r["chosen"]))
+
+
+def test_default_prefers_gpu_then_preferred_cpu_platform():
+    rows = device.list_devices()
+    chosen = next(r for r in rows if r["chosen"])
+    if any(r["type"] == "GPU" for r in rows):
+        assert chosen["type"] == "GPU"
+    else:
+        for pref in device.PREFERRED_CPU_PLATFORMS:
+            if any(pref.lower() in r["platform_version"].lower() for r in rows if r["type"] == "CPU"):
+                assert pref.lower() in chosen["platform_version"].lower()
+                break
+
+
+def test_select_by_index(monkeypatch):
+    for r in device.list_devices():
+        monkeypatch.setenv(device.ENV_VAR, f"{r['platform_index']}:{r['device_index']}")
+        assert _same(device.select_device(), r)
+        monkeypatch.setenv("PYOPENCL_CTX", "0:0")  # SOFTRAS_CL_DEVICE wins
+        assert _same(device.select_device(), r)
+        monkeypatch.delenv("PYOPENCL_CTX")
+
+
+def test_select_by_substring(monkeypatch):
+    for r in device.list_devices():
+        monkeypatch.setenv(device.ENV_VAR, r["platform_version"].upper())
+        assert device.select_device().platform.version == r["platform_version"]
+
+
+def test_select_pocl_31_if_present(monkeypatch):
+    rows = [r for r in device.list_devices() if "pocl 3.1" in r["platform_version"].lower()]
+    if not rows:
+        pytest.skip("Debian's PoCL 3.1 is not installed")
+    monkeypatch.setenv(device.ENV_VAR, "pocl 3.1")
+    assert "PoCL 3.1" in device.select_device().platform.version
+
+
+def test_pyopencl_ctx(monkeypatch):
+    monkeypatch.setenv("PYOPENCL_CTX", "0:0")
+    assert device.select_device() == cl.get_platforms()[0].get_devices()[0]
+    monkeypatch.setenv("PYOPENCL_CTX", "0")
+    assert device.select_device() == cl.get_platforms()[0].get_devices()[0]
+    monkeypatch.setenv("PYOPENCL_CTX", "99:0")
+    with pytest.raises(ValueError, match="PYOPENCL_CTX"):
+        device.select_device()
+
+
+@pytest.mark.parametrize("value", ["no-such-device-xyz", "99:0", "0:99"])
+def test_bad_value_raises(monkeypatch, value):
+    monkeypatch.setenv(device.ENV_VAR, value)
+    with pytest.raises(ValueError, match="SOFTRAS_CL_DEVICE") as e:
+        device.select_device()
+    assert "Available" in str(e.value)
+    assert not any(r["chosen"] for r in device.list_devices())
+
+
+@pytest.mark.parametrize("broken", ["raise", "empty"])
+def test_no_platform_message(monkeypatch, broken):
+    def fake():
+        if broken == "raise":
+            raise cl.LogicError("clGetPlatformIDs failed: PLATFORM_NOT_FOUND_KHR")
+        return []
+    monkeypatch.setattr(cl, "get_platforms", fake)
+    for call in (device.select_device, device.list_devices):
+        with pytest.raises(RuntimeError, match="pip install pocl-binary-distribution") as e:
+            call()
+        assert "pocl-opencl-icd" in str(e.value)
+
+
+def test_capabilities_and_context_cache():
+    d = device.select_device()
+    assert device.has_fp64(d) == ("cl_khr_fp64" in d.extensions)
+    assert isinstance(device.has_int64_atomics(d), bool)
+    ctx, queue = device.get_context()
+    assert device.get_context(d) == (ctx, queue)
+    assert queue.device == d

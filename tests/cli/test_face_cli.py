@@ -1,0 +1,92 @@
+"""`softras-cl fit-face` end to end on a shipped photo, its bad-input messages, and what an
+interrupted run leaves behind."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from support.interrupt import sigint_once_written
+from softras_cl.cli import main
+from softras_cl.fitting.solver import load_checkpoint
+
+DATA = Path(__file__).resolve().parents[2] / "examples" / "data"
+PHOTO, LANDMARKS = DATA / "astronaut.png", DATA / "astronaut.pts"
+SMALL = ["--size", "80", "--budget", "fast", "--n-id", "4", "--n-exp", "4", "--n-albedo", "2",
+         "--no-progress"]
+
+
+def test_fit_face_writes_every_output(tmp_path, capsys):
+    out = tmp_path / "fit"
+    assert main(["fit-face", str(PHOTO), "--landmarks", str(LANDMARKS), "--out", str(out), *SMALL]) == 0
+    for name in ("face.ply", "overlay.png", "figure.png", "params.json", "params.npz", "loss_curve.png",
+                 "history.json", "checkpoint.npz"):
+        assert (out / name).stat().st_size > 0, name
+    doc = json.loads((out / "params.json").read_text())
+    assert doc["interrupted"] is False and doc["photo_size"] == [512, 512]
+    assert np.isfinite(doc["metrics"]["psnr_face_db"])
+    assert doc["metrics"]["landmark_error_px_full"] < 25.0       # 80 px working image of a 512 px photo
+    params = np.load(out / "params.npz")
+    assert params["K"].shape == (3, 3) and params["id"].shape == (4,)
+    assert "landmark error" in capsys.readouterr().out
+
+
+def _lines(path: Path, points) -> None:
+    path.write_text("\n".join(f"{x} {y}" for x, y in points))
+
+
+@pytest.mark.parametrize("case, match", [
+    ("67 points", "67 points"),
+    ("outside", "outside"),
+    ("bad photo", "astronaut_broken.png"),
+    ("unknown model", "unknown face model layout"),
+])
+def test_bad_input_is_reported_before_fitting(tmp_path, capsys, case, match):
+    photo, lmk, model = PHOTO, LANDMARKS, None
+    if case == "67 points":
+        lmk = tmp_path / "lmk.txt"
+        _lines(lmk, np.full((67, 2), 100.0))
+    elif case == "outside":
+        lmk = tmp_path / "lmk.txt"
+        _lines(lmk, np.full((68, 2), 900.0))
+    elif case == "bad photo":
+        photo = tmp_path / "astronaut_broken.png"
+        photo.write_bytes(b"not an image")
+    else:
+        model = tmp_path / "model.npz"
+        np.savez(model, something=np.zeros(3))
+    argv = ["fit-face", str(photo), "--landmarks", str(lmk), "--out", str(tmp_path / "o"), *SMALL]
+    assert main(argv + (["--model", str(model)] if model else [])) == 2
+    err = capsys.readouterr().err
+    assert "fit-face" in err and match in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path):
+    out = tmp_path / "fit"
+    with sigint_once_written(out / "checkpoint.npz"):
+        code = main(["fit-face", str(PHOTO), "--landmarks", str(LANDMARKS), "--out", str(out),
+                     "--size", "96", "--budget", "thorough", "--no-progress"])
+    assert code == 130
+    doc = json.loads((out / "params.json").read_text())
+    assert doc["interrupted"] is True
+    values, meta = load_checkpoint(out / "checkpoint.npz")
+    assert np.isfinite(values["id"]).all()
+    assert (out / "overlay.png").exists() and (out / "face.ply").exists()
+
+
+def test_bench_face_reports_accuracy_against_time(tmp_path, capsys):
+    out = tmp_path / "bench"
+    assert main(["bench", "face", "--faces", "1", "--size", "96", "--budgets", "fast", "--json",
+                 "--out", str(out)]) == 0
+    doc = json.loads((out / "face.json").read_text())
+    fast = doc["summary"]["fast"]
+    assert fast["faces"] == 1 and fast["median_seconds"] > 0
+    assert fast["rmse_ratio"] < 0.8 and fast["psnr_face_db"] > 25      # far better than the mean face
+    assert (out / "face.png").exists() and (out / "face_strip.png").exists()
+    assert json.loads(capsys.readouterr().out)["summary"]["fast"]["faces"] == 1
+
+
+def test_bench_face_rejects_unknown_budgets(capsys):
+    assert main(["bench", "face", "--budgets", "fast,quick"]) == 2
+    assert "--budgets must name some of" in capsys.readouterr().err

@@ -1,0 +1,154 @@
+"""Body fitting recipe (fitting/body.py): exact objective gradients, the hinge limits, input
+checks, the schedule, and recovery of a known pose from its image and joints."""
+import numpy as np
+import pytest
+from softras_cl.fitting.recipes import body
+from softras_cl.fitting.models.body_loaders import load_demo_body_model
+from softras_cl.fitting.solver import Stage
+
+ALL_TERMS = dict(image=100.0, silhouette=10.0, joints=0.25, pose_prior=1.0, shape_prior=1.0,
+                 translation_prior=1.0, limits=100.0)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_demo_body_model()
+
+
+def _index(model, name):
+    return model.joint_names.index(name) - 1
+
+
+def random_values(model, rng):
+    values = body.rest_values(model)
+    values["betas"] = rng.normal(0, 0.5, model.n_betas)
+    values["body_pose"] = rng.normal(0, 0.15, values["body_pose"].shape)
+    values["body_pose"][_index(model, "left_elbow")] = [0.0, 0.9, 0.0]     # past the limits
+    values["body_pose"][_index(model, "right_knee")] = [-0.4, 0.1, 0.3]
+    values["global_rotation"] = np.array([0.05, 0.2, -0.03])
+    values["translation"] = np.array([0.03, -0.02, 0.05])
+    return values
+
+
+def synthetic_target(model, values, size):
+    """(image (size, size, 3) hard-rendered part colours, 2D joints (J, 2))."""
+    scene = body.BodyScene(model, (size, size), body.BodyFitConfig(size=size))
+    state = scene.pose(values)
+    image = scene.composite(scene.render(state.vertices, 1e-6, 1e-4, color_agg="hard", alpha_agg="hard"))
+    return image, scene.camera.project_pixels(state.joints)[0]
+
+
+@pytest.mark.parametrize("weights, robust", [(ALL_TERMS, 3.0), (ALL_TERMS, None),
+                                             (dict(joints=0.25, pose_prior=1.0, limits=100.0), None)],
+                         ids=["image stage, robust joints", "image stage", "joint stage"])
+def test_objective_gradient_matches_central_differences(model, weights, robust):
+    rng = np.random.default_rng(3)
+    size = 32
+    image, joints = synthetic_target(model, body.rest_values(model), size)
+    scene = body.BodyScene(model, (size, size), body.BodyFitConfig(size=size))
+    scene.settings = scene.settings.replace(dist_eps=1e-9)    # a tiny cut-off: smooth for differences
+    target = body.prepare_target(image, size, joints=np.clip(joints + rng.normal(0, 2, joints.shape), 0, size - 1),
+                                 joint_weights=rng.uniform(0.5, 1.5, model.n_joints), n_joints=model.n_joints)
+    objective = body.BodyObjective(scene, target, robust_px=robust)
+    stage = Stage("s", ("betas",), weights, sigma=1e-4, gamma=1e-2)
+    values = random_values(model, rng)
+    _, grads, terms = objective(values, stage)
+    assert set(terms) == set(weights)
+    picks = [("betas", (0,)), ("betas", (7,)), ("global_rotation", (0,)), ("global_rotation", (1,)),
+             ("translation", (0,)), ("translation", (2,)), ("body_pose", (_index(model, "left_elbow"), 1)),
+             ("body_pose", (_index(model, "right_knee"), 0)), ("body_pose", (_index(model, "spine2"), 2)),
+             ("body_pose", (_index(model, "right_shoulder"), 2))]
+    for name, i in picks:
+        h = 1e-6
+        plus, minus = {**values, name: values[name].copy()}, {**values, name: values[name].copy()}
+        plus[name][i] += h
+        minus[name][i] -= h
+        fd = (objective(plus, stage)[0] - objective(minus, stage)[0]) / (2 * h)
+        assert grads[name][i] == pytest.approx(fd, rel=1e-5, abs=1e-4 * max(1.0, abs(fd))), (name, i)
+
+
+def test_joint_limits_penalise_hyperextension_only_and_have_exact_gradients(model):
+    rows, frames, rest = body.hinge_frames(model)
+    assert [model.joint_names[r + 1] for r in rows] == ["left_knee", "right_knee", "left_elbow", "right_elbow"]
+    assert np.all(rest[2:] > 0.5) and np.all(np.abs(rest[:2]) < 0.3)     # the demo's bent elbows
+    pose = np.zeros((model.n_joints - 1, 3))
+    assert body.joint_limits(pose, rows, frames, rest)[0] == 0.0
+    for r, f in zip(rows, frames):                  # flexing is free, bending backwards is not
+        flexed, hyper = pose.copy(), pose.copy()
+        flexed[r] = f.T @ [1.0, 0.0, 0.0]
+        hyper[r] = f.T @ [-1.0, 0.0, 0.0]
+        assert body.joint_limits(flexed, rows, frames, rest)[0] == 0.0
+        assert body.joint_limits(hyper, rows, frames, rest)[0] > 0.0
+    rng = np.random.default_rng(0)
+    pose = rng.normal(0, 0.8, pose.shape)
+    value, g = body.joint_limits(pose, rows, frames, rest)
+    assert value > 0
+    for r in rows:
+        for c in range(3):
+            plus, minus = pose.copy(), pose.copy()
+            plus[r, c] += 1e-6
+            minus[r, c] -= 1e-6
+            fd = (body.joint_limits(plus, rows, frames, rest)[0] - body.joint_limits(minus, rows, frames, rest)[0]) / 2e-6
+            assert g["coeffs"][r, c] == pytest.approx(fd, rel=1e-6, abs=1e-8)
+    others = np.setdiff1d(np.arange(len(pose)), rows)
+    assert np.all(g["coeffs"][others] == 0.0)
+
+
+def test_part_colours_keep_red_for_the_right_hand(model):
+    colours = body.part_colours(model)
+    hand = model.part_labels == model.part_names.index("right_hand")
+    assert np.allclose(colours[hand], body.RIGHT_HAND_RED)
+    assert np.all(np.abs(colours[~hand] - body.RIGHT_HAND_RED).max(1) > 0.3)
+
+
+@pytest.mark.parametrize("target, joints, match", [
+    (np.zeros((40, 40, 2)), None, "target must be"),
+    (np.zeros((10, 40, 3)), None, "at least 16"),
+    (np.zeros((40, 40, 3)), None, "empty"),
+    ("body", np.zeros((23, 2)), r"joints must have shape \(24, 2\)"),
+    ("body", np.full((24, 2), 500.0), "outside"),
+])
+def test_bad_targets_and_joints_are_rejected(model, target, joints, match):
+    if isinstance(target, str):
+        target = synthetic_target(model, body.rest_values(model), 40)[0]
+    with pytest.raises(ValueError, match=match):
+        body.prepare_target(target, 40, joints=joints, n_joints=model.n_joints)
+
+
+def test_the_schedule_is_followed(model, monkeypatch):
+    seen = []
+    render = body.BodyScene.render
+
+    def recording(self, vertices, sigma, gamma, *args, **kwargs):
+        seen.append((sigma, gamma))
+        return render(self, vertices, sigma, gamma, *args, **kwargs)
+
+    monkeypatch.setattr(body.BodyScene, "render", recording)
+    stages_seen = []
+    image, joints = synthetic_target(model, body.rest_values(model), 32)
+    config = body.BodyFitConfig(size=32, joint_iters=3, image_stages=((1e-4, 1e-2, 3), (3e-5, 3e-3, 3), (1e-5, 1e-3, 3)))
+    fit = body.fit_body(image, model, config, joints=joints, progress=False,
+                        observer=lambda values, stage: stages_seen.append(stage.name))
+    assert list(dict.fromkeys(stages_seen)) == ["joints", "image-1", "image-2", "image-3"]
+    fitting_renders = [s for s in seen if s != (1e-6, 1e-4)]        # not the sharp initial render
+    assert list(dict.fromkeys(fitting_renders)) == [(1e-4, 1e-2), (3e-5, 3e-3), (1e-5, 1e-3)]
+    assert len(fitting_renders) == len(stages_seen) - stages_seen.count("joints")
+    assert set(fit.result.outcomes) == {"joints", "image-1", "image-2", "image-3"}
+
+
+def test_a_small_synthetic_fit_recovers_a_known_pose(model):
+    truth = body.rest_values(model)
+    truth["body_pose"][_index(model, "left_shoulder")] = [0.0, 0.0, 0.5]      # arm raised sideways
+    truth["body_pose"][_index(model, "right_shoulder")] = [0.0, 0.0, -0.4]
+    truth["body_pose"][_index(model, "spine2")] = [0.0, 0.0, 0.15]
+    truth["translation"] = np.array([0.05, 0.0, 0.0])
+    size = 48
+    image, joints = synthetic_target(model, truth, size)
+    config = body.BodyFitConfig.from_budget("fast", size=size)
+    fit = body.fit_body(image, model, config, joints=joints, progress=False)
+    scene = fit.scene
+    error = 1e3 * np.linalg.norm(scene.pose(fit.values).joints - scene.pose(truth).joints, axis=1)
+    start = 1e3 * np.linalg.norm(scene.pose(body.rest_values(model)).joints - scene.pose(truth).joints, axis=1)
+    metrics = fit.metrics()
+    assert error.mean() < 40.0 and error.mean() < 0.5 * start.mean()      # mm
+    assert metrics["silhouette_iou"] > 0.85 and metrics["joint_error_px"] < 1.0

@@ -1,0 +1,191 @@
+"""BodyModel: forward conventions, exact vjp against central finite differences, validation."""
+import numpy as np
+import pytest
+import scipy.sparse
+from softras_cl.fitting.models.body_loaders import load_body_model
+from softras_cl.fitting.models.body_model import BodyModel
+
+from softras_cl.scene.camera import rodrigues
+
+V, J, B = 40, 5, 3
+PARENTS = np.array([-1, 0, 1, 1, 3])
+
+
+def random_model(seed=0, sparse=True, posedirs=True) -> BodyModel:
+    """A small random model: V=40, J=5 (a branching tree), B=3, optional pose blendshapes."""
+    rng = np.random.default_rng(seed)
+    weights = rng.random((V, J)) ** 3
+    weights /= weights.sum(axis=1, keepdims=True)
+    reg = np.zeros((J, V))
+    for j in range(J):
+        idx = rng.choice(V, 4, replace=False)
+        reg[j, idx] = rng.random(4)
+    reg /= reg.sum(axis=1, keepdims=True)
+    return BodyModel(
+        v_template=rng.normal(size=(V, 3)), shapedirs=0.1 * rng.normal(size=(V, 3, B)),
+        J_regressor=scipy.sparse.csc_matrix(reg) if sparse else reg, parents=PARENTS,
+        weights=weights, faces=rng.integers(0, V, size=(30, 3)),
+        posedirs=0.05 * rng.normal(size=(V, 3, 9 * (J - 1))) if posedirs else None)
+
+
+def random_params(seed=1, scale=0.7):
+    rng = np.random.default_rng(seed)
+    return {"betas": rng.normal(size=B), "body_pose": scale * rng.normal(size=(J - 1, 3)),
+            "global_rotation": scale * rng.normal(size=3), "translation": rng.normal(size=3)}
+
+
+def loss_parts(model, params, gv, gj):
+    s = model.forward(**params)
+    return np.sum(s.vertices * gv) + np.sum(s.joints * gj)
+
+
+@pytest.mark.parametrize("sparse", [True, False])
+@pytest.mark.parametrize("posedirs", [True, False])
+def test_vjp_matches_central_differences(sparse, posedirs):
+    model = random_model(sparse=sparse, posedirs=posedirs)
+    params = random_params()
+    rng = np.random.default_rng(2)
+    gv, gj = rng.normal(size=(V, 3)), rng.normal(size=(J, 3))
+    grads = model.vjp(model.forward(**params), gv, gj)
+    eps = 1e-6
+    for name, value in params.items():
+        numeric = np.zeros_like(value)
+        for i in np.ndindex(value.shape):
+            plus = {**params, name: value.copy()}
+            minus = {**params, name: value.copy()}
+            plus[name][i] += eps
+            minus[name][i] -= eps
+            numeric[i] = (loss_parts(model, plus, gv, gj)
+                          - loss_parts(model, minus, gv, gj)) / (2 * eps)
+        assert grads[name].shape == value.shape
+        np.testing.assert_allclose(grads[name], numeric, rtol=1e-6, atol=1e-7, err_msg=name)
+
+
+def test_vjp_at_zero_pose_and_single_cotangents():
+    """Small-angle safe at the rest pose; grad_vertices or grad_joints alone."""
+    model = random_model()
+    params = random_params(scale=0.0)
+    state = model.forward(**params)
+    gj = np.random.default_rng(3).normal(size=(J, 3))
+    only_joints = model.vjp(state, grad_joints=gj)
+    both = model.vjp(state, np.zeros((V, 3)), gj)
+    for k in both:
+        np.testing.assert_allclose(only_joints[k], both[k])
+        assert np.all(np.isfinite(both[k]))
+    zero = model.vjp(state)
+    assert all(not np.any(g) for g in zero.values())
+
+
+def test_dot_product_identity():
+    """<J u, w> == <u, J^T w> for the linearised map params -> (vertices, joints)."""
+    model = random_model(seed=4)
+    params = random_params(seed=5)
+    rng = np.random.default_rng(6)
+    direction = {k: rng.normal(size=np.shape(v)) for k, v in params.items()}
+    gv, gj = rng.normal(size=(V, 3)), rng.normal(size=(J, 3))
+    eps = 1e-6
+    plus = model.forward(**{k: v + eps * direction[k] for k, v in params.items()})
+    minus = model.forward(**{k: v - eps * direction[k] for k, v in params.items()})
+    jvp_v = (plus.vertices - minus.vertices) / (2 * eps)
+    jvp_j = (plus.joints - minus.joints) / (2 * eps)
+    lhs = np.sum(jvp_v * gv) + np.sum(jvp_j * gj)
+    grads = model.vjp(model.forward(**params), gv, gj)
+    rhs = sum(np.sum(grads[k] * direction[k]) for k in params)
+    assert lhs == pytest.approx(rhs, rel=1e-7)
+
+
+def test_rest_pose_is_shaped_template_and_translation_adds():
+    model = random_model()
+    betas = np.array([0.5, -1.0, 2.0])
+    s = model.forward(betas, np.zeros((J - 1, 3)), np.zeros(3), np.array([1.0, 2.0, 3.0]))
+    shaped = model.v_template + model.shapedirs @ betas
+    np.testing.assert_allclose(s.vertices, shaped + [1, 2, 3], atol=1e-12)
+    np.testing.assert_allclose(s.joints, model.rest_joints(betas) + [1, 2, 3], atol=1e-12)
+    np.testing.assert_allclose(model.rest_joints(betas), model.J_regressor @ shaped, atol=1e-12)
+
+
+def test_global_rotation_turns_about_the_root_joint():
+    model = random_model(posedirs=False)
+    betas, omega = np.zeros(B), np.array([0.3, -0.2, 0.9])
+    s = model.forward(betas, np.zeros((J - 1, 3)), omega, np.zeros(3))
+    root = model.rest_joints(betas)[0]
+    expected = (model.v_template - root) @ rodrigues(omega).T + root
+    np.testing.assert_allclose(s.vertices, expected, atol=1e-12)
+
+
+def test_joint_rotation_moves_only_its_subtree():
+    """Rotating joint 3 (children: 4) leaves joints 0..3 in place and moves joint 4 about 3."""
+    model = random_model(posedirs=False)
+    pose = np.zeros((J - 1, 3))
+    pose[2] = [0.0, 0.0, 1.0]  # joint 3
+    s = model.forward(np.zeros(B), pose, np.zeros(3), np.zeros(3))
+    rest = model.rest_joints(np.zeros(B))
+    np.testing.assert_allclose(s.joints[:4], rest[:4], atol=1e-12)
+    np.testing.assert_allclose(s.joints[4], rodrigues([0, 0, 1.0]) @ (rest[4] - rest[3])
+                               + rest[3], atol=1e-12)
+    weights = np.zeros((V, J))
+    weights[:, 2] = 1.0  # all vertices on joint 2: unaffected by joint 3's rotation
+    rigid = BodyModel(model.v_template, model.shapedirs, model.J_regressor, PARENTS, weights,
+                      model.faces)
+    s = rigid.forward(np.zeros(B), pose, np.zeros(3), np.zeros(3))
+    np.testing.assert_allclose(s.vertices, rigid.v_template, atol=1e-12)
+
+
+def test_flat_body_pose_accepted():
+    model = random_model()
+    p = random_params()
+    a = model.forward(**p).vertices
+    b = model.forward(**{**p, "body_pose": p["body_pose"].ravel()}).vertices
+    np.testing.assert_array_equal(a, b)
+
+
+def test_save_and_load_round_trip(tmp_path):
+    model = random_model()
+    model = BodyModel(model.v_template, model.shapedirs, model.J_regressor, model.parents,
+                      model.weights, model.faces, joint_names=list("abcde"),
+                      posedirs=model.posedirs, part_labels=np.arange(V) % 3,
+                      part_names=["x", "y", "z"])
+    model.save(tmp_path / "m.npz")
+    back = load_body_model(tmp_path / "m.npz")
+    for k in ("v_template", "shapedirs", "posedirs", "parents", "weights", "faces",
+              "part_labels"):
+        np.testing.assert_array_equal(getattr(back, k), getattr(model, k), err_msg=k)
+    np.testing.assert_array_equal(back.J_regressor.toarray(), model.J_regressor.toarray())
+    assert back.joint_names == list("abcde") and back.part_names == ["x", "y", "z"]
+    assert back.faces.dtype == np.int32 and (back.n_betas, back.n_joints) == (B, J)
+
+
+def _fields(model):
+    return {"v_template": model.v_template, "shapedirs": model.shapedirs,
+            "J_regressor": model.J_regressor, "parents": model.parents,
+            "weights": model.weights, "faces": model.faces, "posedirs": model.posedirs}
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("v_template", np.zeros((V, 2)), r"v_template must have shape \(\*, 3\)"),
+    ("shapedirs", np.zeros((V, 3)), r"shapedirs must have shape \(40, 3, \*\)"),
+    ("weights", np.zeros((V + 1, J)), r"weights must have shape \(40, \*\)"),
+    ("J_regressor", np.zeros((J, V + 2)), r"J_regressor must have shape \(5, 40\)"),
+    ("parents", np.array([0, 0, 1, 1, 3]), r"parents\[0\] must be -1"),
+    ("parents", np.array([-1, 0, 4, 1, 3]), r"parents\[j\] < j"),
+    ("parents", np.array([-1, 0, 1]), r"parents must have shape \(5,\)"),
+    ("posedirs", np.zeros((V, 3, 9)), r"posedirs must have shape \(40, 3, 36\)"),
+    ("faces", np.array([[0, 1, V]]), r"faces must index vertices 0..39"),
+    ("v_template", np.full((V, 3), np.nan), "v_template contains non-finite"),
+])
+def test_validation_names_field_and_shape(field, value, message):
+    fields = _fields(random_model())
+    fields[field] = value
+    with pytest.raises(ValueError, match=message):
+        BodyModel(**fields)
+
+
+def test_forward_argument_errors():
+    model = random_model()
+    p = random_params()
+    with pytest.raises(ValueError, match=r"betas must have shape \(3,\)"):
+        model.forward(**{**p, "betas": np.zeros(4)})
+    with pytest.raises(ValueError, match=r"body_pose must have shape \(4, 3\)"):
+        model.forward(**{**p, "body_pose": np.zeros((3, 3))})
+    with pytest.raises(ValueError, match=r"grad_vertices must have shape \(40, 3\)"):
+        model.vjp(model.forward(**p), np.zeros((V, 2)))

@@ -1,0 +1,276 @@
+"""OpenCL soft rasteriser against the dense float64 reference (forward) and against central finite
+differences in float64 (backward), on random meshes with overlapping and occluded faces."""
+import numpy as np
+import pytest
+
+from softras_cl import RasterSettings, SoftRasterizer
+from softras_cl.raster import reference
+
+OUTPUTS = ("rgb", "alpha", "depth")
+H, W = 13, 18  # non-square, not a multiple of the 8-pixel tile
+
+
+def random_scene(seed, batch=2, n_vertices=12, n_faces=10, texture="vertex"):
+    """Screen-space triangles spread over the image at depths 2..4 (they overlap and occlude)."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-1.1, 1.1, (batch, n_vertices, 2)) * [W / H, 1.0]
+    z = rng.uniform(2.0, 4.0, (batch, n_vertices, 1))
+    vertices = np.concatenate([xy, z], -1)
+    faces = rng.integers(0, n_vertices, (n_faces, 3))
+    faces = faces[np.array([len(set(f)) == 3 for f in faces])]
+    colours = {
+        "vertex": dict(colors=rng.uniform(0, 1, (batch, n_vertices, 3))),
+        "face": dict(face_textures=rng.uniform(0, 1, (batch, len(faces), 3, 3, 3))),
+        "uv": dict(texture_image=rng.uniform(0, 1, (batch, 5, 7, 3)),
+                   uvs=rng.uniform(-0.1, 1.1, (batch, n_vertices, 2))),
+    }[texture]
+    return vertices, faces, colours
+
+
+def settings(**kw):
+    base = dict(image_size=(H, W), sigma=2e-3, gamma=3e-2, dist_eps=0.0, near=1.0, far=10.0,
+                double_sided=True, outputs=OUTPUTS, dtype="float64", background=(0.2, 0.3, 0.4))
+    base.update(kw)
+    return RasterSettings(**base)
+
+
+VARIANTS = [
+    dict(),
+    dict(metric="barycentric"),
+    dict(alpha_agg="sum", sigma=1e-4),
+    dict(perspective_correct=False),
+    dict(double_sided=False),
+    dict(color_agg="hard", alpha_agg="hard"),
+    dict(texture="face"),
+    dict(texture="uv"),
+    dict(texture="uv", metric="barycentric", perspective_correct=False),
+    dict(outputs=("alpha",)),
+    dict(outputs=("depth",)),
+]
+
+
+def _ids(variants):
+    return [",".join(f"{k}={v}" for k, v in d.items()) or "default" for d in variants]
+
+
+@pytest.mark.parametrize("variant", VARIANTS, ids=_ids(VARIANTS))
+def test_forward_matches_reference_float64(variant):
+    s = settings(**variant)
+    vertices, faces, colours = random_scene(0, texture=s.texture)
+    colours = colours if "rgb" in s.outputs else {}
+    out = SoftRasterizer(s).forward(vertices, faces, **colours)
+    ref = reference.soft_rasterize(vertices, faces, s, **colours)
+    for name in s.outputs:
+        got, want = getattr(out, name), ref[name]
+        assert got.shape == want.shape
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9 * max(1.0, np.abs(want).max()),
+                                   err_msg=name)
+    assert 0.01 < ref["alpha" if "alpha" in s.outputs else s.outputs[0]].std()  # scene not empty
+
+
+@pytest.mark.parametrize("gamma", [3e-2, 1e-4])
+def test_float32_matches_float64(gamma):
+    """float32 kernels within 1e-4 of the float64 reference at gamma = 3e-2. At gamma = 1e-4 the
+    exponent zn / gamma (up to 1e4) carries float32's rounding (1e4 * 6e-8 = 6e-4 relative) into
+    the softmax weights, so there the stated tolerance is 2e-3."""
+    s = settings(dtype="float32", gamma=gamma)
+    vertices, faces, colours = random_scene(1)
+    out = SoftRasterizer(s).forward(vertices, faces, **colours)
+    ref = reference.soft_rasterize(vertices, faces, s, **colours)
+    tol = 1e-4 if gamma > 1e-3 else 2e-3
+    np.testing.assert_allclose(out.rgb, ref["rgb"], atol=tol)
+    np.testing.assert_allclose(out.alpha, ref["alpha"], atol=tol)
+    np.testing.assert_allclose(out.depth, ref["depth"], rtol=tol)
+
+
+def test_cutoff_error_is_bounded_by_dist_eps():
+    """Skipping pairs with D < dist_eps changes alpha by at most about (faces) * dist_eps."""
+    vertices, faces, colours = random_scene(2)
+    exact = SoftRasterizer(settings()).forward(vertices, faces, **colours)
+    cut = SoftRasterizer(settings(dist_eps=1e-4)).forward(vertices, faces, **colours)
+    err = np.abs(exact.alpha - cut.alpha).max()
+    assert 0 < err <= len(faces) * 1e-4
+
+
+def test_sharp_limit_equals_hard_zbuffer_away_from_edges():
+    """At sigma=1e-9, gamma=1e-8 the soft image is the z-buffer image except at edge pixels."""
+    vertices, faces, colours = random_scene(3)
+    sharp = dict(sigma=1e-9, gamma=1e-8, dist_eps=1e-4)
+    soft = SoftRasterizer(settings(**sharp)).forward(vertices, faces, **colours)
+    hard = SoftRasterizer(settings(color_agg="hard", alpha_agg="hard", **sharp)).forward(
+        vertices, faces, **colours)
+    tri = reference.gather_corners(vertices, np.broadcast_to(faces, (2, *faces.shape)))
+    d2 = reference.squared_edge_distance(reference.pixel_centers(H, W), tri).min(-1)
+    interior = d2 > (1e-3) ** 2       # farther than 1e-3 NDC from every edge
+    assert interior.mean() > 0.8
+    np.testing.assert_allclose(soft.rgb[interior], hard.rgb[interior], atol=1e-6)
+    np.testing.assert_allclose(soft.alpha[interior], hard.alpha[interior], atol=1e-6)
+    np.testing.assert_allclose(soft.depth[interior], hard.depth[interior], rtol=1e-6)
+
+
+# ---- adjoints against central finite differences -------------------------------------------
+def _cotangents(s, seed, batch=2):
+    rng = np.random.default_rng(seed)
+    shapes = dict(rgb=(batch, H, W, 3), alpha=(batch, H, W), depth=(batch, H, W))
+    return {f"grad_{n}": rng.normal(size=shapes[n]) * (0.1 if n == "depth" else 1.0) for n in s.outputs}
+
+
+def _loss(raster, vertices, faces, colours, cot):
+    out = raster.forward(vertices, faces, **colours)
+    return sum((getattr(out, name[5:]) * g).sum() for name, g in cot.items())
+
+
+def _central_difference(f, x, indices, h=1e-6):
+    grad = np.zeros(len(indices))
+    for n, i in enumerate(indices):
+        xp, xm = x.copy(), x.copy()
+        xp.flat[i] += h
+        xm.flat[i] -= h
+        grad[n] = (f(xp) - f(xm)) / (2 * h)
+    return grad
+
+
+def _colour_key(s):
+    return {"vertex": "colors", "face": "face_textures", "uv": "texture_image"}[s.texture]
+
+
+@pytest.mark.parametrize("variant", VARIANTS, ids=_ids(VARIANTS))
+def test_gradients_match_finite_differences(variant):
+    s = settings(**variant)
+    vertices, faces, colours = random_scene(4, texture=s.texture)
+    colours = colours if "rgb" in s.outputs else {}
+    raster = SoftRasterizer(s)
+    cot = _cotangents(s, 5)
+    grads = ("vertices", "colors") if colours else ("vertices",)
+    g = raster.backward(raster.forward(vertices, faces, grads=grads, **colours), **cot)
+
+    idx = np.arange(vertices.size)
+    num = _central_difference(lambda v: _loss(raster, v, faces, colours, cot), vertices, idx)
+    assert np.abs(num).max() > 1e-3
+    np.testing.assert_allclose(g["vertices"].ravel(), num, rtol=0, atol=1e-6 * np.abs(num).max())
+
+    if colours:
+        key = _colour_key(s)
+        c = colours[key]
+        idx = np.random.default_rng(6).choice(c.size, min(c.size, 60), replace=False)
+        f = lambda x: _loss(raster, vertices, faces, {**colours, key: x}, cot)
+        num = _central_difference(f, c, idx)
+        assert g["colors"].shape == c.shape
+        np.testing.assert_allclose(g["colors"].ravel()[idx], num, rtol=0, atol=1e-6 * np.abs(num).max())
+
+
+def test_occluded_faces_receive_gradients():
+    """A face entirely hidden behind a nearer one still gets position and depth gradients
+    (eq. 11-12), which a z-buffer renderer cannot give."""
+    front = [[-0.8, -0.8, 2.0], [0.8, -0.8, 2.0], [0.0, 0.8, 2.0]]
+    back = [[-0.3, -0.3, 3.0], [0.3, -0.3, 3.0], [0.0, 0.3, 3.0]]
+    vertices = np.array(front + back)
+    faces = np.array([[0, 1, 2], [3, 4, 5]])
+    colours = np.array([[1.0, 0, 0]] * 3 + [[0, 0, 1.0]] * 3)
+    s = settings(image_size=(16, 16), sigma=1e-4, gamma=0.1)
+    raster = SoftRasterizer(s)
+    out = raster.forward(vertices, faces, colors=colours, grads=("vertices",))
+    g = raster.backward(out, grad_rgb=np.ones_like(out.rgb))["vertices"]
+    assert np.abs(g[3:, :2]).max() > 1e-6    # hidden face: x, y
+    assert np.abs(g[3:, 2]).max() > 1e-6     # hidden face: depth
+
+
+def test_results_are_bit_identical_run_to_run():
+    for texture in ("vertex", "uv"):
+        s = settings(texture=texture, dtype="float32", dist_eps=1e-4)
+        vertices, faces, colours = random_scene(7, texture=texture)
+        raster = SoftRasterizer(s)
+        cot = _cotangents(s, 8)
+        runs = []
+        for _ in range(3):
+            out = raster.forward(vertices, faces, grads=("vertices", "colors"), **colours)
+            runs.append((out.rgb, out.alpha, out.depth, *raster.backward(out, **cot).values()))
+        for later in runs[1:]:
+            for a, b in zip(runs[0], later):
+                assert np.array_equal(a, b)
+
+
+def test_unbatched_inputs_give_unbatched_gradients():
+    vertices, faces, colours = random_scene(9, batch=1)
+    s = settings()
+    raster = SoftRasterizer(s)
+    out = raster.forward(vertices[0], faces, colors=colours["colors"][0], grads=("vertices", "colors"))
+    assert out.rgb.shape == (1, H, W, 3)
+    g = raster.backward(out, **_cotangents(s, 1, batch=1))
+    assert g["vertices"].shape == vertices[0].shape and g["colors"].shape == (12, 3)
+
+
+def test_memory_grows_with_bins_not_pixels_times_faces():
+    """Buffers are per pixel, per face and per (tile, face) bin entry: doubling the face count
+    of a fixed-footprint mesh does not multiply the bin entries by the tile count."""
+    from softras_cl.scene.meshes import screen_space_sphere
+    s = RasterSettings(image_size=(256, 256))
+    counts = []
+    for sub in (3, 4):
+        v, f, c = screen_space_sphere(sub)
+        out = SoftRasterizer(s).forward(v, f, colors=c, grads=("vertices",))
+        counts.append((len(f), out.saved["bins"].n_entries))
+    (f3, e3), (f4, e4) = counts
+    tiles = (256 // 8) ** 2
+    assert e3 < 0.05 * f3 * tiles and e4 < 0.05 * f4 * tiles
+    assert e4 / e3 < 4.0   # 4x faces, each smaller: fewer than 4x entries
+
+
+def test_unused_outputs_are_neither_computed_nor_allocated():
+    vertices, faces, _ = random_scene(10)
+    out = SoftRasterizer(settings(outputs=("alpha",))).forward(vertices, faces, grads=("vertices",))
+    assert out.rgb is None and out.depth is None
+    assert set(out.saved["images"]) == {"alpha", "state"}
+    assert "color" not in out.saved["images"]["state"]     # no softmax normaliser without rgb/depth
+
+
+def test_fast_math_variant_stays_close_to_exact_maths():
+    """-cl-fast-relaxed-math is an accuracy knob; in float32 it stays within 1e-4 here."""
+    vertices, faces, colours = random_scene(11)
+    exact = SoftRasterizer(settings(dtype="float32")).forward(vertices, faces, **colours)
+    fast = SoftRasterizer(settings(dtype="float32", fast_math=True)).forward(vertices, faces, **colours)
+    for name in OUTPUTS:
+        np.testing.assert_allclose(getattr(fast, name), getattr(exact, name), rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("lighting", ["lambert", "sh"])
+def test_per_pixel_lighting_forward_and_gradients(lighting):
+    """Albedo and normals interpolated per pixel and lit in the kernel: forward against the
+    reference, and gradients for positions, albedo, normals and the 27 light parameters
+    against finite differences."""
+    s = settings(lighting=lighting)
+    vertices, faces, colours = random_scene(12)
+    rng = np.random.default_rng(13)
+    normals = rng.normal(size=(2, 12, 3))
+    light = (np.r_[0.3, 0.4, 0.2, 0.6, 0.5, 0.7, 0.48, 0.6, 0.64, np.zeros(18)] if lighting == "lambert"
+             else rng.normal(scale=0.4, size=27))
+    inputs = dict(colors=colours["colors"], normals=normals, light=light)
+    raster = SoftRasterizer(s)
+    out = raster.forward(vertices, faces, grads=("vertices", "colors"), **inputs)
+    ref = reference.soft_rasterize(vertices, faces, s, **inputs)
+    np.testing.assert_allclose(out.rgb, ref["rgb"], rtol=1e-9, atol=1e-9)
+    cot = _cotangents(s, 14)
+    g = raster.backward(out, **cot)
+    assert set(g) == {"vertices", "colors", "normals", "light"}
+    loss = lambda **kw: _loss(raster, kw.pop("v", vertices), faces, {**inputs, **kw}, cot)
+    for key, value in (("v", vertices), ("colors", inputs["colors"]), ("normals", normals), ("light", light)):
+        idx = np.random.default_rng(15).choice(value.size, min(value.size, 30), replace=False)
+        num = _central_difference(lambda x: loss(**{key: x}), value, idx)
+        got = g["vertices" if key == "v" else key].ravel()[idx]
+        np.testing.assert_allclose(got, num, rtol=0, atol=1e-6 * np.abs(num).max(), err_msg=key)
+
+
+def test_flat_face_colours_fast_path():
+    """R = 1 face textures (flat colour per face) take a lookup-free path in both kernels."""
+    s = settings(texture="face")
+    vertices, faces, _ = random_scene(16)
+    textures = np.random.default_rng(17).uniform(0, 1, (2, len(faces), 1, 1, 3))
+    raster = SoftRasterizer(s)
+    out = raster.forward(vertices, faces, face_textures=textures, grads=("vertices", "colors"))
+    ref = reference.soft_rasterize(vertices, faces, s, face_textures=textures)
+    np.testing.assert_allclose(out.rgb, ref["rgb"], rtol=1e-9, atol=1e-9)
+    cot = _cotangents(s, 18)
+    g = raster.backward(out, **cot)
+    f = lambda x: _loss(raster, vertices, faces, {"face_textures": x}, cot)
+    num = _central_difference(f, textures, np.arange(textures.size))
+    np.testing.assert_allclose(g["colors"].ravel(), num, rtol=0, atol=1e-6 * np.abs(num).max())

@@ -1,0 +1,175 @@
+"""The whole render path (camera -> normals -> lighting -> soft raster) against central finite
+differences in float64: gradients of an image loss for vertices, albedo, camera and light."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from softras_cl import RasterSettings
+from softras_cl.scene.camera import Camera
+from softras_cl.scene.meshes import icosphere
+from softras_cl.scene.renderer import Renderer
+from softras_cl.scene.shading import LambertLight, PhongLight, SHLight
+
+H, W = 18, 22
+H_STEP = 1e-6
+
+
+def scene(seed=0):
+    rng = np.random.default_rng(seed)
+    v, f = icosphere(1, radius=0.6)
+    v = v + rng.normal(scale=0.03, size=v.shape)
+    albedo = rng.uniform(0.2, 0.9, v.shape)
+    return v, f, albedo
+
+
+def cameras():
+    return [Camera.look_at((0.4, 0.5, 3.0), (0.0, 0.05, 0.0), fov_deg=35, image_size=(H, W)),
+            Camera.look_at((-1.5, 0.3, 2.2), (0.05, 0.0, 0.0), fov_deg=40, image_size=(H, W))]
+
+
+LIGHTS = {
+    "lambert": LambertLight(ambient=(0.3, 0.4, 0.5), directional=(0.6, 0.5, 0.4), direction=(0.3, 1.0, 0.6)),
+    "phong": PhongLight(ambient=0.3, directional=0.6, direction=(0.5, 0.8, 0.7), specular=0.3, shininess=5.0),
+    "sh": SHLight(np.random.default_rng(3).normal(scale=0.3, size=(3, 9)) + SHLight.ambient(0.8).coefficients),
+}
+
+
+def settings(**kw):
+    base = dict(image_size=(H, W), sigma=1e-3, gamma=1e-2, dist_eps=0.0, near=0.5, far=10.0,
+                outputs=("rgb", "alpha", "depth"), dtype="float64")
+    return RasterSettings(**{**base, **kw})
+
+
+def _loss_fn(renderer, faces, cot):
+    def loss(vertices, cams, albedo, light):
+        out = renderer.forward(vertices, faces, cams, albedo=albedo, light=light)
+        return sum((getattr(out, k) * g).sum() for k, g in cot.items())
+    return loss
+
+
+def _cot(batch, seed=1):
+    rng = np.random.default_rng(seed)
+    return dict(rgb=rng.normal(size=(batch, H, W, 3)), alpha=rng.normal(size=(batch, H, W)),
+                depth=0.1 * rng.normal(size=(batch, H, W)))
+
+
+def _fd(f, x, indices):
+    out = []
+    for i in indices:
+        xp, xm = x.copy(), x.copy()
+        xp.flat[i] += H_STEP
+        xm.flat[i] -= H_STEP
+        out.append((f(xp) - f(xm)) / (2 * H_STEP))
+    return np.array(out)
+
+
+def _assert_close(analytic, numeric, what):
+    scale = max(np.abs(numeric).max(), 1e-8)
+    np.testing.assert_allclose(analytic, numeric, rtol=0, atol=1e-6 * scale, err_msg=what)
+
+
+CASES = [(shading, light) for shading in ("vertex", "face") for light in sorted(LIGHTS)]
+CASES += [("pixel", "lambert"), ("pixel", "sh")]
+
+
+@pytest.mark.parametrize("shading,light_name", CASES)
+def test_render_path_gradients_match_finite_differences(shading, light_name):
+    v, f, albedo = scene()
+    cams, light = cameras(), LIGHTS[light_name]
+    renderer = Renderer(settings(), shading=shading)
+    cot = _cot(len(cams))
+    out = renderer.forward(v, f, cams, albedo=albedo, light=light,
+                           grads=("vertices", "albedo", "camera", "light"))
+    g = renderer.backward(out, grad_rgb=cot["rgb"], grad_alpha=cot["alpha"], grad_depth=cot["depth"])
+    loss = _loss_fn(renderer, f, cot)
+    rng = np.random.default_rng(2)
+
+    idx = rng.choice(v.size, 24, replace=False)
+    _assert_close(g["vertices"].ravel()[idx], _fd(lambda x: loss(x, cams, albedo, light), v, idx), "vertices")
+    idx = rng.choice(albedo.size, 12, replace=False)
+    _assert_close(g["albedo"].ravel()[idx], _fd(lambda x: loss(v, cams, x, light), albedo, idx), "albedo")
+
+    for view in range(len(cams)):
+        def with_view(**params):
+            return [c.with_params(**params) if i == view else c for i, c in enumerate(cams)]
+        cam = cams[view]
+        for name in ("rotation", "translation"):
+            num = _fd(lambda x: loss(v, with_view(**{name: x}), albedo, light), getattr(cam, name), range(3))
+            _assert_close(g["camera"][view][name], num, f"camera {view} {name}")
+        num = _fd(lambda x: loss(v, with_view(fx=x[0], fy=x[1]), albedo, light), cam.focal, range(2))
+        _assert_close(g["camera"][view]["focal"], num, f"camera {view} focal")
+
+    for name, value in light.params().items():
+        value = np.asarray(value, np.float64)
+        num = _fd(lambda x: loss(v, cams, albedo, dataclasses.replace(light, **{name: x.reshape(value.shape)})),
+                  value, range(value.size))
+        _assert_close(np.ravel(g["light"][name]), num, f"light {name}")
+
+
+def test_unlit_uv_texture_gradients_and_single_camera_sum():
+    """shading='none' with a uv texture; one Camera for a batch of two meshes sums its gradient."""
+    v, f, _ = scene(4)
+    rng = np.random.default_rng(5)
+    uvs = rng.uniform(0, 1, (len(v), 2))
+    image = rng.uniform(0, 1, (1, 6, 5, 3))
+    verts = np.stack([v, v + [0.05, -0.02, 0.1]])
+    cam = cameras()[0]
+    renderer = Renderer(settings(), shading="none")
+    cot = _cot(2, seed=6)
+    out = renderer.forward(verts, f, cam, texture_image=image, uvs=uvs, grads=("vertices", "albedo", "camera"))
+    g = renderer.backward(out, grad_rgb=cot["rgb"], grad_alpha=cot["alpha"], grad_depth=cot["depth"])
+
+    def loss(vx, c, img):
+        o = renderer.forward(vx, f, c, texture_image=img, uvs=uvs)
+        return sum((getattr(o, k) * gk).sum() for k, gk in cot.items())
+
+    idx = rng.choice(verts.size, 12, replace=False)
+    _assert_close(g["vertices"].ravel()[idx], _fd(lambda x: loss(x, cam, image), verts, idx), "vertices")
+    idx = rng.choice(image.size, 12, replace=False)
+    _assert_close(g["albedo"].ravel()[idx], _fd(lambda x: loss(verts, cam, x), image, idx), "texture")
+    num = _fd(lambda x: loss(verts, cam.with_params(translation=x), image), cam.translation, range(3))
+    _assert_close(g["camera"]["translation"], num, "translation")
+
+
+def test_only_requested_gradients_are_returned():
+    v, f, albedo = scene()
+    renderer = Renderer(settings(outputs=("rgb",)))
+    out = renderer.forward(v, f, cameras()[0], albedo=albedo, grads=("light",))
+    g = renderer.backward(out, grad_rgb=np.ones_like(out.rgb))
+    assert set(g) == {"light"}
+    assert set(g["light"]) == {"ambient", "directional", "direction"}
+    assert out.saved["raster_out"].saved["grads"] == ("colors",)   # no position adjoint compiled
+
+
+def test_bad_scene_input_is_named():
+    v, f, albedo = scene()
+    renderer = Renderer(settings())
+    with pytest.raises(ValueError, match="image_size"):
+        renderer.forward(v, f, Camera.look_at((0, 0, 3), (0, 0, 0), image_size=(10, 10)), albedo=albedo)
+    with pytest.raises(ValueError, match="behind the camera"):
+        renderer.forward(v, f, Camera.look_at((0, 0, 0.3), (0, 0, 0), image_size=(H, W)), albedo=albedo)
+    with pytest.raises(ValueError, match="albedo"):
+        renderer.forward(v, f, cameras()[0])
+    with pytest.raises(ValueError, match="faces"):
+        renderer.forward(v, np.zeros((0, 3), int), cameras()[0], albedo=albedo)
+    with pytest.raises(ValueError, match="shading"):
+        Renderer(settings(), shading="per-pixel-magic")
+
+
+def test_per_pixel_shading_agrees_with_per_vertex_on_a_fine_mesh():
+    """On a finely tessellated sphere, lighting per pixel and per vertex give nearly the same
+    image (they differ by the interpolation of a smooth function)."""
+    v, f = icosphere(4, radius=0.6)
+    albedo = np.full(v.shape, 0.8)
+    light = LIGHTS["sh"]
+    cam = cameras()[0]
+    images = [Renderer(settings(outputs=("rgb",)), shading=mode).forward(v, f, cam, albedo=albedo, light=light).rgb
+              for mode in ("vertex", "pixel")]
+    assert np.abs(images[0] - images[1]).max() < 0.02
+
+
+def test_per_pixel_shading_rejects_phong():
+    v, f, albedo = scene()
+    with pytest.raises(ValueError, match="light"):
+        Renderer(settings(), shading="pixel").forward(v, f, cameras()[0], albedo=albedo, light=LIGHTS["phong"])
