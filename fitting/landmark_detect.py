@@ -144,9 +144,9 @@ def draw_landmarks(image, points, scale: float = 1.0, numbers: bool = True):
              (range(31, 36), False, (0, 255, 255)), (range(36, 42), True, (0, 255, 0)),
              (range(42, 48), True, (0, 255, 0)), (range(48, 60), True, (255, 0, 255)),
              (range(60, 68), True, (255, 80, 80))]
-    for idx, closed, colour in parts:
+    for idx, closed, color in parts:
         seq = list(idx) + ([idx[0]] if closed else [])
-        d.line([tuple(p[i]) for i in seq], fill=colour, width=1)
+        d.line([tuple(p[i]) for i in seq], fill=color, width=1)
     for i, (x, y) in enumerate(p):
         d.ellipse([x - 1.5, y - 1.5, x + 1.5, y + 1.5], fill=(255, 0, 0))
         if numbers:

@@ -20,7 +20,7 @@ from softras_cl.raster.settings import RasterSettings
 SIZE = (480, 320)  # (H, W)
 
 
-def part_colours(model) -> np.ndarray:
+def part_colors(model) -> np.ndarray:
     """Per-vertex albedo (V, 3): one hue per body part."""
     n = len(model.part_names)
     palette = np.array([colorsys.hsv_to_rgb((k * 0.618) % 1.0, 0.55, 0.9) for k in range(n)])
@@ -66,7 +66,7 @@ def main(argv=None) -> None:
     ap.add_argument("--out", type=Path, default=Path("docs/demo_body.png"))
     args = ap.parse_args(argv)
     model = load_demo_body_model()
-    albedo = part_colours(model)
+    albedo = part_colors(model)
     items = panels(model)
     fig, axes = plt.subplots(3, 3, figsize=(7.2, 10.5))
     for ax, (title, state, eye, joints) in zip(axes.ravel(), items):

@@ -105,7 +105,7 @@ RIGHT_HAND_RED = (0.9, 0.02, 0.02)
 # model-derived constants
 # ---------------------------------------------------------------------------------------------
 
-def part_colours(model) -> np.ndarray:
+def part_colors(model) -> np.ndarray:
     """(V, 3) float64 linear RGB: one colour per body part (``model.part_labels``; for a model
     without parts, each vertex's dominant skinning joint). Hues skip red, which is kept for the
     part named ``right_hand`` (paper figure 13)."""
@@ -304,7 +304,7 @@ class BodyScene:
     def __init__(self, model, image_size, config: BodyFitConfig = BodyFitConfig()):
         self.model, self.config = model, config
         self.image_size = tuple(int(n) for n in image_size)
-        self.colours = part_colours(model)
+        self.colors = part_colors(model)
         self.camera = Camera.look_at((0.0, config.height, config.distance), (0.0, config.height, 0.0),
                                      fov_deg=config.fov_deg, image_size=self.image_size)
         near = max(0.05, config.distance - DEPTH_RANGE / 2)
@@ -318,13 +318,13 @@ class BodyScene:
         return self.model.forward(values["betas"], values["body_pose"], values["global_rotation"],
                                   values["translation"])
 
-    def render(self, vertices, sigma: float, gamma: float, grads=(), colours=None, faces=None, **changes):
+    def render(self, vertices, sigma: float, gamma: float, grads=(), colors=None, faces=None, **changes):
         """RenderOutput of posed vertices (V, 3) with part colours (or ``colours`` (V, 3)), the
         model's faces (or a subset ``faces`` (F', 3)); ``changes``: other RasterSettings fields
         (e.g. color_agg="hard")."""
         self.renderer.settings = dataclasses.replace(self.settings, sigma=sigma, gamma=gamma, **changes)
         return self.renderer.forward(vertices, self.model.faces if faces is None else faces, self.camera,
-                                     albedo=self.colours if colours is None else colours, grads=grads)
+                                     albedo=self.colors if colors is None else colors, grads=grads)
 
     def composite(self, out) -> np.ndarray:
         """(H, W, 3) the render's rgb composited by its alpha over the background."""

@@ -27,7 +27,7 @@ PYRAMID = 4        # L2 on the composite and on 3 levels of 2x2 average pooling 
 FIRST_STEP = 1.0   # radians, L-BFGS's first step in each stage (chosen on seed 1, not 0)
 
 
-def colour_cube(half_size: float = 0.5):
+def color_cube(half_size: float = 0.5):
     """(vertices (8, 3), faces (12, 3) outward CCW, face colours (12, 3)): one colour per side."""
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float) * half_size
     sides = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
@@ -50,8 +50,8 @@ class PoseScene:
     far: float = 100.0
 
     def __post_init__(self):
-        self.vertices, self.faces, colours = colour_cube()
-        self.textures = colours[None, :, None, None, :]
+        self.vertices, self.faces, colors = color_cube()
+        self.textures = colors[None, :, None, None, :]
         self.camera = Camera.look_at((0.0, 0.0, self.distance), (0.0, 0.0, 0.0), fov_deg=self.fov_deg,
                                      image_size=(self.size, self.size))
         self._renderers: dict = {}

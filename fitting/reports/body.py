@@ -82,7 +82,7 @@ def write_outputs(fit: BodyFit, target: np.ndarray, out_dir, extra: dict | None 
     out.mkdir(parents=True, exist_ok=True)
     metrics = fit.metrics()
     state = fit.scene.pose(fit.values)
-    save_mesh(out / "body.ply", state.vertices, fit.scene.model.faces, colors=fit.scene.colours)
+    save_mesh(out / "body.ply", state.vertices, fit.scene.model.faces, colors=fit.scene.colors)
     save_overlay(fit, target, out / "overlay.png")
     camera = full_size_scene(fit, max(fit.target.full_size)).camera
     arrays = {**{k: np.asarray(v) for k, v in fit.values.items()}, **camera_matrices(camera),

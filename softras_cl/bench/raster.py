@@ -322,11 +322,11 @@ def report_text(result: dict) -> str:
 MARKERS = {("float64", False): "o", ("float64", True): "s", ("float32", False): "^", ("float32", True): "v"}
 
 
-def accuracy_legend(ax, eps_colours: dict) -> None:
+def accuracy_legend(ax, eps_colors: dict) -> None:
     """Legend of the accuracy panels: colour = dist_eps, marker = dtype and maths, fill = reference."""
     from matplotlib.lines import Line2D
 
-    handles = [Line2D([], [], ls="", marker="o", color=c, label=f"dist_eps={e:g}") for e, c in eps_colours.items()]
+    handles = [Line2D([], [], ls="", marker="o", color=c, label=f"dist_eps={e:g}") for e, c in eps_colors.items()]
     handles += [Line2D([], [], ls="", marker=m, color="grey", label=f"{d}{', fast maths' if fm else ''}")
                 for (d, fm), m in MARKERS.items()]
     handles += [Line2D([], [], ls="", marker="o", color="k", label="vs exact float64 (dist_eps=0)"),
@@ -347,7 +347,7 @@ def save_chart(result: dict, path: Path) -> None:
     fig, axes = plt.subplots(1, 3, figsize=(19, 6.5))
     scene, acc = result["accuracy_scene"], result["accuracy"]
     eps_values = sorted({r["dist_eps"] for r in acc})
-    eps_colours = {e: plt.cm.viridis(i / max(len(eps_values) - 1, 1)) for i, e in enumerate(eps_values)}
+    eps_colors = {e: plt.cm.viridis(i / max(len(eps_values) - 1, 1)) for i, e in enumerate(eps_values)}
     # rgb is left out of the first panel: against the exact result its error is ~1 at every
     # cut-off (docs/conventions.md: the cut-off shapes the softmax image), which hides the rest
     for ax, keys, title in ((axes[0], ("alpha",), "max abs error of alpha"),
@@ -357,14 +357,14 @@ def save_chart(result: dict, path: Path) -> None:
                 errs = [row[prefix + k] for k in keys]
                 if None in errs:
                     continue
-                colour = eps_colours[row["dist_eps"]]
+                color = eps_colors[row["dist_eps"]]
                 ax.scatter(row["fwdbwd_ms"], max(max(errs), ZERO_FLOOR), s=36,
                            marker=MARKERS[row["dtype"], row["fast_math"]],
-                           facecolors=colour if filled else "none", edgecolors=colour)
+                           facecolors=color if filled else "none", edgecolors=color)
         ax.set(xscale="log", yscale="log", xlabel="forward+backward ms",
                ylabel=f"{title} (0 drawn at {ZERO_FLOOR:g})",
                title=f"{title}\n{scene['faces']} faces at {scene['size']}^2")
-        accuracy_legend(ax, eps_colours)
+        accuracy_legend(ax, eps_colors)
     rows = [r for r in result["raster"] if r["pairs"]]
     for size in sorted({r["size"] for r in rows}):
         pts = [r for r in rows if r["size"] == size]

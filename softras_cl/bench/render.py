@@ -109,10 +109,10 @@ def effect_call(scene: RenderScene, effect: str) -> tuple:
     from softras_cl.scene.shading import LambertLight
 
     settings, shading_mode = render_settings(scene.size), "vertex"
-    colour = dict(albedo=scene.albedo, light=scene.sh_light)
+    color = dict(albedo=scene.albedo, light=scene.sh_light)
     grads = RENDER_GRADS
     if effect == "texture":
-        shading_mode, colour = "none", dict(texture_image=scene.texture, uvs=scene.uvs)
+        shading_mode, color = "none", dict(texture_image=scene.texture, uvs=scene.uvs)
         # texel gradients need 64-bit atomics (SoftRasterizer.forward): without them, none
         grads = ("vertices", "albedo", "camera") if texel_gradients_supported() else ("vertices", "camera")
     elif effect in ("face", "pixel"):
@@ -122,15 +122,15 @@ def effect_call(scene: RenderScene, effect: str) -> tuple:
     elif effect == "double_sided":
         settings = settings.replace(double_sided=True)
     elif effect == "lambert":
-        colour = dict(albedo=scene.albedo, light=LambertLight())
+        color = dict(albedo=scene.albedo, light=LambertLight())
     elif effect == "alpha_only":
-        settings, shading_mode, colour = settings.replace(outputs=("alpha",)), "none", {}
+        settings, shading_mode, color = settings.replace(outputs=("alpha",)), "none", {}
         grads = ("vertices", "camera")
     elif effect != "base":
         raise ValueError(f"unknown effect {effect!r}")
     cot = dict(grad_rgb=scene.grad_rgb, grad_alpha=scene.grad_alpha, grad_depth=scene.grad_depth)
     backward = {f"grad_{o}": cot[f"grad_{o}"] for o in settings.outputs}
-    forward = dict(vertices=scene.vertices, faces=scene.faces, cameras=scene.camera, grads=grads, **colour)
+    forward = dict(vertices=scene.vertices, faces=scene.faces, cameras=scene.camera, grads=grads, **color)
     return Renderer(settings, shading=shading_mode), forward, backward
 
 
@@ -170,10 +170,10 @@ def mirror_once(raster, scene: RenderScene) -> tuple:
     centres = cam.center()[None]
     albedo = np.broadcast_to(np.asarray(scene.albedo, np.float64), verts.shape).copy()
     a = clock()
-    colours, shade_ctx = shading.shade_vertices(verts, faces, albedo, scene.sh_light, centres)
+    colors, shade_ctx = shading.shade_vertices(verts, faces, albedo, scene.sh_light, centres)
     t["shading_fwd"] = clock() - a
     a = clock()
-    out = raster.forward(screen, faces, colors=colours, grads=("vertices", "colors"))
+    out = raster.forward(screen, faces, colors=colors, grads=("vertices", "colors"))
     t["raster_fwd_fwd"] = clock() - a
     t["forward"] = clock() - start
     start_bwd = clock()

@@ -26,8 +26,8 @@ def _run_render(args: argparse.Namespace) -> int:
         albedo = mesh.colors if mesh.colors is not None else np.full(mesh.vertices.shape, 0.7)
         start = time.perf_counter()
         if textured or args.light == "none":
-            colour = dict(texture_image=mesh.texture[None], uvs=mesh.uvs) if textured else dict(albedo=albedo)
-            out = Renderer(settings, shading="none").forward(mesh.vertices, mesh.faces, camera, **colour)
+            color = dict(texture_image=mesh.texture[None], uvs=mesh.uvs) if textured else dict(albedo=albedo)
+            out = Renderer(settings, shading="none").forward(mesh.vertices, mesh.faces, camera, **color)
         else:
             out = Renderer(settings, shading=args.shading).forward(mesh.vertices, mesh.faces, camera,
                                                                    albedo=albedo, light=make_light(args))

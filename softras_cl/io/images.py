@@ -28,7 +28,7 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 @functools.lru_cache(maxsize=1)
-def _colour():
+def _colour_science():
     """colour-science, imported on first use (its import takes about a second)."""
     import colour
     return colour
@@ -37,13 +37,13 @@ def _colour():
 def to_linear(srgb) -> np.ndarray:
     """sRGB-encoded values (any shape) -> linear values, float64 (IEC 61966-2-1 decoding)."""
     x = np.asarray(srgb, dtype=np.float64)
-    return np.asarray(_colour().cctf_decoding(x, function="sRGB"), dtype=np.float64)
+    return np.asarray(_colour_science().cctf_decoding(x, function="sRGB"), dtype=np.float64)
 
 
 def to_srgb(linear) -> np.ndarray:
     """Linear values (any shape) -> sRGB-encoded values, float64 (IEC 61966-2-1 encoding)."""
     x = np.asarray(linear, dtype=np.float64)
-    return np.asarray(_colour().cctf_encoding(x, function="sRGB"), dtype=np.float64)
+    return np.asarray(_colour_science().cctf_encoding(x, function="sRGB"), dtype=np.float64)
 
 
 # ---------------------------------------------------------------------------------------------

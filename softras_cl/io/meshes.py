@@ -160,7 +160,7 @@ class _Part:
     texture: np.ndarray | None = None
 
 
-def _colour_values(values, linear: bool) -> np.ndarray:
+def _color_values(values, linear: bool) -> np.ndarray:
     """(N, 3|4) integer (full range) or float colours -> (N, 3) float64 linear RGB."""
     c = np.asarray(values)
     if c.ndim == 1:
@@ -196,16 +196,16 @@ def _material(material):
         return None, None
     if isinstance(material, PBRMaterial):
         factor = material.baseColorFactor
-        factor = None if factor is None else _colour_values(factor, linear=True)[0]
+        factor = None if factor is None else _color_values(factor, linear=True)[0]
         return material.baseColorTexture, factor
     if isinstance(material, SimpleMaterial):
         if material.image is not None:
             return material.image, None
         diffuse = getattr(material, "diffuse", None)
-        return None, None if diffuse is None else _colour_values(diffuse, linear=False)[0]
+        return None, None if diffuse is None else _color_values(diffuse, linear=False)[0]
     main = getattr(material, "main_color", None)
     return getattr(material, "image", None), (None if main is None
-                                              else _colour_values(main, linear=False)[0])
+                                              else _color_values(main, linear=False)[0])
 
 
 def _part(geometry, transform: np.ndarray, gltf: bool) -> _Part:
@@ -218,9 +218,9 @@ def _part(geometry, transform: np.ndarray, gltf: bool) -> _Part:
     visual = geometry.visual
     if isinstance(visual, ColorVisuals):
         if visual.kind == "vertex":
-            part.colors = _colour_values(visual.vertex_colors, linear=gltf)
+            part.colors = _color_values(visual.vertex_colors, linear=gltf)
         elif visual.kind == "face":
-            part.face_colors = _colour_values(visual.face_colors, linear=gltf)
+            part.face_colors = _color_values(visual.face_colors, linear=gltf)
     elif isinstance(visual, TextureVisuals):
         uv = visual.uv
         if uv is not None and len(uv) != len(v):
@@ -229,7 +229,7 @@ def _part(geometry, transform: np.ndarray, gltf: bool) -> _Part:
         uv = None if uv is None else np.asarray(uv, dtype=np.float64)
         attrs = visual.vertex_attributes
         if "color" in attrs and len(attrs["color"]) == len(v):    # glTF COLOR_0 + a material
-            part.colors = _colour_values(attrs["color"], linear=gltf)
+            part.colors = _color_values(attrs["color"], linear=gltf)
         image, factor = _material(visual.material)
         part.uvs = uv
         if image is not None and uv is not None:

@@ -167,9 +167,9 @@ def check_inputs(s: RasterSettings, vertices, faces, colors=None, face_textures=
         mesh.texture_image, mesh.colors_batched = _float_array("texture_image", texture_image, (None, None, 3))
         mesh.uvs, _ = _float_array("uvs", uvs, (n_vertices, 2))
     _check_lighting(s, mesh, normals, light)
-    colour = next((getattr(mesh, n) for n in ("colors", "face_textures", "texture_image")
-                   if getattr(mesh, n) is not None), None)
-    mesh.colors_batch = colour.shape[0] if colour is not None else 1
+    color = next((getattr(mesh, n) for n in ("colors", "face_textures", "texture_image")
+                  if getattr(mesh, n) is not None), None)
+    mesh.colors_batch = color.shape[0] if color is not None else 1
     for name in ("colors", "face_textures", "texture_image", "uvs", "normals"):
         if getattr(mesh, name) is not None:
             setattr(mesh, name, _match_batch(name, getattr(mesh, name), b))

@@ -477,6 +477,6 @@ def _check_grads(grads, s: RasterSettings) -> tuple:
     return grads
 
 
-def soft_rasterize(vertices, faces, settings: RasterSettings | None = None, **colour_inputs) -> RasterOutput:
+def soft_rasterize(vertices, faces, settings: RasterSettings | None = None, **color_inputs) -> RasterOutput:
     """One-shot forward: SoftRasterizer(settings).forward(vertices, faces, **colour_inputs)."""
-    return SoftRasterizer(settings or RasterSettings()).forward(vertices, faces, **colour_inputs)
+    return SoftRasterizer(settings or RasterSettings()).forward(vertices, faces, **color_inputs)

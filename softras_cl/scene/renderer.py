@@ -72,10 +72,10 @@ class Renderer:
         light = light if light is not None else shading.LambertLight()
         screen, cam_ctx = zip(*(cam.project(v) for cam, v in zip(cameras, verts)))
         screen = np.concatenate(screen, 0)
-        colour_args, shade_ctx = self._colours(verts, faces, cameras, albedo, light, face_textures,
+        color_args, shade_ctx = self._colors(verts, faces, cameras, albedo, light, face_textures,
                                                texture_image, uvs)
-        raster = self._rasterizer(cameras[0].projection, colour_args, light)
-        out = raster.forward(screen, faces, grads=_raster_grads(grads, self.shading), **colour_args)
+        raster = self._rasterizer(cameras[0].projection, color_args, light)
+        out = raster.forward(screen, faces, grads=_raster_grads(grads, self.shading), **color_args)
         saved = dict(raster=raster, raster_out=out, cameras=cameras, cam_ctx=cam_ctx,
                      shade_ctx=shade_ctx, light=light, grads=grads, batched=batched,
                      single_camera=single_camera,
@@ -99,7 +99,7 @@ class Renderer:
         return self._collect(saved, g_raster, g_shade, g_cams)
 
     # ---- stages ----------------------------------------------------------------------------
-    def _colours(self, verts, faces, cameras, albedo, light, face_textures, texture_image, uvs):
+    def _colors(self, verts, faces, cameras, albedo, light, face_textures, texture_image, uvs):
         """Raster colour arguments and the shading context (None when unlit)."""
         if self.shading == "none":
             given = dict(colors=albedo, face_textures=face_textures, texture_image=texture_image, uvs=uvs)
@@ -110,18 +110,18 @@ class Renderer:
         batch_albedo = np.broadcast_to(np.asarray(albedo, np.float64), verts.shape).copy() \
             if np.ndim(albedo) == 2 else np.asarray(albedo, np.float64)
         if self.shading == "vertex":
-            colours, ctx = shading.shade_vertices(verts, faces, batch_albedo, light, centres)
-            return dict(colors=colours), ctx
+            colors, ctx = shading.shade_vertices(verts, faces, batch_albedo, light, centres)
+            return dict(colors=colors), ctx
         if self.shading == "pixel":
             normals, ctx = shading.vertex_normals(verts, faces)
             return dict(colors=batch_albedo, normals=normals, light=_light_vector(light)), ctx
         face_albedo = batch_albedo[:, faces].mean(axis=2)
-        colours, ctx = shading.shade_faces(verts, faces, face_albedo, light, centres)
-        return dict(face_textures=colours[:, :, None, None, :]), ctx
+        colors, ctx = shading.shade_faces(verts, faces, face_albedo, light, centres)
+        return dict(face_textures=colors[:, :, None, None, :]), ctx
 
-    def _rasterizer(self, projection: str, colour_args: dict, light) -> SoftRasterizer:
-        texture = ("face" if "face_textures" in colour_args else
-                   "uv" if "texture_image" in colour_args else "vertex")
+    def _rasterizer(self, projection: str, color_args: dict, light) -> SoftRasterizer:
+        texture = ("face" if "face_textures" in color_args else
+                   "uv" if "texture_image" in color_args else "vertex")
         lighting = ("none" if self.shading != "pixel" else
                     "sh" if isinstance(light, shading.SHLight) else "lambert")
         s = self.settings.replace(texture=texture, lighting=lighting,
@@ -130,17 +130,17 @@ class Renderer:
             self._rasterizers[s] = SoftRasterizer(s, device=self.device)
         return self._rasterizers[s]
 
-    def _shading_vjp(self, saved: dict, g_colours) -> dict:
+    def _shading_vjp(self, saved: dict, g_colors) -> dict:
         """Shading vjp (vertices, albedo, camera_center, light parameters), or {} when unlit."""
-        if saved["shade_ctx"] is None or g_colours is None:
+        if saved["shade_ctx"] is None or g_colors is None:
             return {}
         if self.shading == "pixel":
             g_raster = saved["raster_grads"]
             return dict(shading.vertex_normals_vjp(saved["shade_ctx"], g_raster["normals"]),
-                        albedo=g_colours, **_light_vector_vjp(saved["light"], g_raster["light"]))
+                        albedo=g_colors, **_light_vector_vjp(saved["light"], g_raster["light"]))
         if self.shading == "vertex":
-            return shading.shade_vertices_vjp(saved["shade_ctx"], g_colours)
-        return shading.shade_faces_vjp(saved["shade_ctx"], g_colours[:, :, 0, 0, :])
+            return shading.shade_vertices_vjp(saved["shade_ctx"], g_colors)
+        return shading.shade_faces_vjp(saved["shade_ctx"], g_colors[:, :, 0, 0, :])
 
     def _collect(self, saved: dict, g_raster: dict, g_shade: dict, g_cams: list) -> dict:
         grads, out = saved["grads"], {}
@@ -234,5 +234,5 @@ def _check_grad_groups(grads, shading_mode: str) -> tuple:
 def _raster_grads(grads: tuple, shading_mode: str) -> tuple:
     """What the rasteriser must differentiate for the requested groups."""
     positions = {"vertices", "camera"} & set(grads)
-    colours = {"albedo", "light"} & set(grads) or (positions and shading_mode != "none")
-    return (("vertices",) if positions else ()) + (("colors",) if colours else ())
+    colors = {"albedo", "light"} & set(grads) or (positions and shading_mode != "none")
+    return (("vertices",) if positions else ()) + (("colors",) if colors else ())

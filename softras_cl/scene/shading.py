@@ -228,10 +228,10 @@ class LambertLight:
         normals, albedo, _ = _shade_inputs(normals, albedo, view_dirs, needs_view=False)
         return self._diffuse(normals, albedo)
 
-    def shade_vjp(self, ctx, grad_colours) -> dict:
+    def shade_vjp(self, ctx, grad_colors) -> dict:
         """grad_colours (B, N, 3) -> dict normals, albedo (B, N, 3); ambient, directional,
         direction (3,)."""
-        grads, grad_light = self._diffuse_vjp(ctx, np.asarray(grad_colours, np.float64))
+        grads, grad_light = self._diffuse_vjp(ctx, np.asarray(grad_colors, np.float64))
         grads["direction"] = _normalize_vjp(ctx["light"], ctx["light_len"], grad_light)
         return grads
 
@@ -263,7 +263,7 @@ class PhongLight(LambertLight):
         """normals, albedo, view_dirs (B, N, 3); view_dirs point from the surface to the camera
         (normalised here, so camera_center - point may be passed). -> colours (B, N, 3), ctx."""
         normals, albedo, view_dirs = _shade_inputs(normals, albedo, view_dirs, needs_view=True)
-        colours, ctx = self._diffuse(normals, albedo)
+        colors, ctx = self._diffuse(normals, albedo)
         view, view_len = _normalize(view_dirs)
         half, half_len = _normalize(ctx["light"] + view)
         cos_h = np.sum(normals * half, -1)
@@ -272,12 +272,12 @@ class PhongLight(LambertLight):
         power = np.where(on, base ** self.shininess, 0.0)
         ctx.update(view=view, view_len=view_len, half=half, half_len=half_len, on=on, base=base,
                    power=power)
-        return colours + self.specular * power[..., None], ctx
+        return colors + self.specular * power[..., None], ctx
 
-    def shade_vjp(self, ctx, grad_colours) -> dict:
+    def shade_vjp(self, ctx, grad_colors) -> dict:
         """grad_colours (B, N, 3) -> dict normals, albedo, view_dirs (B, N, 3); ambient,
         directional, direction, specular (3,); shininess (float)."""
-        grad = np.asarray(grad_colours, np.float64)
+        grad = np.asarray(grad_colors, np.float64)
         grads, grad_light = self._diffuse_vjp(ctx, grad)
         p, on, base = self.shininess, ctx["on"], ctx["base"]
         grad_power = grad @ self.specular
@@ -357,9 +357,9 @@ class SHLight:
         ctx = dict(normals=normals, albedo=albedo, basis=basis, irradiance=irradiance)
         return albedo * irradiance, ctx
 
-    def shade_vjp(self, ctx, grad_colours) -> dict:
+    def shade_vjp(self, ctx, grad_colors) -> dict:
         """grad_colours (B, N, 3) -> dict normals, albedo (B, N, 3); coefficients (3, 9)."""
-        grad = np.asarray(grad_colours, np.float64)
+        grad = np.asarray(grad_colors, np.float64)
         grad_irr = grad * ctx["albedo"]
         grad_basis = grad_irr @ (self.coefficients * SH_A)
         return dict(normals=sh_basis_vjp(ctx["normals"], grad_basis),
@@ -391,14 +391,14 @@ def _shade_points(normals, points, albedo, light, camera_center):
     """Shades (B, N, 3) normals at (B, N, 3) points; view directions camera_center - point."""
     centre, batched = _camera_center(camera_center, points.shape[0])
     view = None if centre is None else centre - points
-    colours, light_ctx = light.shade(normals, albedo, view)
-    return colours, dict(light=light, light_ctx=light_ctx, camera_batched=batched,
+    colors, light_ctx = light.shade(normals, albedo, view)
+    return colors, dict(light=light, light_ctx=light_ctx, camera_batched=batched,
                          has_camera=centre is not None, batch=points.shape[0])
 
 
-def _shade_points_vjp(ctx, grad_colours):
+def _shade_points_vjp(ctx, grad_colors):
     """Light vjp, plus gradients to the points and the camera centre through the view dirs."""
-    grads = ctx["light"].shade_vjp(ctx["light_ctx"], grad_colours)
+    grads = ctx["light"].shade_vjp(ctx["light_ctx"], grad_colors)
     grad_view = grads.pop("view_dirs", None)
     grad_points = None if grad_view is None else -grad_view
     if ctx["has_camera"]:
@@ -418,15 +418,15 @@ def shade_vertices(vertices, faces, albedo, light, camera_center=None):
     vertices = _points(vertices, "vertices")
     albedo = _points(albedo, "albedo", *vertices.shape[:2])
     normals, normal_ctx = vertex_normals(vertices, faces)
-    colours, ctx = _shade_points(normals, vertices, albedo, light, camera_center)
+    colors, ctx = _shade_points(normals, vertices, albedo, light, camera_center)
     ctx["normal_ctx"] = normal_ctx
-    return colours, ctx
+    return colors, ctx
 
 
-def shade_vertices_vjp(ctx, grad_colours) -> dict:
+def shade_vertices_vjp(ctx, grad_colors) -> dict:
     """grad_colours (B, V, 3) -> dict vertices, albedo (B, V, 3), camera_center (as passed, when
     given), and one entry per light parameter (see the light's shade_vjp)."""
-    grads, grad_points = _shade_points_vjp(ctx, grad_colours)
+    grads, grad_points = _shade_points_vjp(ctx, grad_colors)
     grad_vertices = vertex_normals_vjp(ctx["normal_ctx"], grads.pop("normals"))["vertices"]
     if grad_points is not None:
         grad_vertices = grad_vertices + grad_points
@@ -444,15 +444,15 @@ def shade_faces(vertices, faces, albedo, light, camera_center=None):
     normals, normal_ctx = face_normals(vertices, faces)
     albedo = _points(albedo, "albedo", *normals.shape[:2])
     centroids = gather_corners(vertices, normal_ctx["faces"]).mean(axis=2)
-    colours, ctx = _shade_points(normals, centroids, albedo, light, camera_center)
+    colors, ctx = _shade_points(normals, centroids, albedo, light, camera_center)
     ctx["normal_ctx"] = normal_ctx
-    return colours, ctx
+    return colors, ctx
 
 
-def shade_faces_vjp(ctx, grad_colours) -> dict:
+def shade_faces_vjp(ctx, grad_colors) -> dict:
     """grad_colours (B, F, 3) -> dict vertices (B, V, 3), albedo (B, F, 3), camera_center (when
     given), and one entry per light parameter."""
-    grads, grad_centroids = _shade_points_vjp(ctx, grad_colours)
+    grads, grad_centroids = _shade_points_vjp(ctx, grad_colors)
     normal_ctx = ctx["normal_ctx"]
     grad_vertices = face_normals_vjp(normal_ctx, grads.pop("normals"))["vertices"]
     if grad_centroids is not None:

@@ -71,9 +71,9 @@ def compare_mesh(mesh: Mesh, camera: Camera, background=(1.0, 1.0, 1.0), dtype: 
 def _gouraud(mesh: Mesh, albedo, light, camera: Camera, ref: RayCastImage, background) -> np.ndarray:
     """Lambert colours at the vertices (same shading code as ours), interpolated at each hit with
     its 3D barycentrics, i.e. perspective-correct, as the rasteriser does."""
-    colours, _ = shade_vertices(mesh.vertices[None], mesh.faces, np.asarray(albedo)[None], light,
+    colors, _ = shade_vertices(mesh.vertices[None], mesh.faces, np.asarray(albedo)[None], light,
                                 camera.center())
-    corner = colours[0][mesh.faces[np.maximum(ref.face, 0)]]           # (H, W, 3 corners, 3)
+    corner = colors[0][mesh.faces[np.maximum(ref.face, 0)]]           # (H, W, 3 corners, 3)
     rgb = (corner * ref.bary[..., None]).sum(axis=2)
     return np.where(ref.mask[..., None], rgb, np.asarray(background))
 

@@ -15,13 +15,13 @@ def test_every_device_matches_reference(device):
     rng = np.random.default_rng(0)
     vertices = np.concatenate([rng.uniform(-1, 1, (9, 2)), rng.uniform(2, 4, (9, 1))], 1)
     faces = np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8], [0, 4, 8]])
-    colours = rng.uniform(0, 1, (9, 3))
+    colors = rng.uniform(0, 1, (9, 3))
     dtype = "float64" if has_fp64(device) else "float32"
     s = RasterSettings(image_size=(10, 21), sigma=1e-3, gamma=1e-2, dist_eps=0, double_sided=True,
                        outputs=("rgb", "alpha", "depth"), dtype=dtype, far=10.0)
     raster = SoftRasterizer(s, device=device)
-    out = raster.forward(vertices, faces, colors=colours, grads=("vertices", "colors"))
-    ref = reference.soft_rasterize(vertices, faces, s, colors=colours)
+    out = raster.forward(vertices, faces, colors=colors, grads=("vertices", "colors"))
+    ref = reference.soft_rasterize(vertices, faces, s, colors=colors)
     tol = 1e-9 if dtype == "float64" else 1e-4
     for name in s.outputs:
         np.testing.assert_allclose(getattr(out, name), ref[name], rtol=tol, atol=tol)

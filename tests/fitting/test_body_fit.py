@@ -94,11 +94,11 @@ def test_joint_limits_penalise_hyperextension_only_and_have_exact_gradients(mode
     assert np.all(g["coeffs"][others] == 0.0)
 
 
-def test_part_colours_keep_red_for_the_right_hand(model):
-    colours = body.part_colours(model)
+def test_part_colors_keep_red_for_the_right_hand(model):
+    colors = body.part_colors(model)
     hand = model.part_labels == model.part_names.index("right_hand")
-    assert np.allclose(colours[hand], body.RIGHT_HAND_RED)
-    assert np.all(np.abs(colours[~hand] - body.RIGHT_HAND_RED).max(1) > 0.3)
+    assert np.allclose(colors[hand], body.RIGHT_HAND_RED)
+    assert np.all(np.abs(colors[~hand] - body.RIGHT_HAND_RED).max(1) > 0.3)
 
 
 @pytest.mark.parametrize("target, joints, match", [

@@ -22,7 +22,7 @@ def assert_front_faces_toward_plus_z(model):
 
 # -- BFM 2009 ------------------------------------------------------------------------------------
 @pytest.mark.parametrize("v73", [False, True], ids=["mat-v5", "mat-v7.3"])
-def test_bfm2009_units_colours_and_winding(tmp_path, v73):
+def test_bfm2009_units_colors_and_winding(tmp_path, v73):
     path = tmp_path / "01_MorphableModel.mat"
     src = {k: np.asarray(v, dtype=np.float64) for k, v in write_bfm2009(path, v73=v73).items()}
     m = load_face_model(path)

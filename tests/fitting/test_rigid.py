@@ -4,18 +4,18 @@ import json
 import numpy as np
 
 from softras_cl.cli import main
-from softras_cl.fitting.recipes.rigid import (PoseScene, colour_cube, fit_rotation, pose_objective,
+from softras_cl.fitting.recipes.rigid import (PoseScene, color_cube, fit_rotation, pose_objective,
                                       random_rotations, rotation_error_deg, schedule)
 from softras_cl.fitting.solver import Stage
 from softras_cl.scene.camera import rodrigues
 
 
-def test_colour_cube_is_closed_outward_and_one_colour_per_side():
-    v, f, colours = colour_cube()
+def test_color_cube_is_closed_outward_and_one_color_per_side():
+    v, f, colors = color_cube()
     normals = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
     assert (np.einsum("fi,fi->f", normals, v[f].mean(1)) > 0).all()
-    assert len(np.unique(colours, axis=0)) == 6
-    assert (colours[0::2] == colours[1::2]).all()
+    assert len(np.unique(colors, axis=0)) == 6
+    assert (colors[0::2] == colors[1::2]).all()
 
 
 def test_random_rotations_are_uniform_on_so3():

@@ -38,7 +38,7 @@ def bilinear(tex, uv):
 
 # --------------------------------------------------------------------------------- PLY / OFF
 
-def test_ply_vertex_colours(tmp_path):
+def test_ply_vertex_colors(tmp_path):
     m = trimesh.Trimesh(TETRA_V, TETRA_F, vertex_colors=rgba(TETRA_RGB), process=False)
     m.export(tmp_path / "t.ply")
     mesh = load_mesh(tmp_path / "t.ply")
@@ -50,7 +50,7 @@ def test_ply_vertex_colours(tmp_path):
     assert mesh.uvs is None and mesh.texture is None and mesh.face_colors is None
 
 
-def test_ply_keeps_vertex_order_duplicates_and_face_colours(tmp_path):
+def test_ply_keeps_vertex_order_duplicates_and_face_colors(tmp_path):
     v = np.concatenate([TETRA_V, TETRA_V[:1], [[5.0, 5.0, 5.0]]])      # a duplicate, an unused
     f = np.array([[4, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
     fc = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255], [50, 100, 150]], np.uint8)
@@ -62,7 +62,7 @@ def test_ply_keeps_vertex_order_duplicates_and_face_colours(tmp_path):
     np.testing.assert_allclose(mesh.face_colors, to_linear(fc / 255.0), atol=1e-12)
 
 
-def test_off_geometry_and_coff_colours(tmp_path):
+def test_off_geometry_and_coff_colors(tmp_path):
     trimesh.Trimesh(TETRA_V, TETRA_F, process=False).export(tmp_path / "t.off")
     mesh = load_mesh(tmp_path / "t.off")
     np.testing.assert_allclose(mesh.vertices, TETRA_V)
@@ -130,7 +130,7 @@ def test_obj_face_normals_do_not_split_vertices(tmp_path):
     np.testing.assert_array_equal(mesh.faces, TETRA_F)
 
 
-def test_obj_material_colours(tmp_path):
+def test_obj_material_colors(tmp_path):
     (tmp_path / "m.mtl").write_text("newmtl a\nKd 1 0 0\nnewmtl b\nKd 0 0.5 1\n")
     (tmp_path / "m.obj").write_text("mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"
                                     "usemtl a\nf 1 3 2\nusemtl b\nf 1 2 4\n")

@@ -213,7 +213,7 @@ def test_uvs_wrong_dtype_and_values(no_kernels):
     ("uv", "uvs", {"texture_image": UV_IMAGE}),
     ("uv", "texture_image", {"uvs": UVS}),
 ])
-def test_colour_input_missing_for_rgb(no_kernels, texture, missing, given):
+def test_color_input_missing_for_rgb(no_kernels, texture, missing, given):
     with raises(ValueError, missing):
         rasterizer(texture=texture).forward(VERTS, FACES, **given)
 
@@ -226,13 +226,13 @@ def test_colour_input_missing_for_rgb(no_kernels, texture, missing, given):
     ("uv", {"colors": COLORS}, "texture_image"),
     ("uv", {"face_textures": np.zeros((1, F, 1, 1, 3))}, "texture_image"),
 ])
-def test_colour_input_of_the_wrong_kind(no_kernels, texture, given, expected):
+def test_color_input_of_the_wrong_kind(no_kernels, texture, given, expected):
     # the message names the argument given and the one the texture mode expects
     with raises(ValueError, sorted(given)[0], expected):
         rasterizer(texture=texture).forward(VERTS, FACES, **given)
 
 
-def test_colour_input_without_rgb_output(no_kernels):
+def test_color_input_without_rgb_output(no_kernels):
     with raises(ValueError, "colors"):
         rasterizer(outputs=("alpha", "depth")).forward(VERTS, FACES, colors=COLORS)
 

@@ -18,13 +18,13 @@ def random_scene(seed, batch=2, n_vertices=12, n_faces=10, texture="vertex"):
     vertices = np.concatenate([xy, z], -1)
     faces = rng.integers(0, n_vertices, (n_faces, 3))
     faces = faces[np.array([len(set(f)) == 3 for f in faces])]
-    colours = {
+    colors = {
         "vertex": dict(colors=rng.uniform(0, 1, (batch, n_vertices, 3))),
         "face": dict(face_textures=rng.uniform(0, 1, (batch, len(faces), 3, 3, 3))),
         "uv": dict(texture_image=rng.uniform(0, 1, (batch, 5, 7, 3)),
                    uvs=rng.uniform(-0.1, 1.1, (batch, n_vertices, 2))),
     }[texture]
-    return vertices, faces, colours
+    return vertices, faces, colors
 
 
 def settings(**kw):
@@ -56,10 +56,10 @@ def _ids(variants):
 @pytest.mark.parametrize("variant", VARIANTS, ids=_ids(VARIANTS))
 def test_forward_matches_reference_float64(variant):
     s = settings(**variant)
-    vertices, faces, colours = random_scene(0, texture=s.texture)
-    colours = colours if "rgb" in s.outputs else {}
-    out = SoftRasterizer(s).forward(vertices, faces, **colours)
-    ref = reference.soft_rasterize(vertices, faces, s, **colours)
+    vertices, faces, colors = random_scene(0, texture=s.texture)
+    colors = colors if "rgb" in s.outputs else {}
+    out = SoftRasterizer(s).forward(vertices, faces, **colors)
+    ref = reference.soft_rasterize(vertices, faces, s, **colors)
     for name in s.outputs:
         got, want = getattr(out, name), ref[name]
         assert got.shape == want.shape
@@ -74,9 +74,9 @@ def test_float32_matches_float64(gamma):
     exponent zn / gamma (up to 1e4) carries float32's rounding (1e4 * 6e-8 = 6e-4 relative) into
     the softmax weights, so there the stated tolerance is 2e-3."""
     s = settings(dtype="float32", gamma=gamma)
-    vertices, faces, colours = random_scene(1)
-    out = SoftRasterizer(s).forward(vertices, faces, **colours)
-    ref = reference.soft_rasterize(vertices, faces, s, **colours)
+    vertices, faces, colors = random_scene(1)
+    out = SoftRasterizer(s).forward(vertices, faces, **colors)
+    ref = reference.soft_rasterize(vertices, faces, s, **colors)
     tol = 1e-4 if gamma > 1e-3 else 2e-3
     np.testing.assert_allclose(out.rgb, ref["rgb"], atol=tol)
     np.testing.assert_allclose(out.alpha, ref["alpha"], atol=tol)
@@ -85,20 +85,20 @@ def test_float32_matches_float64(gamma):
 
 def test_cutoff_error_is_bounded_by_dist_eps():
     """Skipping pairs with D < dist_eps changes alpha by at most about (faces) * dist_eps."""
-    vertices, faces, colours = random_scene(2)
-    exact = SoftRasterizer(settings()).forward(vertices, faces, **colours)
-    cut = SoftRasterizer(settings(dist_eps=1e-4)).forward(vertices, faces, **colours)
+    vertices, faces, colors = random_scene(2)
+    exact = SoftRasterizer(settings()).forward(vertices, faces, **colors)
+    cut = SoftRasterizer(settings(dist_eps=1e-4)).forward(vertices, faces, **colors)
     err = np.abs(exact.alpha - cut.alpha).max()
     assert 0 < err <= len(faces) * 1e-4
 
 
 def test_sharp_limit_equals_hard_zbuffer_away_from_edges():
     """At sigma=1e-9, gamma=1e-8 the soft image is the z-buffer image except at edge pixels."""
-    vertices, faces, colours = random_scene(3)
+    vertices, faces, colors = random_scene(3)
     sharp = dict(sigma=1e-9, gamma=1e-8, dist_eps=1e-4)
-    soft = SoftRasterizer(settings(**sharp)).forward(vertices, faces, **colours)
+    soft = SoftRasterizer(settings(**sharp)).forward(vertices, faces, **colors)
     hard = SoftRasterizer(settings(color_agg="hard", alpha_agg="hard", **sharp)).forward(
-        vertices, faces, **colours)
+        vertices, faces, **colors)
     tri = reference.gather_corners(vertices, np.broadcast_to(faces, (2, *faces.shape)))
     d2 = reference.squared_edge_distance(reference.pixel_centers(H, W), tri).min(-1)
     interior = d2 > (1e-3) ** 2       # farther than 1e-3 NDC from every edge
@@ -115,8 +115,8 @@ def _cotangents(s, seed, batch=2):
     return {f"grad_{n}": rng.normal(size=shapes[n]) * (0.1 if n == "depth" else 1.0) for n in s.outputs}
 
 
-def _loss(raster, vertices, faces, colours, cot):
-    out = raster.forward(vertices, faces, **colours)
+def _loss(raster, vertices, faces, colors, cot):
+    out = raster.forward(vertices, faces, **colors)
     return sum((getattr(out, name[5:]) * g).sum() for name, g in cot.items())
 
 
@@ -130,30 +130,30 @@ def _central_difference(f, x, indices, h=1e-6):
     return grad
 
 
-def _colour_key(s):
+def _color_key(s):
     return {"vertex": "colors", "face": "face_textures", "uv": "texture_image"}[s.texture]
 
 
 @pytest.mark.parametrize("variant", VARIANTS, ids=_ids(VARIANTS))
 def test_gradients_match_finite_differences(variant):
     s = settings(**variant)
-    vertices, faces, colours = random_scene(4, texture=s.texture)
-    colours = colours if "rgb" in s.outputs else {}
+    vertices, faces, colors = random_scene(4, texture=s.texture)
+    colors = colors if "rgb" in s.outputs else {}
     raster = SoftRasterizer(s)
     cot = _cotangents(s, 5)
-    grads = ("vertices", "colors") if colours else ("vertices",)
-    g = raster.backward(raster.forward(vertices, faces, grads=grads, **colours), **cot)
+    grads = ("vertices", "colors") if colors else ("vertices",)
+    g = raster.backward(raster.forward(vertices, faces, grads=grads, **colors), **cot)
 
     idx = np.arange(vertices.size)
-    num = _central_difference(lambda v: _loss(raster, v, faces, colours, cot), vertices, idx)
+    num = _central_difference(lambda v: _loss(raster, v, faces, colors, cot), vertices, idx)
     assert np.abs(num).max() > 1e-3
     np.testing.assert_allclose(g["vertices"].ravel(), num, rtol=0, atol=1e-6 * np.abs(num).max())
 
-    if colours:
-        key = _colour_key(s)
-        c = colours[key]
+    if colors:
+        key = _color_key(s)
+        c = colors[key]
         idx = np.random.default_rng(6).choice(c.size, min(c.size, 60), replace=False)
-        f = lambda x: _loss(raster, vertices, faces, {**colours, key: x}, cot)
+        f = lambda x: _loss(raster, vertices, faces, {**colors, key: x}, cot)
         num = _central_difference(f, c, idx)
         assert g["colors"].shape == c.shape
         np.testing.assert_allclose(g["colors"].ravel()[idx], num, rtol=0, atol=1e-6 * np.abs(num).max())
@@ -166,10 +166,10 @@ def test_occluded_faces_receive_gradients():
     back = [[-0.3, -0.3, 3.0], [0.3, -0.3, 3.0], [0.0, 0.3, 3.0]]
     vertices = np.array(front + back)
     faces = np.array([[0, 1, 2], [3, 4, 5]])
-    colours = np.array([[1.0, 0, 0]] * 3 + [[0, 0, 1.0]] * 3)
+    colors = np.array([[1.0, 0, 0]] * 3 + [[0, 0, 1.0]] * 3)
     s = settings(image_size=(16, 16), sigma=1e-4, gamma=0.1)
     raster = SoftRasterizer(s)
-    out = raster.forward(vertices, faces, colors=colours, grads=("vertices",))
+    out = raster.forward(vertices, faces, colors=colors, grads=("vertices",))
     g = raster.backward(out, grad_rgb=np.ones_like(out.rgb))["vertices"]
     assert np.abs(g[3:, :2]).max() > 1e-6    # hidden face: x, y
     assert np.abs(g[3:, 2]).max() > 1e-6     # hidden face: depth
@@ -178,12 +178,12 @@ def test_occluded_faces_receive_gradients():
 def test_results_are_bit_identical_run_to_run():
     for texture in ("vertex", "uv"):
         s = settings(texture=texture, dtype="float32", dist_eps=1e-4)
-        vertices, faces, colours = random_scene(7, texture=texture)
+        vertices, faces, colors = random_scene(7, texture=texture)
         raster = SoftRasterizer(s)
         cot = _cotangents(s, 8)
         runs = []
         for _ in range(3):
-            out = raster.forward(vertices, faces, grads=("vertices", "colors"), **colours)
+            out = raster.forward(vertices, faces, grads=("vertices", "colors"), **colors)
             runs.append((out.rgb, out.alpha, out.depth, *raster.backward(out, **cot).values()))
         for later in runs[1:]:
             for a, b in zip(runs[0], later):
@@ -191,10 +191,10 @@ def test_results_are_bit_identical_run_to_run():
 
 
 def test_unbatched_inputs_give_unbatched_gradients():
-    vertices, faces, colours = random_scene(9, batch=1)
+    vertices, faces, colors = random_scene(9, batch=1)
     s = settings()
     raster = SoftRasterizer(s)
-    out = raster.forward(vertices[0], faces, colors=colours["colors"][0], grads=("vertices", "colors"))
+    out = raster.forward(vertices[0], faces, colors=colors["colors"][0], grads=("vertices", "colors"))
     assert out.rgb.shape == (1, H, W, 3)
     g = raster.backward(out, **_cotangents(s, 1, batch=1))
     assert g["vertices"].shape == vertices[0].shape and g["colors"].shape == (12, 3)
@@ -226,9 +226,9 @@ def test_unused_outputs_are_neither_computed_nor_allocated():
 
 def test_fast_math_variant_stays_close_to_exact_maths():
     """-cl-fast-relaxed-math is an accuracy knob; in float32 it stays within 1e-4 here."""
-    vertices, faces, colours = random_scene(11)
-    exact = SoftRasterizer(settings(dtype="float32")).forward(vertices, faces, **colours)
-    fast = SoftRasterizer(settings(dtype="float32", fast_math=True)).forward(vertices, faces, **colours)
+    vertices, faces, colors = random_scene(11)
+    exact = SoftRasterizer(settings(dtype="float32")).forward(vertices, faces, **colors)
+    fast = SoftRasterizer(settings(dtype="float32", fast_math=True)).forward(vertices, faces, **colors)
     for name in OUTPUTS:
         np.testing.assert_allclose(getattr(fast, name), getattr(exact, name), rtol=1e-4, atol=1e-4)
 
@@ -239,12 +239,12 @@ def test_per_pixel_lighting_forward_and_gradients(lighting):
     reference, and gradients for positions, albedo, normals and the 27 light parameters
     against finite differences."""
     s = settings(lighting=lighting)
-    vertices, faces, colours = random_scene(12)
+    vertices, faces, colors = random_scene(12)
     rng = np.random.default_rng(13)
     normals = rng.normal(size=(2, 12, 3))
     light = (np.r_[0.3, 0.4, 0.2, 0.6, 0.5, 0.7, 0.48, 0.6, 0.64, np.zeros(18)] if lighting == "lambert"
              else rng.normal(scale=0.4, size=27))
-    inputs = dict(colors=colours["colors"], normals=normals, light=light)
+    inputs = dict(colors=colors["colors"], normals=normals, light=light)
     raster = SoftRasterizer(s)
     out = raster.forward(vertices, faces, grads=("vertices", "colors"), **inputs)
     ref = reference.soft_rasterize(vertices, faces, s, **inputs)
@@ -260,7 +260,7 @@ def test_per_pixel_lighting_forward_and_gradients(lighting):
         np.testing.assert_allclose(got, num, rtol=0, atol=1e-6 * np.abs(num).max(), err_msg=key)
 
 
-def test_flat_face_colours_fast_path():
+def test_flat_face_colors_fast_path():
     """R = 1 face textures (flat colour per face) take a lookup-free path in both kernels."""
     s = settings(texture="face")
     vertices, faces, _ = random_scene(16)

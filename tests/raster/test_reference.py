@@ -131,7 +131,7 @@ def test_occupancy_and_sum_alpha():
 
 
 @pytest.mark.parametrize("perspective", [True, False])
-def test_depth_and_colour_interpolation(perspective):
+def test_depth_and_color_interpolation(perspective):
     tri = HALF.copy()
     tri[:, 2] = [2.0, 4.0, 8.0]
     for agg in ("softmax", "hard"):

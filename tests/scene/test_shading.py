@@ -172,8 +172,8 @@ def test_lambert_default_is_paper_setting_by_hand():
     light = LambertLight()
     normals = np.array([[[0, 1, 0], [0, -1, 0], [0.6, 0.8, 0]]])
     albedo = np.array([[[1, 1, 1], [1, 0.5, 0.2], [0.5, 0.5, 0.5]]])
-    colours, _ = light.shade(normals, albedo)
-    np.testing.assert_allclose(colours, [[[1, 1, 1], [0.5, 0.25, 0.1],
+    colors, _ = light.shade(normals, albedo)
+    np.testing.assert_allclose(colors, [[[1, 1, 1], [0.5, 0.25, 0.1],
                                           [0.45, 0.45, 0.45]]], atol=1e-15)
 
 
@@ -182,8 +182,8 @@ def test_phong_by_hand():
                        shininess=2.0)
     n = np.array([[[0.0, 0.0, 1.0]]])
     v = np.array([[[0.0, 3.0, 0.0]]])   # not unit: normalised inside; h = (0, 1, 1)/sqrt(2)
-    colours, _ = light.shade(n, np.ones((1, 1, 3)), v)
-    np.testing.assert_allclose(colours, [[[0.5, 0.25, 0.0]]], atol=1e-15)
+    colors, _ = light.shade(n, np.ones((1, 1, 3)), v)
+    np.testing.assert_allclose(colors, [[[0.5, 0.25, 0.0]]], atol=1e-15)
 
 
 @pytest.mark.parametrize("name", sorted(LIGHTS))
@@ -194,8 +194,8 @@ def test_light_shade_vjp_fd(name):
     inputs = dict(normals=normals, albedo=albedo, **light.params())
     if isinstance(light, PhongLight):
         inputs["view_dirs"] = view
-    colours, ctx = light.shade(normals, albedo, inputs.get("view_dirs"))
-    cot = rng.normal(size=colours.shape)
+    colors, ctx = light.shade(normals, albedo, inputs.get("view_dirs"))
+    cot = rng.normal(size=colors.shape)
     grads = light.shade_vjp(ctx, cot)
     assert set(grads) == set(inputs)
     check_vjp(light_forward(light), inputs, grads, cot)
@@ -207,9 +207,9 @@ def test_lambert_param_gradients_use_both_sides_of_the_terminator():
     normals, _, albedo = phong_points(rng, light)
     cos = normals @ unit(light.direction)
     assert np.any(cos > 0) and np.any(cos < 0)
-    colours, ctx = light.shade(normals, albedo)
-    np.testing.assert_allclose(colours[cos < 0], albedo[cos < 0] * light.ambient, atol=1e-15)
-    grads = light.shade_vjp(ctx, np.ones_like(colours))
+    colors, ctx = light.shade(normals, albedo)
+    np.testing.assert_allclose(colors[cos < 0], albedo[cos < 0] * light.ambient, atol=1e-15)
+    grads = light.shade_vjp(ctx, np.ones_like(colors))
     np.testing.assert_array_equal(grads["normals"][cos < 0], 0.0)
 
 
@@ -218,9 +218,9 @@ def test_phong_guard_no_nan_where_n_dot_h_is_not_positive(shininess):
     light = PhongLight(direction=(0, 1, 0), specular=1.0, shininess=shininess)
     n = np.array([[[0, -1.0, 0], [1.0, 0, 0], [0, 0, 0]]])   # n.h < 0, n.h == 0, zero normal
     v = np.array([[[0, 1.0, 0], [0, 1.0, 0], [0, 1.0, 0]]])
-    colours, ctx = light.shade(n, np.ones_like(n), v)
-    grads = light.shade_vjp(ctx, np.ones_like(colours))
-    np.testing.assert_allclose(colours, 0.5, atol=1e-15)   # ambient only, no specular
+    colors, ctx = light.shade(n, np.ones_like(n), v)
+    grads = light.shade_vjp(ctx, np.ones_like(colors))
+    np.testing.assert_allclose(colors, 0.5, atol=1e-15)   # ambient only, no specular
     for g in grads.values():
         assert np.all(np.isfinite(g))
     assert grads["shininess"] == 0.0
@@ -239,8 +239,8 @@ def test_sh_ambient_is_constant():
     rng = np.random.default_rng(0)
     normals, albedo = unit(rng.normal(size=(2, 30, 3))), rng.uniform(size=(2, 30, 3))
     for grey in (1.0, 0.3, (0.2, 0.5, 0.9)):
-        colours, _ = SHLight.ambient(grey).shade(normals, albedo)
-        np.testing.assert_allclose(colours, albedo * np.broadcast_to(grey, 3), rtol=1e-12)
+        colors, _ = SHLight.ambient(grey).shade(normals, albedo)
+        np.testing.assert_allclose(colors, albedo * np.broadcast_to(grey, 3), rtol=1e-12)
     np.testing.assert_array_equal(SHLight.ambient(0.3).coefficients, sh_ambient(0.3))
 
 
@@ -251,10 +251,10 @@ def test_sh_single_coefficient_gives_a_l_times_y_i(i):
     for channel in range(3):
         coefficients = np.zeros((3, 9))
         coefficients[channel, i] = 1.0
-        colours, _ = SHLight(coefficients).shade(n[None, None], np.ones((1, 1, 3)))
+        colors, _ = SHLight(coefficients).shade(n[None, None], np.ones((1, 1, 3)))
         expected = np.zeros(3)
         expected[channel] = A_BY_HAND[i] * Y_BY_HAND[i](*n)
-        np.testing.assert_allclose(colours[0, 0], expected, rtol=1e-14, atol=1e-15)
+        np.testing.assert_allclose(colors[0, 0], expected, rtol=1e-14, atol=1e-15)
 
 
 def test_sh_directional_light_by_hand():
@@ -265,9 +265,9 @@ def test_sh_directional_light_by_hand():
     light = SHLight(np.tile([y(*d) for y in Y_BY_HAND], (3, 1)))
     perp = unit(np.cross(d, [1.0, 0, 0]))
     normals = np.array([[d, -d, perp]])
-    colours, _ = light.shade(normals, np.ones_like(normals))
-    np.testing.assert_allclose(colours[0, :, 0], [17 / 16, 1 / 16, 3 / 32], rtol=2e-5)
-    np.testing.assert_allclose(colours[0, :, 1], colours[0, :, 2])
+    colors, _ = light.shade(normals, np.ones_like(normals))
+    np.testing.assert_allclose(colors[0, :, 0], [17 / 16, 1 / 16, 3 / 32], rtol=2e-5)
+    np.testing.assert_allclose(colors[0, :, 1], colors[0, :, 2])
 
 
 def test_sh_coefficient_layouts():
@@ -308,8 +308,8 @@ def test_shade_mesh_vjp_fd(light_name, kind, batched_camera):
     fwd, vjp = {"vertices": (shade_vertices, shade_vertices_vjp),
                 "faces": (shade_faces, shade_faces_vjp)}[kind]
     albedo = rng.uniform(0.1, 1.0, (2, verts.shape[1] if kind == "vertices" else len(faces), 3))
-    colours, ctx = fwd(verts, faces, albedo, light, camera)
-    cot = rng.normal(size=colours.shape)
+    colors, ctx = fwd(verts, faces, albedo, light, camera)
+    cot = rng.normal(size=colors.shape)
     grads = vjp(ctx, cot)
     inputs = dict(vertices=verts, albedo=albedo, camera_center=camera, **light.params())
     assert set(grads) == set(inputs)
@@ -322,10 +322,10 @@ def test_shade_mesh_vjp_fd(light_name, kind, batched_camera):
 def test_shade_vertices_without_camera_matches_direct_shading():
     rng, light, verts, faces, _ = mesh_setup(2, "sh")
     albedo = rng.uniform(size=verts.shape)
-    colours, ctx = shade_vertices(verts, faces, albedo, light)
+    colors, ctx = shade_vertices(verts, faces, albedo, light)
     normals, _ = vertex_normals(verts, faces)
-    np.testing.assert_allclose(colours, light.shade(normals, albedo)[0], rtol=1e-15)
-    assert "camera_center" not in shade_vertices_vjp(ctx, np.ones_like(colours))
+    np.testing.assert_allclose(colors, light.shade(normals, albedo)[0], rtol=1e-15)
+    assert "camera_center" not in shade_vertices_vjp(ctx, np.ones_like(colors))
 
 
 # ----------------------------------------------------------------------------- bad input

@@ -25,19 +25,19 @@ from support import comparison_meshes
 SIZE = 128
 
 
-def _coloured(vertices, faces):
+def _colored(vertices, faces):
     """Smoothly varying vertex colours, so per-face albedo (mean of the corners) is tested too."""
     return Mesh(vertices, faces, colors=0.5 + 0.4 * np.tanh(2.0 * vertices))
 
 
 def icosphere():
     plain = comparison_meshes.icosphere()
-    return _coloured(plain.vertices, plain.faces)
+    return _colored(plain.vertices, plain.faces)
 
 
 def torus():
     plain = comparison_meshes.torus()
-    return _coloured(plain.vertices, plain.faces)
+    return _colored(plain.vertices, plain.faces)
 
 
 MESHES = {"icosphere": icosphere, "torus": torus}
