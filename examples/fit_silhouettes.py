@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Fit an icosphere to the silhouettes of a target mesh seen by several cameras (issue 4 point 5).
+"""Fit an icosphere to the silhouettes of a target mesh seen by several cameras.
 
     python examples/fit_silhouettes.py                      # the bean, 10 views of 64x64
     python examples/fit_silhouettes.py --target capsule --views 12 --size 96 --out out/capsule

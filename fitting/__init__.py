@@ -1,4 +1,4 @@
-"""Fitting layer (issue 4, docs/fitting.md), installed as ``softras_cl.fitting``.
+"""Fitting layer (docs/fitting.md), installed as ``softras_cl.fitting``.
 
 Modules: ``params`` (named parameter blocks <-> one flat, scaled float64 vector with bounds),
 ``losses`` (pure value-and-gradient loss terms) and ``solver`` (staged nlopt L-BFGS with

@@ -1,4 +1,4 @@
-"""Loss terms for fitting (issue 4), each a pure float64 numpy function with an exact gradient.
+"""Loss terms for fitting, each a pure float64 numpy function with an exact gradient.
 
 Every loss returns ``(value, grads)``: ``value`` a Python float and ``grads`` a dict mapping the
 name of each differentiable argument (``"pred"``, ``"points"``, ``"coeffs"``, ``"vertices"``) to a

@@ -9,13 +9,13 @@ Format facts used (the formats' documentation and their maintainers' statements,
 - BFM 2009 ``01_MorphableModel.mat``: shapeMU (3V, 1), shapePC (3V, K) orthonormal columns,
   shapeEV (K, 1) standard deviations (not variances), texMU/texPC/texEV alike with colours in
   0..255, ``tl`` (F, 3) 1-based triangles, xyz interleaved per vertex. Units are micrometres
-  (BFM maintainers, unibas-gravis/basel-face-model-viewer issue 20). Its triangles are clockwise
+  (BFM maintainers, unibas-gravis/basel-face-model-viewer, GitHub #20). Its triangles are clockwise
   seen from the front, the opposite of the OpenGL convention, so two corners are swapped here.
   No expression model. MATLAB v7.3 files (HDF5) hold the same variables, stored transposed.
 - BFM 2017/2019 ``.h5`` (statismo layout): groups shape/, color/, expression/ each with
   model/mean (3V,), model/pcaBasis (3V, K), model/pcaVariance (K,) (variances: std = sqrt),
   and representer/points (3, V), representer/cells (3, F) 0-based, counter-clockwise. Units are
-  millimetres (same issue 20); colours in [0, 1]. statismo files of version 0.9 or 1.x store an
+  millimetres (same thread); colours in [0, 1]. statismo files of version 0.9 or 1.x store an
   orthonormal pcaBasis; version 0.8, or no ``version`` group, stores pcaBasis * sqrt(variance).
   A model instance is shape mean + shape part + expression mean + expression part.
 - FLAME ``generic_model.pkl`` (Python 2 pickle with chumpy arrays): v_template (V, 3) metres,

@@ -1,4 +1,4 @@
-"""Body fitting to one image (issue 6; paper sec. 5.3 "Non-rigid Shape Fitting", figure 13).
+"""Body fitting to one image (paper sec. 5.3 "Non-rigid Shape Fitting", figure 13).
 
 The scene (float64 throughout)::
 

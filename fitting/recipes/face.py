@@ -1,4 +1,4 @@
-"""Face fitting from one photo and its 68 landmarks (issue 5; paper sec. 5.3, figure 14).
+"""Face fitting from one photo and its 68 landmarks (paper sec. 5.3, figure 14).
 
 The scene (float64 throughout)::
 

@@ -1,4 +1,4 @@
-"""Mesh fitting to multi-view silhouettes (issue 4 point 5; paper sec. 4.1 as optimisation).
+"""Mesh fitting to multi-view silhouettes (paper sec. 4.1 as optimisation).
 
 An icosphere template is deformed to match the silhouettes of a target seen by several cameras.
 The deformed vertices are

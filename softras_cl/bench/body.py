@@ -1,4 +1,4 @@
-"""`softras-cl bench body`: body fitting on synthetic images with known answers (issue 6).
+"""`softras-cl bench body`: body fitting on synthetic images with known answers.
 
 Each synthetic target is the demo body (or --model) with a random shape (betas ~ N(0, 1)
 clipped at +-2) in a random plausible pose (:func:`random_pose`: every joint's axis-angle
@@ -208,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
 
 def register(which) -> None:
     """Add `body` to the `softras-cl bench` subparsers."""
-    p = which.add_parser("body", help="body fitting on synthetic images with known answers (issue 6)",
+    p = which.add_parser("body", help="body fitting on synthetic images with known answers",
                          description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1])
     p.add_argument("--poses", type=int, default=20, help="synthetic targets (default 20)")
     p.add_argument("--size", type=int, default=96, help="square image size in pixels (default 96)")

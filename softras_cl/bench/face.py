@@ -1,4 +1,4 @@
-"""`softras-cl bench face`: face fitting on synthetic photos with known answers (issue 5).
+"""`softras-cl bench face`: face fitting on synthetic photos with known answers.
 
 Each synthetic face is drawn from the model's own prior (identity, expression and albedo
 coefficients ~ N(0, 1) clipped at +-2.5), lit by a random SH light (grey ambient plus random
@@ -239,7 +239,7 @@ def run(args: argparse.Namespace) -> int:
 
 def register(which) -> None:
     """Add `face` to the `softras-cl bench` subparsers."""
-    p = which.add_parser("face", help="face fitting on synthetic photos with known answers (issue 5)",
+    p = which.add_parser("face", help="face fitting on synthetic photos with known answers",
                          description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1])
     p.add_argument("--faces", type=int, default=20, help="synthetic faces (default 20)")
     p.add_argument("--size", type=int, default=256, help="square photo size in pixels (default 256)")

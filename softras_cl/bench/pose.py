@@ -244,7 +244,7 @@ def format_table(result: dict) -> str:
 
 def register(which) -> None:
     """Add `pose` to the `bench` subparsers."""
-    p = which.add_parser("pose", help="rigid pose fitting of a colour cube (issue 4, paper table 3)",
+    p = which.add_parser("pose", help="rigid pose fitting of a colour cube (paper table 3)",
                          description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--trials", type=int, default=100, help="number of (initial, target) pairs (default 100)")
     p.add_argument("--seed", type=int, default=0, help="seed of the rotation draws (default 0)")

@@ -1,4 +1,4 @@
-"""`softras-cl bench raster`: speed, memory and accuracy of the soft rasteriser (issue 2).
+"""`softras-cl bench raster`: speed, memory and accuracy of the soft rasteriser.
 
 Scene: `meshes.screen_space_sphere` (icosphere, radius 0.8, depth 2..3.6, vertex colours) with
 1280..81920 faces at 256^2 and 1024^2, sigma 1e-5, gamma 1e-4, dist_eps 1e-4, rgb + alpha.
@@ -451,7 +451,7 @@ def _int_list(text: str) -> tuple[int, ...]:
 
 def register(which) -> None:
     """Add `raster` to the `bench` subparsers `which`."""
-    p = which.add_parser("raster", help="soft rasteriser speed, memory and accuracy (issue 2)",
+    p = which.add_parser("raster", help="soft rasteriser speed, memory and accuracy",
                          description="\n\n".join(__doc__.split("\n\n")[:2]))
     p.add_argument("--sizes", type=_int_list, default=None,
                    help=f"square image sizes in pixels, comma-separated (default {','.join(map(str, SIZES))})")

@@ -14,7 +14,7 @@ import numpy as np
 from softras_cl.bench.raster import BASE_SETTINGS, REPEATS, settings_for
 from softras_cl.bench.tools import device_info, format_table, relative_inf_error
 
-RENDER_DOC = """Speed of the whole differentiable render path (issue 3): forward + backward of
+RENDER_DOC = """Speed of the whole differentiable render path: forward + backward of
 softras_cl.scene.renderer.Renderer with gradients for vertices, albedo, camera and light.
 
 Scene: an icosphere(5) (20480 faces) with smooth deterministic bumps (radius ~1), smooth vertex
@@ -416,7 +416,7 @@ def run_render(args: argparse.Namespace) -> int:
 
 def register(which) -> None:
     """Add `render` to the `bench` subparsers `which`."""
-    p = which.add_parser("render", help="whole render path forward+backward: stage split and effects (issue 3)",
+    p = which.add_parser("render", help="whole render path forward+backward: stage split and effects",
                          description=RENDER_DOC, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--repeats", type=int, default=None,
                    help=f"timed runs per configuration after one warm-up; the median is reported "

@@ -7,7 +7,7 @@ File conventions (the format is detected from the content, not the extension):
 
 - iBUG / 300-W ``.pts`` (``version: 1``, ``n_points: 68``, then ``{``, one ``x y`` per line,
   ``}``): 1-based pixel coordinates, as written by the MATLAB tools the annotations come from
-  (the menpo project defines .pts as 1-based for this reason, menpo/menpo issue 160). 1 is
+  (the menpo project defines .pts as 1-based for this reason, menpo/menpo, GitHub #160). 1 is
   subtracted when reading and added when writing.
 - text (``.txt``, ``.csv``): N rows ``x y`` separated by whitespace or a comma, 0-based pixel
   centres (what dlib, face-alignment and most detectors output). Lines starting with # are skipped.

@@ -52,7 +52,7 @@ def icosphere(subdivisions: int, radius: float = 1.0) -> tuple[np.ndarray, np.nd
 
 def screen_space_sphere(subdivisions: int, radius: float = 0.8, z_near: float = 2.0,
                         z_far: float = 3.6, colors: bool = True):
-    """The benchmark scene of issue 2: an icosphere seen by a camera on its +z axis.
+    """The raster benchmark's scene: an icosphere seen by a camera on its +z axis.
 
     Screen space: x, y in NDC (x right, y up) equal the sphere's x, y (radius `radius`, centred);
     z is view depth, `zc - s * z_sphere` with zc = (z_near + z_far) / 2 and s scaling the sphere's

@@ -1,4 +1,4 @@
-"""Mitsuba 3 as an independent reference renderer (issue 3, point 7): `softras-cl compare MESH
+"""Mitsuba 3 as an independent reference renderer: `softras-cl compare MESH
 --reference mitsuba`.
 
 Optional extra (`pip install softras-cl[mitsuba]`); its `scalar_rgb` variant needs nothing else.

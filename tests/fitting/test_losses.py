@@ -1,4 +1,4 @@
-"""Fitting losses (issue 4): exact gradients vs central finite differences, hand-checked values,
+"""Fitting losses: exact gradients vs central finite differences, hand-checked values,
 input validation, weighted_sum."""
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Rigid pose fitting of the colour cube (issue 4, paper sec. 5.3)."""
+"""Rigid pose fitting of the colour cube (paper sec. 5.3)."""
 import json
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""fitting/silhouette.py (issue 4 point 5): mesh fitting to multi-view silhouettes.
+"""fitting/silhouette.py: mesh fitting to multi-view silhouettes.
 
 A small fit (6 views of 48x48, a 162-vertex icosphere, three sigma stages of 30 evaluations,
 about 2 s) must clearly improve the Chamfer distance and volume IoU to the target; the gradient

@@ -1,4 +1,4 @@
-"""fitting/solver.py (docs/fitting.md, issue 4): staged nlopt L-BFGS on smooth problems with known
+"""fitting/solver.py (docs/fitting.md): staged nlopt L-BFGS on smooth problems with known
 answers, the stage schedule as the objective sees it, best-point tracking, every nlopt outcome,
 non-finite losses/gradients, Ctrl-C and the files written to out_dir."""
 import json

@@ -1,4 +1,4 @@
-"""Issue 2's hard cases: nothing NaN or Inf in outputs or gradients, forward or backward, in
+"""Hard cases: nothing NaN or Inf in outputs or gradients, forward or backward, in
 float32 and float64, plus a value check wherever one exists, and agreement with the dense
 float64 reference (softras_cl/reference.py) where that is cheap.
 

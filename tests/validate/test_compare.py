@@ -1,5 +1,5 @@
 """softras-cl against an independent renderer (trimesh/Embree ray cast through every pixel
-centre): silhouette, depth and shading agree at sharp settings (issue 3's targets)."""
+centre): silhouette, depth and shading agree at sharp settings."""
 import numpy as np
 import pytest
 import trimesh

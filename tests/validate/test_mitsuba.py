@@ -1,4 +1,4 @@
-"""softras-cl against Mitsuba 3 (issue 3, point 7): silhouette, depth and flat Lambert shading
+"""softras-cl against Mitsuba 3: silhouette, depth and flat Lambert shading
 agree at sharp settings. Runs only when the optional extra is installed (pip install
 'softras-cl[mitsuba]'); see softras_cl/mitsuba_ref.py for how the two renderers are made to
 compute the same thing."""
