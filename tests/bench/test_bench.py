@@ -19,6 +19,7 @@ def quick_run(tmp_path_factory):
     return json.loads((out / "raster.json").read_text()), out
 
 
+@pytest.mark.slow
 def test_quick_run_writes_json_and_png(quick_run):
     result, out = quick_run
     assert (out / "raster.png").stat().st_size > 1000
@@ -28,6 +29,7 @@ def test_quick_run_writes_json_and_png(quick_run):
     assert result["settings"]["sigma"] == 1e-5 and result["settings"]["dist_eps"] == 1e-4
 
 
+@pytest.mark.slow
 def test_quick_speed_row(quick_run):
     (row,) = quick_run[0]["raster"]
     assert (row["faces"], row["size"]) == (1280, 64)
@@ -41,6 +43,7 @@ def test_quick_speed_row(quick_run):
     assert row["ref_max_err"] < 1e-3
 
 
+@pytest.mark.slow
 def test_quick_accuracy_rows(quick_run):
     exact, f32 = quick_run[0]["accuracy"]
     assert (exact["dist_eps"], exact["dtype"], exact["fast_math"]) == bench.EXACT
@@ -53,6 +56,7 @@ def test_quick_accuracy_rows(quick_run):
     assert max(f32["err_rgb"], f32["err_alpha"], f32["err_grad"]) < 1e-3
 
 
+@pytest.mark.slow
 def test_tables_are_printed(quick_run):
     tables = quick_run[0]["tables"]
     assert "ns/pair" in tables and "pairs/(HWF)" in tables and "err dL/dv" in tables

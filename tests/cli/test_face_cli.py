@@ -16,6 +16,7 @@ SMALL = ["--size", "80", "--budget", "fast", "--n-id", "4", "--n-exp", "4", "--n
          "--no-progress"]
 
 
+@pytest.mark.slow
 def test_fit_face_writes_every_output(tmp_path, capsys):
     out = tmp_path / "fit"
     assert main(["fit-face", str(PHOTO), "--landmarks", str(LANDMARKS), "--out", str(out), *SMALL]) == 0
@@ -75,6 +76,7 @@ def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path):
     assert (out / "overlay.png").exists() and (out / "face.ply").exists()
 
 
+@pytest.mark.slow
 def test_bench_face_reports_accuracy_against_time(tmp_path, capsys):
     out = tmp_path / "bench"
     assert main(["bench", "face", "--faces", "1", "--size", "96", "--budgets", "fast", "--json",

@@ -190,6 +190,7 @@ def demo():
     return load_demo_face_model().truncated(8, 8, 4)
 
 
+@pytest.mark.slow
 def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     """A face drawn from the (truncated) demo model's prior, rendered at 128^2 with 1-2 px
     landmark noise, is fitted from the photo and landmarks alone. Stated tolerances: landmark

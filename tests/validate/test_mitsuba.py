@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
+pytestmark = pytest.mark.mitsuba
 pytest.importorskip("mitsuba")
 
 from softras_cl.scene.camera import Camera
