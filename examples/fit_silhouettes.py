@@ -31,9 +31,9 @@ from softras_cl.io.meshes import save_mesh
 
 
 def _rotation(axis, degrees) -> np.ndarray:
-    from softras_cl.scene.camera import rodrigues
+    from softras_cl.scene.rotation import axis_angle_to_matrix
     axis = np.asarray(axis, float)
-    return rodrigues(axis / np.linalg.norm(axis) * math.radians(degrees))
+    return axis_angle_to_matrix(axis / np.linalg.norm(axis) * math.radians(degrees))
 
 
 def bean() -> tuple[np.ndarray, np.ndarray]:

@@ -1,6 +1,7 @@
 /* Soft rasteriser: forward and backward (Liu et al., eq. 2-14). Maths: docs/conventions.md.
  *
- * Build-time flags (softras_cl/program.py sets every one):
+ * Build-time flags (softras_cl/raster/rasterizer.py sets every one, softras_cl/cl/program.py adds
+ * the layout constants below):
  *   SR_OUT_RGB, SR_OUT_ALPHA, SR_OUT_DEPTH      which images to produce (0/1)
  *   SR_METRIC_BARY        0: Euclidean distance to the edges, 1: barycentric distance
  *   SR_COLOR_HARD         0: softmax aggregation of rgb/depth, 1: hard z-buffer
@@ -20,11 +21,49 @@
  * Per-pixel images are stored as planes (channel-major) of Wp x Hp pixels per batch item.
  */
 
-#define TILE_H 8   /* tile height in rows; tile width is SR_VEC */
-#define FACE_STRIDE 28
+/* Data layout shared with the host: tile height, the per-face geometry record (FACE_*), colour
+ * attribute widths and the number of light parameters. softras_cl/cl/layout.py defines them and
+ * softras_cl/cl/program.py passes them to every build; they are never #defined here. */
+#ifndef TILE_H
+#error "TILE_H must be passed with -D"
+#endif
+#ifndef FACE_STRIDE
+#error "FACE_STRIDE must be passed with -D"
+#endif
+#ifndef FACE_XY
+#error "FACE_XY must be passed with -D"
+#endif
+#ifndef FACE_M
+#error "FACE_M must be passed with -D"
+#endif
+#ifndef FACE_Z
+#error "FACE_Z must be passed with -D"
+#endif
+#ifndef FACE_INV_Z
+#error "FACE_INV_Z must be passed with -D"
+#endif
+#ifndef FACE_INV_LEN2
+#error "FACE_INV_LEN2 must be passed with -D"
+#endif
+#ifndef FACE_BOX
+#error "FACE_BOX must be passed with -D"
+#endif
+#ifndef CORNER_COLORS
+#error "CORNER_COLORS must be passed with -D"
+#endif
+#ifndef LIT_CORNER_ATTRS
+#error "LIT_CORNER_ATTRS must be passed with -D"
+#endif
+#ifndef UV_ATTRS
+#error "UV_ATTRS must be passed with -D"
+#endif
+#ifndef LIGHT_PARAMS
+#error "LIGHT_PARAMS must be passed with -D"
+#endif
+
 #define SR_NEED_COLOR (SR_OUT_RGB || SR_OUT_DEPTH)
-/* per-face colour data of texture 0: corner colours (9), and with lighting corner normals (9) */
-#define VERTEX_ATTR (SR_LIGHTING ? 18 : 9)
+/* per-face colour data of texture 0: corner colours, and with lighting corner normals after them */
+#define VERTEX_ATTR (SR_LIGHTING ? LIT_CORNER_ATTRS : CORNER_COLORS)
 
 #if SR_TEXTURE == 2 && SR_GRAD_COLOR
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
@@ -32,7 +71,7 @@
 
 typedef maskv idv; /* per-lane face index, same width as the comparison masks */
 
-/* Per-face constants prepared on the host (softras_cl/raster.py, _face_setup). */
+/* Per-face constants prepared on the host (softras_cl/raster/binning.py, face_setup). */
 typedef struct {
     real x[3], y[3];      /* screen positions, NDC */
     real m[3][2];         /* b_k = m[k][0] (px - x0) + m[k][1] (py - y0) + (k == 0) */
@@ -44,7 +83,7 @@ typedef struct {
  * with four compares instead of a full evaluation. */
 inline bool outside_footprint(__global const real *geom, int face, real x_lo, real x_hi, real y)
 {
-    __global const real *box = geom + face * FACE_STRIDE + 24;   /* xmin, xmax, ymin, ymax */
+    __global const real *box = geom + face * FACE_STRIDE + FACE_BOX;   /* xmin, xmax, ymin, ymax */
     return x_hi < box[0] || x_lo > box[1] || y < box[2] || y > box[3];
 }
 
@@ -53,13 +92,13 @@ inline Face load_face(__global const real *geom, int face)
     __global const real *g = geom + face * FACE_STRIDE;
     Face f;
     for (int k = 0; k < 3; ++k) {
-        f.x[k] = g[2 * k];
-        f.y[k] = g[2 * k + 1];
-        f.m[k][0] = g[6 + 2 * k];
-        f.m[k][1] = g[7 + 2 * k];
-        f.z[k] = g[12 + k];
-        f.iz[k] = g[15 + k];
-        f.inv_len2[k] = g[18 + k];
+        f.x[k] = g[FACE_XY + 2 * k];
+        f.y[k] = g[FACE_XY + 2 * k + 1];
+        f.m[k][0] = g[FACE_M + 2 * k];
+        f.m[k][1] = g[FACE_M + 2 * k + 1];
+        f.z[k] = g[FACE_Z + k];
+        f.iz[k] = g[FACE_INV_Z + k];
+        f.inv_len2[k] = g[FACE_INV_LEN2 + k];
     }
     return f;
 }
@@ -233,7 +272,8 @@ inline Lit eval_lit(__global const real *col, __global const real *light, const 
     realv m[3];
     for (int c = 0; c < 3; ++c) {
         L.albedo[c] = r->a[0] * col[c] + r->a[1] * col[3 + c] + r->a[2] * col[6 + c];
-        m[c] = r->a[0] * col[9 + c] + r->a[1] * col[12 + c] + r->a[2] * col[15 + c];
+        m[c] = r->a[0] * col[CORNER_COLORS + c] + r->a[1] * col[CORNER_COLORS + 3 + c]
+               + r->a[2] * col[CORNER_COLORS + 6 + c];
     }
     realv len = sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]);
     L.inv_len = keep(R(1) / fmax(len, R(1e-30)), len > R(1e-30));   /* a vanished normal stays 0 */
@@ -288,7 +328,7 @@ inline void face_color(__global const real *attr, __global const real *tex_image
             out[c][l] = tex[texel + c];
     }
 #else
-    __global const real *uv = attr + face * 6;
+    __global const real *uv = attr + face * UV_ATTRS;
     real du[3][SR_VEC], dv[3][SR_VEC];
     for (int l = 0; l < SR_VEC; ++l) {
         real u = a0[l] * uv[0] + a1[l] * uv[2] + a2[l] * uv[4];
@@ -457,10 +497,10 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
 /* Gradient sums of one (tile, face) pair, kept per lane until the end of the tile. */
 typedef struct {
     realv gx[3], gy[3], gz[3];   /* dL/d(x, y, z) of the face's three vertices */
-    realv gcol[9];               /* dL/d(vertex colour or albedo) (texture == vertex) */
+    realv gcol[CORNER_COLORS];   /* dL/d(vertex colour or albedo) (texture == vertex) */
 #if SR_LIGHTING
-    realv gnrm[9];               /* dL/d(vertex normal) at the three corners */
-    realv glight[27];            /* dL/d(light parameters), layout of `light` */
+    realv gnrm[CORNER_COLORS];   /* dL/d(vertex normal) at the three corners */
+    realv glight[LIGHT_PARAMS];  /* dL/d(light parameters), layout of `light` */
 #endif
 } Accum;
 
@@ -567,7 +607,8 @@ inline void lit_vjp(__global const real *col, __global const real *light, const 
         g_m[d] = (g_n[d] - L.n[d] * n_dot_g) * L.inv_len;
     for (int k = 0; k < 3; ++k) {
         g_a[k] += gA[0] * col[3 * k] + gA[1] * col[3 * k + 1] + gA[2] * col[3 * k + 2]
-                  + g_m[0] * col[9 + 3 * k] + g_m[1] * col[10 + 3 * k] + g_m[2] * col[11 + 3 * k];
+                  + g_m[0] * col[CORNER_COLORS + 3 * k] + g_m[1] * col[CORNER_COLORS + 3 * k + 1]
+                  + g_m[2] * col[CORNER_COLORS + 3 * k + 2];
         for (int c = 0; c < 3; ++c) {
             acc->gcol[3 * k + c] += r->a[k] * gA[c];
             acc->gnrm[3 * k + c] += r->a[k] * g_m[c];
@@ -615,7 +656,7 @@ inline void pair_vjp(const Face *f, const Frag *r, const PixelIn *in, const Para
 #elif SR_OUT_RGB && SR_TEXTURE == 2
     realv g_u = gC[0] * dC_du[0] + gC[1] * dC_du[1] + gC[2] * dC_du[2];
     realv g_v = gC[0] * dC_dv[0] + gC[1] * dC_dv[1] + gC[2] * dC_dv[2];
-    __global const real *uv = attr + face * 6;
+    __global const real *uv = attr + face * UV_ATTRS;
     for (int k = 0; k < 3; ++k)
         g_a[k] = g_u * uv[2 * k] + g_v * uv[2 * k + 1];
 #endif
@@ -748,12 +789,12 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
         Accum acc;
         for (int i = 0; i < 3; ++i)
             acc.gx[i] = acc.gy[i] = acc.gz[i] = (realv)R(0);
-        for (int i = 0; i < 9; ++i)
+        for (int i = 0; i < CORNER_COLORS; ++i)
             acc.gcol[i] = (realv)R(0);
 #if SR_LIGHTING
-        for (int i = 0; i < 9; ++i)
+        for (int i = 0; i < CORNER_COLORS; ++i)
             acc.gnrm[i] = (realv)R(0);
-        for (int i = 0; i < 27; ++i)
+        for (int i = 0; i < LIGHT_PARAMS; ++i)
             acc.glight[i] = (realv)R(0);
 #endif
 
@@ -775,7 +816,7 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
 #elif SR_GRAD_COLOR && SR_TEXTURE == 1
             add_face_texel_grads(&r, gC, tex_res, slot_attr + (size_t)slot * tex_res * tex_res * 3);
 #elif SR_GRAD_COLOR && SR_TEXTURE == 2
-            add_uv_texel_grads(&r, gC, attr + face * 6, tex_h, tex_w, tex_grad_scale,
+            add_uv_texel_grads(&r, gC, attr + face * UV_ATTRS, tex_h, tex_w, tex_grad_scale,
                                tex_grad + (size_t)batch * tex_h * tex_w * 3);
 #endif
         }
@@ -787,14 +828,14 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
         }
 #endif
 #if SR_GRAD_COLOR && SR_TEXTURE == 0
-        for (int i = 0; i < 9; ++i)
+        for (int i = 0; i < CORNER_COLORS; ++i)
             slot_attr[slot * VERTEX_ATTR + i] = lane_sum(acc.gcol[i]);
 #endif
 #if SR_GRAD_COLOR && SR_LIGHTING
-        for (int i = 0; i < 9; ++i)
-            slot_attr[slot * VERTEX_ATTR + 9 + i] = lane_sum(acc.gnrm[i]);
-        for (int i = 0; i < 27; ++i)
-            slot_light[slot * 27 + i] = lane_sum(acc.glight[i]);
+        for (int i = 0; i < CORNER_COLORS; ++i)
+            slot_attr[slot * VERTEX_ATTR + CORNER_COLORS + i] = lane_sum(acc.gnrm[i]);
+        for (int i = 0; i < LIGHT_PARAMS; ++i)
+            slot_light[slot * LIGHT_PARAMS + i] = lane_sum(acc.glight[i]);
 #endif
     }
 }

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse
 
-from softras_cl.scene.camera import rodrigues, rodrigues_vjp
+from softras_cl.scene.rotation import rodrigues, rodrigues_vjp
 
 FORMAT = "softras-cl-body-1"
 
@@ -163,7 +163,7 @@ class BodyModel:
         pose = np.vstack([_array("global_rotation", global_rotation, (3,)),
                           self._body_pose(body_pose)])
         trans = _array("translation", translation, (3,))
-        rot_local = np.stack([rodrigues(w) for w in pose])
+        rot_local = np.stack([rodrigues(w)[0] for w in pose])
         v_posed = v_shaped
         if self.posedirs is not None:
             v_posed = v_shaped + self.posedirs @ (rot_local[1:] - np.eye(3)).ravel()
@@ -216,7 +216,7 @@ class BodyModel:
             g_feat = np.einsum("vcp,vc->p", self.posedirs, g_vposed)
             g_local[1:] += g_feat.reshape(-1, 3, 3)
         g_shaped = g_vposed + self.J_regressor.T @ g_rest
-        g_pose = np.stack([rodrigues_vjp(w, g) for w, g in zip(state.pose, g_local)])
+        g_pose = np.stack([rodrigues_vjp(rodrigues(w)[1], g)["omega"] for w, g in zip(state.pose, g_local)])
         return {"betas": np.einsum("vcb,vc->b", self.shapedirs, g_shaped),
                 "body_pose": g_pose[1:], "global_rotation": g_pose[0],
                 "translation": gv.sum(axis=0) + gj.sum(axis=0)}

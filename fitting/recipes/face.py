@@ -47,7 +47,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from softras_cl.scene.camera import Camera, matrix_to_axis_angle, rodrigues, rodrigues_vjp
+from softras_cl.scene.camera import Camera
+from softras_cl.scene.rotation import axis_angle_to_matrix, matrix_to_axis_angle, rodrigues, rodrigues_vjp
 from softras_cl.scene.renderer import Renderer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.shading import SH_A, SHLight, sh_ambient, sh_basis, vertex_normals
@@ -235,14 +236,14 @@ class FaceScene:
     def geometry(self, values: dict) -> tuple[np.ndarray, np.ndarray]:
         """-> (shape (V, 3) model frame, world vertices (V, 3))."""
         shape = self.model.shape(values["id"], values["exp"])
-        return shape, shape @ rodrigues(values["rotation"]).T + values["translation"]
+        return shape, shape @ axis_angle_to_matrix(values["rotation"]).T + values["translation"]
 
     def geometry_vjp(self, values: dict, shape: np.ndarray, g_world: np.ndarray) -> dict:
         """dL/d(world vertices) (V, 3) -> dL/d(id, exp, rotation, translation)."""
-        R = rodrigues(values["rotation"])
+        R, rot_ctx = rodrigues(values["rotation"])
         g_id, g_exp = self.model.shape_vjp(g_world @ R)
         return dict(id=g_id, exp=g_exp, translation=g_world.sum(axis=0),
-                    rotation=rodrigues_vjp(values["rotation"], g_world.T @ shape))
+                    rotation=rodrigues_vjp(rot_ctx, g_world.T @ shape)["omega"])
 
     def render(self, values: dict, sigma: float, gamma: float, grads=(), albedo=None,
                light=None, world=None):

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from softras_cl.scene.camera import Camera, matrix_to_axis_angle, rodrigues, rodrigues_vjp
+from softras_cl.scene.camera import Camera
+from softras_cl.scene.rotation import axis_angle_to_matrix, matrix_to_axis_angle, rodrigues, rodrigues_vjp
 from softras_cl.scene.renderer import Renderer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.fitting import losses
@@ -68,7 +69,7 @@ class PoseScene:
     def render(self, rotation: np.ndarray, sigma: float, gamma: float, grads: tuple = ()):
         """(renderer, RenderOutput) of the cube rotated by axis-angle `rotation` (3,)."""
         renderer = self.renderer(sigma, gamma)
-        vertices = self.vertices @ rodrigues(rotation).T
+        vertices = self.vertices @ axis_angle_to_matrix(rotation).T
         return renderer, renderer.forward(vertices, self.faces, self.camera, face_textures=self.textures,
                                           grads=grads)
 
@@ -140,7 +141,7 @@ def pose_objective(scene: PoseScene, target_rgb: np.ndarray, target_alpha: np.nd
         g_img = weights["image"] * terms["image"][1]["pred"]          # d loss / d(rgb * alpha)
         g_alpha = (g_img * rgb).sum(-1) + weights["silhouette"] * terms["silhouette"][1]["pred"]
         g_v = renderer.backward(out, grad_rgb=(g_img * alpha[..., None])[None], grad_alpha=g_alpha[None])
-        g_delta = rodrigues_vjp(delta, g_v["vertices"].T @ base_vertices)   # v = R(delta) base v0
+        g_delta = rodrigues_vjp(rodrigues(delta)[1], g_v["vertices"].T @ base_vertices)["omega"]   # v = R(delta) base v0
         weighted = {name: weights[name] * value for name, (value, _) in terms.items()}
         return sum(weighted.values()), {"delta": g_delta}, weighted
 
@@ -149,7 +150,7 @@ def pose_objective(scene: PoseScene, target_rgb: np.ndarray, target_alpha: np.nd
 
 def _compose(delta: np.ndarray, base: np.ndarray) -> np.ndarray:
     """Axis-angle of rodrigues(delta) @ base."""
-    return matrix_to_axis_angle(rodrigues(delta) @ base)
+    return matrix_to_axis_angle(axis_angle_to_matrix(delta) @ base)
 
 
 def schedule(steps: int, sigma=(0.1, 1e-5), gamma=(1.0, 1e-4), iters: int = 100,
@@ -183,7 +184,7 @@ def fit_rotation(scene: PoseScene, target_rgb, target_alpha, init_rotation, stag
     rotation = np.asarray(init_rotation, float)
     history, outcomes, loss, interrupted = [], {}, float("nan"), False
     for stage in stages:
-        base = rodrigues(rotation)
+        base = axis_angle_to_matrix(rotation)
         objective = pose_objective(scene, target_rgb, target_alpha, base, pyramid)
         scale = 1.0
         if first_step is not None:
@@ -205,7 +206,7 @@ def fit_rotation(scene: PoseScene, target_rgb, target_alpha, init_rotation, stag
 
 def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> float:
     """Angle in degrees of the relative rotation between axis-angle vectors a and b."""
-    rel = rodrigues(a) @ rodrigues(b).T
+    rel = axis_angle_to_matrix(a) @ axis_angle_to_matrix(b).T
     return float(np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1.0, 1.0))))
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.scene.camera import rodrigues
+from softras_cl.scene.rotation import axis_angle_to_matrix
 from softras_cl.io.images import to_srgb, write_image
 from softras_cl.io.meshes import save_mesh
 from softras_cl.scene.shading import SHLight
@@ -109,7 +109,7 @@ def camera_matrices(fit: FaceFit, photo_size) -> dict:
     scene, values = photo_scene(fit, photo_size)
     f, (cx, cy) = values["focal"][0], scene.principal
     return dict(K=np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]]),
-                R=CAMERA_ROTATION @ rodrigues(values["rotation"]),
+                R=CAMERA_ROTATION @ axis_angle_to_matrix(values["rotation"]),
                 t=CAMERA_ROTATION @ values["translation"])
 
 

@@ -31,7 +31,7 @@ DEFAULT_BUDGETS = ("fast", "default")
 def random_pose(model, rng: np.random.Generator) -> dict:
     """Random plausible blocks (betas, body_pose, global_rotation, translation), see the module
     docstring."""
-    from softras_cl.scene.camera import matrix_to_axis_angle, rodrigues
+    from softras_cl.scene.rotation import axis_angle_to_matrix, matrix_to_axis_angle
     from softras_cl.fitting.recipes.body import hinge_frames, pose_sigmas, rest_values
 
     sigma = pose_sigmas(model)
@@ -44,7 +44,7 @@ def random_pose(model, rng: np.random.Generator) -> dict:
         local = [rng.uniform(0.0, top) - bend, rng.normal(0, 0.1), rng.normal(0, 0.05)]
         values["body_pose"][row] = frame.T @ local
     yaw, pitch = np.radians(rng.uniform(-30, 30)), np.radians(rng.uniform(-5, 5))
-    values["global_rotation"] = matrix_to_axis_angle(rodrigues([0, yaw, 0]) @ rodrigues([pitch, 0, 0]))
+    values["global_rotation"] = matrix_to_axis_angle(axis_angle_to_matrix([0, yaw, 0]) @ axis_angle_to_matrix([pitch, 0, 0]))
     values["translation"] = rng.normal(0.0, [0.05, 0.03, 0.1])
     return values
 

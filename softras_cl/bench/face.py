@@ -36,13 +36,13 @@ DEFAULT_BUDGETS = ("fast", "default", "thorough")
 
 def random_truth(model, rng: np.random.Generator, size: int) -> dict:
     """Random known parameters (the fit's blocks, focal in pixels) for a size x size photo."""
-    from softras_cl.scene.camera import matrix_to_axis_angle, rodrigues
+    from softras_cl.scene.rotation import axis_angle_to_matrix, matrix_to_axis_angle
     from softras_cl.scene.shading import sh_ambient
 
     coeffs = {k: np.clip(rng.normal(size=n), -2.5, 2.5)
               for k, n in (("id", model.n_id), ("exp", model.n_exp), ("albedo", model.n_albedo))}
     yaw, pitch, roll = np.radians([rng.uniform(-30, 30), rng.uniform(-15, 15), rng.uniform(-10, 10)])
-    R = rodrigues([0, yaw, 0]) @ rodrigues([pitch, 0, 0]) @ rodrigues([0, 0, roll])
+    R = axis_angle_to_matrix([0, yaw, 0]) @ axis_angle_to_matrix([pitch, 0, 0]) @ axis_angle_to_matrix([0, 0, roll])
     fov = np.radians(rng.uniform(20, 40))
     focal = 0.5 * size / np.tan(fov / 2)
     lo, hi = model.mean_shape.min(0), model.mean_shape.max(0)

@@ -81,13 +81,13 @@ def failure_basins(targets, results, tol_deg: float = 10.0) -> dict:
     colours differ) named by its angle ('90 deg', '120 deg', '180 deg'), with 'view axis' when
     that symmetry turns about an axis within 30 deg of the line of sight (a quarter/half turn
     that keeps the front face), or 'none' when no symmetry is within tol. Fractions of trials."""
-    from softras_cl.scene.camera import rodrigues
+    from softras_cl.scene.rotation import axis_angle_to_matrix
 
     syms = cube_symmetries()
     counts: dict = {}
     for t, r in zip(targets, results):
-        rt = rodrigues(t)
-        rel = rt.T @ rodrigues(r)
+        rt = axis_angle_to_matrix(t)
+        rel = rt.T @ axis_angle_to_matrix(r)
         cos = np.clip((np.einsum("kij,ij->k", syms, rel) - 1) / 2, -1, 1)
         k = int(np.argmax(cos))
         off = np.degrees(np.arccos(cos[k]))
@@ -113,7 +113,7 @@ def save_geodesics(scene, cases, stages, path: Path, fit_kwargs: dict, max_cases
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from softras_cl.scene.camera import matrix_to_axis_angle, rodrigues
+    from softras_cl.scene.rotation import axis_angle_to_matrix, matrix_to_axis_angle
     from softras_cl.fitting.recipes.rigid import pose_objective
 
     cases = cases[:max_cases]
@@ -124,10 +124,10 @@ def save_geodesics(scene, cases, stages, path: Path, fit_kwargs: dict, max_cases
     for ax, stage in zip(axes, (stages[0], stages[-1])):
         for target, result in cases:
             _, out = scene.render(target, TARGET_SIGMA, TARGET_GAMMA)
-            base = rodrigues(target)
+            base = axis_angle_to_matrix(target)
             objective = pose_objective(scene, out.rgb[0], out.alpha[0], base,
                                        fit_kwargs.get("pyramid", 1))
-            step = matrix_to_axis_angle(rodrigues(result) @ base.T)
+            step = matrix_to_axis_angle(axis_angle_to_matrix(result) @ base.T)
             losses = [objective({"delta": t * step}, stage)[0] for t in ts]
             ax.plot(ts, np.array(losses) / max(losses), lw=1,
                     label=f"{np.degrees(np.linalg.norm(step)):.0f} deg away")

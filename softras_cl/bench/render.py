@@ -158,7 +158,7 @@ def mirror_once(raster, scene: RenderScene) -> tuple:
     Returns ({stage: seconds} for the forward and backward parts ("<stage>_fwd"/"<stage>_bwd"),
     gradients in Renderer's format)."""
     from softras_cl.scene import shading
-    from softras_cl.scene.camera import rodrigues_vjp
+    from softras_cl.scene.rotation import rodrigues_vjp
 
     clock, t = time.perf_counter, {}
     cam, faces = scene.camera, scene.faces
@@ -189,7 +189,7 @@ def mirror_once(raster, scene: RenderScene) -> tuple:
     g_centre = g_shade["camera_center"][0]
     grads = dict(vertices=(g_cam["vertices"][None] + g_shade["vertices"]).sum(0),
                  albedo=g_shade["albedo"].sum(0),
-                 camera=dict(rotation=g_cam["rotation"] + rodrigues_vjp(cam.rotation, -np.outer(cam.translation, g_centre)),
+                 camera=dict(rotation=g_cam["rotation"] + rodrigues_vjp(cam_ctx.rotation, -np.outer(cam.translation, g_centre))["omega"],
                              translation=g_cam["translation"] - rot @ g_centre, focal=g_cam["focal"]),
                  light={k: g_shade[k] for k in scene.sh_light.params()})
     end = clock()

@@ -6,13 +6,18 @@ Order of choice (`select_device`):
 2. `PYOPENCL_CTX`: pyopencl's format, "P:D" where each part is an index or a name substring.
 3. The best device found: GPUs, then CPUs (CPU platforms ranked by `PREFERRED_CPU_PLATFORMS`),
    then anything else; ties keep pyopencl's order.
+
+`resolve_context` turns a user's optional device, context and queue into a consistent triple.
 """
 from __future__ import annotations
 
+import logging
 import os
 import re
 
 import pyopencl as cl
+
+logger = logging.getLogger(__name__)
 
 ENV_VAR = "SOFTRAS_CL_DEVICE"
 
@@ -120,7 +125,9 @@ def select_device() -> cl.Device:
     Raises ValueError (naming the variable and listing devices) for a bad SOFTRAS_CL_DEVICE or
     PYOPENCL_CTX, RuntimeError (saying how to install one) when there is no OpenCL platform.
     """
-    return _select(_entries())[3]
+    pi, di, platform, device = _select(_entries())
+    logger.info("OpenCL device %d:%d: %s", pi, di, _label(platform, device))
+    return device
 
 
 def has_fp64(device: cl.Device) -> bool:
@@ -158,3 +165,51 @@ def get_context(device: cl.Device | None = None) -> tuple[cl.Context, cl.Command
         ctx = cl.Context([device])
         _contexts[device] = (ctx, cl.CommandQueue(ctx, device))
     return _contexts[device]
+
+
+def resolve_context(device: cl.Device | None = None, context: cl.Context | None = None,
+                    queue: cl.CommandQueue | None = None) -> tuple[cl.Device, cl.Context, cl.CommandQueue]:
+    """(device, context, in-order queue) from whichever of the three the caller gives.
+
+    Nothing given: `get_context(device)` (cached). A queue alone brings its context and device; a
+    context brings its device (given, or the queue's, or its only one) and a new queue unless one
+    is given. TypeError for arguments of the wrong type, ValueError (naming the argument) for a
+    device outside the context, a queue of another context or device, or an out-of-order queue.
+    """
+    for name, value, kind in (("device", device, cl.Device), ("context", context, cl.Context),
+                              ("queue", queue, cl.CommandQueue)):
+        if value is not None and not isinstance(value, kind):
+            raise TypeError(f"{name} must be a pyopencl.{kind.__name__} or None, got {type(value).__name__}")
+    if context is None and queue is None:
+        device = select_device() if device is None else device
+        return (device, *get_context(device))
+    if device is None and queue is not None:
+        device = queue.device
+    context = queue.context if context is None else context
+    device = _context_device(context, device)
+    if queue is None:
+        return device, context, cl.CommandQueue(context, device)
+    _check_queue(queue, context, device)
+    return device, context, queue
+
+
+def _context_device(context: cl.Context, device: cl.Device | None) -> cl.Device:
+    """`device` if it belongs to `context`, or the context's only device when None."""
+    devices = context.devices
+    if device is None:
+        if len(devices) != 1:
+            raise ValueError(f"context holds {len(devices)} devices: pass device= to choose one")
+        return devices[0]
+    if device not in devices:
+        raise ValueError(f"device {device.name!r} does not belong to the context "
+                         f"(its devices: {[d.name for d in devices]})")
+    return device
+
+
+def _check_queue(queue: cl.CommandQueue, context: cl.Context, device: cl.Device) -> None:
+    if queue.context != context:
+        raise ValueError("queue belongs to another context than the one given as context")
+    if queue.device != device:
+        raise ValueError(f"queue runs on device {queue.device.name!r}, not on device {device.name!r}")
+    if queue.properties & cl.command_queue_properties.OUT_OF_ORDER_EXEC_MODE_ENABLE:
+        raise ValueError("queue must be in-order (the rasteriser relies on the order of its commands)")

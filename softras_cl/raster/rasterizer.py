@@ -1,25 +1,26 @@
-"""Soft rasteriser host side: argument checks, per-face setup, tile binning, kernel launches.
+"""Soft rasteriser host side: the `SoftRasterizer` API, kernel launches and gradient reductions.
 
 Maths: docs/conventions.md. Usage: docs/api.md. The heavy per-(pixel, face) work runs in
-kernels/soft_raster.cl; the host prepares O(F) face constants and the O(bins) tile lists in numpy.
+kernels/soft_raster.cl; face set-up and tile binning (numpy) live in softras_cl.raster.binning.
+What a forward keeps for its backward is a `RasterContext`.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, fields
 
 import numpy as np
 import pyopencl as cl
 
-from softras_cl.raster.corners import scatter_corners
-from softras_cl.cl.device import get_context, has_fp64, has_int64_atomics, select_device
-from softras_cl.raster.inputs import MeshInputs, check_cotangent, check_inputs
+from softras_cl.cl.device import has_fp64, has_int64_atomics, resolve_context
+from softras_cl.cl.layout import LIGHT_PARAMS, vertex_attr_width
 from softras_cl.cl.program import build_kernel
+from softras_cl.raster.binning import Bins, bin_faces, face_setup, tile_grid
+from softras_cl.raster.binning import footprint_margin  # noqa: F401  temporary re-export for old imports
+from softras_cl.raster.corners import scatter_corners
+from softras_cl.raster.inputs import MeshInputs, check_cotangent, check_inputs
 from softras_cl.raster.settings import RasterSettings
 
-TILE_H = 8          # tile height in rows; tile width = kernel vector width (_tile_width)
-FACE_STRIDE = 28    # reals per face in the geometry buffer (see Face in soft_raster.cl)
-MIN_AREA = 1e-12    # faces with |doubled NDC area| below this are dropped
 GRAD_NAMES = ("vertices", "colors")
 # Work-group shape of both kernels. Set explicitly: left to the driver, PoCL picked groups of
 # 4096 work-items whose float64 private state overflowed its thread stacks (a crash at 1024^2).
@@ -27,32 +28,82 @@ GROUP = (8, 1, 1)
 
 
 @dataclass
-class Bins:
-    """Faces binned into tiles. Entries are (tile, face) pairs.
+class FaceBuffers:
+    """Read-only device copies of one forward's per-face inputs and bins. `real` is the settings'
+    dtype; an empty input is the rasteriser's small dummy buffer instead.
 
-    tile_start: (n_tiles + 1,) int32, entries of tile t are tile_start[t]:tile_start[t+1]
-    tile_faces: (n_entries,) int32 global face index (batch * F + f), increasing within a tile
-    tile_slots: (n_entries,) int32 position of the entry in face-major order
-    face_start: (B*F + 1,) int64, face-major entries of face g are face_start[g]:face_start[g+1]
+    geom: (B*F, FACE_STRIDE) real, records of softras_cl.raster.binning.face_setup
+    attr: (B*F, K) real, MeshInputs.face_attributes() (corner colours [+ normals], texels or uvs)
+    tex_image: (B, Ht, Wt, 3) real uv texture map
+    light: (LIGHT_PARAMS,) real lighting parameters
+    tile_start, tile_faces, tile_slots: int32, the arrays of the same names in Bins
     """
-    tile_start: np.ndarray
-    tile_faces: np.ndarray
-    tile_slots: np.ndarray
-    face_start: np.ndarray
+    geom: cl.Buffer
+    attr: cl.Buffer
+    tex_image: cl.Buffer
+    light: cl.Buffer
+    tile_start: cl.Buffer
+    tile_faces: cl.Buffer
+    tile_slots: cl.Buffer
 
-    @property
-    def n_entries(self) -> int:
-        return int(self.face_start[-1])
+
+@dataclass
+class PixelState:
+    """Per-pixel device state the forward writes for the backward, over the padded image
+    (planes of B x Hp x Wp pixels, see binning.Grid); None where the settings need none.
+
+    color: (B, Hp, Wp) real, softmax log-normaliser of rgb/depth (softmax colour aggregation)
+    alpha: (2, B, Hp, Wp) real for occupancy (sum of log(1 - D) without its smallest term, and
+        that term), (B, Hp, Wp) real sum of D for alpha_agg "sum"
+    ids: (2, B, Hp, Wp) int32, face of the hard colour and face of the smallest occupancy term
+    """
+    color: cl.Buffer | None
+    alpha: cl.Buffer | None
+    ids: cl.Buffer
+
+
+@dataclass
+class RasterContext:
+    """What one forward keeps for its backward.
+
+    mesh: the checked inputs. grads: the gradient names forward was asked for (non-empty).
+    bins: the (tile, face) lists (host). buffers: the device inputs. images: the forward's
+    outputs as (planes, B, Hp, Wp) real host arrays, keyed "rgb" (3 planes), "alpha", "depth"
+    (1 plane each), requested outputs only. state: the per-pixel device state.
+    """
+    mesh: MeshInputs
+    grads: tuple[str, ...]
+    bins: Bins
+    buffers: FaceBuffers
+    images: dict[str, np.ndarray]
+    state: PixelState
+
+    def nbytes(self) -> int:
+        """Bytes kept: bin arrays (host) and device buffers, each buffer counted once."""
+        host = sum(a.nbytes for a in (self.bins.tile_start, self.bins.tile_faces,
+                                      self.bins.tile_slots, self.bins.face_start))
+        device = {b.int_ptr: b.size for obj in (self.buffers, self.state)
+                  for b in (getattr(obj, f.name) for f in fields(obj)) if b is not None}
+        return host + sum(device.values())
+
+    def __getitem__(self, key: str):
+        """Temporary: the keys of the dict this class replaces, until every caller reads fields."""
+        state = {f.name: getattr(self.state, f.name) for f in fields(self.state)}
+        legacy = dict(mesh=self.mesh, grads=self.grads, bins=self.bins,
+                      bufs={f.name: getattr(self.buffers, f.name) for f in fields(self.buffers)},
+                      images={**self.images, "state": {k: v for k, v in state.items() if v is not None}})
+        return legacy[key]
 
 
 @dataclass
 class RasterOutput:
     """Images of one forward call, each cropped to (B, H, W[, 3]) in the settings' dtype;
-    None for outputs not requested. `saved` holds what backward needs (device buffers)."""
+    None for outputs not requested. `saved` holds what backward needs; None when forward was
+    called without grads."""
     rgb: np.ndarray | None
     alpha: np.ndarray | None
     depth: np.ndarray | None
-    saved: dict = field(default_factory=dict, repr=False)
+    saved: RasterContext | None = None
 
     def rgba(self) -> np.ndarray:
         """(B, H, W, 4): rgb and alpha side by side (both must have been requested)."""
@@ -64,18 +115,20 @@ class RasterOutput:
 class SoftRasterizer:
     """Renders batches of screen-space meshes with the soft rasteriser and back-propagates.
 
-    settings: RasterSettings. device: a pyopencl.Device (default: softras_cl.cl.device.select_device()).
+    settings: RasterSettings. device, context, queue: optional pyopencl Device, Context and
+    in-order CommandQueue to run on (see softras_cl.cl.device.resolve_context); by default the
+    cached context of softras_cl.cl.device.select_device().
     """
 
-    def __init__(self, settings: RasterSettings, device: cl.Device | None = None):
+    def __init__(self, settings: RasterSettings, device: cl.Device | None = None,
+                 context: cl.Context | None = None, queue: cl.CommandQueue | None = None):
         if not isinstance(settings, RasterSettings):
             raise TypeError(f"settings must be a RasterSettings, got {type(settings).__name__}")
         self.settings = settings
-        self.device = device if device is not None else select_device()
+        self.device, self.ctx, self.queue = resolve_context(device, context, queue)
         if settings.dtype == "float64" and not has_fp64(self.device):
             raise ValueError(f"settings.dtype='float64' but device {self.device.name!r} has no "
                              "cl_khr_fp64; use dtype='float32' or another device")
-        self.ctx, self.queue = get_context(self.device)
         self.real = np.dtype(settings.dtype)
 
     # ---- public API ------------------------------------------------------------------------
@@ -95,9 +148,10 @@ class SoftRasterizer:
                              f"{self.device.name!r} lacks")
         geom, drawable = face_setup(mesh, s)
         bins = bin_faces(geom, drawable, mesh.batch, mesh.n_faces, s)
-        bufs = self._upload(mesh, geom, bins)
-        images = self._run_forward(mesh, bufs, bool(grads))
-        saved = dict(mesh=mesh, bins=bins, bufs=bufs, grads=grads, images=images)
+        buffers = self._upload(mesh, geom, bins)
+        state = self._state_buffers(mesh.batch) if grads else None
+        images = self._run_forward(mesh, buffers, state)
+        saved = RasterContext(mesh, grads, bins, buffers, images, state) if grads else None
         return RasterOutput(*(self._crop(images.get(n)) for n in ("rgb", "alpha", "depth")), saved)
 
     def backward(self, output: RasterOutput, grad_rgb=None, grad_alpha=None, grad_depth=None) -> dict:
@@ -108,9 +162,9 @@ class SoftRasterizer:
         and "colors" (shape of the colour input given: colors, face_textures or texture_image).
         """
         saved = output.saved
-        if not saved or not saved["grads"]:
+        if saved is None:
             raise ValueError("output: forward() was called without grads=...; nothing to differentiate")
-        s, mesh = self.settings, saved["mesh"]
+        s, mesh = self.settings, saved.mesh
         cot = {name: check_cotangent(name, g, _cot_shape(name, mesh.batch, s), name[len("grad_"):] in s.outputs)
                for name, g in (("grad_rgb", grad_rgb), ("grad_alpha", grad_alpha), ("grad_depth", grad_depth))}
         return self._gather_grads(saved, self._run_backward(saved, cot))
@@ -133,54 +187,56 @@ class SoftRasterizer:
             SR_GRAD_COLOR="colors" in grads and "rgb" in s.outputs)
         return build_kernel(self.ctx, "soft_raster.cl", name, defines, s.fast_math)
 
-    def _geometry_args(self, mesh: MeshInputs, bufs: dict) -> list:
+    def _geometry_args(self, mesh: MeshInputs, bufs: FaceBuffers) -> list:
+        """The GEOMETRY_ARGS shared by both kernels (kernels/soft_raster.cl)."""
         s, real = self.settings, self.real.type
-        g = _grid(s)
+        g = tile_grid(s)
         x_cut = -np.finfo(self.real).max if s.dist_eps == 0 else math.log(s.dist_eps / (1 - s.dist_eps))
         i32 = np.int32
         return [i32(s.width), i32(s.height), i32(g.wp), i32(g.hp), i32(g.ntx), i32(g.nty),
                 real(2.0 / min(s.width, s.height)), real(1.0 / s.sigma), real(x_cut),
                 real(1.0 / s.gamma), real(s.eps), real(s.near), real(s.far),
                 i32(mesh.tex_res), i32(mesh.tex_shape[0]), i32(mesh.tex_shape[1]),
-                bufs["geom"], bufs["attr"], bufs["tex_image"], bufs["light"], bufs["tile_start"],
-                bufs["tile_faces"]]
+                bufs.geom, bufs.attr, bufs.tex_image, bufs.light, bufs.tile_start, bufs.tile_faces]
 
-    def _run_forward(self, mesh: MeshInputs, bufs: dict, save_state: bool) -> dict:
+    def _run_forward(self, mesh: MeshInputs, bufs: FaceBuffers, state: PixelState | None) -> dict:
+        """Run the forward kernel (writing `state` too, if given): {output name: (planes, B, Hp, Wp)}."""
         s, real = self.settings, self.real
-        g = _grid(s)
+        g = tile_grid(s)
         npix = mesh.batch * g.hp * g.wp
         planes = dict(rgb=3 if "rgb" in s.outputs else 0, alpha=int("alpha" in s.outputs),
                       depth=int("depth" in s.outputs))
         out = {n: cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, npix * k * real.itemsize)
                for n, k in planes.items() if k}
-        state = self._state_buffers(npix) if save_state else {}
         dummy = self._dummy()
-        knl = self._kernel("soft_raster_fwd", (), save_state)
+        knl = self._kernel("soft_raster_fwd", (), state is not None)
         knl(self.queue, (_round_up(g.ntx), g.hp, mesh.batch), GROUP, *self._geometry_args(mesh, bufs),
             *(real.type(c) for c in s.background),
-            *(out.get(n, dummy) for n in ("rgb", "alpha", "depth")),
-            *(state.get(n, dummy) for n in ("color", "alpha", "ids")))
-        images = {n: self._download(b, planes[n], mesh.batch) for n, b in out.items()}
-        images["state"] = state
-        return images
+            *(out.get(n, dummy) for n in ("rgb", "alpha", "depth")), *self._state_args(state))
+        return {n: self._download(b, planes[n], mesh.batch) for n, b in out.items()}
 
-    def _state_buffers(self, npix: int) -> dict:
+    def _state_buffers(self, batch: int) -> PixelState:
         """Per-pixel state the backward reads: softmax log-normaliser or hard face ids, and the
         occupancy sums (two planes) or the sum of D."""
-        s, itemsize = self.settings, self.real.itemsize
-        rw = cl.mem_flags.READ_WRITE
-        state = {}
-        if {"rgb", "depth"} & set(s.outputs) and s.color_agg == "softmax":
-            state["color"] = cl.Buffer(self.ctx, rw, npix * itemsize)
-        if "alpha" in s.outputs and s.alpha_agg != "hard":
-            state["alpha"] = cl.Buffer(self.ctx, rw, npix * itemsize * (2 if s.alpha_agg == "occupancy" else 1))
-        state["ids"] = cl.Buffer(self.ctx, rw, npix * 4 * 2)
-        return state
+        s, g, itemsize = self.settings, tile_grid(self.settings), self.real.itemsize
+        npix = batch * g.hp * g.wp
+        new = lambda nbytes: cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, nbytes)
+        soft_color = {"rgb", "depth"} & set(s.outputs) and s.color_agg == "softmax"
+        alpha_planes = ("alpha" in s.outputs) * {"occupancy": 2, "sum": 1, "hard": 0}[s.alpha_agg]
+        return PixelState(color=new(npix * itemsize) if soft_color else None,
+                          alpha=new(npix * itemsize * alpha_planes) if alpha_planes else None,
+                          ids=new(npix * 4 * 2))
 
-    def _run_backward(self, saved: dict, cot: dict):
-        s, real, mesh, bins = self.settings, self.real, saved["mesh"], saved["bins"]
-        g = _grid(s)
-        images, grads = saved["images"], saved["grads"]
+    def _state_args(self, state: PixelState | None) -> list:
+        """The color, alpha and id state kernel arguments (the dummy buffer where absent)."""
+        bufs = (state.color, state.alpha, state.ids) if state is not None else (None,) * 3
+        return [b if b is not None else self._dummy() for b in bufs]
+
+    def _run_backward(self, saved: RasterContext, cot: dict) -> dict:
+        """Run the backward kernel: per-(tile, face) slot sums and uv texel sums (host arrays)."""
+        s, real, mesh, bins = self.settings, self.real, saved.mesh, saved.bins
+        g = tile_grid(s)
+        images, grads = saved.images, saved.grads
         # an output without a cotangent contributes zero; the kernel variant still reads its plane
         planes = {n: self._pad_planes(c if c is not None else np.zeros(_cot_shape(n, mesh.batch, s)), mesh.batch)
                   for n, c in cot.items() if n[len("grad_"):] in s.outputs}
@@ -193,18 +249,17 @@ class SoftRasterizer:
         n = max(bins.n_entries, 1)
         slot_pos = np.zeros((n, 9), real) if "vertices" in grads else None
         slot_attr, tex_fixed, scale = self._color_grad_buffers(mesh, grads, n, cot["grad_rgb"])
-        slot_light = np.zeros((n, 27), real) if slot_attr is not None and s.lighting != "none" else None
+        slot_light = np.zeros((n, LIGHT_PARAMS), real) if slot_attr is not None and s.lighting != "none" else None
         rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
         hosts = (slot_pos, slot_attr, slot_light, tex_fixed)
         out_bufs = [cl.Buffer(self.ctx, rw, hostbuf=a) if a is not None else dummy for a in hosts]
-        state = images["state"]
         kernel_grads = tuple(g for g in grads if g != "colors" or slot_attr is not None or tex_fixed is not None)
         if not kernel_grads:    # colour gradients only, and no rgb cotangent: all zero
             return dict(pos=slot_pos, attr=slot_attr, light=slot_light, tex=tex_fixed, scale=scale)
         knl = self._kernel("soft_raster_bwd", kernel_grads, True)
-        knl(self.queue, (_round_up(g.ntx), g.nty, mesh.batch), GROUP, *self._geometry_args(mesh, saved["bufs"]),
-            saved["bufs"]["tile_slots"], *cot_bufs, g_dot_buf,
-            *(state.get(k, dummy) for k in ("color", "alpha", "ids")), real.type(scale), *out_bufs)
+        knl(self.queue, (_round_up(g.ntx), g.nty, mesh.batch), GROUP, *self._geometry_args(mesh, saved.buffers),
+            saved.buffers.tile_slots, *cot_bufs, g_dot_buf, *self._state_args(saved.state),
+            real.type(scale), *out_bufs)
         for host, dev in zip(hosts, out_bufs):
             if host is not None:
                 cl.enqueue_copy(self.queue, host, dev)
@@ -216,15 +271,15 @@ class SoftRasterizer:
         if "colors" not in grads or "rgb" not in s.outputs or grad_rgb is None:
             return None, None, 1.0
         if s.texture == "vertex":
-            return np.zeros((n_entries, 18 if s.lighting != "none" else 9), self.real), None, 1.0
+            return np.zeros((n_entries, vertex_attr_width(s.lighting != "none")), self.real), None, 1.0
         if s.texture == "face":
             return np.zeros((n_entries, mesh.tex_res ** 2 * 3), self.real), None, 1.0
         scale = _fixed_point_scale(grad_rgb, self.real)
         return None, np.zeros((mesh.batch, *mesh.tex_shape, 3), np.int64), scale
 
-    def _gather_grads(self, saved: dict, slots: dict) -> dict:
+    def _gather_grads(self, saved: RasterContext, slots: dict) -> dict:
         """Sum the (tile, face) slots per face in a fixed order, then faces onto vertices."""
-        mesh, bins, grads = saved["mesh"], saved["bins"], saved["grads"]
+        mesh, bins, grads = saved.mesh, saved.bins, saved.grads
         out = {}
         if "vertices" in grads:
             per_face = _sum_slots(slots["pos"], bins).reshape(mesh.batch, mesh.n_faces, 3, 3)
@@ -245,7 +300,7 @@ class SoftRasterizer:
             r = mesh.tex_res
             g = (np.zeros((mesh.batch * mesh.n_faces, r * r * 3)) if attr is None else _sum_slots(attr, bins))
             return dict(colors=mesh.unbatch_colors(g.reshape(mesh.batch, mesh.n_faces, r, r, 3)))
-        width = 18 if s.lighting != "none" else 9
+        width = vertex_attr_width(s.lighting != "none")
         per_face = (np.zeros((mesh.batch * mesh.n_faces, width)) if attr is None else _sum_slots(attr, bins))
         per_face = per_face.reshape(mesh.batch, mesh.n_faces, width // 3, 3)
         out = dict(colors=mesh.unbatch_colors(
@@ -253,20 +308,21 @@ class SoftRasterizer:
         if s.lighting != "none":
             out["normals"] = scatter_corners(per_face[:, :, 3:], mesh.faces, mesh.n_vertices)
             light = slots["light"]
-            out["light"] = (np.zeros(27) if light is None
+            out["light"] = (np.zeros(LIGHT_PARAMS) if light is None
                             else light[:bins.n_entries].astype(np.float64).sum(0))
         return out
 
     # ---- buffers ---------------------------------------------------------------------------
-    def _upload(self, mesh: MeshInputs, geom: np.ndarray, bins: Bins) -> dict:
+    def _upload(self, mesh: MeshInputs, geom: np.ndarray, bins: Bins) -> FaceBuffers:
+        """Device copies of the face records, colour inputs and bins, in the kernel dtype."""
         ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
         arrays = dict(geom=geom.astype(self.real, order="C"), attr=mesh.face_attributes().astype(self.real),
                       tex_image=mesh.texture_image_array().astype(self.real),
                       light=(mesh.light if mesh.light is not None else np.zeros(0)).astype(self.real),
                       tile_start=bins.tile_start, tile_faces=bins.tile_faces,
                       tile_slots=bins.tile_slots)
-        return {name: cl.Buffer(self.ctx, ro, hostbuf=np.ascontiguousarray(a)) if a.size else self._dummy()
-                for name, a in arrays.items()}
+        return FaceBuffers(**{name: cl.Buffer(self.ctx, ro, hostbuf=np.ascontiguousarray(a)) if a.size
+                              else self._dummy() for name, a in arrays.items()})
 
     def _dummy(self) -> cl.Buffer:
         """A small buffer standing in for arguments the kernel variant never reads."""
@@ -276,7 +332,7 @@ class SoftRasterizer:
 
     def _download(self, buf: cl.Buffer, n_planes: int, batch: int) -> np.ndarray:
         """(planes, B, Hp, Wp) host copy of a per-pixel device buffer."""
-        g = _grid(self.settings)
+        g = tile_grid(self.settings)
         host = np.empty((n_planes, batch, g.hp, g.wp), self.real)
         cl.enqueue_copy(self.queue, host, buf)
         return host
@@ -291,7 +347,7 @@ class SoftRasterizer:
 
     def _pad_planes(self, image: np.ndarray, batch: int) -> np.ndarray:
         """(B, H, W[, C]) -> (C, B, Hp, Wp) zero-padded, in the kernel dtype."""
-        g = _grid(self.settings)
+        g = tile_grid(self.settings)
         planes = image[None] if image.ndim == 3 else np.moveaxis(image, -1, 0)
         out = np.zeros((planes.shape[0], batch, g.hp, g.wp), self.real)
         out[:, :, :image.shape[1], :image.shape[2]] = planes
@@ -310,132 +366,9 @@ class SoftRasterizer:
         return total
 
 
-# ---- face setup and binning (numpy, O(F) and O(bins)) ---------------------------------------
 def _round_up(n: int) -> int:
     """n rounded up to a whole number of work-groups along x (the kernels skip the extra items)."""
     return -(-n // GROUP[0]) * GROUP[0]
-
-
-@dataclass(frozen=True)
-class Grid:
-    """Tiling of the image: tiles of tile_w x TILE_H pixels, ntx x nty of them, covering the
-    padded image of wp x hp pixels that every per-pixel device buffer holds."""
-    tile_w: int
-    ntx: int
-    nty: int
-
-    @property
-    def wp(self) -> int:
-        return self.ntx * self.tile_w
-
-    @property
-    def hp(self) -> int:
-        return self.nty * TILE_H
-
-
-def _grid(s: RasterSettings) -> Grid:
-    """The tiling for the settings: one tile row is one kernel vector (8 floats or 4 doubles)."""
-    tile_w = 4 if s.dtype == "float64" else 8
-    return Grid(tile_w, -(-s.width // tile_w), -(-s.height // TILE_H))
-
-
-def face_setup(mesh: MeshInputs, s: RasterSettings) -> tuple[np.ndarray, np.ndarray]:
-    """Per-face constants for the kernel and which faces can be drawn at all.
-
-    Returns geom (B*F, FACE_STRIDE) float64 (layout: Face in soft_raster.cl; a transposed view,
-    made contiguous when cast to the kernel dtype) and drawable (B*F,) bool.
-    """
-    # one contiguous (B*F,) array per coordinate of each corner: x[k], y[k], z[k]
-    x, y, z = np.moveaxis(mesh.triangles().reshape(-1, 3, 3), (2, 1), (0, 1)).copy()
-    area = (x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0])
-    drawable = ((np.abs(area) >= MIN_AREA) & (z.min(0) > 0) & (z.max(0) >= s.near) & (z.min(0) <= s.far))
-    if not s.double_sided:
-        drawable &= area > 0
-    inv_area = 1.0 / np.where(drawable, area, 1.0)
-    m1 = ((y[2] - y[0]) * inv_area, -(x[2] - x[0]) * inv_area)
-    m2 = (-(y[1] - y[0]) * inv_area, (x[1] - x[0]) * inv_area)
-    edge_len2 = [(x[(k + 1) % 3] - x[k]) ** 2 + (y[(k + 1) % 3] - y[k]) ** 2 for k in range(3)]
-    rows = np.zeros((FACE_STRIDE, len(area)))
-    rows[0:6:2], rows[1:6:2] = x, y
-    rows[6:12] = [-(m1[0] + m2[0]), -(m1[1] + m2[1]), *m1, *m2]
-    rows[12:15] = z
-    rows[15:18] = 1.0 / np.where(drawable, z, 1.0)
-    rows[18:21] = [1.0 / np.where(drawable & (l2 > 0), l2, 1.0) for l2 in edge_len2]
-    rows[24:28] = _footprint_boxes(x, y, s)
-    rows[:, ~drawable] = 0.0
-    return rows.T, drawable
-
-
-def footprint_margin(s: RasterSettings) -> float:
-    """How far beyond a face (NDC, or barycentric units for that metric) D stays >= dist_eps.
-
-    inf when nothing is cut off (dist_eps = 0); 0 when only hard aggregations are used.
-    """
-    soft = ((s.color_agg == "softmax" and {"rgb", "depth"} & set(s.outputs))
-            or ("alpha" in s.outputs and s.alpha_agg != "hard"))
-    if not soft:
-        return 0.0
-    if s.dist_eps == 0:
-        return math.inf
-    return math.sqrt(s.sigma * math.log(1.0 / s.dist_eps - 1.0))
-
-
-def _footprint_boxes(x: np.ndarray, y: np.ndarray, s: RasterSettings) -> np.ndarray:
-    """(4, B*F) NDC boxes (xmin, xmax, ymin, ymax) where a face can reach D >= dist_eps, from
-    corner coordinates x, y (3, B*F).
-
-    Grown by a thousandth of a pixel, so that float32 kernels never meet a pair the box
-    excludes; unbounded footprints (dist_eps = 0) are clipped to +-1e6.
-    """
-    margin = footprint_margin(s)
-    if s.metric == "barycentric" and math.isfinite(margin):
-        grow = 1 + 3 * margin                              # region min(b) >= -margin
-        x = x.mean(0) + grow * (x - x.mean(0))
-        y = y.mean(0) + grow * (y - y.mean(0))
-        margin = 0.0
-    margin += 2e-3 / min(s.width, s.height)
-    box = [x.min(0) - margin, x.max(0) + margin, y.min(0) - margin, y.max(0) + margin]
-    return np.clip(box, -1e6, 1e6)
-
-
-def _pixel_ranges(boxes: np.ndarray, s: RasterSettings):
-    """Inclusive pixel column and row ranges whose centres fall in the boxes (clipped)."""
-    w, h = s.width, s.height
-    inv_ps = min(w, h) / 2.0
-    c0 = np.ceil(boxes[:, 0] * inv_ps + w / 2 - 0.5)
-    c1 = np.floor(boxes[:, 1] * inv_ps + w / 2 - 0.5)
-    r0 = np.ceil(h / 2 - 0.5 - boxes[:, 3] * inv_ps)
-    r1 = np.floor(h / 2 - 0.5 - boxes[:, 2] * inv_ps)
-    clip = lambda a, n: np.clip(a, -1, n).astype(np.int64)
-    return clip(c0, w), clip(c1, w), clip(r0, h), clip(r1, h)
-
-
-def bin_faces(geom: np.ndarray, drawable: np.ndarray, batch: int, n_faces: int,
-              s: RasterSettings) -> Bins:
-    """Bin every drawable face into the tiles its footprint touches."""
-    g = _grid(s)
-    c0, c1, r0, r1 = _pixel_ranges(geom[:, 24:28], s)
-    c0, r0 = np.maximum(c0, 0), np.maximum(r0, 0)
-    c1, r1 = np.minimum(c1, s.width - 1), np.minimum(r1, s.height - 1)
-    live = drawable & (c1 >= c0) & (r1 >= r0)
-    tx0, ty0 = c0 // g.tile_w, r0 // TILE_H
-    nx = np.where(live, c1 // g.tile_w - tx0 + 1, 0)
-    ny = np.where(live, r1 // TILE_H - ty0 + 1, 0)
-    counts = nx * ny
-    face_start = np.concatenate([[0], np.cumsum(counts)])
-    total = int(face_start[-1])
-    if total >= 2 ** 31:
-        raise ValueError(f"{total} (tile, face) pairs exceed the int32 limit: lower image_size, "
-                         "raise dist_eps or split the batch")
-    face = np.repeat(np.arange(len(counts)), counts)
-    local = np.arange(total) - face_start[face]
-    tx = tx0[face] + local % nx[face]
-    ty = ty0[face] + local // nx[face]
-    tile = ((face // n_faces) * g.nty + ty) * g.ntx + tx if total else np.zeros(0, np.int64)
-    order = np.argsort(tile, kind="stable")
-    tile_start = np.concatenate([[0], np.cumsum(np.bincount(tile, minlength=batch * g.ntx * g.nty))])
-    return Bins(tile_start.astype(np.int32), face[order].astype(np.int32),
-                order.astype(np.int32), face_start)
 
 
 # ---- gradient reduction ---------------------------------------------------------------------

@@ -5,7 +5,7 @@ Conventions (OpenCV): camera frame x right, y down, z forward; `X_cam = R X_worl
 `u = fx X + cx`, `v = fy Y + cy`; (u, v) = (0, 0) is the centre of the top-left pixel. Screen
 space (docs/conventions.md): `x = (2 (u + 0.5) - W) / s`, `y = (H - 2 (v + 0.5)) / s`,
 `s = min(H, W)`, `z = Z`. Every array is float64; every bad argument raises ValueError naming it
-before anything is computed.
+before anything is computed. Rotations (rodrigues and its vjp) live in softras_cl.scene.rotation.
 """
 from __future__ import annotations
 
@@ -16,49 +16,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from softras_cl.checks import check_finite, check_shape, float_array, number
+from softras_cl.scene.rotation import (RodriguesContext, axis_angle_to_matrix, matrix3,
+                                       matrix_to_axis_angle, rodrigues, rodrigues_vjp, vector3)
+
 PROJECTIONS = ("perspective", "orthographic")
-_SMALL_ANGLE = 0.1          # below this |omega| the Rodrigues coefficients use their Taylor series
 _PARALLEL_TOL = 1e-6        # sin(angle) between up and the viewing direction below this: parallel
 
 
 # ---- argument checks ---------------------------------------------------------------------------
-def _vector3(name: str, value) -> np.ndarray:
-    """A finite real 3-vector -> (3,) float64 copy."""
-    arr = np.asarray(value)
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating)
-                                   or np.issubdtype(arr.dtype, np.integer)):
-        raise ValueError(f"{name} must be a real 3-vector, got dtype {arr.dtype}")
-    if arr.shape != (3,):
-        raise ValueError(f"{name} must have shape (3,), got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise ValueError(f"{name} contains NaN or Inf: {arr.tolist()}")
-    return arr.astype(np.float64)
-
-
-def _matrix3(name: str, value) -> np.ndarray:
-    """A finite real 3x3 matrix -> (3, 3) float64 copy."""
-    arr = np.asarray(value)
-    if arr.dtype == object or not (np.issubdtype(arr.dtype, np.floating)
-                                   or np.issubdtype(arr.dtype, np.integer)):
-        raise ValueError(f"{name} must be a real 3x3 matrix, got dtype {arr.dtype}")
-    if arr.shape != (3, 3):
-        raise ValueError(f"{name} must have shape (3, 3), got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise ValueError(f"{name} contains NaN or Inf")
-    return arr.astype(np.float64)
-
-
-def _number(name: str, value, positive: bool = False) -> float:
-    """A finite real scalar (> 0 if `positive`) -> float."""
-    if isinstance(value, np.ndarray) and value.shape == ():
-        value = value.item()
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-        raise ValueError(f"{name} must be a finite number, got {value!r}")
-    if positive and value <= 0:
-        raise ValueError(f"{name} must be > 0, got {value!r}")
-    return float(value)
-
-
 def _image_size(value) -> tuple[int, int]:
     """(H, W), two ints >= 1."""
     ok = (isinstance(value, (tuple, list, np.ndarray)) and len(value) == 2
@@ -71,15 +37,10 @@ def _image_size(value) -> tuple[int, int]:
 
 def _points(name: str, value) -> tuple[np.ndarray, bool]:
     """(V, 3) or (B, V, 3) finite float array -> ((B, V, 3) float64, was_batched)."""
-    arr = np.asarray(value)
-    if not np.issubdtype(arr.dtype, np.floating):
-        raise ValueError(f"{name} must be a float array of shape (V, 3) or (B, V, 3), "
-                         f"got dtype {arr.dtype}")
+    arr = float_array(name, value)
     if arr.ndim not in (2, 3) or arr.shape[-1] != 3 or 0 in arr.shape:
         raise ValueError(f"{name} must have shape (V, 3) or (B, V, 3) with B, V >= 1, got {arr.shape}")
-    if not np.isfinite(arr).all():
-        bad = tuple(int(i) for i in np.argwhere(~np.isfinite(arr))[0])
-        raise ValueError(f"{name} contains NaN or Inf (first at index {bad})")
+    check_finite(name, arr)
     batched = arr.ndim == 3
     arr = arr.astype(np.float64)
     return (arr if batched else arr[None]), batched
@@ -87,103 +48,16 @@ def _points(name: str, value) -> tuple[np.ndarray, bool]:
 
 def _cotangent(name: str, value, shape: tuple, batched: bool) -> np.ndarray:
     """A cotangent of a (B, V, 3) output: that shape, or (V, 3) when the input had no batch axis."""
-    arr = np.asarray(value)
-    if not np.issubdtype(arr.dtype, np.floating):
-        raise ValueError(f"{name} must be a float array, got dtype {arr.dtype}")
+    arr = float_array(name, value)
     if not batched and arr.shape == shape[1:]:
         arr = arr[None]
-    if arr.shape != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise ValueError(f"{name} contains NaN or Inf")
-    return arr.astype(np.float64)
-
-
-# ---- rotations ---------------------------------------------------------------------------------
-def hat(w: np.ndarray) -> np.ndarray:
-    """(3,) -> (3, 3) cross-product matrix K with K v = w x v."""
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def _series(theta2: float, coeffs: tuple) -> float:
-    """sum_k coeffs[k] theta2^k."""
-    return sum(c * theta2 ** k for k, c in enumerate(coeffs))
-
-
-def _rodrigues_coeffs(theta: float) -> tuple[float, float, float, float]:
-    """A = sin t / t, B = (1 - cos t) / t^2, C = A'(t) / t, D = B'(t) / t (Taylor for small t)."""
-    t2 = theta * theta
-    if theta < _SMALL_ANGLE:
-        f = math.factorial
-        a = _series(t2, [(-1) ** k / f(2 * k + 1) for k in range(6)])
-        b = _series(t2, [(-1) ** k / f(2 * k + 2) for k in range(6)])
-        c = _series(t2, [(-1) ** (k + 1) * 2 * (k + 1) / f(2 * k + 3) for k in range(6)])
-        d = _series(t2, [(-1) ** (k + 1) * 2 * (k + 1) / f(2 * k + 4) for k in range(6)])
-        return a, b, c, d
-    s, c_ = math.sin(theta), math.cos(theta)
-    one_minus_cos = 2.0 * math.sin(0.5 * theta) ** 2
-    a = s / theta
-    b = one_minus_cos / t2
-    c = (theta * c_ - s) / (t2 * theta)
-    d = (theta * s - 2.0 * one_minus_cos) / (t2 * t2)
-    return a, b, c, d
-
-
-def rodrigues(omega) -> np.ndarray:
-    """Axis-angle (3,) -> rotation matrix (3, 3) float64: R = I + A K + B K^2, K = hat(omega)."""
-    w = _vector3("omega", omega)
-    a, b, _, _ = _rodrigues_coeffs(float(np.linalg.norm(w)))
-    k = hat(w)
-    return np.eye(3) + a * k + b * (k @ k)
-
-
-def rodrigues_vjp(omega, grad_R) -> np.ndarray:
-    """dL/domega (3,) from dL/dR (3, 3) for R = rodrigues(omega); exact, finite at omega = 0.
-
-    dR/dw_i = w_i (C K + D K^2) + A E_i + B (E_i K + K E_i), E_i = hat(e_i).
-    """
-    w = _vector3("omega", omega)
-    g = _matrix3("grad_R", grad_R)
-    a, b, c, d = _rodrigues_coeffs(float(np.linalg.norm(w)))
-    k = hat(w)
-    radial = c * np.sum(g * k) + d * np.sum(g * (k @ k))
-    out = np.empty(3)
-    for i in range(3):
-        e = hat(np.eye(3)[i])
-        out[i] = w[i] * radial + a * np.sum(g * e) + b * np.sum(g * (e @ k + k @ e))
-    return out
-
-
-def _vee_skew(m: np.ndarray) -> np.ndarray:
-    """(3, 3) -> the 3-vector of its skew part (m - m^T) / 2."""
-    return 0.5 * np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
-
-
-def matrix_to_axis_angle(R) -> np.ndarray:
-    """Rotation matrix (3, 3) -> axis-angle (3,) with |omega| in [0, pi]; stable near 0 and pi.
-
-    The angle comes from atan2(|skew|, cos); below pi/2 the axis from the skew part, above it
-    from the largest column of the symmetric part (sign taken from the skew part).
-    """
-    m = _matrix3("R", R)
-    w = _vee_skew(m)                                   # sin(theta) * axis
-    sin_t = float(np.linalg.norm(w))
-    cos_t = float(np.clip(0.5 * (np.trace(m) - 1.0), -1.0, 1.0))
-    theta = math.atan2(sin_t, cos_t)
-    if cos_t > 0.0:
-        ratio = 1.0 + theta * theta / 6.0 if sin_t < 1e-8 else theta / sin_t
-        return w * ratio
-    sym = 0.5 * (m + m.T) - cos_t * np.eye(3)          # (1 - cos) axis axis^T
-    j = int(np.argmax(np.diag(sym)))
-    axis = sym[:, j] / np.linalg.norm(sym[:, j])
-    if axis @ w < 0.0:
-        axis = -axis
-    return theta * axis
+    check_shape(name, arr, shape)
+    return check_finite(name, arr).astype(np.float64)
 
 
 def _check_rotation_matrix(name: str, R) -> np.ndarray:
     """A proper rotation (orthonormal to 1e-6, det +1) -> (3, 3) float64."""
-    m = _matrix3(name, R)
+    m = matrix3(name, R)
     if np.abs(m @ m.T - np.eye(3)).max() > 1e-6 or np.linalg.det(m) <= 0:
         raise ValueError(f"{name} must be a rotation matrix (R R^T = I, det R = +1), got {m.tolist()}")
     return m
@@ -191,7 +65,7 @@ def _check_rotation_matrix(name: str, R) -> np.ndarray:
 
 def _look_at_rotation(eye: np.ndarray, target: np.ndarray, up) -> np.ndarray:
     """World -> camera rotation (rows: camera x right, y down, z forward) looking eye -> target."""
-    up = _vector3("up", up)
+    up = vector3("up", up)
     forward = target - eye
     forward /= np.linalg.norm(forward)
     if np.linalg.norm(up) == 0:
@@ -206,7 +80,7 @@ def _look_at_rotation(eye: np.ndarray, target: np.ndarray, up) -> np.ndarray:
 
 def _eye_target(eye, target) -> tuple[np.ndarray, np.ndarray]:
     """Checked eye, target (3,) with eye != target."""
-    eye, target = _vector3("eye", eye), _vector3("target", target)
+    eye, target = vector3("eye", eye), vector3("target", target)
     if np.linalg.norm(target - eye) == 0:
         raise ValueError(f"eye and target must differ, both are {eye.tolist()}")
     return eye, target
@@ -215,9 +89,15 @@ def _eye_target(eye, target) -> tuple[np.ndarray, np.ndarray]:
 # ---- the camera --------------------------------------------------------------------------------
 @dataclass
 class ProjectionContext:
-    """What project_vjp needs: world vertices and camera-frame points (B, V, 3) float64."""
+    """What project_vjp needs.
+
+    camera: the Camera projected with; R (3, 3) float64 its rotation matrix and rotation the
+    RodriguesContext that made it; vertices (B, V, 3) float64 world points; cam_points
+    (B, V, 3) float64 camera-frame points; batched: whether the caller passed a batch axis.
+    """
     camera: "Camera"
     R: np.ndarray
+    rotation: RodriguesContext
     vertices: np.ndarray
     cam_points: np.ndarray
     batched: bool
@@ -225,8 +105,14 @@ class ProjectionContext:
 
 @dataclass
 class ViewDirectionContext:
-    """What view_direction_vjp needs: unit directions (B, V, 3), distances (B, V, 1)."""
+    """What view_direction_vjp needs.
+
+    camera: the Camera; rotation: the RodriguesContext of its rotation; directions (B, V, 3)
+    float64 unit vectors; distances (B, V, 1) float64 (ones for orthographic cameras);
+    batched: whether the caller passed a batch axis.
+    """
     camera: "Camera"
+    rotation: RodriguesContext
     directions: np.ndarray
     distances: np.ndarray
     batched: bool
@@ -251,10 +137,10 @@ class Camera:
     projection: str = "perspective"
 
     def __post_init__(self):
-        vals = dict(rotation=_vector3("rotation", self.rotation),
-                    translation=_vector3("translation", self.translation),
-                    fx=_number("fx", self.fx, positive=True), fy=_number("fy", self.fy, positive=True),
-                    cx=_number("cx", self.cx), cy=_number("cy", self.cy),
+        vals = dict(rotation=vector3("rotation", self.rotation),
+                    translation=vector3("translation", self.translation),
+                    fx=number("fx", self.fx, positive=True), fy=number("fy", self.fy, positive=True),
+                    cx=number("cx", self.cx), cy=number("cy", self.cy),
                     image_size=_image_size(self.image_size))
         if self.projection not in PROJECTIONS:
             raise ValueError(f"projection must be one of {PROJECTIONS}, got {self.projection!r}")
@@ -270,7 +156,7 @@ class Camera:
         """Perspective camera at `eye` looking at `target`; fov_deg in (0, 180) spans the
         shorter image side; `up` appears up in the image."""
         eye, target = _eye_target(eye, target)
-        fov = _number("fov_deg", fov_deg)
+        fov = number("fov_deg", fov_deg)
         if not 0.0 < fov < 180.0:
             raise ValueError(f"fov_deg must be in (0, 180) degrees, got {fov_deg!r}")
         h, w = _image_size(image_size)
@@ -284,7 +170,7 @@ class Camera:
         """Orthographic camera at `eye` looking at `target`; `scale` = world half-extent of the
         shorter image side (so points at +-scale from the axis land on +-1 in NDC)."""
         eye, target = _eye_target(eye, target)
-        scale = _number("scale", scale, positive=True)
+        scale = number("scale", scale, positive=True)
         h, w = _image_size(image_size)
         R = _look_at_rotation(eye, target, up)
         f = 0.5 * min(h, w) / scale
@@ -295,7 +181,7 @@ class Camera:
     def from_opencv(cls, K, R, t, image_size) -> "Camera":
         """Perspective camera from OpenCV intrinsics K (3, 3) = [[fx, 0, cx], [0, fy, cy],
         [0, 0, 1]], rotation matrix R (3, 3) and translation t (3,) or (3, 1)."""
-        K = _matrix3("K", K)
+        K = matrix3("K", K)
         if K[0, 1] != 0 or K[1, 0] != 0 or np.any(K[2] != (0.0, 0.0, 1.0)):
             raise ValueError(f"K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew), got {K.tolist()}")
         if K[0, 0] <= 0 or K[1, 1] <= 0:
@@ -303,7 +189,7 @@ class Camera:
                              f"got fx={K[0, 0]!r}, fy={K[1, 1]!r}")
         R = _check_rotation_matrix("R", R)
         t_arr = np.asarray(t)
-        t = _vector3("t", t_arr.reshape(3) if t_arr.shape == (3, 1) else t_arr)
+        t = vector3("t", t_arr.reshape(3) if t_arr.shape == (3, 1) else t_arr)
         return cls(matrix_to_axis_angle(R), t, K[0, 0], K[1, 1], K[0, 2], K[1, 2], _image_size(image_size))
 
     def with_params(self, **changes) -> "Camera":
@@ -318,7 +204,7 @@ class Camera:
 
     def rotation_matrix(self) -> np.ndarray:
         """(3, 3) float64 world -> camera rotation."""
-        return rodrigues(self.rotation)
+        return axis_angle_to_matrix(self.rotation)
 
     def center(self) -> np.ndarray:
         """(3,) float64 camera centre in world coordinates, -R^T t."""
@@ -333,7 +219,7 @@ class Camera:
         """World vertices (V, 3) or (B, V, 3) float -> (screen (B, V, 3) float64
         [x_ndc, y_ndc, z_view], ctx). Perspective: every vertex must have Z > 0."""
         verts, batched = _points("vertices", vertices)
-        R = self.rotation_matrix()
+        R, rot_ctx = rodrigues(self.rotation)
         cam = verts @ R.T + self.translation
         if self.projection == "perspective":
             _check_in_front(cam[..., 2], batched)
@@ -343,7 +229,7 @@ class Camera:
         x = k * (self.fx * a + self.cx + 0.5) - w / min(h, w)
         y = h / min(h, w) - k * (self.fy * b + self.cy + 0.5)
         screen = np.stack([x, y, cam[..., 2]], axis=-1)
-        return screen, ProjectionContext(self, R, verts, cam, batched)
+        return screen, ProjectionContext(self, R, rot_ctx, verts, cam, batched)
 
     def _plane(self, cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Camera points (B, V, 3) -> image-plane coordinates before intrinsics (X/Z, Y/Z or X, Y)."""
@@ -369,7 +255,7 @@ class Camera:
         g_verts = g_cam @ ctx.R
         g_R = np.einsum("bvi,bvj->ij", g_cam, ctx.vertices)
         return dict(vertices=g_verts if ctx.batched else g_verts[0],
-                    rotation=rodrigues_vjp(self.rotation, g_R),
+                    rotation=rodrigues_vjp(ctx.rotation, g_R)["omega"],
                     translation=g_cam.sum(axis=(0, 1)), focal=focal)
 
     def project_pixels(self, points) -> tuple[np.ndarray, ProjectionContext]:
@@ -398,13 +284,14 @@ class Camera:
         constant direction -R[2] (towards the camera along its axis).
         """
         pts, batched = _points("points", points)
+        R, rot_ctx = rodrigues(self.rotation)
         if self.projection == "orthographic":
-            d = np.broadcast_to(-self.rotation_matrix()[2], pts.shape).copy()
-            return d, ViewDirectionContext(self, d, np.ones(pts.shape[:-1] + (1,)), batched)
+            d = np.broadcast_to(-R[2], pts.shape).copy()
+            return d, ViewDirectionContext(self, rot_ctx, d, np.ones(pts.shape[:-1] + (1,)), batched)
         diff = self.center() - pts
         dist = np.linalg.norm(diff, axis=-1, keepdims=True)
         d = np.divide(diff, dist, out=np.zeros_like(diff), where=dist > 0)
-        return d, ViewDirectionContext(self, d, dist, batched)
+        return d, ViewDirectionContext(self, rot_ctx, d, dist, batched)
 
     def view_direction_vjp(self, ctx: ViewDirectionContext, grad_dirs) -> dict:
         """dL/d(directions) (B, V, 3) -> dict(points=same shape as given, rotation=(3,),
@@ -416,14 +303,14 @@ class Camera:
             g_R[2] = -g.sum(axis=(0, 1))
             zero = np.zeros_like(g)
             return dict(points=zero if ctx.batched else zero[0],
-                        rotation=rodrigues_vjp(self.rotation, g_R), translation=np.zeros(3))
+                        rotation=rodrigues_vjp(ctx.rotation, g_R)["omega"], translation=np.zeros(3))
         d = ctx.directions
         inv = np.divide(1.0, ctx.distances, out=np.zeros_like(ctx.distances), where=ctx.distances > 0)
         g_diff = (g - d * np.sum(g * d, axis=-1, keepdims=True)) * inv
         g_center = g_diff.sum(axis=(0, 1))               # center = -R^T t
         g_R = -np.outer(self.translation, g_center)
         return dict(points=-g_diff if ctx.batched else -g_diff[0],
-                    rotation=rodrigues_vjp(self.rotation, g_R), translation=-R @ g_center)
+                    rotation=rodrigues_vjp(ctx.rotation, g_R)["omega"], translation=-R @ g_center)
 
 
 def _check_in_front(z: np.ndarray, batched: bool) -> None:

@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from softras_cl.scene import shading
-from softras_cl.scene.camera import Camera, rodrigues_vjp
+from softras_cl.scene.camera import Camera
+from softras_cl.scene.rotation import rodrigues_vjp
 from softras_cl.raster.corners import scatter_corners
 from softras_cl.raster.rasterizer import SoftRasterizer
 from softras_cl.raster.settings import RasterSettings
@@ -151,8 +152,8 @@ class Renderer:
             out["albedo"] = self._albedo_grad(saved, g_raster, g_shade)
         if "camera" in grads:
             centres = g_shade.get("camera_center")
-            per_view = [_camera_grads(cam, g, None if centres is None else centres[b])
-                        for b, (cam, g) in enumerate(zip(saved["cameras"], g_cams))]
+            per_view = [_camera_grads(cam, ctx, g, None if centres is None else centres[b])
+                        for b, (cam, ctx, g) in enumerate(zip(saved["cameras"], saved["cam_ctx"], g_cams))]
             out["camera"] = ({k: sum(v[k] for v in per_view) for k in per_view[0]}
                              if saved["single_camera"] else per_view)
         if "light" in grads:
@@ -190,13 +191,14 @@ def _light_vector_vjp(light, grad: np.ndarray) -> dict:
     return dict(ambient=grad[0:3], directional=grad[3:6], direction=(g_unit - unit * (unit @ g_unit)) / length)
 
 
-def _camera_grads(camera: Camera, g_proj: dict, g_center) -> dict:
-    """Projection gradients plus those reaching the camera centre c = -R^T t through shading."""
+def _camera_grads(camera: Camera, ctx, g_proj: dict, g_center) -> dict:
+    """Projection gradients plus those reaching the camera centre c = -R^T t through shading
+    (ctx: the camera's ProjectionContext)."""
     out = {k: g_proj[k] for k in ("rotation", "translation", "focal")}
     if g_center is not None:
         rot = camera.rotation_matrix()
         out["translation"] = out["translation"] - rot @ g_center
-        out["rotation"] = out["rotation"] + rodrigues_vjp(camera.rotation, -np.outer(camera.translation, g_center))
+        out["rotation"] = out["rotation"] + rodrigues_vjp(ctx.rotation, -np.outer(camera.translation, g_center))["omega"]
     return out
 
 

@@ -5,7 +5,7 @@ import scipy.sparse
 from softras_cl.fitting.models.body_loaders import load_body_model
 from softras_cl.fitting.models.body_model import BodyModel
 
-from softras_cl.scene.camera import rodrigues
+from softras_cl.scene.rotation import axis_angle_to_matrix
 
 V, J, B = 40, 5, 3
 PARENTS = np.array([-1, 0, 1, 1, 3])
@@ -109,7 +109,7 @@ def test_global_rotation_turns_about_the_root_joint():
     betas, omega = np.zeros(B), np.array([0.3, -0.2, 0.9])
     s = model.forward(betas, np.zeros((J - 1, 3)), omega, np.zeros(3))
     root = model.rest_joints(betas)[0]
-    expected = (model.v_template - root) @ rodrigues(omega).T + root
+    expected = (model.v_template - root) @ axis_angle_to_matrix(omega).T + root
     np.testing.assert_allclose(s.vertices, expected, atol=1e-12)
 
 
@@ -121,7 +121,7 @@ def test_joint_rotation_moves_only_its_subtree():
     s = model.forward(np.zeros(B), pose, np.zeros(3), np.zeros(3))
     rest = model.rest_joints(np.zeros(B))
     np.testing.assert_allclose(s.joints[:4], rest[:4], atol=1e-12)
-    np.testing.assert_allclose(s.joints[4], rodrigues([0, 0, 1.0]) @ (rest[4] - rest[3])
+    np.testing.assert_allclose(s.joints[4], axis_angle_to_matrix([0, 0, 1.0]) @ (rest[4] - rest[3])
                                + rest[3], atol=1e-12)
     weights = np.zeros((V, J))
     weights[:, 2] = 1.0  # all vertices on joint 2: unaffected by joint 3's rotation

@@ -3,7 +3,7 @@ input checks, and recovery of a synthetic face from its photo and noisy landmark
 import numpy as np
 import pytest
 
-from softras_cl.scene.camera import rodrigues
+from softras_cl.scene.rotation import axis_angle_to_matrix
 from softras_cl.fitting.recipes import face
 from softras_cl.bench.face import aligned_rmse, synthetic_face
 from softras_cl.fitting.solver import Stage
@@ -94,7 +94,7 @@ def test_face_region_is_the_render_inside_the_landmark_outline_less_eyes_and_mou
 
 
 def test_initial_pose_recovers_a_distant_pose(toy):
-    R = rodrigues(np.radians([15.0, -25.0, 8.0]))
+    R = axis_angle_to_matrix(np.radians([15.0, -25.0, 8.0]))
     translation = np.array([0.05, -0.02, -30.0])
     scene = face.FaceScene(toy, (200, 200))
     focal = 6000.0                                     # far away: nearly orthographic
@@ -102,7 +102,7 @@ def test_initial_pose_recovers_a_distant_pose(toy):
     points = toy.mean_shape[::7]
     uv, _ = scene.camera(focal).project_pixels(points @ R.T + translation)
     rotation, t = face.initial_pose(points, uv, focal, scene.principal)
-    angle = np.degrees(np.arccos(np.clip((np.trace(rodrigues(rotation).T @ R) - 1) / 2, -1, 1)))
+    angle = np.degrees(np.arccos(np.clip((np.trace(axis_angle_to_matrix(rotation).T @ R) - 1) / 2, -1, 1)))
     assert angle < 0.5
     np.testing.assert_allclose(t, values["translation"], rtol=0.01, atol=2e-3)
 

@@ -7,7 +7,7 @@ from softras_cl.cli import main
 from softras_cl.fitting.recipes.rigid import (PoseScene, color_cube, fit_rotation, pose_objective,
                                       random_rotations, rotation_error_deg, schedule)
 from softras_cl.fitting.solver import Stage
-from softras_cl.scene.camera import rodrigues
+from softras_cl.scene.rotation import axis_angle_to_matrix
 
 
 def test_color_cube_is_closed_outward_and_one_color_per_side():
@@ -31,7 +31,7 @@ def test_pose_objective_gradient_matches_finite_differences():
     rng = np.random.default_rng(1)
     target, start = random_rotations(2, rng)
     _, out = scene.render(target, 1e-5, 1e-4)
-    objective = pose_objective(scene, out.rgb[0], out.alpha[0], rodrigues(start))
+    objective = pose_objective(scene, out.rgb[0], out.alpha[0], axis_angle_to_matrix(start))
     stage = Stage("s", ("delta",), dict(image=1.0, silhouette=0.3), sigma=1e-2, gamma=1e-1)
     delta = np.array([0.05, -0.1, 0.07])
     _, grads, terms = objective({"delta": delta}, stage)
@@ -109,7 +109,7 @@ def test_first_step_sets_the_length_of_the_first_lbfgs_step():
 
 def test_failure_basins_names_symmetric_poses():
     from softras_cl.bench.pose import cube_symmetries, failure_basins
-    from softras_cl.scene.camera import matrix_to_axis_angle
+    from softras_cl.scene.rotation import matrix_to_axis_angle
     syms = cube_symmetries()
     assert len(syms) == 24 and len({tuple(m.ravel()) for m in syms}) == 24
     target = np.zeros(3)                           # cube axes = camera axes, z = view axis

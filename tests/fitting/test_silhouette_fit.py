@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from softras_cl.scene.camera import rodrigues
+from softras_cl.scene.rotation import axis_angle_to_matrix
 from softras_cl.fitting.recipes import silhouette as sil
 from softras_cl.fitting.solver import FitResult
 from softras_cl.scene.meshes import icosphere
@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def ellipsoid():
     """A tilted ellipsoid with semi-axes 0.85, 0.45, 0.6 (closed, 642 vertices)."""
     v, f = icosphere(3, 1.0)
-    return (v * np.array([0.85, 0.45, 0.6])) @ rodrigues(np.array([0.3, 0.5, 0.2])).T, f
+    return (v * np.array([0.85, 0.45, 0.6])) @ axis_angle_to_matrix(np.array([0.3, 0.5, 0.2])).T, f
 
 
 @pytest.fixture(scope="module")

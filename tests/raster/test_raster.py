@@ -209,7 +209,7 @@ def test_memory_grows_with_bins_not_pixels_times_faces():
     for sub in (3, 4):
         v, f, c = screen_space_sphere(sub)
         out = SoftRasterizer(s).forward(v, f, colors=c, grads=("vertices",))
-        counts.append((len(f), out.saved["bins"].n_entries))
+        counts.append((len(f), out.saved.bins.n_entries))
     (f3, e3), (f4, e4) = counts
     tiles = (256 // 8) ** 2
     assert e3 < 0.05 * f3 * tiles and e4 < 0.05 * f4 * tiles
@@ -220,8 +220,8 @@ def test_unused_outputs_are_neither_computed_nor_allocated():
     vertices, faces, _ = random_scene(10)
     out = SoftRasterizer(settings(outputs=("alpha",))).forward(vertices, faces, grads=("vertices",))
     assert out.rgb is None and out.depth is None
-    assert set(out.saved["images"]) == {"alpha", "state"}
-    assert "color" not in out.saved["images"]["state"]     # no softmax normaliser without rgb/depth
+    assert set(out.saved.images) == {"alpha"}
+    assert out.saved.state.color is None     # no softmax normaliser without rgb/depth
 
 
 def test_fast_math_variant_stays_close_to_exact_maths():

@@ -1,4 +1,4 @@
-"""Cameras (docs/scene.md): projection conventions, Rodrigues, exact vjps vs finite differences,
+"""Cameras (docs/scene.md): projection conventions, exact vjps vs finite differences,
 and bad input raising ValueError that names the argument."""
 import math
 import re
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from softras_cl.scene.camera import Camera, matrix_to_axis_angle, rodrigues, rodrigues_vjp
+from softras_cl.scene.camera import Camera
 
 RNG = np.random.default_rng(7)
 SIZES = [(64, 64), (48, 80), (90, 50)]          # (H, W): square, wide, tall
@@ -153,18 +153,7 @@ def test_orthographic_scale(size):
     np.testing.assert_allclose(s2[0, :2], [w / min(h, w), h / min(h, w)], atol=1e-12)
 
 
-# ---- rotations ---------------------------------------------------------------------------------
-OMEGAS = [np.zeros(3), np.array([1e-12, 0, 0]), np.array([3e-5, -1e-5, 2e-5]),
-          np.array([0.05, 0.03, -0.06]), np.array([0.0999, 0, 0]), np.array([0.1001, 0, 0]),
-          np.array([0.3, -1.2, 0.7]), np.array([0, 0, np.pi - 1e-7]),
-          np.pi * np.array([1.0, 1.0, 1.0]) / math.sqrt(3), np.array([2.0, 2.5, -1.0])]
-
-
-@pytest.mark.parametrize("omega", OMEGAS)
-def test_rodrigues_vs_scipy(omega):
-    np.testing.assert_allclose(rodrigues(omega), Rotation.from_rotvec(omega).as_matrix(), atol=1e-14)
-
-
+# ---- finite differences ------------------------------------------------------------------------
 def fd_gradient(f, x, h=H_FD):
     """Central differences of scalar f at x (any shape, float64)."""
     g = np.zeros_like(x)
@@ -179,32 +168,6 @@ def fd_gradient(f, x, h=H_FD):
 def assert_grad(analytic, fd, rtol=1e-6):
     scale = max(1.0, float(np.abs(fd).max()))
     np.testing.assert_allclose(analytic, fd, rtol=rtol, atol=rtol * scale)
-
-
-@pytest.mark.parametrize("omega", OMEGAS)
-def test_rodrigues_vjp_vs_fd(omega):
-    G = RNG.standard_normal((3, 3))
-    g = rodrigues_vjp(omega, G)
-    assert np.isfinite(g).all()
-    assert_grad(g, fd_gradient(lambda w: np.sum(G * rodrigues(w)), omega.astype(float)))
-
-
-def test_rodrigues_vjp_at_zero_is_the_skew_part():
-    """At omega = 0, dR/domega_i = hat(e_i): the gradient is the vee of G - G^T."""
-    G = RNG.standard_normal((3, 3))
-    expected = np.array([G[2, 1] - G[1, 2], G[0, 2] - G[2, 0], G[1, 0] - G[0, 1]])
-    np.testing.assert_allclose(rodrigues_vjp(np.zeros(3), G), expected, atol=1e-15)
-
-
-@pytest.mark.parametrize("omega", OMEGAS + [np.array([0, np.pi, 0]), np.array([np.pi - 1e-9, 0, 0]),
-                                            np.array([1e-9, np.pi - 1e-9, 0]), np.array([0, 0, 1e-300])])
-def test_matrix_to_axis_angle_roundtrip(omega):
-    R = Rotation.from_rotvec(omega).as_matrix()
-    w = matrix_to_axis_angle(R)
-    assert np.linalg.norm(w) <= np.pi + 1e-12
-    np.testing.assert_allclose(rodrigues(w), R, atol=1e-12)
-    if np.linalg.norm(omega) < np.pi - 1e-6:
-        np.testing.assert_allclose(w, omega, atol=1e-12)
 
 
 # ---- project_vjp -------------------------------------------------------------------------------
@@ -420,43 +383,12 @@ def test_project_vjp_bad_cotangent(grad):
         CAM.project_vjp(ctx, grad)
 
 
-def test_rodrigues_bad_input():
-    with raises("omega"):
-        rodrigues(np.zeros(4))
-    with raises("omega"):
-        rodrigues_vjp([0, np.nan, 0], np.eye(3))
-    with raises("grad_R"):
-        rodrigues_vjp(np.zeros(3), np.eye(2))
-    with raises("R"):
-        matrix_to_axis_angle(np.eye(4))
-
-
 def test_view_direction_bad_points():
     with raises("points"):
         CAM.view_direction(np.zeros((3, 2)))
     _, ctx = CAM.view_direction(np.ones((2, 3)))
     with raises("grad_dirs"):
         CAM.view_direction_vjp(ctx, np.zeros((3, 3)))
-
-
-def test_rodrigues_series_meets_closed_form():
-    """The small-angle Taylor branch and the closed form agree at the switch-over angle."""
-    from softras_cl.scene.camera import _SMALL_ANGLE, _rodrigues_coeffs
-    below = _rodrigues_coeffs(_SMALL_ANGLE * (1 - 1e-12))
-    above = _rodrigues_coeffs(_SMALL_ANGLE * (1 + 1e-12))
-    np.testing.assert_allclose(below, above, rtol=1e-11)
-    np.testing.assert_allclose(_rodrigues_coeffs(0.0), [1, 0.5, -1 / 3, -1 / 12], rtol=1e-15)
-
-
-# ---- pixel projection (landmarks, 2D joints) ---------------------------------------------------
-@pytest.mark.parametrize("size", [(64, 64), (48, 80)])
-def test_project_pixels_matches_pinhole_formula(size):
-    cam = Camera.from_opencv([[70.0, 0, 30.5], [0, 60.0, 20.0], [0, 0, 1]], np.eye(3), [0.1, -0.2, 3.0], size)
-    pts = np.array([[0.0, 0.0, 0.0], [0.3, -0.4, 1.0], [-0.5, 0.2, -1.0]])
-    uv, _ = cam.project_pixels(pts)
-    X = pts + [0.1, -0.2, 3.0]
-    np.testing.assert_allclose(uv, np.stack([70 * X[:, 0] / X[:, 2] + 30.5, 60 * X[:, 1] / X[:, 2] + 20.0], -1),
-                               atol=1e-10)
 
 
 def test_project_pixels_vjp_vs_fd():
@@ -485,3 +417,15 @@ def test_project_pixels_rejects_batches_and_bad_cotangents():
     _, ctx = cam.project_pixels(np.zeros((3, 3)))
     with pytest.raises(ValueError, match="grad_uv must have shape"):
         cam.project_pixels_vjp(ctx, np.zeros((3, 3)))
+
+
+
+# ---- pixel projection (landmarks, 2D joints) ---------------------------------------------------
+@pytest.mark.parametrize("size", [(64, 64), (48, 80)])
+def test_project_pixels_matches_pinhole_formula(size):
+    cam = Camera.from_opencv([[70.0, 0, 30.5], [0, 60.0, 20.0], [0, 0, 1]], np.eye(3), [0.1, -0.2, 3.0], size)
+    pts = np.array([[0.0, 0.0, 0.0], [0.3, -0.4, 1.0], [-0.5, 0.2, -1.0]])
+    uv, _ = cam.project_pixels(pts)
+    X = pts + [0.1, -0.2, 3.0]
+    np.testing.assert_allclose(uv, np.stack([70 * X[:, 0] / X[:, 2] + 30.5, 60 * X[:, 1] / X[:, 2] + 20.0], -1),
+                               atol=1e-10)

@@ -1,0 +1,164 @@
+"""Face set-up and tile binning (numpy, O(F) and O(bin entries)), run on the host before the
+kernels: the per-face geometry records (layout: softras_cl.cl.layout), the tiling of the padded
+image (`Grid`), each face's footprint box and the (tile, face) lists the kernels loop over (`Bins`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from softras_cl.cl.layout import (FACE_BOX, FACE_INV_LEN2, FACE_INV_Z, FACE_M, FACE_STRIDE, FACE_XY,
+                                  FACE_Z, TILE_H)
+from softras_cl.raster.inputs import MeshInputs
+from softras_cl.raster.settings import RasterSettings
+
+MIN_AREA = 1e-12    # faces with |doubled NDC area| below this are dropped
+
+
+@dataclass
+class Bins:
+    """Faces binned into tiles. Entries are (tile, face) pairs.
+
+    tile_start: (n_tiles + 1,) int32, entries of tile t are tile_start[t]:tile_start[t+1]
+    tile_faces: (n_entries,) int32 global face index (batch * F + f), increasing within a tile
+    tile_slots: (n_entries,) int32 position of the entry in face-major order
+    face_start: (B*F + 1,) int64, face-major entries of face g are face_start[g]:face_start[g+1]
+    """
+    tile_start: np.ndarray
+    tile_faces: np.ndarray
+    tile_slots: np.ndarray
+    face_start: np.ndarray
+
+    @property
+    def n_entries(self) -> int:
+        return int(self.face_start[-1])
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Tiling of the image: tiles of tile_w x TILE_H pixels, ntx x nty of them, covering the
+    padded image of wp x hp pixels that every per-pixel device buffer holds."""
+    tile_w: int
+    ntx: int
+    nty: int
+
+    @property
+    def wp(self) -> int:
+        return self.ntx * self.tile_w
+
+    @property
+    def hp(self) -> int:
+        return self.nty * TILE_H
+
+
+def tile_grid(s: RasterSettings) -> Grid:
+    """The tiling for the settings: one tile row is one kernel vector (8 floats or 4 doubles)."""
+    tile_w = 4 if s.dtype == "float64" else 8
+    return Grid(tile_w, -(-s.width // tile_w), -(-s.height // TILE_H))
+
+
+def face_setup(mesh: MeshInputs, s: RasterSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Per-face constants for the kernel and which faces can be drawn at all.
+
+    Returns geom (B*F, FACE_STRIDE) float64 (layout: softras_cl.cl.layout; a transposed view,
+    made contiguous when cast to the kernel dtype) and drawable (B*F,) bool.
+    """
+    # one contiguous (B*F,) array per coordinate of each corner: x[k], y[k], z[k]
+    x, y, z = np.moveaxis(mesh.triangles().reshape(-1, 3, 3), (2, 1), (0, 1)).copy()
+    area = (x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0])
+    drawable = ((np.abs(area) >= MIN_AREA) & (z.min(0) > 0) & (z.max(0) >= s.near) & (z.min(0) <= s.far))
+    if not s.double_sided:
+        drawable &= area > 0
+    inv_area = 1.0 / np.where(drawable, area, 1.0)
+    m1 = ((y[2] - y[0]) * inv_area, -(x[2] - x[0]) * inv_area)
+    m2 = (-(y[1] - y[0]) * inv_area, (x[1] - x[0]) * inv_area)
+    edge_len2 = [(x[(k + 1) % 3] - x[k]) ** 2 + (y[(k + 1) % 3] - y[k]) ** 2 for k in range(3)]
+    rows = np.zeros((FACE_STRIDE, len(area)))
+    rows[FACE_XY:FACE_XY + 6:2], rows[FACE_XY + 1:FACE_XY + 6:2] = x, y
+    rows[FACE_M:FACE_M + 6] = [-(m1[0] + m2[0]), -(m1[1] + m2[1]), *m1, *m2]
+    rows[FACE_Z:FACE_Z + 3] = z
+    rows[FACE_INV_Z:FACE_INV_Z + 3] = 1.0 / np.where(drawable, z, 1.0)
+    rows[FACE_INV_LEN2:FACE_INV_LEN2 + 3] = [1.0 / np.where(drawable & (l2 > 0), l2, 1.0)
+                                             for l2 in edge_len2]
+    rows[FACE_BOX:FACE_BOX + 4] = _footprint_boxes(x, y, s)
+    rows[:, ~drawable] = 0.0
+    return rows.T, drawable
+
+
+def footprint_margin(s: RasterSettings) -> float:
+    """How far beyond a face (NDC, or barycentric units for that metric) D stays >= dist_eps.
+
+    inf when nothing is cut off (dist_eps = 0); 0 when only hard aggregations are used.
+    """
+    soft = ((s.color_agg == "softmax" and {"rgb", "depth"} & set(s.outputs))
+            or ("alpha" in s.outputs and s.alpha_agg != "hard"))
+    if not soft:
+        return 0.0
+    if s.dist_eps == 0:
+        return math.inf
+    return math.sqrt(s.sigma * math.log(1.0 / s.dist_eps - 1.0))
+
+
+def _footprint_boxes(x: np.ndarray, y: np.ndarray, s: RasterSettings) -> np.ndarray:
+    """(4, B*F) NDC boxes (xmin, xmax, ymin, ymax) where a face can reach D >= dist_eps, from
+    corner coordinates x, y (3, B*F).
+
+    Grown by a thousandth of a pixel, so that float32 kernels never meet a pair the box
+    excludes; unbounded footprints (dist_eps = 0) are clipped to +-1e6.
+    """
+    margin = footprint_margin(s)
+    if s.metric == "barycentric" and math.isfinite(margin):
+        grow = 1 + 3 * margin                              # region min(b) >= -margin
+        x = x.mean(0) + grow * (x - x.mean(0))
+        y = y.mean(0) + grow * (y - y.mean(0))
+        margin = 0.0
+    margin += 2e-3 / min(s.width, s.height)
+    box = [x.min(0) - margin, x.max(0) + margin, y.min(0) - margin, y.max(0) + margin]
+    return np.clip(box, -1e6, 1e6)
+
+
+def _pixel_ranges(boxes: np.ndarray, s: RasterSettings):
+    """Inclusive pixel column and row ranges (c0, c1, r0, r1), each (B*F,) int64, whose centres
+    fall in the (B*F, 4) NDC boxes; clipped to [-1, width] and [-1, height]."""
+    w, h = s.width, s.height
+    inv_ps = min(w, h) / 2.0
+    c0 = np.ceil(boxes[:, 0] * inv_ps + w / 2 - 0.5)
+    c1 = np.floor(boxes[:, 1] * inv_ps + w / 2 - 0.5)
+    r0 = np.ceil(h / 2 - 0.5 - boxes[:, 3] * inv_ps)
+    r1 = np.floor(h / 2 - 0.5 - boxes[:, 2] * inv_ps)
+    clip = lambda a, n: np.clip(a, -1, n).astype(np.int64)
+    return clip(c0, w), clip(c1, w), clip(r0, h), clip(r1, h)
+
+
+def bin_faces(geom: np.ndarray, drawable: np.ndarray, batch: int, n_faces: int,
+              s: RasterSettings) -> Bins:
+    """Bin every drawable face into the tiles its footprint touches.
+
+    geom: (B*F, FACE_STRIDE) from face_setup, drawable: (B*F,) bool; ValueError when the
+    (tile, face) pairs would overflow int32.
+    """
+    g = tile_grid(s)
+    c0, c1, r0, r1 = _pixel_ranges(geom[:, FACE_BOX:FACE_BOX + 4], s)
+    c0, r0 = np.maximum(c0, 0), np.maximum(r0, 0)
+    c1, r1 = np.minimum(c1, s.width - 1), np.minimum(r1, s.height - 1)
+    live = drawable & (c1 >= c0) & (r1 >= r0)
+    tx0, ty0 = c0 // g.tile_w, r0 // TILE_H
+    nx = np.where(live, c1 // g.tile_w - tx0 + 1, 0)
+    ny = np.where(live, r1 // TILE_H - ty0 + 1, 0)
+    counts = nx * ny
+    face_start = np.concatenate([[0], np.cumsum(counts)])
+    total = int(face_start[-1])
+    if total >= 2 ** 31:
+        raise ValueError(f"{total} (tile, face) pairs exceed the int32 limit: lower image_size, "
+                         "raise dist_eps or split the batch")
+    face = np.repeat(np.arange(len(counts)), counts)
+    local = np.arange(total) - face_start[face]
+    tx = tx0[face] + local % nx[face]
+    ty = ty0[face] + local // nx[face]
+    tile = ((face // n_faces) * g.nty + ty) * g.ntx + tx if total else np.zeros(0, np.int64)
+    order = np.argsort(tile, kind="stable")
+    tile_start = np.concatenate([[0], np.cumsum(np.bincount(tile, minlength=batch * g.ntx * g.nty))])
+    return Bins(tile_start.astype(np.int32), face[order].astype(np.int32),
+                order.astype(np.int32), face_start)

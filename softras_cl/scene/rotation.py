@@ -1,0 +1,125 @@
+"""Rotations as axis-angle 3-vectors: the Rodrigues map with its exact vector-Jacobian product,
+its value-only form, and the inverse map from a rotation matrix.
+
+    R, ctx = rodrigues(omega)            # omega (3,) -> R (3, 3), both float64
+    grads = rodrigues_vjp(ctx, grad_R)   # {"omega": (3,)}
+    R = axis_angle_to_matrix(omega)      # the same R, when no gradient is needed
+    omega = matrix_to_axis_angle(R)      # |omega| in [0, pi]
+
+`R = I + A K + B K^2` with `K = hat(omega)`, `A = sin t / t`, `B = (1 - cos t) / t^2`,
+`t = |omega|`; below `_SMALL_ANGLE` the coefficients use their Taylor series, so the map and its
+gradient are exact and finite at omega = 0.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from softras_cl.checks import real_array
+
+_SMALL_ANGLE = 0.1          # below this |omega| the Rodrigues coefficients use their Taylor series
+
+
+def vector3(name: str, value) -> np.ndarray:
+    """A finite real 3-vector -> (3,) float64 array; ValueError naming `name` otherwise."""
+    return real_array(name, value, (3,), what="a real 3-vector").copy()
+
+
+def matrix3(name: str, value) -> np.ndarray:
+    """A finite real 3x3 matrix -> (3, 3) float64 array; ValueError naming `name` otherwise."""
+    return real_array(name, value, (3, 3), what="a real 3x3 matrix").copy()
+
+
+def hat(w: np.ndarray) -> np.ndarray:
+    """(3,) -> (3, 3) cross-product matrix K with K v = w x v."""
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def _series(theta2: float, coeffs: tuple) -> float:
+    """sum_k coeffs[k] theta2^k."""
+    return sum(c * theta2 ** k for k, c in enumerate(coeffs))
+
+
+def _rodrigues_coeffs(theta: float) -> tuple[float, float, float, float]:
+    """A = sin t / t, B = (1 - cos t) / t^2, C = A'(t) / t, D = B'(t) / t (Taylor for small t)."""
+    t2 = theta * theta
+    if theta < _SMALL_ANGLE:
+        f = math.factorial
+        a = _series(t2, [(-1) ** k / f(2 * k + 1) for k in range(6)])
+        b = _series(t2, [(-1) ** k / f(2 * k + 2) for k in range(6)])
+        c = _series(t2, [(-1) ** (k + 1) * 2 * (k + 1) / f(2 * k + 3) for k in range(6)])
+        d = _series(t2, [(-1) ** (k + 1) * 2 * (k + 1) / f(2 * k + 4) for k in range(6)])
+        return a, b, c, d
+    s, c_ = math.sin(theta), math.cos(theta)
+    one_minus_cos = 2.0 * math.sin(0.5 * theta) ** 2
+    a = s / theta
+    b = one_minus_cos / t2
+    c = (theta * c_ - s) / (t2 * theta)
+    d = (theta * s - 2.0 * one_minus_cos) / (t2 * t2)
+    return a, b, c, d
+
+
+@dataclass(frozen=True)
+class RodriguesContext:
+    """What rodrigues_vjp needs: omega (3,) float64 and its cross-product matrix k (3, 3)."""
+    omega: np.ndarray
+    k: np.ndarray
+
+
+def rodrigues(omega) -> tuple[np.ndarray, RodriguesContext]:
+    """Axis-angle omega (3,) -> (R (3, 3) float64 = I + A K + B K^2 with K = hat(omega), ctx)."""
+    w = vector3("omega", omega)
+    a, b, _, _ = _rodrigues_coeffs(float(np.linalg.norm(w)))
+    k = hat(w)
+    return np.eye(3) + a * k + b * (k @ k), RodriguesContext(w, k)
+
+
+def rodrigues_vjp(ctx: RodriguesContext, grad_R) -> dict:
+    """dL/dR (3, 3) -> {"omega": dL/domega (3,) float64}; exact, finite at omega = 0.
+
+    dR/dw_i = w_i (C K + D K^2) + A E_i + B (E_i K + K E_i), E_i = hat(e_i).
+    """
+    g = matrix3("grad_R", grad_R)
+    w, k = ctx.omega, ctx.k
+    a, b, c, d = _rodrigues_coeffs(float(np.linalg.norm(w)))
+    radial = c * np.sum(g * k) + d * np.sum(g * (k @ k))
+    out = np.empty(3)
+    for i in range(3):
+        e = hat(np.eye(3)[i])
+        out[i] = w[i] * radial + a * np.sum(g * e) + b * np.sum(g * (e @ k + k @ e))
+    return {"omega": out}
+
+
+def axis_angle_to_matrix(omega) -> np.ndarray:
+    """Axis-angle omega (3,) -> rotation matrix (3, 3) float64: rodrigues without the context."""
+    return rodrigues(omega)[0]
+
+
+def _vee_skew(m: np.ndarray) -> np.ndarray:
+    """(3, 3) -> the 3-vector of its skew part (m - m^T) / 2."""
+    return 0.5 * np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
+
+
+def matrix_to_axis_angle(R) -> np.ndarray:
+    """Rotation matrix (3, 3) -> axis-angle (3,) float64 with |omega| in [0, pi]; stable near 0
+    and pi.
+
+    The angle comes from atan2(|skew|, cos); below pi/2 the axis from the skew part, above it
+    from the largest column of the symmetric part (sign taken from the skew part).
+    """
+    m = matrix3("R", R)
+    w = _vee_skew(m)                                   # sin(theta) * axis
+    sin_t = float(np.linalg.norm(w))
+    cos_t = float(np.clip(0.5 * (np.trace(m) - 1.0), -1.0, 1.0))
+    theta = math.atan2(sin_t, cos_t)
+    if cos_t > 0.0:
+        ratio = 1.0 + theta * theta / 6.0 if sin_t < 1e-8 else theta / sin_t
+        return w * ratio
+    sym = 0.5 * (m + m.T) - cos_t * np.eye(3)          # (1 - cos) axis axis^T
+    j = int(np.argmax(np.diag(sym)))
+    axis = sym[:, j] / np.linalg.norm(sym[:, j])
+    if axis @ w < 0.0:
+        axis = -axis
+    return theta * axis
