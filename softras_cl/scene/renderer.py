@@ -11,15 +11,15 @@ gradients for exactly the groups asked for in `forward(grads=...)`: "vertices" (
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from softras_cl.scene import shading
-from softras_cl.scene.camera import Camera
+from softras_cl.scene.camera import Camera, ProjectionContext
 from softras_cl.scene.rotation import rodrigues_vjp
 from softras_cl.raster.corners import scatter_corners
-from softras_cl.raster.rasterizer import SoftRasterizer
+from softras_cl.raster.rasterizer import RasterOutput, SoftRasterizer
 from softras_cl.raster.settings import RasterSettings
 
 SHADINGS = ("vertex", "face", "pixel", "none")
@@ -27,12 +27,36 @@ GRAD_GROUPS = ("vertices", "albedo", "camera", "light")
 
 
 @dataclass
+class RenderContext:
+    """What Renderer.backward needs from one forward call.
+
+    raster: the SoftRasterizer drawn with and raster_out its RasterOutput (with its own context);
+    cameras: the B Cameras, one per view, and cam_ctx their ProjectionContexts; shade_ctx:
+    shading.ShadeContext (vertex or face shading), shading.NormalsContext (pixel shading) or
+    None (unlit); light: the light used; grads: the groups backward returns; batched: whether
+    the vertices had a batch axis; single_camera: whether one Camera (not a list) was given;
+    albedo_shape: the shape of the albedo given (None without one).
+    """
+    raster: SoftRasterizer
+    raster_out: RasterOutput
+    cameras: list
+    cam_ctx: tuple[ProjectionContext, ...]
+    shade_ctx: object
+    light: object
+    grads: tuple
+    batched: bool
+    single_camera: bool
+    albedo_shape: tuple | None
+
+
+@dataclass
 class RenderOutput:
-    """Images (B, H, W[, 3]) of one forward call (None where not in settings.outputs)."""
+    """Images (B, H, W[, 3]) of one forward call (None where not in settings.outputs), and
+    what backward needs."""
     rgb: np.ndarray | None
     alpha: np.ndarray | None
     depth: np.ndarray | None
-    saved: dict = field(default_factory=dict, repr=False)
+    saved: RenderContext | None = None
 
     def rgba(self) -> np.ndarray:
         return np.concatenate([self.rgb, self.alpha[..., None]], axis=-1)
@@ -77,10 +101,8 @@ class Renderer:
                                                texture_image, uvs)
         raster = self._rasterizer(cameras[0].projection, color_args, light)
         out = raster.forward(screen, faces, grads=_raster_grads(grads, self.shading), **color_args)
-        saved = dict(raster=raster, raster_out=out, cameras=cameras, cam_ctx=cam_ctx,
-                     shade_ctx=shade_ctx, light=light, grads=grads, batched=batched,
-                     single_camera=single_camera,
-                     albedo_shape=np.shape(albedo) if albedo is not None else None)
+        saved = RenderContext(raster, out, cameras, cam_ctx, shade_ctx, light, grads, batched,
+                              single_camera, np.shape(albedo) if albedo is not None else None)
         return RenderOutput(out.rgb, out.alpha, out.depth, saved)
 
     def backward(self, output: RenderOutput, grad_rgb=None, grad_alpha=None, grad_depth=None) -> dict:
@@ -90,13 +112,12 @@ class Renderer:
         camera (a dict of rotation (3,), translation (3,), focal (2,) per view: a list when a
         list of cameras was given), light (dict of the light's parameters)."""
         saved = output.saved
-        if not saved.get("grads"):
+        if saved is None or not saved.grads:
             raise ValueError("output: forward() was called without grads=...; nothing to differentiate")
-        g_raster = saved["raster"].backward(saved["raster_out"], grad_rgb, grad_alpha, grad_depth)
-        saved["raster_grads"] = g_raster
-        g_shade = self._shading_vjp(saved, g_raster.get("colors"))
+        g_raster = saved.raster.backward(saved.raster_out, grad_rgb, grad_alpha, grad_depth)
+        g_shade = self._shading_vjp(saved, g_raster)
         g_cams = [cam.project_vjp(ctx, g_raster["vertices"][b:b + 1]) if "vertices" in g_raster else None
-                  for b, (cam, ctx) in enumerate(zip(saved["cameras"], saved["cam_ctx"]))]
+                  for b, (cam, ctx) in enumerate(zip(saved.cameras, saved.cam_ctx))]
         return self._collect(saved, g_raster, g_shade, g_cams)
 
     # ---- stages ----------------------------------------------------------------------------
@@ -131,44 +152,46 @@ class Renderer:
             self._rasterizers[s] = SoftRasterizer(s, device=self.device)
         return self._rasterizers[s]
 
-    def _shading_vjp(self, saved: dict, g_colors) -> dict:
+    def _shading_vjp(self, saved: RenderContext, g_raster: dict) -> dict:
         """Shading vjp (vertices, albedo, camera_center, light parameters), or {} when unlit."""
-        if saved["shade_ctx"] is None or g_colors is None:
+        g_colors = g_raster.get("colors")
+        if saved.shade_ctx is None or g_colors is None:
             return {}
         if self.shading == "pixel":
-            g_raster = saved["raster_grads"]
-            return dict(shading.vertex_normals_vjp(saved["shade_ctx"], g_raster["normals"]),
-                        albedo=g_colors, **_light_vector_vjp(saved["light"], g_raster["light"]))
+            return dict(shading.vertex_normals_vjp(saved.shade_ctx, g_raster["normals"]),
+                        albedo=g_colors, **_light_vector_vjp(saved.light, g_raster["light"]))
         if self.shading == "vertex":
-            return shading.shade_vertices_vjp(saved["shade_ctx"], g_colors)
-        return shading.shade_faces_vjp(saved["shade_ctx"], g_colors[:, :, 0, 0, :])
+            return shading.shade_vertices_vjp(saved.shade_ctx, g_colors)
+        return shading.shade_faces_vjp(saved.shade_ctx, g_colors[:, :, 0, 0, :])
 
-    def _collect(self, saved: dict, g_raster: dict, g_shade: dict, g_cams: list) -> dict:
-        grads, out = saved["grads"], {}
+    def _collect(self, saved: RenderContext, g_raster: dict, g_shade: dict, g_cams: list) -> dict:
+        """The groups asked for, from the rasteriser, shading and camera gradients."""
+        grads, out = saved.grads, {}
         if "vertices" in grads:
             g = np.stack([c["vertices"] for c in g_cams]) + g_shade.get("vertices", 0.0)
-            out["vertices"] = g if saved["batched"] else g.sum(0)
+            out["vertices"] = g if saved.batched else g.sum(0)
         if "albedo" in grads:
             out["albedo"] = self._albedo_grad(saved, g_raster, g_shade)
         if "camera" in grads:
             centres = g_shade.get("camera_center")
             per_view = [_camera_grads(cam, ctx, g, None if centres is None else centres[b])
-                        for b, (cam, ctx, g) in enumerate(zip(saved["cameras"], saved["cam_ctx"], g_cams))]
+                        for b, (cam, ctx, g) in enumerate(zip(saved.cameras, saved.cam_ctx, g_cams))]
             out["camera"] = ({k: sum(v[k] for v in per_view) for k in per_view[0]}
-                             if saved["single_camera"] else per_view)
+                             if saved.single_camera else per_view)
         if "light" in grads:
-            out["light"] = {k: g_shade[k] for k in saved["light"].params()}
+            out["light"] = {k: g_shade[k] for k in saved.light.params()}
         return out
 
-    def _albedo_grad(self, saved: dict, g_raster: dict, g_shade: dict) -> np.ndarray:
+    def _albedo_grad(self, saved: RenderContext, g_raster: dict, g_shade: dict) -> np.ndarray:
+        """dL/d(albedo) in the shape given (the colour input's gradient when unlit)."""
         if self.shading == "none":
             return g_raster["colors"]
         g = g_shade["albedo"]
         if self.shading == "face":   # face albedo = mean of its corners
-            raster = saved["raster_out"].saved["mesh"]
+            mesh = saved.raster_out.saved.mesh
             per_corner = np.repeat(g[:, :, None, :] / 3.0, 3, axis=2)
-            g = scatter_corners(per_corner, raster.faces, raster.n_vertices)
-        return g if len(saved["albedo_shape"]) == 3 else g.sum(0)
+            g = scatter_corners(per_corner, mesh.faces, mesh.n_vertices)
+        return g if len(saved.albedo_shape) == 3 else g.sum(0)
 
 
 def _light_vector(light) -> np.ndarray:
@@ -191,7 +214,7 @@ def _light_vector_vjp(light, grad: np.ndarray) -> dict:
     return dict(ambient=grad[0:3], directional=grad[3:6], direction=(g_unit - unit * (unit @ g_unit)) / length)
 
 
-def _camera_grads(camera: Camera, ctx, g_proj: dict, g_center) -> dict:
+def _camera_grads(camera: Camera, ctx: ProjectionContext, g_proj: dict, g_center) -> dict:
     """Projection gradients plus those reaching the camera centre c = -R^T t through shading
     (ctx: the camera's ProjectionContext)."""
     out = {k: g_proj[k] for k in ("rotation", "translation", "focal")}

@@ -1,12 +1,14 @@
 """Normals and lighting with their vector-Jacobian products (docs/scene.md), pure numpy float64.
 
 Every stage is a forward returning ``(output, ctx)`` and a vjp taking ``(ctx, grad_output)`` and
-returning a dict of input gradients. Arrays are batched: ``B`` leads every per-mesh array.
+returning a dict of input gradients; each context is a dataclass (``NormalsContext``,
+``LambertContext``, ``PhongContext``, ``SHContext``, ``ShadeContext``). Arrays are batched:
+``B`` leads every per-mesh array.
 
 - ``face_normals`` / ``face_normals_vjp``: unit face normals ``normalize(cross(v1 - v0, v2 - v0))``.
 - ``vertex_normals`` / ``vertex_normals_vjp``: area-weighted vertex normals.
 - ``LambertLight``, ``PhongLight``, ``SHLight``: ``light.shade(normals, albedo, view_dirs)`` and
-  ``light.shade_vjp(ctx, grad_colours)``.
+  ``light.shade_vjp(ctx, grad_colors)``.
 - ``shade_vertices`` / ``shade_faces`` (and their ``*_vjp``): normals -> shaded colours.
 
 Zero-length normals (degenerate faces, unreferenced vertices) stay zero, never NaN, and pass a zero
@@ -18,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from softras_cl.checks import index_array, real_array
 from softras_cl.raster.corners import gather_corners, scatter_corners
 
 # Ramamoorthi-Hanrahan: basis constants in the order of docs/scene.md, and A_l per basis function.
@@ -30,20 +33,9 @@ SH_POLY_SCALE = SH_A * np.array([SH_Y0, SH_Y1, SH_Y1, SH_Y1, SH_Y2, SH_Y2, SH_Y2
 
 # ----------------------------------------------------------------------------- checks and helpers
 
-def _array(value, name: str) -> np.ndarray:
-    """`value` as a finite float64 array, or ValueError naming `name`."""
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be numeric, got {value!r}") from exc
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite (no NaN or inf)")
-    return arr
-
-
 def _rgb(value, name: str) -> np.ndarray:
     """A colour-like parameter: scalar or RGB triple -> (3,) float64."""
-    arr = _array(value, name)
+    arr = real_array(name, value)
     if arr.size == 1:
         return np.full(3, arr.item())
     if arr.shape != (3,):
@@ -53,19 +45,15 @@ def _rgb(value, name: str) -> np.ndarray:
 
 def _direction(value, name: str) -> np.ndarray:
     """A non-zero 3-vector -> (3,) float64 (not normalised)."""
-    arr = _array(value, name)
-    if arr.shape != (3,):
-        raise ValueError(f"{name} must be a 3-vector, got shape {arr.shape}")
+    arr = real_array(name, value, (3,), what="a real 3-vector").copy()
     if not np.linalg.norm(arr) > 0:
         raise ValueError(f"{name} must be non-zero")
-    return arr.copy()
+    return arr
 
 
 def _points(value, name: str, batch: int | None = None, count: int | None = None) -> np.ndarray:
     """A (B, N, 3) float64 array, optionally with a given batch size and count."""
-    arr = _array(value, name)
-    if arr.ndim != 3 or arr.shape[-1] != 3:
-        raise ValueError(f"{name} must have shape (B, N, 3), got {arr.shape}")
+    arr = real_array(name, value, (None, None, 3), "(B, N, 3)")
     if batch is not None and arr.shape[0] != batch:
         raise ValueError(f"{name} has batch size {arr.shape[0]}, expected {batch}")
     if count is not None and arr.shape[1] != count:
@@ -75,16 +63,11 @@ def _points(value, name: str, batch: int | None = None, count: int | None = None
 
 def _faces(faces, batch: int, n_vertices: int) -> np.ndarray:
     """(F, 3) or (B, F, 3) integer faces -> (B, F, 3) int64, indices checked against V."""
-    arr = np.asarray(faces)
-    if arr.size and not np.issubdtype(arr.dtype, np.integer):
-        raise ValueError(f"faces must be integer indices, got dtype {arr.dtype}")
-    arr = arr.astype(np.int64)
+    arr = index_array("faces", faces, n_vertices)
     if arr.ndim == 2:
         arr = np.broadcast_to(arr, (batch,) + arr.shape)
     if arr.ndim != 3 or arr.shape[-1] != 3 or arr.shape[0] != batch:
         raise ValueError(f"faces must have shape (F, 3) or ({batch}, F, 3), got {np.shape(faces)}")
-    if arr.size and (arr.min() < 0 or arr.max() >= n_vertices):
-        raise ValueError(f"faces index vertices outside [0, {n_vertices})")
     return arr
 
 
@@ -114,14 +97,30 @@ def _face_cross(vertices: np.ndarray, faces: np.ndarray):
     return np.cross(e1, e2), e1, e2
 
 
-def _face_cross_vjp(ctx: dict, grad_cross: np.ndarray) -> np.ndarray:
-    """(B, F, 3) gradient of the face cross products -> (B, V, 3) vertex gradient."""
-    g1, g2 = _cross_vjp(ctx["e1"], ctx["e2"], grad_cross)
-    corner = np.stack([-(g1 + g2), g1, g2], axis=2)
-    return scatter_corners(corner, ctx["faces"], ctx["n_vertices"])
-
-
 # ----------------------------------------------------------------------------- normals
+
+@dataclass
+class NormalsContext:
+    """What face_normals_vjp and vertex_normals_vjp need (float64 unless said otherwise).
+
+    faces (B, F, 3) int64; n_vertices: V; e1, e2 (B, F, 3) the face edges v1 - v0, v2 - v0;
+    unit (B, N, 3) the normals returned and length (B, N, 1) the norms they were divided by
+    (N = F for face normals, V for vertex normals).
+    """
+    faces: np.ndarray
+    n_vertices: int
+    e1: np.ndarray
+    e2: np.ndarray
+    unit: np.ndarray
+    length: np.ndarray
+
+
+def _face_cross_vjp(ctx: NormalsContext, grad_cross: np.ndarray) -> np.ndarray:
+    """(B, F, 3) gradient of the face cross products -> (B, V, 3) vertex gradient."""
+    g1, g2 = _cross_vjp(ctx.e1, ctx.e2, grad_cross)
+    corner = np.stack([-(g1 + g2), g1, g2], axis=2)
+    return scatter_corners(corner, ctx.faces, ctx.n_vertices)
+
 
 def face_normals(vertices, faces):
     """Unit face normals, outward for counter-clockwise faces seen from outside.
@@ -133,13 +132,12 @@ def face_normals(vertices, faces):
     faces = _faces(faces, vertices.shape[0], vertices.shape[1])
     cross, e1, e2 = _face_cross(vertices, faces)
     normals, length = _normalize(cross)
-    ctx = dict(faces=faces, n_vertices=vertices.shape[1], e1=e1, e2=e2, unit=normals, length=length)
-    return normals, ctx
+    return normals, NormalsContext(faces, vertices.shape[1], e1, e2, normals, length)
 
 
-def face_normals_vjp(ctx: dict, grad_normals) -> dict:
+def face_normals_vjp(ctx: NormalsContext, grad_normals) -> dict:
     """grad_normals (B, F, 3) -> {"vertices": (B, V, 3)} float64."""
-    grad_cross = _normalize_vjp(ctx["unit"], ctx["length"], np.asarray(grad_normals, np.float64))
+    grad_cross = _normalize_vjp(ctx.unit, ctx.length, np.asarray(grad_normals, np.float64))
     return {"vertices": _face_cross_vjp(ctx, grad_cross)}
 
 
@@ -155,14 +153,13 @@ def vertex_normals(vertices, faces):
     cross, e1, e2 = _face_cross(vertices, faces)
     total = scatter_corners(np.repeat(cross[:, :, None], 3, axis=2), faces, n_vertices)
     normals, length = _normalize(total)
-    ctx = dict(faces=faces, n_vertices=n_vertices, e1=e1, e2=e2, unit=normals, length=length)
-    return normals, ctx
+    return normals, NormalsContext(faces, n_vertices, e1, e2, normals, length)
 
 
-def vertex_normals_vjp(ctx: dict, grad_normals) -> dict:
+def vertex_normals_vjp(ctx: NormalsContext, grad_normals) -> dict:
     """grad_normals (B, V, 3) -> {"vertices": (B, V, 3)} float64."""
-    grad_total = _normalize_vjp(ctx["unit"], ctx["length"], np.asarray(grad_normals, np.float64))
-    grad_cross = gather_corners(grad_total, ctx["faces"]).sum(axis=2)
+    grad_total = _normalize_vjp(ctx.unit, ctx.length, np.asarray(grad_normals, np.float64))
+    grad_cross = gather_corners(grad_total, ctx.faces).sum(axis=2)
     return {"vertices": _face_cross_vjp(ctx, grad_cross)}
 
 
@@ -177,6 +174,49 @@ def _shade_inputs(normals, albedo, view_dirs, needs_view: bool):
     if view_dirs is None:
         raise ValueError("view_dirs (or camera_center) is required for specular shading")
     return normals, albedo, _points(view_dirs, "view_dirs", *normals.shape[:2])
+
+
+@dataclass
+class LambertContext:
+    """What LambertLight.shade_vjp needs (float64 unless said otherwise).
+
+    normals, albedo (B, N, 3) as checked; light (3,) the unit light direction and light_len (1,)
+    the length it was divided by; cos (B, N) n . l; lit (B, N) bool, cos > 0;
+    irradiance (B, N, 3) ambient + directional * max(0, cos).
+    """
+    normals: np.ndarray
+    albedo: np.ndarray
+    light: np.ndarray
+    light_len: np.ndarray
+    cos: np.ndarray
+    lit: np.ndarray
+    irradiance: np.ndarray
+
+
+@dataclass
+class PhongContext(LambertContext):
+    """What PhongLight.shade_vjp needs: the Lambert part's fields, plus (float64 unless said
+    otherwise) view (B, N, 3) unit view directions and view_len (B, N, 1) their lengths;
+    half (B, N, 3) unit half vectors and half_len (B, N, 1); on (B, N) bool, n . h > 0;
+    base (B, N) n . h where on (1 elsewhere); power (B, N) (n . h)^shininess where on (0 elsewhere).
+    """
+    view: np.ndarray
+    view_len: np.ndarray
+    half: np.ndarray
+    half_len: np.ndarray
+    on: np.ndarray
+    base: np.ndarray
+    power: np.ndarray
+
+
+@dataclass
+class SHContext:
+    """What SHLight.shade_vjp needs (float64): normals, albedo (B, N, 3) as checked; basis
+    (B, N, 9) sh_basis(normals); irradiance (B, N, 3)."""
+    normals: np.ndarray
+    albedo: np.ndarray
+    basis: np.ndarray
+    irradiance: np.ndarray
 
 
 @dataclass(eq=False)
@@ -205,34 +245,33 @@ class LambertLight:
         cos = normals @ light
         lit = cos > 0
         irradiance = self.ambient + self.directional * np.where(lit, cos, 0.0)[..., None]
-        ctx = dict(normals=normals, albedo=albedo, light=light, light_len=light_len, cos=cos,
-                   lit=lit, irradiance=irradiance)
+        ctx = LambertContext(normals, albedo, light, light_len, cos, lit, irradiance)
         return albedo * irradiance, ctx
 
-    def _diffuse_vjp(self, ctx, grad):
+    def _diffuse_vjp(self, ctx: LambertContext, grad):
         """Lambert backward part: gradients and the (3,) gradient of the unit light vector."""
-        grad_irr = grad * ctx["albedo"]
-        clamped = np.where(ctx["lit"], ctx["cos"], 0.0)
-        grad_cos = np.where(ctx["lit"], grad_irr @ self.directional, 0.0)
-        grads = dict(normals=grad_cos[..., None] * ctx["light"], albedo=grad * ctx["irradiance"],
+        grad_irr = grad * ctx.albedo
+        clamped = np.where(ctx.lit, ctx.cos, 0.0)
+        grad_cos = np.where(ctx.lit, grad_irr @ self.directional, 0.0)
+        grads = dict(normals=grad_cos[..., None] * ctx.light, albedo=grad * ctx.irradiance,
                      ambient=grad_irr.sum(axis=(0, 1)),
                      directional=np.einsum("bnc,bn->c", grad_irr, clamped))
-        grad_light = np.einsum("bn,bnk->k", grad_cos, ctx["normals"])
+        grad_light = np.einsum("bn,bnk->k", grad_cos, ctx.normals)
         return grads, grad_light
 
     def shade(self, normals, albedo, view_dirs=None):
         """normals (B, N, 3) (used as given), albedo (B, N, 3); view_dirs ignored.
 
-        Returns colours (B, N, 3) float64 and ctx for shade_vjp.
+        Returns colours (B, N, 3) float64 and a LambertContext for shade_vjp.
         """
         normals, albedo, _ = _shade_inputs(normals, albedo, view_dirs, needs_view=False)
         return self._diffuse(normals, albedo)
 
-    def shade_vjp(self, ctx, grad_colors) -> dict:
+    def shade_vjp(self, ctx: LambertContext, grad_colors) -> dict:
         """grad_colours (B, N, 3) -> dict normals, albedo (B, N, 3); ambient, directional,
         direction (3,)."""
         grads, grad_light = self._diffuse_vjp(ctx, np.asarray(grad_colors, np.float64))
-        grads["direction"] = _normalize_vjp(ctx["light"], ctx["light_len"], grad_light)
+        grads["direction"] = _normalize_vjp(ctx.light, ctx.light_len, grad_light)
         return grads
 
 
@@ -249,7 +288,7 @@ class PhongLight(LambertLight):
     def __post_init__(self):
         super().__post_init__()
         self.specular = _rgb(self.specular, "specular")
-        shininess = _array(self.shininess, "shininess")
+        shininess = real_array("shininess", self.shininess)
         if shininess.size != 1:
             raise ValueError(f"shininess must be a scalar, got shape {shininess.shape}")
         if shininess.item() < 0:
@@ -261,36 +300,37 @@ class PhongLight(LambertLight):
 
     def shade(self, normals, albedo, view_dirs=None):
         """normals, albedo, view_dirs (B, N, 3); view_dirs point from the surface to the camera
-        (normalised here, so camera_center - point may be passed). -> colours (B, N, 3), ctx."""
+        (normalised here, so camera_center - point may be passed). -> colours (B, N, 3), and a
+        PhongContext."""
         normals, albedo, view_dirs = _shade_inputs(normals, albedo, view_dirs, needs_view=True)
-        colors, ctx = self._diffuse(normals, albedo)
+        colors, diffuse = self._diffuse(normals, albedo)
         view, view_len = _normalize(view_dirs)
-        half, half_len = _normalize(ctx["light"] + view)
+        half, half_len = _normalize(diffuse.light + view)
         cos_h = np.sum(normals * half, -1)
         on = cos_h > 0
         base = np.where(on, cos_h, 1.0)                       # no 0**p or log(0) where off
         power = np.where(on, base ** self.shininess, 0.0)
-        ctx.update(view=view, view_len=view_len, half=half, half_len=half_len, on=on, base=base,
-                   power=power)
+        ctx = PhongContext(**vars(diffuse), view=view, view_len=view_len, half=half,
+                           half_len=half_len, on=on, base=base, power=power)
         return colors + self.specular * power[..., None], ctx
 
-    def shade_vjp(self, ctx, grad_colors) -> dict:
+    def shade_vjp(self, ctx: PhongContext, grad_colors) -> dict:
         """grad_colours (B, N, 3) -> dict normals, albedo, view_dirs (B, N, 3); ambient,
         directional, direction, specular (3,); shininess (float)."""
         grad = np.asarray(grad_colors, np.float64)
         grads, grad_light = self._diffuse_vjp(ctx, grad)
-        p, on, base = self.shininess, ctx["on"], ctx["base"]
+        p, on, base = self.shininess, ctx.on, ctx.base
         grad_power = grad @ self.specular
         grad_cos = np.where(on, grad_power * p * base ** (p - 1.0), 0.0)
-        grads["specular"] = np.einsum("bnc,bn->c", grad, ctx["power"])
-        grad_log = np.where(on, grad_power * ctx["power"] * np.log(base), 0.0)   # d(t^p)/dp
+        grads["specular"] = np.einsum("bnc,bn->c", grad, ctx.power)
+        grad_log = np.where(on, grad_power * ctx.power * np.log(base), 0.0)   # d(t^p)/dp
         grads["shininess"] = float(np.sum(grad_log))
-        grads["normals"] = grads["normals"] + grad_cos[..., None] * ctx["half"]
-        grad_half = grad_cos[..., None] * ctx["normals"]
-        grad_sum = _normalize_vjp(ctx["half"], ctx["half_len"], grad_half)   # of l + v
-        grads["view_dirs"] = _normalize_vjp(ctx["view"], ctx["view_len"], grad_sum)
+        grads["normals"] = grads["normals"] + grad_cos[..., None] * ctx.half
+        grad_half = grad_cos[..., None] * ctx.normals
+        grad_sum = _normalize_vjp(ctx.half, ctx.half_len, grad_half)   # of l + v
+        grads["view_dirs"] = _normalize_vjp(ctx.view, ctx.view_len, grad_sum)
         grad_light = grad_light + grad_sum.sum(axis=(0, 1))
-        grads["direction"] = _normalize_vjp(ctx["light"], ctx["light_len"], grad_light)
+        grads["direction"] = _normalize_vjp(ctx.light, ctx.light_len, grad_light)
         return grads
 
 
@@ -330,7 +370,7 @@ class SHLight:
     coefficients: object
 
     def __post_init__(self):
-        arr = _array(self.coefficients, "coefficients")
+        arr = real_array("coefficients", self.coefficients)
         if arr.shape == (9,):
             arr = np.tile(arr, (3, 1))
         elif arr.shape == (27,):
@@ -350,21 +390,20 @@ class SHLight:
 
     def shade(self, normals, albedo, view_dirs=None):
         """normals (B, N, 3) (used as given), albedo (B, N, 3); view_dirs ignored.
-        -> colours (B, N, 3) float64, ctx."""
+        -> colours (B, N, 3) float64, and an SHContext."""
         normals, albedo, _ = _shade_inputs(normals, albedo, view_dirs, needs_view=False)
         basis = sh_basis(normals)
         irradiance = basis @ (self.coefficients * SH_A).T
-        ctx = dict(normals=normals, albedo=albedo, basis=basis, irradiance=irradiance)
-        return albedo * irradiance, ctx
+        return albedo * irradiance, SHContext(normals, albedo, basis, irradiance)
 
-    def shade_vjp(self, ctx, grad_colors) -> dict:
+    def shade_vjp(self, ctx: SHContext, grad_colors) -> dict:
         """grad_colours (B, N, 3) -> dict normals, albedo (B, N, 3); coefficients (3, 9)."""
         grad = np.asarray(grad_colors, np.float64)
-        grad_irr = grad * ctx["albedo"]
+        grad_irr = grad * ctx.albedo
         grad_basis = grad_irr @ (self.coefficients * SH_A)
-        return dict(normals=sh_basis_vjp(ctx["normals"], grad_basis),
-                    albedo=grad * ctx["irradiance"],
-                    coefficients=np.einsum("bnc,bni->ci", grad_irr, ctx["basis"]) * SH_A)
+        return dict(normals=sh_basis_vjp(ctx.normals, grad_basis),
+                    albedo=grad * ctx.irradiance,
+                    coefficients=np.einsum("bnc,bni->ci", grad_irr, ctx.basis) * SH_A)
 
 
 # ----------------------------------------------------------------------------- scene helpers
@@ -373,7 +412,7 @@ def _camera_center(camera_center, batch: int):
     """None, (3,) or (B, 3) -> None or (B, 1, 3) float64, and whether it was batched."""
     if camera_center is None:
         return None, False
-    arr = _array(camera_center, "camera_center")
+    arr = real_array("camera_center", camera_center)
     if arr.shape == (3,):
         return np.broadcast_to(arr, (batch, 1, 3)), False
     if arr.shape != (batch, 3):
@@ -387,23 +426,40 @@ def _light(light):
     return light
 
 
-def _shade_points(normals, points, albedo, light, camera_center):
-    """Shades (B, N, 3) normals at (B, N, 3) points; view directions camera_center - point."""
+@dataclass
+class ShadeContext:
+    """What shade_vertices_vjp and shade_faces_vjp need.
+
+    light: the light shaded with; light_ctx: its shade context (LambertContext, PhongContext or
+    SHContext); normal_ctx: the NormalsContext of the normals lit; batch: B; has_camera: whether
+    a camera_center was given; camera_batched: whether it was (B, 3) rather than (3,).
+    """
+    light: object
+    light_ctx: object
+    normal_ctx: NormalsContext
+    batch: int
+    has_camera: bool
+    camera_batched: bool
+
+
+def _shade_points(normals, normal_ctx: NormalsContext, points, albedo, light, camera_center):
+    """Shades (B, N, 3) normals at (B, N, 3) points; view directions camera_center - point.
+    -> colours (B, N, 3) float64, ShadeContext."""
     centre, batched = _camera_center(camera_center, points.shape[0])
     view = None if centre is None else centre - points
     colors, light_ctx = light.shade(normals, albedo, view)
-    return colors, dict(light=light, light_ctx=light_ctx, camera_batched=batched,
-                         has_camera=centre is not None, batch=points.shape[0])
+    return colors, ShadeContext(light, light_ctx, normal_ctx, points.shape[0], centre is not None,
+                                batched)
 
 
-def _shade_points_vjp(ctx, grad_colors):
+def _shade_points_vjp(ctx: ShadeContext, grad_colors):
     """Light vjp, plus gradients to the points and the camera centre through the view dirs."""
-    grads = ctx["light"].shade_vjp(ctx["light_ctx"], grad_colors)
+    grads = ctx.light.shade_vjp(ctx.light_ctx, grad_colors)
     grad_view = grads.pop("view_dirs", None)
     grad_points = None if grad_view is None else -grad_view
-    if ctx["has_camera"]:
-        grad_c = np.zeros((ctx["batch"], 3)) if grad_view is None else grad_view.sum(axis=1)
-        grads["camera_center"] = grad_c if ctx["camera_batched"] else grad_c.sum(axis=0)
+    if ctx.has_camera:
+        grad_c = np.zeros((ctx.batch, 3)) if grad_view is None else grad_view.sum(axis=1)
+        grads["camera_center"] = grad_c if ctx.camera_batched else grad_c.sum(axis=0)
     return grads, grad_points
 
 
@@ -412,22 +468,20 @@ def shade_vertices(vertices, faces, albedo, light, camera_center=None):
 
     vertices (B, V, 3); faces (F, 3) or (B, F, 3) int; albedo (B, V, 3); light: a LambertLight,
     PhongLight or SHLight; camera_center (3,) or (B, 3) (needed by PhongLight).
-    Returns colours (B, V, 3) float64 and ctx for shade_vertices_vjp.
+    Returns colours (B, V, 3) float64 and a ShadeContext for shade_vertices_vjp.
     """
     light = _light(light)
     vertices = _points(vertices, "vertices")
     albedo = _points(albedo, "albedo", *vertices.shape[:2])
     normals, normal_ctx = vertex_normals(vertices, faces)
-    colors, ctx = _shade_points(normals, vertices, albedo, light, camera_center)
-    ctx["normal_ctx"] = normal_ctx
-    return colors, ctx
+    return _shade_points(normals, normal_ctx, vertices, albedo, light, camera_center)
 
 
-def shade_vertices_vjp(ctx, grad_colors) -> dict:
+def shade_vertices_vjp(ctx: ShadeContext, grad_colors) -> dict:
     """grad_colours (B, V, 3) -> dict vertices, albedo (B, V, 3), camera_center (as passed, when
     given), and one entry per light parameter (see the light's shade_vjp)."""
     grads, grad_points = _shade_points_vjp(ctx, grad_colors)
-    grad_vertices = vertex_normals_vjp(ctx["normal_ctx"], grads.pop("normals"))["vertices"]
+    grad_vertices = vertex_normals_vjp(ctx.normal_ctx, grads.pop("normals"))["vertices"]
     if grad_points is not None:
         grad_vertices = grad_vertices + grad_points
     return dict(grads, vertices=grad_vertices)
@@ -437,26 +491,25 @@ def shade_faces(vertices, faces, albedo, light, camera_center=None):
     """Per-face shading with face normals, viewed from each face's centroid.
 
     vertices (B, V, 3); faces (F, 3) or (B, F, 3) int; albedo (B, F, 3); light and camera_center
-    as in shade_vertices. Returns colours (B, F, 3) float64 and ctx for shade_faces_vjp.
+    as in shade_vertices. Returns colours (B, F, 3) float64 and a ShadeContext for
+    shade_faces_vjp.
     """
     light = _light(light)
     vertices = _points(vertices, "vertices")
     normals, normal_ctx = face_normals(vertices, faces)
     albedo = _points(albedo, "albedo", *normals.shape[:2])
-    centroids = gather_corners(vertices, normal_ctx["faces"]).mean(axis=2)
-    colors, ctx = _shade_points(normals, centroids, albedo, light, camera_center)
-    ctx["normal_ctx"] = normal_ctx
-    return colors, ctx
+    centroids = gather_corners(vertices, normal_ctx.faces).mean(axis=2)
+    return _shade_points(normals, normal_ctx, centroids, albedo, light, camera_center)
 
 
-def shade_faces_vjp(ctx, grad_colors) -> dict:
+def shade_faces_vjp(ctx: ShadeContext, grad_colors) -> dict:
     """grad_colours (B, F, 3) -> dict vertices (B, V, 3), albedo (B, F, 3), camera_center (when
     given), and one entry per light parameter."""
     grads, grad_centroids = _shade_points_vjp(ctx, grad_colors)
-    normal_ctx = ctx["normal_ctx"]
+    normal_ctx = ctx.normal_ctx
     grad_vertices = face_normals_vjp(normal_ctx, grads.pop("normals"))["vertices"]
     if grad_centroids is not None:
         corner = np.repeat(grad_centroids[:, :, None] / 3.0, 3, axis=2)
-        grad_vertices = grad_vertices + scatter_corners(corner, normal_ctx["faces"],
-                                                         normal_ctx["n_vertices"])
+        grad_vertices = grad_vertices + scatter_corners(corner, normal_ctx.faces,
+                                                         normal_ctx.n_vertices)
     return dict(grads, vertices=grad_vertices)

@@ -139,7 +139,7 @@ def test_only_requested_gradients_are_returned():
     g = renderer.backward(out, grad_rgb=np.ones_like(out.rgb))
     assert set(g) == {"light"}
     assert set(g["light"]) == {"ambient", "directional", "direction"}
-    assert out.saved["raster_out"].saved["grads"] == ("colors",)   # no position adjoint compiled
+    assert out.saved.raster_out.saved.grads == ("colors",)   # no position adjoint compiled
 
 
 def test_bad_scene_input_is_named():
