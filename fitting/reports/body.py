@@ -19,6 +19,7 @@ import numpy as np
 from softras_cl.io.meshes import save_mesh
 from softras_cl.fitting.recipes.body import BodyFit, BodyScene
 from softras_cl.fitting.reports.face import SHARP
+from softras_cl.provenance import provenance
 
 OVERLAY_MAX = 1024
 
@@ -32,10 +33,7 @@ def full_size_scene(fit: BodyFit, max_side: int = OVERLAY_MAX) -> BodyScene:
 
 def save_overlay(fit: BodyFit, target: np.ndarray, path: Path) -> None:
     """Half-blend of the sharp render over the target (H, W[, 3|4]) with the joints drawn."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
     from skimage.transform import resize
 
     from softras_cl.io.images import to_srgb
@@ -49,7 +47,7 @@ def save_overlay(fit: BodyFit, target: np.ndarray, path: Path) -> None:
     alpha = 0.5 * out.alpha[0][..., None]
     blend = alpha * out.rgb[0] + (1.0 - alpha) * img
     h, w = scene.image_size
-    fig = plt.figure(figsize=(w / 100, h / 100), dpi=100)
+    fig = Figure(figsize=(w / 100, h / 100), dpi=100)
     ax = fig.add_axes([0, 0, 1, 1])
     ax.imshow(to_srgb(np.clip(blend, 0, 1)))
     uv, _ = scene.camera.project_pixels(state.joints)
@@ -63,7 +61,6 @@ def save_overlay(fit: BodyFit, target: np.ndarray, path: Path) -> None:
     ax.set(xlim=(-0.5, w - 0.5), ylim=(h - 0.5, -0.5))
     ax.axis("off")
     fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 def camera_matrices(camera) -> dict:
@@ -72,11 +69,13 @@ def camera_matrices(camera) -> dict:
     return dict(K=K, R=camera.rotation_matrix(), t=np.asarray(camera.translation, np.float64))
 
 
-def write_outputs(fit: BodyFit, target: np.ndarray, out_dir, extra: dict | None = None) -> dict:
+def write_outputs(fit: BodyFit, target: np.ndarray, out_dir, extra: dict | None = None,
+                  run_config=None) -> dict:
     """Write every output of a fit into ``out_dir``; returns the metrics written.
 
     target: the full-size target as given to fit_body; extra: more JSON-able facts for
-    params.json.
+    params.json; run_config: the run's effective configuration, recorded with the versions,
+    device and command line under "provenance" (default: the fit's BodyFitConfig).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -93,6 +92,7 @@ def write_outputs(fit: BodyFit, target: np.ndarray, out_dir, extra: dict | None 
                target_size=list(fit.target.full_size), working_size=list(fit.scene.image_size),
                camera=dict(distance=config.distance, height=config.height, fov_deg=config.fov_deg),
                joint_names=fit.scene.model.joint_names,
-               params={k: np.asarray(v).tolist() for k, v in arrays.items()}, **(extra or {}))
+               params={k: np.asarray(v).tolist() for k, v in arrays.items()},
+               provenance=provenance(config if run_config is None else run_config), **(extra or {}))
     (out / "params.json").write_text(json.dumps(doc, indent=2))
     return metrics

@@ -20,6 +20,7 @@ from softras_cl.io.images import to_srgb, write_image
 from softras_cl.io.meshes import save_mesh
 from softras_cl.scene.shading import SHLight
 from softras_cl.fitting.recipes.face import CAMERA_ROTATION, FaceFit, FaceScene
+from softras_cl.provenance import provenance
 
 OVERLAY_MAX = 1024       # longest side of overlay.png (the photo's own size when smaller)
 SHARP = (1e-6, 1e-4)     # sigma, gamma of the report renders: the fitted surface, drawn sharp
@@ -79,13 +80,11 @@ def _panels(fit: FaceFit) -> dict:
 
 def save_figure(fit: FaceFit, path: Path, metrics: dict) -> None:
     """photo / fit / albedo / shading / error map, one row, with the landmarks drawn."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     panels = _panels(fit)
-    fig, axes = plt.subplots(1, len(panels), figsize=(3.2 * len(panels), 3.6))
+    fig = Figure(figsize=(3.2 * len(panels), 3.6))
+    axes = fig.subplots(1, len(panels))
     for ax, (title, img) in zip(axes, panels.items()):
         if img.ndim == 2:
             shown = ax.imshow(img, cmap="magma", vmin=0, vmax=0.2)
@@ -100,7 +99,6 @@ def save_figure(fit: FaceFit, path: Path, metrics: dict) -> None:
                  f"face-region PSNR {metrics['psnr_face_db']:.1f} dB (sRGB)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def camera_matrices(fit: FaceFit, photo_size) -> dict:
@@ -113,10 +111,13 @@ def camera_matrices(fit: FaceFit, photo_size) -> dict:
                 t=CAMERA_ROTATION @ values["translation"])
 
 
-def write_outputs(fit: FaceFit, photo: np.ndarray, out_dir, extra: dict | None = None) -> dict:
+def write_outputs(fit: FaceFit, photo: np.ndarray, out_dir, extra: dict | None = None,
+                  run_config=None) -> dict:
     """Write every output of a fit into ``out_dir``; returns the metrics written.
 
-    photo (H, W, 3) linear RGB at full size; extra: more JSON-able facts for params.json.
+    photo (H, W, 3) linear RGB at full size; extra: more JSON-able facts for params.json;
+    run_config: the run's effective configuration (e.g. its FaceFitConfig), recorded with the
+    versions, device and command line under "provenance".
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -133,6 +134,7 @@ def write_outputs(fit: FaceFit, photo: np.ndarray, out_dir, extra: dict | None =
     doc = dict(metrics=metrics, interrupted=fit.result.interrupted, outcomes=fit.result.outcomes,
                model=model.name, photo_size=list(photo.shape[:2]),
                working_size=list(fit.image.shape[:2]),
-               params={k: np.asarray(v).tolist() for k, v in arrays.items()}, **(extra or {}))
+               params={k: np.asarray(v).tolist() for k, v in arrays.items()},
+               provenance=provenance(run_config), **(extra or {}))
     (out / "params.json").write_text(json.dumps(doc, indent=2))
     return metrics

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.provenance import provenance
+
 DEFAULT_BUDGETS = ("fast", "default")
 
 
@@ -100,12 +102,10 @@ def run_budget(model, samples: list[dict], budget: str, size: int, progress: boo
 
 def save_chart(summary: dict, rest: dict, path: Path) -> None:
     """Joint error and IoU against time per fit, one point per budget."""
-    import matplotlib
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.6))
+    fig = Figure(figsize=(9, 3.6))
+    ax1, ax2 = fig.subplots(1, 2)
     for name, s in summary.items():
         ax1.plot(s["median_seconds"], s["mpjpe_mm"], "o", c="C0")
         ax1.plot(s["median_seconds"], s["mpjpe_pelvis_mm"], "s", c="C1")
@@ -123,7 +123,6 @@ def save_chart(summary: dict, rest: dict, path: Path) -> None:
     fig.suptitle("bench body: accuracy against time per budget")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def save_strip(samples: list[dict], rows: list[dict], path: Path, n: int = 5) -> None:
@@ -198,7 +197,8 @@ def run(args: argparse.Namespace) -> int:
                camera="one frontal camera, 3.7 m, 30 deg fov, aimed at 0.9 m height",
                rest_pose=rest, summary=summary,
                poses={b: [{k: v for k, v in r.items() if k != "fit"} for r in rows]
-                      for b, rows in per_budget.items()})
+                      for b, rows in per_budget.items()},
+               provenance=provenance(dict(options=args)))
     (out / "body.json").write_text(json.dumps(doc, indent=2))
     save_chart(summary, rest, out / "body.png")
     save_strip(samples, per_budget[budgets[-1]], out / "body_strip.png")

@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.provenance import provenance
+
 DEFAULT_BUDGETS = ("fast", "default", "thorough")
 
 
@@ -152,12 +154,10 @@ def run_budget(model, samples: list[dict], budget: str, size: int, progress: boo
 
 def save_chart(summary: dict, path: Path) -> None:
     """Shape error and PSNR against time per fit, one point per budget."""
-    import matplotlib
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.6))
+    fig = Figure(figsize=(9, 3.6))
+    ax1, ax2 = fig.subplots(1, 2)
     for name, s in summary.items():
         ax1.plot(s["median_seconds"], s["rmse_mm"], "o")
         ax1.annotate(name, (s["median_seconds"], s["rmse_mm"]))
@@ -174,7 +174,6 @@ def save_chart(summary: dict, path: Path) -> None:
     fig.suptitle("bench face: accuracy against time per budget")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def save_strip(rows: list[dict], path: Path, n: int = 4) -> None:
@@ -229,7 +228,8 @@ def run(args: argparse.Namespace) -> int:
     doc = dict(size=args.size, seed=args.seed, model=model.name, photo_weight=args.photo_weight,
                summary=summary,
                faces={b: [{k: v for k, v in r.items() if k != "fit"} for r in rows]
-                      for b, rows in per_budget.items()})
+                      for b, rows in per_budget.items()},
+               provenance=provenance(dict(options=args)))
     (out / "face.json").write_text(json.dumps(doc, indent=2))
     save_chart(summary, out / "face.png")
     save_strip(per_budget[budgets[-1]], out / "face_strip.png")

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.provenance import provenance
+
 PAPER = {"random guess": 126.48, "NMR": 93.40, "NMR (scheduled)": 80.94,
          "SoftRas": 82.80, "SoftRas (scheduled)": 63.57}
 TARGET_SIGMA, TARGET_GAMMA = 1e-5, 1e-4     # the target image is rendered sharp
@@ -108,10 +110,7 @@ def save_geodesics(scene, cases, stages, path: Path, fit_kwargs: dict, max_cases
     """For failed fits (target, result) pairs: the loss along the geodesic from the target
     (0) to where the fit stopped (1) and 30% beyond, at the first and the last stage's
     sigma/gamma. A barrier between 0 and 1 is the local minimum the fit could not leave."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     from softras_cl.scene.rotation import axis_angle_to_matrix, matrix_to_axis_angle
     from softras_cl.fitting.recipes.rigid import pose_objective
@@ -120,7 +119,8 @@ def save_geodesics(scene, cases, stages, path: Path, fit_kwargs: dict, max_cases
     if not cases:
         return
     ts = np.linspace(0.0, 1.3, 53)
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    fig = Figure(figsize=(10, 4))
+    axes = fig.subplots(1, 2)
     for ax, stage in zip(axes, (stages[0], stages[-1])):
         for target, result in cases:
             _, out = scene.render(target, TARGET_SIGMA, TARGET_GAMMA)
@@ -138,15 +138,11 @@ def save_geodesics(scene, cases, stages, path: Path, fit_kwargs: dict, max_cases
     fig.suptitle("loss between the target and failed fits' end points", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 def save_strip(scene, target, init, stages, path: Path) -> None:
     """Figure 12 style: the target, then the soft render after each stage with its error."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     from softras_cl.fitting.recipes.rigid import composite, fit_rotation, rotation_error_deg
 
@@ -162,24 +158,22 @@ def save_strip(scene, target, init, stages, path: Path) -> None:
 
     snapshot(stages[0], init, label="start")
     fit_rotation(scene, out.rgb[0], out.alpha[0], init, stages, on_stage=snapshot)
-    fig, axes = plt.subplots(1, len(frames), figsize=(2.2 * len(frames), 2.9))
+    fig = Figure(figsize=(2.2 * len(frames), 2.9))
+    axes = fig.subplots(1, len(frames))
     for ax, (title, image) in zip(axes, frames):
         ax.imshow(np.clip(image, 0, 1) ** (1 / 2.2))
         ax.set_title(title, fontsize=7)
         ax.axis("off")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def save_chart(rows: dict, path: Path) -> None:
     """Mean error against median time per fit, one point per variant, paper levels dashed."""
-    import matplotlib
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig = Figure(figsize=(7, 4.5))
+    ax = fig.subplots()
     for name, r in rows.items():
         ax.scatter(r["median_s"], r["mean_deg"])
         ax.annotate(name, (r["median_s"], r["mean_deg"]), fontsize=8, xytext=(4, 4), textcoords="offset points")
@@ -190,7 +184,6 @@ def save_chart(rows: dict, path: Path) -> None:
            title="colour-cube pose fitting: accuracy against time")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -221,7 +214,8 @@ def run(args: argparse.Namespace) -> int:
     failed = [(t, np.array(r)) for t, r, e in zip(targets, rows[default]["rotations"],
                                                    rows[default]["errors_deg"]) if e >= 10]
     save_geodesics(scene, failed, chosen[default], out / "pose_geodesics.png", dict(pyramid=PYRAMID))
-    result.update(pyramid=PYRAMID, first_step_rad=FIRST_STEP)
+    result.update(pyramid=PYRAMID, first_step_rad=FIRST_STEP,
+                  provenance=provenance(dict(options=args, variants=chosen)))
     (out / "pose.json").write_text(json.dumps(result, indent=1))
     print(json.dumps(result, indent=1) if args.json else format_table(result))
     return 0

@@ -18,7 +18,6 @@ import argparse
 import json
 import math
 import os
-import resource
 import statistics
 import sys
 import time
@@ -28,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from softras_cl.bench.tools import device_info, format_table, relative_inf_error
+from softras_cl.provenance import provenance
 
 SIZES = (256, 1024)
 FACES = (1280, 5120, 20480, 81920)
@@ -192,8 +192,13 @@ def saved_bytes(out) -> int:
     return host + sum(buffers.values())
 
 
-def peak_rss_mib() -> float:
-    """Peak resident set size of this process so far (Linux reports KiB, macOS bytes)."""
+def peak_rss_mib() -> float | None:
+    """Peak resident set size of this process so far (Linux reports KiB, macOS bytes); None
+    where the `resource` module does not exist (Windows)."""
+    try:
+        import resource
+    except ImportError:
+        return None
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / (2 ** 20 if sys.platform == "darwin" else 2 ** 10)
 
@@ -339,15 +344,14 @@ def save_chart(result: dict, path: Path) -> None:
     """PNG with three log-log panels: image error and gradient error against forward+backward
     time for the accuracy rows (filled: against exact float64; hollow: against float64 at the
     same dist_eps), and forward+backward time against pixel-face pairs for the speed rows."""
-    import matplotlib
+    from matplotlib import colormaps
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 3, figsize=(19, 6.5))
+    fig = Figure(figsize=(19, 6.5))
+    axes = fig.subplots(1, 3)
     scene, acc = result["accuracy_scene"], result["accuracy"]
     eps_values = sorted({r["dist_eps"] for r in acc})
-    eps_colors = {e: plt.cm.viridis(i / max(len(eps_values) - 1, 1)) for i, e in enumerate(eps_values)}
+    eps_colors = {e: colormaps["viridis"](i / max(len(eps_values) - 1, 1)) for i, e in enumerate(eps_values)}
     # rgb is left out of the first panel: against the exact result its error is ~1 at every
     # cut-off (docs/conventions.md: the cut-off shapes the softmax image), which hides the rest
     for ax, keys, title in ((axes[0], ("alpha",), "max abs error of alpha"),
@@ -377,7 +381,6 @@ def save_chart(result: dict, path: Path) -> None:
     axes[2].legend()
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 # ---- driver --------------------------------------------------------------------------------
@@ -432,6 +435,7 @@ def run_raster(args: argparse.Namespace) -> int:
     with tqdm(total=steps, file=sys.stderr, unit="step") as progress:
         result = run_benchmark(p, progress)
     result["tables"] = report_text(result)
+    result["provenance"] = provenance(dict(options=args, plan=p))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "raster.json").write_text(json.dumps(result, indent=2))

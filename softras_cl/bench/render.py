@@ -13,6 +13,7 @@ import numpy as np
 
 from softras_cl.bench.raster import BASE_SETTINGS, REPEATS, settings_for
 from softras_cl.bench.tools import device_info, format_table, relative_inf_error
+from softras_cl.provenance import provenance
 
 RENDER_DOC = """Speed of the whole differentiable render path: forward + backward of
 softras_cl.scene.renderer.Renderer with gradients for vertices, albedo, camera and light.
@@ -348,12 +349,10 @@ def render_report_text(result: dict) -> str:
 def save_render_chart(result: dict, path: Path) -> None:
     """PNG with two bar charts: the stage split (forward and backward parts) next to the Renderer's
     end-to-end time, and the forward+backward time of each effect (forward part darker)."""
-    import matplotlib
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(15, 5.5))
+    fig = Figure(figsize=(15, 5.5))
+    ax1, ax2 = fig.subplots(1, 2)
     stages = result["stages"][::-1]
     ys = np.arange(len(stages))
     fwd = [r["fwd_ms"] or 0.0 for r in stages]
@@ -381,7 +380,6 @@ def save_render_chart(result: dict, path: Path) -> None:
         ax.set_xlim(0, ax.get_xlim()[1] * 1.25)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 def render_plan(args: argparse.Namespace) -> dict:
@@ -405,6 +403,7 @@ def run_render(args: argparse.Namespace) -> int:
     with tqdm(total=len(EFFECTS) + p["repeats"], file=sys.stderr, unit="step") as progress:
         result = run_render_benchmark(p, progress)
     result["tables"] = render_report_text(result)
+    result["provenance"] = provenance(dict(options=args, plan=p))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "render.json").write_text(json.dumps(result, indent=2))

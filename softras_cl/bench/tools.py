@@ -5,19 +5,19 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.provenance import opencl_device as device_info  # the device the benchmarks run on
+
 
 def save_image_strip(columns, path: Path, cell=(2.4, 2.6)) -> None:
     """Two rows of images, one column per fit: ``columns`` is a list of (top image, bottom
     image, top title, bottom title) with (H, W, 3) linear-RGB images, shown in sRGB."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     from softras_cl.io.images import to_srgb
 
     n = len(columns)
-    fig, axes = plt.subplots(2, n, figsize=(cell[0] * n, 2 * cell[1]), squeeze=False)
+    fig = Figure(figsize=(cell[0] * n, 2 * cell[1]))
+    axes = fig.subplots(2, n, squeeze=False)
     for i, (top, bottom, top_title, bottom_title) in enumerate(columns):
         for ax, img, title in ((axes[0, i], top, top_title), (axes[1, i], bottom, bottom_title)):
             ax.imshow(to_srgb(np.clip(img, 0, 1)))
@@ -25,7 +25,6 @@ def save_image_strip(columns, path: Path, cell=(2.4, 2.6)) -> None:
             ax.axis("off")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 def parse_budgets(text: str, known) -> list[str]:
@@ -34,15 +33,6 @@ def parse_budgets(text: str, known) -> list[str]:
     if not budgets or any(b not in known for b in budgets):
         raise ValueError(f"--budgets must name some of {sorted(known)}, got {text!r}")
     return budgets
-
-
-def device_info() -> dict:
-    """Name and platform of the device the benchmark runs on."""
-    from softras_cl.cl.device import select_device
-
-    d = select_device()
-    return dict(name=d.name, platform=d.platform.name, platform_version=d.platform.version,
-                driver_version=d.driver_version)
 
 
 def format_table(rows: list[dict], columns: list[tuple]) -> str:

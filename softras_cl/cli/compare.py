@@ -52,7 +52,7 @@ def register(sub) -> None:
                         "default, it reaches 0.12 px, where the nearer face wins as gamma -> 0)")
     p.add_argument("--reference", choices=("raycast", "mitsuba"), default="raycast",
                    help="independent renderer: raycast (trimesh/Embree, Lambert per vertex; default) or "
-                        "mitsuba (Mitsuba 3 scalar_rgb, optional extra softras-cl[mitsuba]: flat Lambert "
+                        "mitsuba (Mitsuba 3 scalar_rgb, optional extra softras-cl[validate]: flat Lambert "
                         "under a headlight, no ambient, black background, both renderers shading with "
                         "face normals and per-face albedo)")
     p.add_argument("--json", action="store_true", help="print the metrics as JSON")

@@ -142,7 +142,8 @@ def run(args: argparse.Namespace) -> int:
     fit = fit_body(target, model, config, joints, weights, out_dir=out, progress=not args.no_progress)
     seconds = time.perf_counter() - start
     metrics = write_outputs(fit, target, out, extra=dict(target=str(args.target), seconds=seconds,
-                                                          budget=args.budget))
+                                                          budget=args.budget),
+                            run_config=dict(fit=config, options=args))
     state = "interrupted; outputs are from the best values so far" if fit.result.interrupted else "done"
     joints_msg = (f", joint error {metrics['joint_error_px_full']:.1f} px" if "joint_error_px_full" in metrics
                   else "")

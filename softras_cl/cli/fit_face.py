@@ -91,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     seconds = time.perf_counter() - start
     metrics = write_outputs(fit, photo, out, extra=dict(photo=str(args.photo), seconds=seconds,
-                                                          budget=args.budget))
+                                                          budget=args.budget),
+                            run_config=dict(fit=config, options=args))
     state = "interrupted; outputs are from the best values so far" if fit.result.interrupted else "done"
     print(f"fit-face {state} in {seconds:.1f} s: landmark error {metrics['landmark_error_px_full']:.2f} px, "
           f"face-region PSNR {metrics['psnr_face_db']:.1f} dB (sRGB); outputs in {out}/")

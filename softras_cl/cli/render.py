@@ -47,16 +47,13 @@ def _run_render(args: argparse.Namespace) -> int:
 
 def _write_depth(path: Path, depth, alpha) -> None:
     """Depth as a grey PNG, near = white, far = black, over the pixels with alpha > 0.5."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.image
     import numpy as np
 
     inside = alpha > 0.5
     shown = np.where(inside, depth, np.nan)
     path.parent.mkdir(parents=True, exist_ok=True)
-    plt.imsave(path, shown, cmap="gray_r")
+    matplotlib.image.imsave(path, shown, cmap="gray_r")
 
 
 def register(sub) -> None:

@@ -120,15 +120,13 @@ def metrics(rgb, alpha, depth, ref_rgb, ref: RayCastImage) -> dict:
 def save_comparison(result: Comparison, path: Path, title: str = "",
                     reference: str = "ray cast (trimesh/Embree)") -> None:
     """PNG: ours | reference | |difference| (x10) | depth difference, with the metrics as title."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     from softras_cl.io.images import to_srgb
 
     m = result.metrics
-    fig, axes = plt.subplots(1, 4, figsize=(16, 4.6))
+    fig = Figure(figsize=(16, 4.6))
+    axes = fig.subplots(1, 4)
     panels = [(to_srgb(np.clip(result.ours_rgb, 0, 1)), "softras-cl (sigma 1e-7, gamma 1e-6)"),
               (to_srgb(np.clip(result.ref_rgb, 0, 1)), reference),
               (np.clip(10 * np.abs(result.ours_rgb - result.ref_rgb), 0, 1), "|difference| x 10")]
@@ -148,4 +146,3 @@ def save_comparison(result: Comparison, path: Path, title: str = "",
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)
-    plt.close(fig)

@@ -1,7 +1,7 @@
 """Mitsuba 3 as an independent reference renderer: `softras-cl compare MESH
 --reference mitsuba`.
 
-Optional extra (`pip install softras-cl[mitsuba]`); its `scalar_rgb` variant needs nothing else.
+Optional extra (`pip install softras-cl[validate]`); its `scalar_rgb` variant needs nothing else.
 The scene is built in memory with Mitsuba's Python dict API and sampled so that it computes
 exactly what the soft rasteriser computes at sharp settings:
 
@@ -70,7 +70,7 @@ def _mitsuba():
         import mitsuba as mi
     except ImportError as e:
         raise RuntimeError("the Mitsuba reference needs the optional extra: pip install "
-                           "'softras-cl[mitsuba]' (or pip install mitsuba)") from e
+                           "'softras-cl[validate]' (or pip install mitsuba)") from e
     if mi.variant() != VARIANT:
         mi.set_variant(VARIANT)
     return mi
