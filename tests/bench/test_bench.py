@@ -86,9 +86,10 @@ def test_face_chunks_cover_all_faces_within_budget():
     assert all((e - s) * heights[s:e].max() * widths[s:e].max() <= 5000 or e - s == 1 for s, e in chunks)
 
 
-def test_bad_face_count_is_rejected(capsys):
+def test_bad_face_count_is_rejected(run_cli):
     with pytest.raises(ValueError, match="--faces"):
         bench.subdivisions_for(1000)
     assert bench.subdivisions_for(81920) == 6
-    assert main(["bench", "raster", "--faces", "1000"]) == 2
-    assert "--faces" in capsys.readouterr().err
+    result = run_cli("bench", "raster", "--faces", "1000")
+    assert result.code == 2
+    assert "--faces" in result.err

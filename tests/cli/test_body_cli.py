@@ -5,7 +5,6 @@ import json
 import numpy as np
 import pytest
 from softras_cl.fitting.recipes import body
-from softras_cl.fitting.models.body_loaders import load_demo_body_model
 from softras_cl.fitting.solver import load_checkpoint
 
 from support.interrupt import sigint_once_written
@@ -16,9 +15,9 @@ SMALL = ["--size", "40", "--budget", "fast", "--no-progress"]
 
 
 @pytest.fixture(scope="module")
-def target(tmp_path_factory):
+def target(tmp_path_factory, demo_body_model):
     """(target.png 48x48 of a posed demo body, joints.txt with its 24 joints)."""
-    model = load_demo_body_model()
+    model = demo_body_model
     values = body.rest_values(model)
     values["body_pose"][model.joint_names.index("left_shoulder") - 1] = [0.0, 0.0, 0.4]
     scene = body.BodyScene(model, (48, 48), body.BodyFitConfig(size=48))
@@ -52,7 +51,7 @@ def test_fit_body_writes_every_output(tmp_path, capsys, target):
     ("23 joints", "has 23 joints, the model has 24"),
     ("unknown model", "unknown"),
 ])
-def test_bad_input_is_reported_before_fitting(tmp_path, capsys, target, case, match):
+def test_bad_input_is_reported_before_fitting(tmp_path, run_cli, target, case, match):
     image, joints = target
     extra = []
     if case == "two channels":
@@ -69,8 +68,9 @@ def test_bad_input_is_reported_before_fitting(tmp_path, capsys, target, case, ma
         np.savez(model, something=np.zeros(3))
         extra = ["--model", str(model)]
     argv = ["fit-body", str(image), "--joints", str(joints), "--out", str(tmp_path / "o"), *SMALL, *extra]
-    assert main(argv) == 2
-    err = capsys.readouterr().err
+    result = run_cli(*argv)
+    assert result.code == 2
+    err = result.err
     assert "fit-body" in err and match in err
     assert not (tmp_path / "o").exists()
 

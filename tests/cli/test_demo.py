@@ -24,11 +24,9 @@ def test_demo_writes_png(tmp_path, capsys):
     assert centre[2] > 0.9 and centre[0] < centre[2] - 0.1 and centre[1] < centre[2] - 0.1, centre
 
 
-def test_demo_help_lists_options(capsys):
-    try:
-        cli.main(["demo", "--help"])
-    except SystemExit as e:
-        assert e.code == 0
-    text = capsys.readouterr().out
+def test_demo_help_lists_options(run_cli):
+    result = run_cli("demo", "--help")
+    assert result.code == 0
+    text = result.out
     for option in ("--out", "--size", "--faces", "--sigma", "--gamma"):
         assert option in text

@@ -42,7 +42,7 @@ def _lines(path: Path, points) -> None:
     ("bad photo", "astronaut_broken.png"),
     ("unknown model", "unknown face model layout"),
 ])
-def test_bad_input_is_reported_before_fitting(tmp_path, capsys, case, match):
+def test_bad_input_is_reported_before_fitting(tmp_path, run_cli, case, match):
     photo, lmk, model = PHOTO, LANDMARKS, None
     if case == "67 points":
         lmk = tmp_path / "lmk.txt"
@@ -57,8 +57,9 @@ def test_bad_input_is_reported_before_fitting(tmp_path, capsys, case, match):
         model = tmp_path / "model.npz"
         np.savez(model, something=np.zeros(3))
     argv = ["fit-face", str(photo), "--landmarks", str(lmk), "--out", str(tmp_path / "o"), *SMALL]
-    assert main(argv + (["--model", str(model)] if model else [])) == 2
-    err = capsys.readouterr().err
+    result = run_cli(*argv, *(["--model", str(model)] if model else []))
+    assert result.code == 2
+    err = result.err
     assert "fit-face" in err and match in err
     assert not (tmp_path / "o").exists()
 
@@ -89,6 +90,7 @@ def test_bench_face_reports_accuracy_against_time(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["summary"]["fast"]["faces"] == 1
 
 
-def test_bench_face_rejects_unknown_budgets(capsys):
-    assert main(["bench", "face", "--budgets", "fast,quick"]) == 2
-    assert "--budgets must name some of" in capsys.readouterr().err
+def test_bench_face_rejects_unknown_budgets(run_cli):
+    result = run_cli("bench", "face", "--budgets", "fast,quick")
+    assert result.code == 2
+    assert "--budgets must name some of" in result.err

@@ -3,7 +3,6 @@ checks, the schedule, and recovery of a known pose from its image and joints."""
 import numpy as np
 import pytest
 from softras_cl.fitting.recipes import body
-from softras_cl.fitting.models.body_loaders import load_demo_body_model
 from softras_cl.fitting.solver import Stage
 
 ALL_TERMS = dict(image=100.0, silhouette=10.0, joints=0.25, pose_prior=1.0, shape_prior=1.0,
@@ -11,8 +10,8 @@ ALL_TERMS = dict(image=100.0, silhouette=10.0, joints=0.25, pose_prior=1.0, shap
 
 
 @pytest.fixture(scope="module")
-def model():
-    return load_demo_body_model()
+def model(demo_body_model):
+    return demo_body_model
 
 
 def _index(model, name):

@@ -3,13 +3,12 @@ import numpy as np
 import pytest
 from softras_cl.fitting.models.body_loaders import (
     SMPL_JOINT_NAMES,
-    load_demo_body_model,
 )
 
 
 @pytest.fixture(scope="module")
-def model():
-    return load_demo_body_model()
+def model(demo_body_model):
+    return demo_body_model
 
 
 def test_sizes_and_tree(model):

@@ -52,8 +52,9 @@ def test_compare_and_render_commands(tmp_path, capsys):
     assert (tmp_path / "d.png").exists()
 
 
-def test_render_command_reports_bad_mesh(tmp_path, capsys):
+def test_render_command_reports_bad_mesh(tmp_path, run_cli):
     bad = tmp_path / "points.ply"
     trimesh.PointCloud(np.random.default_rng(0).normal(size=(10, 3))).export(bad)
-    assert main(["render", str(bad), "--out", str(tmp_path / "x.png")]) == 1
-    assert "no faces" in capsys.readouterr().err
+    result = run_cli("render", str(bad), "--out", str(tmp_path / "x.png"))
+    assert result.code == 1
+    assert "no faces" in result.err
