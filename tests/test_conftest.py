@@ -48,3 +48,7 @@ def test_demo_models_are_shared_read_only(demo_face_model, demo_body_model):
 
 def test_examples_data(examples_data):
     assert (examples_data / "astronaut.png").is_file() and (examples_data / "astronaut.pts").is_file()
+
+
+def test_fp64_device_has_fp64(fp64_device):
+    assert "cl_khr_fp64" in fp64_device.extensions.split()

@@ -274,9 +274,7 @@ def test_occupancy_many_faces_near_one(dtype, sigma):
         check_reference(s, out, verts, faces)
 
 
-def test_occupancy_many_faces_gradient_matches_finite_differences():
-    if not has_fp64(select_device()):
-        pytest.skip("device has no cl_khr_fp64")
+def test_occupancy_many_faces_gradient_matches_finite_differences(fp64_device):
     verts, faces = stacked_scene()
     s = RasterSettings(image_size=(24, 24), sigma=3e-3, dist_eps=0.0, outputs=("alpha",), dtype="float64")
     raster = SoftRasterizer(s)
