@@ -1,6 +1,6 @@
 /* Shared definitions for softras-cl kernels (OpenCL C 1.2).
  *
- * Build-time flags (set by softras_cl/program.py):
+ * Build-time flags (set by softras_cl/raster/rasterizer.py via softras_cl/cl/program.py):
  *   SR_DOUBLE      1: real = double (needs cl_khr_fp64), 0: real = float
  * Every kernel works on SR_VEC adjacent pixels (8 floats or 4 doubles) of one image row at a time,
  * as realv vectors,
