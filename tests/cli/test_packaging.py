@@ -19,8 +19,10 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def run_python(code: str) -> subprocess.CompletedProcess:
-    """Run ``code`` in a fresh interpreter (the suite's own); fail the test on a non-zero exit."""
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    """Run ``code`` in a fresh interpreter (the suite's own) from this folder, so the installed
+    package is imported, not the source tree; fail the test on a non-zero exit."""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          cwd=Path(__file__).parent, timeout=300)
     assert done.returncode == 0, done.stderr
     return done
 
