@@ -107,7 +107,7 @@ def time_raster(raster, scene: Scene, repeats: int) -> dict:
 def footprint_pixel_boxes(tri: np.ndarray, settings) -> np.ndarray:
     """(F, 4) inclusive pixel boxes (row0, row1, col0, col1), clipped to the image, holding every
     pixel centre within the cut-off distance of each triangle (F, 3, 3); a superset by <= 1 pixel."""
-    from softras_cl.raster.rasterizer import footprint_margin
+    from softras_cl.raster.binning import footprint_margin
 
     h, w = settings.height, settings.width
     half = min(h, w) / 2.0
@@ -183,13 +183,8 @@ def face_chunks(heights: np.ndarray, widths: np.ndarray, budget: int = PAIR_CHUN
 
 
 def saved_bytes(out) -> int:
-    """Bytes a forward keeps for its backward: bin arrays (host), uploaded buffers and per-pixel
-    state buffers (device), each buffer counted once."""
-    saved = out.saved
-    bins = saved["bins"]
-    host = sum(getattr(bins, name).nbytes for name in ("tile_start", "tile_faces", "tile_slots", "face_start"))
-    buffers = {id(b): b.size for b in (*saved["bufs"].values(), *saved["images"]["state"].values())}
-    return host + sum(buffers.values())
+    """Bytes a forward keeps for its backward (bins on the host, buffers on the device)."""
+    return out.saved.nbytes()
 
 
 def peak_rss_mib() -> float | None:
@@ -248,7 +243,7 @@ def raster_row(scene: Scene, repeats: int) -> tuple[dict, dict]:
     row = dict(faces=scene.n_faces, size=scene.size, fwd_ms=timing["fwd_ms"], fwdbwd_ms=timing["fwdbwd_ms"],
                pairs=pairs, ns_per_pair=1e6 * timing["fwdbwd_ms"] / pairs if pairs else None,
                pairs_frac=pairs / (scene.size * scene.size * scene.n_faces),
-               bin_entries=timing["out"].saved["bins"].n_entries,
+               bin_entries=timing["out"].saved.bins.n_entries,
                saved_mib=saved_bytes(timing["out"]) / 2 ** 20, peak_rss_mib=peak_rss_mib(),
                ref_ms=None, ref_ratio=None, ref_max_err=None,
                ref_note=reference_skip_reason(scene.n_faces, scene.size))

@@ -16,7 +16,6 @@ from softras_cl.cl.device import has_fp64, has_int64_atomics, resolve_context
 from softras_cl.cl.layout import LIGHT_PARAMS, vertex_attr_width
 from softras_cl.cl.program import build_kernel
 from softras_cl.raster.binning import Bins, bin_faces, face_setup, tile_grid
-from softras_cl.raster.binning import footprint_margin  # noqa: F401  temporary re-export for old imports
 from softras_cl.raster.corners import scatter_corners
 from softras_cl.raster.inputs import MeshInputs, check_cotangent, check_inputs
 from softras_cl.raster.settings import RasterSettings
@@ -85,14 +84,6 @@ class RasterContext:
         device = {b.int_ptr: b.size for obj in (self.buffers, self.state)
                   for b in (getattr(obj, f.name) for f in fields(obj)) if b is not None}
         return host + sum(device.values())
-
-    def __getitem__(self, key: str):
-        """Temporary: the keys of the dict this class replaces, until every caller reads fields."""
-        state = {f.name: getattr(self.state, f.name) for f in fields(self.state)}
-        legacy = dict(mesh=self.mesh, grads=self.grads, bins=self.bins,
-                      bufs={f.name: getattr(self.buffers, f.name) for f in fields(self.buffers)},
-                      images={**self.images, "state": {k: v for k, v in state.items() if v is not None}})
-        return legacy[key]
 
 
 @dataclass
