@@ -79,7 +79,7 @@ def hand_visibility(scene, model, vertices) -> tuple[int, int]:
 def hand_error(scene, model, values, truth_joints) -> tuple[float, float]:
     """Right-hand joint error: (3D mm, 2D px) of the body of ``values`` against the target's."""
     j = model.joint_names.index(HAND)
-    joints = scene.pose(values).joints
+    joints = scene.pose(values)[0].joints
     uv, _ = scene.camera.project_pixels(np.stack([joints[j], truth_joints[j]]))
     return 1e3 * float(np.linalg.norm(joints[j] - truth_joints[j])), float(np.linalg.norm(uv[0] - uv[1]))
 
@@ -107,7 +107,7 @@ def save_strip(scene, target, rows: list, path: Path) -> None:
     fig, axes = plt.subplots(len(rows), n, figsize=(1.9 * n, 2.5 * len(rows)), squeeze=False)
     for r, (label, snaps) in enumerate(rows):
         panels = [("target", target)] + [
-            (f"eval {k}", scene.composite(scene.render(scene.pose(v).vertices, 1e-6, 1e-4)))
+            (f"eval {k}", scene.composite(scene.render(scene.pose(v)[0].vertices, 1e-6, 1e-4)))
             for k, v in sorted(snaps.items())]
         for ax in axes[r]:
             ax.axis("off")
@@ -132,10 +132,10 @@ def main(argv=None) -> None:
     scene = body.BodyScene(model, (args.size, args.size), config)
     start = arm_pose(model, [0.2, -1.0, -0.4], -0.2)     # hand behind the hip
     truth = arm_pose(model, [0.2, -1.0, 0.4], -0.2)      # hand in front of the hip
-    truth_state = scene.pose(truth)
+    truth_state, _ = scene.pose(truth)
     target = scene.composite(hard_render(scene, truth_state.vertices))
 
-    alone, shown = hand_visibility(scene, model, scene.pose(start).vertices)
+    alone, shown = hand_visibility(scene, model, scene.pose(start)[0].vertices)
     hidden = alone > 0 and shown == 0
     print(f"start: the hand's faces alone cover {alone} px; {shown} px of the hand are visible in "
           f"the hard render: {'fully hidden' if hidden else 'NOT fully hidden'}")

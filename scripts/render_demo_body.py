@@ -49,14 +49,14 @@ def panels(model):
     pose[idx["spine2"]] = [0, 0.3, 0]
     pose[idx["head"]] = [0.2, 0.4, 0]
     betas = np.zeros(model.n_betas)
-    out = [("rest: parts, joints", model.forward(betas, zero_pose, zero, zero), (0, 0, 5), True),
-           ("rest, side", model.forward(betas, zero_pose, zero, zero), (5, 0, 0), True),
-           ("posed", model.forward(betas, pose, zero, zero), (2.5, 0.5, 4.3), True)]
+    out = [("rest: parts, joints", model.forward(betas, zero_pose, zero, zero)[0], (0, 0, 5), True),
+           ("rest, side", model.forward(betas, zero_pose, zero, zero)[0], (5, 0, 0), True),
+           ("posed", model.forward(betas, pose, zero, zero)[0], (2.5, 0.5, 4.3), True)]
     for k in range(3):
         for s in (-2, 2):
             b = betas.copy()
             b[k] = s
-            out.append((f"beta {k + 1} = {s:+d}", model.forward(b, zero_pose, zero, zero),
+            out.append((f"beta {k + 1} = {s:+d}", model.forward(b, zero_pose, zero, zero)[0],
                         (0, 0, 5), False))
     return out
 

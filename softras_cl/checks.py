@@ -29,19 +29,22 @@ def check_shape(name: str, arr: np.ndarray, shape: tuple, expected: str | None =
     return arr
 
 
-def check_finite(name: str, arr: np.ndarray) -> np.ndarray:
-    """`arr` itself if every entry is finite, else ValueError naming the count and first index."""
+def check_finite(name: str, arr: np.ndarray, what: str = "NaN or Inf") -> np.ndarray:
+    """`arr` itself if every entry is finite, else ValueError "{name} contains {what}" with the
+    count of non-finite values and the index of the first."""
     bad = ~np.isfinite(arr)
     if bad.any():
         where = "" if arr.ndim == 0 else f", first at index {tuple(int(i) for i in np.argwhere(bad)[0])}"
-        raise ValueError(f"{name} contains NaN or Inf: {int(bad.sum())} non-finite value(s){where}")
+        raise ValueError(f"{name} contains {what} ({int(bad.sum())} non-finite value(s){where})")
     return arr
 
 
 def real_array(name: str, value, shape: tuple | None = None, expected: str | None = None,
-               what: str = "numeric", error: type = ValueError) -> np.ndarray:
+               what: str = "numeric", error: type = ValueError,
+               nonfinite: str = "NaN or Inf") -> np.ndarray:
     """`value` as a finite float64 array (bool, int and float inputs; a float64 array comes back
-    as itself), optionally shape-checked. Anything else raises `error` "{name} must be {what}"."""
+    as itself), optionally shape-checked. Anything else raises `error` "{name} must be {what}";
+    non-finite values raise ValueError "{name} contains {nonfinite}"."""
     try:
         arr = np.asarray(value)
     except (TypeError, ValueError) as exc:
@@ -50,7 +53,7 @@ def real_array(name: str, value, shape: tuple | None = None, expected: str | Non
         raise error(f"{name} must be {what}, got dtype {arr.dtype}")
     if shape is not None:
         check_shape(name, arr, shape, expected)
-    return check_finite(name, arr.astype(np.float64, copy=False))
+    return check_finite(name, arr.astype(np.float64, copy=False), nonfinite)
 
 
 def float_array(name: str, value, error: type = ValueError) -> np.ndarray:

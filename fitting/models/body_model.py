@@ -1,5 +1,6 @@
 """Skinned SMPL-like body model: shape blendshapes, optional pose blendshapes, linear blend
-skinning over a kinematic tree, with an exact vector-Jacobian product.
+skinning over a kinematic tree, with an exact vector-Jacobian product:
+``body, ctx = model.forward(...)`` and ``grads = model.forward_vjp(ctx, grad_vertices, grad_joints)``.
 
 Layout (SMPL's, all float64):
 
@@ -27,42 +28,47 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse
 
-from softras_cl.scene.rotation import rodrigues, rodrigues_vjp
+from softras_cl.checks import check_shape, real_array
+from softras_cl.scene.rotation import RodriguesContext, rodrigues, rodrigues_vjp
 
 FORMAT = "softras-cl-body-1"
 
 
 @dataclass(frozen=True)
-class BodyState:
-    """Output of ``BodyModel.forward`` and everything ``BodyModel.vjp`` needs (all float64).
-
-    vertices (V, 3) posed; joints (J, 3) posed joint positions; rest_joints (J, 3) of the shaped
-    body; v_posed (V, 3) shaped + pose blendshapes, before skinning; pose (J, 3) axis-angle
-    (row 0 the global rotation); rot_local (J, 3, 3) rodrigues(pose); rot_global (J, 3, 3)
-    world rotations; blend_rot (V, 3, 3) skinning-weighted world rotations.
-    """
+class BodyPose:
+    """Output of ``BodyModel.forward`` (float64): vertices (V, 3) posed; joints (J, 3) posed
+    joint positions."""
 
     vertices: np.ndarray
     joints: np.ndarray
+
+
+@dataclass(frozen=True)
+class BodyContext:
+    """What ``BodyModel.forward_vjp`` needs from ``forward`` (arrays float64).
+
+    rest_joints (J, 3) of the shaped body; v_posed (V, 3) shaped + pose blendshapes, before
+    skinning; rot_ctx: J RodriguesContexts, one per row of the pose (row 0 the global rotation);
+    rot_local (J, 3, 3) their rotation matrices; rot_global (J, 3, 3) world rotations;
+    blend_rot (V, 3, 3) skinning-weighted world rotations.
+    """
+
     rest_joints: np.ndarray
     v_posed: np.ndarray
-    pose: np.ndarray
+    rot_ctx: tuple[RodriguesContext, ...]
     rot_local: np.ndarray
     rot_global: np.ndarray
     blend_rot: np.ndarray
 
 
-def _array(name: str, value, shape: tuple, dtype=np.float64) -> np.ndarray:
-    """``value`` as a finite array of ``dtype``; ValueError naming ``name`` unless its shape
-    matches ``shape`` (None entries match any size)."""
-    a = np.asarray(value, dtype=dtype)
-    if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape)):
-        dims = ["*" if s is None else str(s) for s in shape]
-        want = f"({dims[0]},)" if len(dims) == 1 else "(" + ", ".join(dims) + ")"
-        raise ValueError(f"{name} must have shape {want}, got {a.shape}")
-    if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} contains non-finite values")
-    return a
+def _floats(name: str, value, shape: tuple) -> np.ndarray:
+    """``value`` as a finite float64 array of the given shape (None entries match any size)."""
+    return real_array(name, value, shape, nonfinite="non-finite values")
+
+
+def _ints(name: str, value, shape: tuple) -> np.ndarray:
+    """``value`` as an int64 array of the given shape (None entries match any size)."""
+    return check_shape(name, np.asarray(value, dtype=np.int64), shape)
 
 
 def _regressor(value, n_joints: int, n_verts: int) -> scipy.sparse.csr_matrix:
@@ -70,7 +76,7 @@ def _regressor(value, n_joints: int, n_verts: int) -> scipy.sparse.csr_matrix:
     if scipy.sparse.issparse(value):
         m = scipy.sparse.csr_matrix(value, dtype=np.float64)
     else:
-        m = scipy.sparse.csr_matrix(_array("J_regressor", value, (None, None)))
+        m = scipy.sparse.csr_matrix(_floats("J_regressor", value, (None, None)))
     if m.shape != (n_joints, n_verts):
         raise ValueError(f"J_regressor must have shape ({n_joints}, {n_verts}) (joints, "
                          f"vertices), got {m.shape}")
@@ -81,7 +87,7 @@ def _regressor(value, n_joints: int, n_verts: int) -> scipy.sparse.csr_matrix:
 
 def _parents(value, n_joints: int) -> np.ndarray:
     """parents (J,) int64 with parents[0] = -1 and 0 <= parents[j] < j, else ValueError."""
-    p = _array("parents", value, (n_joints,), dtype=np.int64)
+    p = _ints("parents", value, (n_joints,))
     if n_joints == 0 or p[0] != -1:
         raise ValueError("parents[0] must be -1 (the root joint)")
     bad = [j for j in range(1, n_joints) if not 0 <= p[j] < j]
@@ -96,17 +102,17 @@ class BodyModel:
 
     def __init__(self, v_template, shapedirs, J_regressor, parents, weights, faces,
                  joint_names=None, posedirs=None, part_labels=None, part_names=None):
-        self.v_template = _array("v_template", v_template, (None, 3))
+        self.v_template = _floats("v_template", v_template, (None, 3))
         n_verts = self.v_template.shape[0]
-        self.shapedirs = _array("shapedirs", shapedirs, (n_verts, 3, None))
-        self.weights = _array("weights", weights, (n_verts, None))
+        self.shapedirs = _floats("shapedirs", shapedirs, (n_verts, 3, None))
+        self.weights = _floats("weights", weights, (n_verts, None))
         n_joints = self.weights.shape[1]
         self.parents = _parents(parents, n_joints)
         self.J_regressor = _regressor(J_regressor, n_joints, n_verts)
-        self.faces = _array("faces", faces, (None, 3), dtype=np.int64).astype(np.int32)
+        self.faces = _ints("faces", faces, (None, 3)).astype(np.int32)
         if self.faces.size and (self.faces.min() < 0 or self.faces.max() >= n_verts):
             raise ValueError(f"faces must index vertices 0..{n_verts - 1}")
-        self.posedirs = None if posedirs is None else _array(
+        self.posedirs = None if posedirs is None else _floats(
             "posedirs", posedirs, (n_verts, 3, 9 * (n_joints - 1)))
         names = [f"joint_{j}" for j in range(n_joints)] if joint_names is None else joint_names
         self.joint_names = [str(n) for n in names]
@@ -122,7 +128,7 @@ class BodyModel:
             if names is not None:
                 raise ValueError("part_names given without part_labels")
             return None, None
-        labels = _array("part_labels", labels, (self.n_vertices,), dtype=np.int64)
+        labels = _ints("part_labels", labels, (self.n_vertices,))
         names = [str(n) for n in (names if names is not None else
                                   [f"part_{k}" for k in range(int(labels.max()) + 1)])]
         if labels.min() < 0 or labels.max() >= len(names):
@@ -143,27 +149,29 @@ class BodyModel:
 
     def rest_joints(self, betas) -> np.ndarray:
         """Rest-pose joint positions (J, 3) float64 of the body with shape ``betas`` (B,)."""
-        betas = _array("betas", betas, (self.n_betas,))
+        betas = _floats("betas", betas, (self.n_betas,))
         return self._joint_template + self._joint_dirs @ betas
 
     def shaped_vertices(self, betas) -> np.ndarray:
         """Rest-pose vertices (V, 3) float64 of the body with shape ``betas`` (B,)."""
-        betas = _array("betas", betas, (self.n_betas,))
+        betas = _floats("betas", betas, (self.n_betas,))
         return self.v_template + self.shapedirs @ betas
 
-    def forward(self, betas, body_pose, global_rotation, translation) -> BodyState:
+    def forward(self, betas, body_pose, global_rotation, translation) -> tuple[BodyPose, BodyContext]:
         """Pose the body.
 
         betas (B,); body_pose (J-1, 3) (or flat (3 (J-1),)) axis-angle per non-root joint
         relative to its parent; global_rotation (3,) axis-angle of the root about its rest
-        position; translation (3,). Returns a BodyState (vertices (V, 3), joints (J, 3), ...).
+        position; translation (3,). Returns (BodyPose (vertices (V, 3), joints (J, 3)),
+        BodyContext for forward_vjp).
         """
         v_shaped = self.shaped_vertices(betas)
         rest = self.J_regressor @ v_shaped
-        pose = np.vstack([_array("global_rotation", global_rotation, (3,)),
+        pose = np.vstack([_floats("global_rotation", global_rotation, (3,)),
                           self._body_pose(body_pose)])
-        trans = _array("translation", translation, (3,))
-        rot_local = np.stack([rodrigues(w)[0] for w in pose])
+        trans = _floats("translation", translation, (3,))
+        rot_local, rot_ctx = zip(*(rodrigues(w) for w in pose))
+        rot_local = np.stack(rot_local)
         v_posed = v_shaped
         if self.posedirs is not None:
             v_posed = v_shaped + self.posedirs @ (rot_local[1:] - np.eye(3)).ravel()
@@ -171,16 +179,16 @@ class BodyModel:
         offsets = joints - np.einsum("jab,jb->ja", rot_global, rest)
         blend_rot = (self.weights @ rot_global.reshape(-1, 9)).reshape(-1, 3, 3)
         vertices = np.einsum("vab,vb->va", blend_rot, v_posed) + self.weights @ offsets
-        return BodyState(vertices=vertices + trans, joints=joints + trans, rest_joints=rest,
-                         v_posed=v_posed, pose=pose, rot_local=rot_local,
-                         rot_global=rot_global, blend_rot=blend_rot)
+        return (BodyPose(vertices=vertices + trans, joints=joints + trans),
+                BodyContext(rest_joints=rest, v_posed=v_posed, rot_ctx=rot_ctx, rot_local=rot_local,
+                            rot_global=rot_global, blend_rot=blend_rot))
 
     def _body_pose(self, body_pose) -> np.ndarray:
         """body_pose as (J-1, 3) float64 (a flat (3 (J-1),) vector is accepted)."""
         a = np.asarray(body_pose, dtype=np.float64)
         if a.shape == (3 * (self.n_joints - 1),):
             a = a.reshape(-1, 3)
-        return _array("body_pose", a, (self.n_joints - 1, 3))
+        return _floats("body_pose", a, (self.n_joints - 1, 3))
 
     def _chain(self, rot_local: np.ndarray, rest: np.ndarray):
         """World rotations (J, 3, 3) and posed joint positions (J, 3) down the tree."""
@@ -193,41 +201,41 @@ class BodyModel:
             joints[j] = rot_global[p] @ (rest[j] - rest[p]) + joints[p]
         return rot_global, joints
 
-    def vjp(self, state: BodyState, grad_vertices=None, grad_joints=None) -> dict:
+    def forward_vjp(self, ctx: BodyContext, grad_vertices=None, grad_joints=None) -> dict:
         """Vector-Jacobian product of ``forward``.
 
         grad_vertices (V, 3) = dL/dvertices, grad_joints (J, 3) = dL/djoints (either may be
         None: zero). Returns dict betas (B,), body_pose (J-1, 3), global_rotation (3,),
         translation (3,), all float64.
         """
-        gv = np.zeros((self.n_vertices, 3)) if grad_vertices is None else _array(
+        gv = np.zeros((self.n_vertices, 3)) if grad_vertices is None else _floats(
             "grad_vertices", grad_vertices, (self.n_vertices, 3))
-        gj = np.zeros((self.n_joints, 3)) if grad_joints is None else _array(
+        gj = np.zeros((self.n_joints, 3)) if grad_joints is None else _floats(
             "grad_joints", grad_joints, (self.n_joints, 3))
         # Skinning: v = blend_rot v_posed + W (tg - Rg J).
-        g_vposed = np.einsum("vba,vb->va", state.blend_rot, gv)
-        g_rot = (self.weights.T @ (gv[:, :, None] * state.v_posed[:, None, :]).reshape(-1, 9)
+        g_vposed = np.einsum("vba,vb->va", ctx.blend_rot, gv)
+        g_rot = (self.weights.T @ (gv[:, :, None] * ctx.v_posed[:, None, :]).reshape(-1, 9)
                  ).reshape(-1, 3, 3)
         g_off = self.weights.T @ gv
-        g_rot -= g_off[:, :, None] * state.rest_joints[:, None, :]
-        g_rest = -np.einsum("jab,ja->jb", state.rot_global, g_off)
-        g_local, g_rest = self._chain_vjp(state, g_rot, g_off + gj, g_rest)
+        g_rot -= g_off[:, :, None] * ctx.rest_joints[:, None, :]
+        g_rest = -np.einsum("jab,ja->jb", ctx.rot_global, g_off)
+        g_local, g_rest = self._chain_vjp(ctx, g_rot, g_off + gj, g_rest)
         if self.posedirs is not None:
             g_feat = np.einsum("vcp,vc->p", self.posedirs, g_vposed)
             g_local[1:] += g_feat.reshape(-1, 3, 3)
         g_shaped = g_vposed + self.J_regressor.T @ g_rest
-        g_pose = np.stack([rodrigues_vjp(rodrigues(w)[1], g)["omega"] for w, g in zip(state.pose, g_local)])
+        g_pose = np.stack([rodrigues_vjp(c, g)["omega"] for c, g in zip(ctx.rot_ctx, g_local)])
         return {"betas": np.einsum("vcb,vc->b", self.shapedirs, g_shaped),
                 "body_pose": g_pose[1:], "global_rotation": g_pose[0],
                 "translation": gv.sum(axis=0) + gj.sum(axis=0)}
 
-    def _chain_vjp(self, state: BodyState, g_rot: np.ndarray, g_pos: np.ndarray,
+    def _chain_vjp(self, ctx: BodyContext, g_rot: np.ndarray, g_pos: np.ndarray,
                    g_rest: np.ndarray):
         """Back through ``_chain``: cotangents of world rotations (J, 3, 3) and posed joints
         (J, 3) -> (cotangent of the local rotations (J, 3, 3), of the rest joints (J, 3))."""
         g_rot, g_pos, g_rest = g_rot.copy(), g_pos.copy(), g_rest.copy()
         g_local = np.empty_like(g_rot)
-        rest, rg, rl = state.rest_joints, state.rot_global, state.rot_local
+        rest, rg, rl = ctx.rest_joints, ctx.rot_global, ctx.rot_local
         for j in range(self.n_joints - 1, 0, -1):
             p = self.parents[j]
             g_local[j] = rg[p].T @ g_rot[j]

@@ -10,8 +10,10 @@ A ``FaceModel`` holds float64 numpy arrays in one convention whatever file it ca
   sum_k c_id[k] id_std[k] id_basis[k] + sum_k c_exp[k] exp_std[k] exp_basis[k]``, so the
   Gaussian prior of a model is simply ``sum(c ** 2)``.
 
-Every map from coefficients is linear and comes with its exact vector-Jacobian product
-(``shape_vjp``, ``albedo_vjp``, ``landmarks_vjp``). Bases are used through (K, 3V) views of the
+Every map from coefficients is linear and comes with its exact vector-Jacobian product in the
+project's convention: ``vertices, ctx = model.shape(c_id, c_exp)`` and
+``model.shape_vjp(ctx, grad)`` -> a dict by argument name (likewise ``albedo`` and
+``landmarks``). Bases are used through (K, 3V) views of the
 (K, V, 3) arrays, with the standard deviations applied to the K-vector: the same BLAS matvec as a
 pre-scaled matrix, without a second copy of bases that reach hundreds of megabytes.
 
@@ -20,9 +22,12 @@ Loaders for the file formats users bring (BFM 2009, BFM 2017, FLAME, the project
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from softras_cl.checks import check_shape, index_array, nonnegative, real_array
 
 FORMAT = "softras-cl-face-1"
 
@@ -32,46 +37,37 @@ _INT_FIELDS = ("faces", "landmark_faces")
 
 
 def _as_float(name: str, value, shape: tuple, expected: str) -> np.ndarray:
-    """Contiguous float64 copy (or the array itself if it already is one), shape-checked.
+    """Contiguous finite float64 array (the array itself if it already is one), shape-checked.
 
     ``shape`` holds ints and None (any size); ``expected`` is the human-readable shape.
     """
-    array = np.ascontiguousarray(value, dtype=np.float64)
-    if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
-        raise ValueError(f"FaceModel: {name} must have shape {expected}, got {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise ValueError(f"FaceModel: {name} contains NaN or infinite values")
-    return array
+    return np.ascontiguousarray(real_array(name, value, shape, expected))
 
 
 def _as_index(name: str, value, shape: tuple, expected: str, upper: int, what: str) -> np.ndarray:
-    """int32 index array, shape-checked, every entry in [0, upper)."""
-    array = np.asarray(value)
-    if array.size and not np.issubdtype(array.dtype, np.integer):
-        raise ValueError(f"FaceModel: {name} must hold integers, got dtype {array.dtype}")
-    array = np.ascontiguousarray(array, dtype=np.int32)
-    if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
-        raise ValueError(f"FaceModel: {name} must have shape {expected}, got {array.shape}")
-    if array.size and (array.min() < 0 or array.max() >= upper):
-        raise ValueError(f"FaceModel: {name} must index {what} in [0, {upper}), "
-                         f"got values in [{array.min()}, {array.max()}]")
-    return array
+    """Contiguous int32 index array, shape-checked, every entry in [0, upper)."""
+    return np.ascontiguousarray(index_array(name, value, upper, what, shape, expected), dtype=np.int32)
 
 
 def _basis_and_std(prefix: str, basis, std, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
     basis = _as_float(f"{prefix}_basis", basis, (None, n_vertices, 3), f"(K_{prefix}, {n_vertices}, 3)")
     k = basis.shape[0]
     std = _as_float(f"{prefix}_std", std, (k,), f"({k},) to match {prefix}_basis")
-    if np.any(std < 0):
-        raise ValueError(f"FaceModel: {prefix}_std must be >= 0 (standard deviations)")
-    return basis, std
+    return basis, nonnegative(f"{prefix}_std", std)
 
 
 def _coeffs(name: str, value, k: int) -> np.ndarray:
-    c = np.asarray(value, dtype=np.float64)
-    if c.shape != (k,):
-        raise ValueError(f"{name} must have shape ({k},), got {c.shape}")
-    return c
+    """Coefficients (k,) float64 (NaN passes, for the solver to report), or ValueError naming
+    ``name``."""
+    return check_shape(name, np.asarray(value, dtype=np.float64), (k,))
+
+
+@dataclass(frozen=True)
+class LinearContext:
+    """What a FaceModel vjp needs from its forward. Every map of the model is linear, so its
+    adjoint needs no values from the forward: only the output's shape (rows, 3), the shape the
+    cotangent must have."""
+    output_shape: tuple[int, int]
 
 
 class FaceModel:
@@ -149,46 +145,55 @@ class FaceModel:
                 f"{self.n_landmarks} landmarks)")
 
     # -- shape ------------------------------------------------------------------------------
-    def shape(self, id_coeffs, exp_coeffs) -> np.ndarray:
-        """Vertices (V, 3) float64 for coefficients in standard deviations: id (K_id,), exp (K_exp,)."""
+    def shape(self, id_coeffs, exp_coeffs) -> tuple[np.ndarray, LinearContext]:
+        """Vertices (V, 3) float64 for coefficients in standard deviations: id (K_id,), exp
+        (K_exp,); and the context for shape_vjp."""
         c_id = _coeffs("id_coeffs", id_coeffs, self.n_id)
         c_exp = _coeffs("exp_coeffs", exp_coeffs, self.n_exp)
         flat = self.mean_shape.reshape(-1) + (c_id * self.id_std) @ self._id_flat
         if self.n_exp:
             flat = flat + (c_exp * self.exp_std) @ self._exp_flat
-        return flat.reshape(self.n_vertices, 3)
+        return flat.reshape(self.n_vertices, 3), LinearContext((self.n_vertices, 3))
 
-    def shape_vjp(self, grad_vertices) -> tuple[np.ndarray, np.ndarray]:
-        """(g_id (K_id,), g_exp (K_exp,)) = J^T grad for grad_vertices (V, 3) = dL/d(vertices)."""
-        g = _as_float("grad_vertices", grad_vertices, (self.n_vertices, 3),
-                      f"({self.n_vertices}, 3)").reshape(-1)
-        return self.id_std * (self._id_flat @ g), self.exp_std * (self._exp_flat @ g)
+    def shape_vjp(self, ctx: LinearContext, grad_vertices) -> dict:
+        """grad_vertices (V, 3) = dL/d(vertices) -> {"id_coeffs": (K_id,), "exp_coeffs": (K_exp,)}
+        float64, J^T grad."""
+        g = self._cotangent("grad_vertices", grad_vertices, ctx)
+        return {"id_coeffs": self.id_std * (self._id_flat @ g),
+                "exp_coeffs": self.exp_std * (self._exp_flat @ g)}
+
+    def _cotangent(self, name: str, grad, ctx: LinearContext) -> np.ndarray:
+        """A cotangent of the output ctx describes, flattened to (rows * 3,) float64."""
+        rows = ctx.output_shape[0]
+        return _as_float(name, grad, ctx.output_shape, f"({rows}, 3)").reshape(-1)
 
     # -- albedo -----------------------------------------------------------------------------
-    def albedo(self, coeffs) -> np.ndarray:
-        """Per-vertex albedo (V, 3) float64, linear RGB, not clipped; coeffs (K_alb,) in std units."""
+    def albedo(self, coeffs) -> tuple[np.ndarray, LinearContext]:
+        """Per-vertex albedo (V, 3) float64, linear RGB, not clipped, for coeffs (K_alb,) in std
+        units; and the context for albedo_vjp."""
         c = _coeffs("albedo coeffs", coeffs, self.n_albedo)
         flat = self.albedo_mean.reshape(-1) + (c * self.albedo_std) @ self._alb_flat
-        return flat.reshape(self.n_vertices, 3)
+        return flat.reshape(self.n_vertices, 3), LinearContext((self.n_vertices, 3))
 
-    def albedo_vjp(self, grad) -> np.ndarray:
-        """(K_alb,) = J^T grad for grad (V, 3) = dL/d(albedo)."""
-        g = _as_float("grad", grad, (self.n_vertices, 3), f"({self.n_vertices}, 3)").reshape(-1)
-        return self.albedo_std * (self._alb_flat @ g)
+    def albedo_vjp(self, ctx: LinearContext, grad) -> dict:
+        """grad (V, 3) = dL/d(albedo) -> {"coeffs": (K_alb,)} float64, J^T grad."""
+        return {"coeffs": self.albedo_std * (self._alb_flat @ self._cotangent("grad", grad, ctx))}
 
     # -- landmarks --------------------------------------------------------------------------
-    def landmarks(self, vertices) -> np.ndarray:
-        """3D landmarks (L, 3) float64: barycentric interpolation of vertices (V, 3) in each face."""
+    def landmarks(self, vertices) -> tuple[np.ndarray, LinearContext]:
+        """3D landmarks (L, 3) float64, barycentric interpolation of vertices (V, 3) in each
+        face; and the context for landmarks_vjp."""
         verts = _as_float("vertices", vertices, (self.n_vertices, 3), f"({self.n_vertices}, 3)")
-        return np.einsum("lj,ljc->lc", self.landmark_bary, verts[self._lmk_vertices])
+        points = np.einsum("lj,ljc->lc", self.landmark_bary, verts[self._lmk_vertices])
+        return points, LinearContext((self.n_landmarks, 3))
 
-    def landmarks_vjp(self, grad) -> np.ndarray:
-        """(V, 3) = J^T grad for grad (L, 3) = dL/d(landmarks)."""
-        g = _as_float("grad", grad, (self.n_landmarks, 3), f"({self.n_landmarks}, 3)")
+    def landmarks_vjp(self, ctx: LinearContext, grad) -> dict:
+        """grad (L, 3) = dL/d(landmarks) -> {"vertices": (V, 3)} float64, J^T grad."""
+        g = self._cotangent("grad", grad, ctx).reshape(-1, 3)
         out = np.zeros((self.n_vertices, 3))
         np.add.at(out, self._lmk_vertices.reshape(-1),
                   (self.landmark_bary[:, :, None] * g[:, None, :]).reshape(-1, 3))
-        return out
+        return {"vertices": out}
 
     # -- derived models ---------------------------------------------------------------------
     def _fields(self) -> dict:

@@ -2,7 +2,7 @@
 
 The scene (float64 throughout)::
 
-    body   = model.forward(betas, body_pose, global_rotation, translation)   metres, y up, +z front
+    body   = model.forward(betas, body_pose, global_rotation, translation)[0]   metres, y up, +z front
     camera : Camera.look_at(eye=(0, height, distance), target=(0, height, 0), fov_deg) with the
              field of view across the shorter image side: one frontal camera, the body standing
              near the origin
@@ -52,6 +52,7 @@ from softras_cl.scene.renderer import Renderer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.fitting import losses
 from softras_cl.fitting.metrics import psnr
+from softras_cl.fitting.models.body_model import BodyContext, BodyPose
 from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
@@ -313,8 +314,9 @@ class BodyScene:
                                        background=tuple(config.background), dtype=config.dtype)
         self.renderer = Renderer(self.settings, shading="none")
 
-    def pose(self, values: dict):
-        """BodyState of the blocks ``values`` (betas, body_pose, global_rotation, translation)."""
+    def pose(self, values: dict) -> tuple[BodyPose, BodyContext]:
+        """The body posed by the blocks ``values`` (betas, body_pose, global_rotation,
+        translation): (BodyPose, BodyContext for model.forward_vjp)."""
         return self.model.forward(values["betas"], values["body_pose"], values["global_rotation"],
                                   values["translation"])
 
@@ -356,7 +358,7 @@ class BodyObjective:
         if self.observer is not None:
             self.observer(values, stage)
         w = stage.weights
-        state = self.scene.pose(values)
+        state, body_ctx = self.scene.pose(values)
         terms, out = self.prior_terms(values, w), None
         if w.get("image") or w.get("silhouette"):
             out = self.scene.render(state.vertices, stage.sigma, stage.gamma, grads=("vertices",))
@@ -370,7 +372,7 @@ class BodyObjective:
             g_vertices = self.scene.renderer.backward(
                 out, grad_rgb=None if g_rgb is None else g_rgb[None],
                 grad_alpha=None if g_alpha is None else g_alpha[None])["vertices"]
-        grads = self.scene.model.vjp(state, g_vertices, g.pop("joints", None))
+        grads = self.scene.model.forward_vjp(body_ctx, g_vertices, g.pop("joints", None))
         for name, value in g.items():
             grads[name] = grads[name] + value
         return total, grads, weighted
@@ -463,7 +465,7 @@ def initial_translation(scene: BodyScene, values: dict, alpha: np.ndarray) -> np
         ys, xs = np.indices(a.shape)
         return np.array([(xs * a).sum(), (ys * a).sum()]) / max(a.sum(), 1e-9)
 
-    state = scene.pose(values)
+    state, _ = scene.pose(values)
     shift_px = centroid(alpha) - centroid(scene.render(state.vertices, 1e-6, 1e-4).alpha[0])
     depth = scene.config.distance - state.joints[0, 2]
     focal = float(scene.camera.focal[1])
@@ -490,7 +492,7 @@ class BodyFit:
         """Silhouette IoU of the sharp render (alpha > 0.5 against the target's), PSNR of the
         composited render (colour targets, dB, linear RGB), mean 2D joint error over the seen
         joints (working and full-size pixels; when the target has joints)."""
-        state = self.scene.pose(self.values)
+        state, _ = self.scene.pose(self.values)
         out = self.scene.render(state.vertices, 1e-6, 1e-4)
         mine, theirs = out.alpha[0] > 0.5, self.target.alpha > 0.5
         doc = dict(silhouette_iou=float((mine & theirs).sum() / max((mine | theirs).sum(), 1)))

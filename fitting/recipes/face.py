@@ -2,11 +2,11 @@
 
 The scene (float64 throughout)::
 
-    shape  = model.shape(id, exp)                         (V, 3) model frame: y up, face along +z
+    shape  = model.shape(id, exp)[0]                      (V, 3) model frame: y up, face along +z
     world  = shape @ rodrigues(rotation).T + translation  (V, 3) metres
     camera : fixed at the origin looking down -z (OpenCV R = diag(1, -1, -1), t = 0), square
              pixels of focal length ``focal``, principal point at the image centre
-    colour : model.albedo(albedo) lit per vertex by the SH light ``sh`` (3, 9), linear RGB
+    colour : model.albedo(albedo)[0] lit per vertex by the SH light ``sh`` (3, 9), linear RGB
 
 Parameter blocks: id (K_id,), exp (K_exp,), albedo (K_alb,) in units of one standard
 deviation; sh (3, 9); rotation (3,) axis-angle; translation (3,); focal (1,) pixels.
@@ -48,12 +48,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from softras_cl.scene.camera import Camera
-from softras_cl.scene.rotation import axis_angle_to_matrix, matrix_to_axis_angle, rodrigues, rodrigues_vjp
+from softras_cl.scene.rotation import RodriguesContext, matrix_to_axis_angle, rodrigues, rodrigues_vjp
 from softras_cl.scene.renderer import Renderer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.shading import SH_A, SHLight, sh_ambient, sh_basis, vertex_normals
 from softras_cl.fitting import losses
 from softras_cl.fitting.metrics import psnr
+from softras_cl.fitting.models.face_model import LinearContext
 from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
@@ -200,6 +201,17 @@ def prepare_photo(photo, landmarks, size: int, margin: float = 2.0) -> tuple[np.
 # scene
 # ---------------------------------------------------------------------------------------------
 
+@dataclass(frozen=True)
+class GeometryContext:
+    """What FaceScene.geometry_vjp needs: shape (V, 3) float64 model-frame vertices and
+    shape_ctx the model's context for them; R (3, 3) float64 the rotation and rot_ctx its
+    RodriguesContext."""
+    shape: np.ndarray
+    shape_ctx: LinearContext
+    R: np.ndarray
+    rot_ctx: RodriguesContext
+
+
 class FaceScene:
     """The model, the fixed camera frame and a renderer for one working image size.
 
@@ -233,25 +245,25 @@ class FaceScene:
         K = [[focal, 0.0, cx], [0.0, focal, cy], [0.0, 0.0, 1.0]]
         return Camera.from_opencv(K, CAMERA_ROTATION, np.zeros(3), self.image_size)
 
-    def geometry(self, values: dict) -> tuple[np.ndarray, np.ndarray]:
-        """-> (shape (V, 3) model frame, world vertices (V, 3))."""
-        shape = self.model.shape(values["id"], values["exp"])
-        return shape, shape @ axis_angle_to_matrix(values["rotation"]).T + values["translation"]
-
-    def geometry_vjp(self, values: dict, shape: np.ndarray, g_world: np.ndarray) -> dict:
-        """dL/d(world vertices) (V, 3) -> dL/d(id, exp, rotation, translation)."""
+    def geometry(self, values: dict) -> tuple[np.ndarray, GeometryContext]:
+        """-> (world vertices (V, 3) float64, GeometryContext for geometry_vjp)."""
+        shape, shape_ctx = self.model.shape(values["id"], values["exp"])
         R, rot_ctx = rodrigues(values["rotation"])
-        g_id, g_exp = self.model.shape_vjp(g_world @ R)
-        return dict(id=g_id, exp=g_exp, translation=g_world.sum(axis=0),
-                    rotation=rodrigues_vjp(rot_ctx, g_world.T @ shape)["omega"])
+        return shape @ R.T + values["translation"], GeometryContext(shape, shape_ctx, R, rot_ctx)
+
+    def geometry_vjp(self, ctx: GeometryContext, g_world: np.ndarray) -> dict:
+        """dL/d(world vertices) (V, 3) -> dict id, exp, rotation, translation (float64)."""
+        g_shape = self.model.shape_vjp(ctx.shape_ctx, g_world @ ctx.R)
+        return dict(id=g_shape["id_coeffs"], exp=g_shape["exp_coeffs"], translation=g_world.sum(axis=0),
+                    rotation=rodrigues_vjp(ctx.rot_ctx, g_world.T @ ctx.shape)["omega"])
 
     def render(self, values: dict, sigma: float, gamma: float, grads=(), albedo=None,
                light=None, world=None):
         """Render the face; albedo (V, 3) / light override the model's (for the report);
         world: the world vertices if already computed."""
         self.renderer.settings = dataclasses.replace(self.settings, sigma=sigma, gamma=gamma)
-        world = self.geometry(values)[1] if world is None else world
-        albedo = self.model.albedo(values["albedo"]) if albedo is None else albedo
+        world = self.geometry(values)[0] if world is None else world
+        albedo = self.model.albedo(values["albedo"])[0] if albedo is None else albedo
         light = SHLight(values["sh"]) if light is None else light
         return self.renderer.forward(world, self.model.faces, self.camera(values["focal"][0]),
                                      albedo=albedo, light=light, grads=grads)
@@ -299,7 +311,7 @@ def initial_light(scene: FaceScene, values: dict, image: np.ndarray, ridge: floa
     of the photo's mean level, and the result is a starting point, not an identification."""
     from scipy.ndimage import binary_erosion, map_coordinates
 
-    _, world = scene.geometry(values)
+    world, _ = scene.geometry(values)
     normals = vertex_normals(world[None], scene.model.faces)[0][0]
     uv, _ = scene.camera(values["focal"][0]).project_pixels(world)
     h, w = scene.image_size
@@ -311,7 +323,7 @@ def initial_light(scene: FaceScene, values: dict, image: np.ndarray, ridge: floa
     if keep.sum() < 9:
         return sh_ambient(0.5)
     seen = np.stack([map_coordinates(image[..., c], uv[keep, ::-1].T, order=1) for c in range(3)], -1)
-    albedo = scene.model.albedo(values["albedo"])[keep]
+    albedo = scene.model.albedo(values["albedo"])[0][keep]
     basis = sh_basis(normals[keep]) * SH_A                        # (N, 9)
     level = np.clip(seen.mean() / max(albedo.mean(), 1e-3), 0.05, 10.0)
     prior = sh_ambient(level)
@@ -376,7 +388,7 @@ class FaceObjective:
 
     def __call__(self, values: dict, stage: Stage):
         w = stage.weights
-        shape, world = self.scene.geometry(values)
+        world, geometry_ctx = self.scene.geometry(values)
         terms = {}
         if w.get("landmarks"):
             terms["landmarks"] = self.landmark_term(values, world)
@@ -398,7 +410,7 @@ class FaceObjective:
         loss, grads, weighted = losses.weighted_sum(terms, w)
         g_world = grads.pop("world", None)
         if g_world is not None:                     # one pass through the model for all terms
-            for name, g in self.scene.geometry_vjp(values, shape, g_world).items():
+            for name, g in self.scene.geometry_vjp(geometry_ctx, g_world).items():
                 grads[name] = grads.get(name, 0.0) + g
         return loss, grads, weighted
 
@@ -406,11 +418,13 @@ class FaceObjective:
         """Sum over the 68 points of weighted squared pixel distances; gradients wrt the world
         vertices ("world") and focal."""
         camera = self.scene.camera(values["focal"][0])
-        points, ctx = camera.project_pixels(self.scene.model.landmarks(world))
+        model = self.scene.model
+        landmarks, landmark_ctx = model.landmarks(world)
+        points, ctx = camera.project_pixels(landmarks)
         value, g = losses.landmarks_2d(points, self.target, self.landmark_weights)
         n = len(points)
         g_cam = camera.project_pixels_vjp(ctx, g["points"] * n)
-        return value * n, dict(world=self.scene.model.landmarks_vjp(g_cam["vertices"]),
+        return value * n, dict(world=model.landmarks_vjp(landmark_ctx, g_cam["vertices"])["vertices"],
                                focal=np.array([g_cam["focal"].sum()]))
 
     def focal_prior(self, focal) -> tuple[float, dict]:
@@ -459,7 +473,9 @@ class FaceObjective:
         value, g = losses.image_l2(out.rgb[0], self.image, self.mask)
         count = 3.0 * max(int(self.mask.sum()), 1)
         g_img = self.scene.renderer.backward(out, grad_rgb=g["pred"][None] * count)
-        return value * count, dict(world=g_img["vertices"], albedo=self.scene.model.albedo_vjp(g_img["albedo"]),
+        albedo_ctx = self.scene.model.albedo(values["albedo"])[1]
+        return value * count, dict(world=g_img["vertices"],
+                                   albedo=self.scene.model.albedo_vjp(albedo_ctx, g_img["albedo"])["coeffs"],
                                    sh=g_img["light"]["coefficients"],
                                    focal=np.array([g_img["camera"]["focal"].sum()]))
 
@@ -489,8 +505,9 @@ class FaceFit:
 
     def fitted_landmarks(self) -> np.ndarray:
         """(68, 2) fitted landmarks in working-image pixels."""
-        _, world = self.scene.geometry(self.values)
-        points, _ = self.scene.camera(self.values["focal"][0]).project_pixels(self.scene.model.landmarks(world))
+        world, _ = self.scene.geometry(self.values)
+        landmarks, _ = self.scene.model.landmarks(world)
+        points, _ = self.scene.camera(self.values["focal"][0]).project_pixels(landmarks)
         return points
 
     def metrics(self) -> dict:
@@ -525,7 +542,7 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
     else:
         focal = float(config.focal) * crop.scale
     zero = dict(id=np.zeros(model.n_id), exp=np.zeros(model.n_exp), albedo=np.zeros(model.n_albedo))
-    mean_landmarks = model.landmarks(model.shape(zero["id"], zero["exp"]))
+    mean_landmarks, _ = model.landmarks(model.shape(zero["id"], zero["exp"])[0])
     rotation, translation = initial_pose(mean_landmarks, target, focal, principal)
     scene = FaceScene(model, image.shape[:2], config.dtype, depth_range=depth_range(translation),
                       principal=principal)

@@ -39,7 +39,7 @@ def save_overlay(fit: BodyFit, target: np.ndarray, path: Path) -> None:
     from softras_cl.io.images import to_srgb
 
     scene = full_size_scene(fit)
-    state = scene.pose(fit.values)
+    state, _ = scene.pose(fit.values)
     out = scene.render(state.vertices, *SHARP)
     img = np.asarray(target, np.float64)
     img = np.repeat(img[..., None], 3, -1) if img.ndim == 2 else img[..., :3]
@@ -80,7 +80,7 @@ def write_outputs(fit: BodyFit, target: np.ndarray, out_dir, extra: dict | None 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     metrics = fit.metrics()
-    state = fit.scene.pose(fit.values)
+    state, _ = fit.scene.pose(fit.values)
     save_mesh(out / "body.ply", state.vertices, fit.scene.model.faces, colors=fit.scene.colors)
     save_overlay(fit, target, out / "overlay.png")
     camera = full_size_scene(fit, max(fit.target.full_size)).camera

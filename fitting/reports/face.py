@@ -124,8 +124,8 @@ def write_outputs(fit: FaceFit, photo: np.ndarray, out_dir, extra: dict | None =
     metrics = fit.metrics()
     values = fit.values
     model = fit.scene.model
-    save_mesh(out / "face.ply", model.shape(values["id"], values["exp"]), model.faces,
-              colors=np.clip(model.albedo(values["albedo"]), 0.0, 1.0))
+    save_mesh(out / "face.ply", model.shape(values["id"], values["exp"])[0], model.faces,
+              colors=np.clip(model.albedo(values["albedo"])[0], 0.0, 1.0))
     write_image(out / "overlay.png", np.clip(render_over(fit, photo), 0.0, 1.0))
     save_figure(fit, out / "figure.png", metrics)
     cam = camera_matrices(fit, photo.shape[:2])

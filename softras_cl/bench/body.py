@@ -58,7 +58,7 @@ def synthetic_body(model, rng: np.random.Generator, size: int, joints: bool) -> 
 
     truth = random_pose(model, rng)
     scene = BodyScene(model, (size, size), BodyFitConfig(size=size))
-    state = scene.pose(truth)
+    state, _ = scene.pose(truth)
     image = scene.composite(scene.render(state.vertices, 1e-6, 1e-4, color_agg="hard", alpha_agg="hard"))
     uv = scene.camera.project_pixels(state.joints)[0] + rng.normal(0, 1.0, (model.n_joints, 2)) if joints else None
     return dict(truth=truth, image=image, joints_3d=state.joints, joints_2d=uv)
@@ -66,7 +66,7 @@ def synthetic_body(model, rng: np.random.Generator, size: int, joints: bool) -> 
 
 def evaluate(fit, sample: dict, seconds: float) -> dict:
     """The bench's numbers for one fit of one synthetic target."""
-    joints = fit.scene.pose(fit.values).joints
+    joints = fit.scene.pose(fit.values)[0].joints
     true = sample["joints_3d"]
     return dict(mpjpe_mm=1e3 * float(np.linalg.norm(joints - true, axis=1).mean()),
                 mpjpe_pelvis_mm=1e3 * float(np.linalg.norm((joints - joints[0]) - (true - true[0]), axis=1).mean()),
@@ -133,7 +133,7 @@ def save_strip(samples: list[dict], rows: list[dict], path: Path, n: int = 5) ->
     columns = []
     for sample, row in zip(samples[:n], rows[:n]):
         fit = row["fit"]
-        fitted = fit.scene.composite(fit.scene.render(fit.scene.pose(fit.values).vertices, *SHARP))
+        fitted = fit.scene.composite(fit.scene.render(fit.scene.pose(fit.values)[0].vertices, *SHARP))
         columns.append((sample["image"], fitted, "target",
                         f"fit: {row['mpjpe_pelvis_mm']:.0f} mm, IoU {row['silhouette_iou']:.2f}"))
     save_image_strip(columns, path, cell=(2.2, 2.4))
@@ -149,10 +149,10 @@ def rest_baseline(model, samples: list[dict], size: int) -> dict:
         values = rest_values(model)
         alpha = (s["image"].max(-1) > 0.05).astype(float)
         values["translation"] = initial_translation(scene, values, alpha)
-        joints = scene.pose(values).joints
+        joints = scene.pose(values)[0].joints
         true = s["joints_3d"]
         errs.append(1e3 * np.linalg.norm((joints - joints[0]) - (true - true[0]), axis=1).mean())
-        mine = scene.render(scene.pose(values).vertices, 1e-6, 1e-4).alpha[0] > 0.5
+        mine = scene.render(scene.pose(values)[0].vertices, 1e-6, 1e-4).alpha[0] > 0.5
         ious.append((mine & (alpha > 0.5)).sum() / max((mine | (alpha > 0.5)).sum(), 1))
     return dict(mpjpe_pelvis_mm=float(np.mean(errs)), silhouette_iou=float(np.mean(ious)))
 

@@ -78,8 +78,8 @@ def synthetic_face(model, rng: np.random.Generator, size: int = 256) -> dict:
     out = scene.render(truth, 1e-6, 1e-4)
     alpha = out.alpha[0][..., None]
     photo = alpha * out.rgb[0] + (1.0 - alpha) * smooth_background(rng, size)
-    _, world = scene.geometry(truth)
-    clean, _ = scene.camera(truth["focal"][0]).project_pixels(model.landmarks(world))
+    world, _ = scene.geometry(truth)
+    clean, _ = scene.camera(truth["focal"][0]).project_pixels(model.landmarks(world)[0])
     noise = rng.uniform(1.0, 2.0)
     return dict(truth=truth, photo=np.clip(photo, 0, 1), landmarks=clean + rng.normal(0, noise, clean.shape),
                 clean_landmarks=clean, noise_px=noise)
@@ -104,8 +104,8 @@ def aligned_rmse(a: np.ndarray, b: np.ndarray, scale: bool = True) -> float:
 def evaluate(fit, sample: dict, model, seconds: float) -> dict:
     """The bench's numbers for one fit of one synthetic face."""
     truth = sample["truth"]
-    true_shape = model.shape(truth["id"], truth["exp"])
-    shape = fit.scene.model.shape(fit.values["id"], fit.values["exp"])
+    true_shape, _ = model.shape(truth["id"], truth["exp"])
+    shape, _ = fit.scene.model.shape(fit.values["id"], fit.values["exp"])
     metrics = fit.metrics()
     landmarks = fit.crop.to_full(fit.fitted_landmarks())
     return dict(rmse_mm=1e3 * aligned_rmse(shape, true_shape),

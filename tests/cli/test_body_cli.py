@@ -21,7 +21,7 @@ def target(tmp_path_factory, demo_body_model):
     values = body.rest_values(model)
     values["body_pose"][model.joint_names.index("left_shoulder") - 1] = [0.0, 0.0, 0.4]
     scene = body.BodyScene(model, (48, 48), body.BodyFitConfig(size=48))
-    state = scene.pose(values)
+    state, _ = scene.pose(values)
     out = scene.render(state.vertices, 1e-6, 1e-4, color_agg="hard", alpha_agg="hard")
     folder = tmp_path_factory.mktemp("body")
     write_image(folder / "target.png", scene.composite(out))

@@ -32,7 +32,7 @@ def random_values(model, rng):
 def synthetic_target(model, values, size):
     """(image (size, size, 3) hard-rendered part colours, 2D joints (J, 2))."""
     scene = body.BodyScene(model, (size, size), body.BodyFitConfig(size=size))
-    state = scene.pose(values)
+    state, _ = scene.pose(values)
     image = scene.composite(scene.render(state.vertices, 1e-6, 1e-4, color_agg="hard", alpha_agg="hard"))
     return image, scene.camera.project_pixels(state.joints)[0]
 
@@ -146,8 +146,8 @@ def test_a_small_synthetic_fit_recovers_a_known_pose(model):
     config = body.BodyFitConfig.from_budget("fast", size=size)
     fit = body.fit_body(image, model, config, joints=joints, progress=False)
     scene = fit.scene
-    error = 1e3 * np.linalg.norm(scene.pose(fit.values).joints - scene.pose(truth).joints, axis=1)
-    start = 1e3 * np.linalg.norm(scene.pose(body.rest_values(model)).joints - scene.pose(truth).joints, axis=1)
+    error = 1e3 * np.linalg.norm(scene.pose(fit.values)[0].joints - scene.pose(truth)[0].joints, axis=1)
+    start = 1e3 * np.linalg.norm(scene.pose(body.rest_values(model))[0].joints - scene.pose(truth)[0].joints, axis=1)
     metrics = fit.metrics()
     assert error.mean() < 40.0 and error.mean() < 0.5 * start.mean()      # mm
     assert metrics["silhouette_iou"] > 0.85 and metrics["joint_error_px"] < 1.0

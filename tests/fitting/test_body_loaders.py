@@ -25,8 +25,8 @@ def smpl_entries(model, root=2**32 - 1) -> dict:
 
 def assert_same_pose(a, b):
     p = random_params()
-    np.testing.assert_allclose(a.forward(**p).vertices, b.forward(**p).vertices, atol=1e-12)
-    np.testing.assert_allclose(a.forward(**p).joints, b.forward(**p).joints, atol=1e-12)
+    np.testing.assert_allclose(a.forward(**p)[0].vertices, b.forward(**p)[0].vertices, atol=1e-12)
+    np.testing.assert_allclose(a.forward(**p)[0].joints, b.forward(**p)[0].joints, atol=1e-12)
 
 
 def test_smpl_pickle_with_chumpy_arrays(tmp_path):

@@ -35,7 +35,7 @@ def random_params(seed=1, scale=0.7):
 
 
 def loss_parts(model, params, gv, gj):
-    s = model.forward(**params)
+    s, _ = model.forward(**params)
     return np.sum(s.vertices * gv) + np.sum(s.joints * gj)
 
 
@@ -46,7 +46,7 @@ def test_vjp_matches_central_differences(sparse, posedirs):
     params = random_params()
     rng = np.random.default_rng(2)
     gv, gj = rng.normal(size=(V, 3)), rng.normal(size=(J, 3))
-    grads = model.vjp(model.forward(**params), gv, gj)
+    grads = model.forward_vjp(model.forward(**params)[1], gv, gj)
     eps = 1e-6
     for name, value in params.items():
         numeric = np.zeros_like(value)
@@ -65,14 +65,14 @@ def test_vjp_at_zero_pose_and_single_cotangents():
     """Small-angle safe at the rest pose; grad_vertices or grad_joints alone."""
     model = random_model()
     params = random_params(scale=0.0)
-    state = model.forward(**params)
+    _, ctx = model.forward(**params)
     gj = np.random.default_rng(3).normal(size=(J, 3))
-    only_joints = model.vjp(state, grad_joints=gj)
-    both = model.vjp(state, np.zeros((V, 3)), gj)
+    only_joints = model.forward_vjp(ctx, grad_joints=gj)
+    both = model.forward_vjp(ctx, np.zeros((V, 3)), gj)
     for k in both:
         np.testing.assert_allclose(only_joints[k], both[k])
         assert np.all(np.isfinite(both[k]))
-    zero = model.vjp(state)
+    zero = model.forward_vjp(ctx)
     assert all(not np.any(g) for g in zero.values())
 
 
@@ -84,12 +84,12 @@ def test_dot_product_identity():
     direction = {k: rng.normal(size=np.shape(v)) for k, v in params.items()}
     gv, gj = rng.normal(size=(V, 3)), rng.normal(size=(J, 3))
     eps = 1e-6
-    plus = model.forward(**{k: v + eps * direction[k] for k, v in params.items()})
-    minus = model.forward(**{k: v - eps * direction[k] for k, v in params.items()})
+    plus, _ = model.forward(**{k: v + eps * direction[k] for k, v in params.items()})
+    minus, _ = model.forward(**{k: v - eps * direction[k] for k, v in params.items()})
     jvp_v = (plus.vertices - minus.vertices) / (2 * eps)
     jvp_j = (plus.joints - minus.joints) / (2 * eps)
     lhs = np.sum(jvp_v * gv) + np.sum(jvp_j * gj)
-    grads = model.vjp(model.forward(**params), gv, gj)
+    grads = model.forward_vjp(model.forward(**params)[1], gv, gj)
     rhs = sum(np.sum(grads[k] * direction[k]) for k in params)
     assert lhs == pytest.approx(rhs, rel=1e-7)
 
@@ -97,7 +97,7 @@ def test_dot_product_identity():
 def test_rest_pose_is_shaped_template_and_translation_adds():
     model = random_model()
     betas = np.array([0.5, -1.0, 2.0])
-    s = model.forward(betas, np.zeros((J - 1, 3)), np.zeros(3), np.array([1.0, 2.0, 3.0]))
+    s, _ = model.forward(betas, np.zeros((J - 1, 3)), np.zeros(3), np.array([1.0, 2.0, 3.0]))
     shaped = model.v_template + model.shapedirs @ betas
     np.testing.assert_allclose(s.vertices, shaped + [1, 2, 3], atol=1e-12)
     np.testing.assert_allclose(s.joints, model.rest_joints(betas) + [1, 2, 3], atol=1e-12)
@@ -107,7 +107,7 @@ def test_rest_pose_is_shaped_template_and_translation_adds():
 def test_global_rotation_turns_about_the_root_joint():
     model = random_model(posedirs=False)
     betas, omega = np.zeros(B), np.array([0.3, -0.2, 0.9])
-    s = model.forward(betas, np.zeros((J - 1, 3)), omega, np.zeros(3))
+    s, _ = model.forward(betas, np.zeros((J - 1, 3)), omega, np.zeros(3))
     root = model.rest_joints(betas)[0]
     expected = (model.v_template - root) @ axis_angle_to_matrix(omega).T + root
     np.testing.assert_allclose(s.vertices, expected, atol=1e-12)
@@ -118,7 +118,7 @@ def test_joint_rotation_moves_only_its_subtree():
     model = random_model(posedirs=False)
     pose = np.zeros((J - 1, 3))
     pose[2] = [0.0, 0.0, 1.0]  # joint 3
-    s = model.forward(np.zeros(B), pose, np.zeros(3), np.zeros(3))
+    s, _ = model.forward(np.zeros(B), pose, np.zeros(3), np.zeros(3))
     rest = model.rest_joints(np.zeros(B))
     np.testing.assert_allclose(s.joints[:4], rest[:4], atol=1e-12)
     np.testing.assert_allclose(s.joints[4], axis_angle_to_matrix([0, 0, 1.0]) @ (rest[4] - rest[3])
@@ -127,15 +127,15 @@ def test_joint_rotation_moves_only_its_subtree():
     weights[:, 2] = 1.0  # all vertices on joint 2: unaffected by joint 3's rotation
     rigid = BodyModel(model.v_template, model.shapedirs, model.J_regressor, PARENTS, weights,
                       model.faces)
-    s = rigid.forward(np.zeros(B), pose, np.zeros(3), np.zeros(3))
+    s = rigid.forward(np.zeros(B), pose, np.zeros(3), np.zeros(3))[0]
     np.testing.assert_allclose(s.vertices, rigid.v_template, atol=1e-12)
 
 
 def test_flat_body_pose_accepted():
     model = random_model()
     p = random_params()
-    a = model.forward(**p).vertices
-    b = model.forward(**{**p, "body_pose": p["body_pose"].ravel()}).vertices
+    a = model.forward(**p)[0].vertices
+    b = model.forward(**{**p, "body_pose": p["body_pose"].ravel()})[0].vertices
     np.testing.assert_array_equal(a, b)
 
 
@@ -188,4 +188,4 @@ def test_forward_argument_errors():
     with pytest.raises(ValueError, match=r"body_pose must have shape \(4, 3\)"):
         model.forward(**{**p, "body_pose": np.zeros((3, 3))})
     with pytest.raises(ValueError, match=r"grad_vertices must have shape \(40, 3\)"):
-        model.vjp(model.forward(**p), np.zeros((V, 2)))
+        model.forward_vjp(model.forward(**p)[1], np.zeros((V, 2)))

@@ -59,8 +59,8 @@ def test_posed_forward_moves_the_right_vertices(model):
     pose[elbow - 1] = [0.0, 1.0, 0.0]
     betas = np.zeros(model.n_betas)
     betas[:3] = [1.0, -1.0, 0.5]
-    rest = model.forward(betas, np.zeros_like(pose), np.zeros(3), np.zeros(3)).vertices
-    posed = model.forward(betas, pose, np.zeros(3), np.zeros(3))
+    rest = model.forward(betas, np.zeros_like(pose), np.zeros(3), np.zeros(3))[0].vertices
+    posed, _ = model.forward(betas, pose, np.zeros(3), np.zeros(3))
     assert np.all(np.isfinite(posed.vertices))
     moved = np.linalg.norm(posed.vertices - rest, axis=1) > 1e-3
     parts = set(np.array(model.part_names)[model.part_labels[moved]])

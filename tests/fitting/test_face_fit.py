@@ -202,8 +202,8 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     config = face.FaceFitConfig.from_budget("fast", size=128)
     fit = face.fit_face(sample["photo"], sample["landmarks"], demo, config, out_dir=tmp_path, progress=False)
     truth = sample["truth"]
-    true_shape = demo.shape(truth["id"], truth["exp"])
-    rmse = aligned_rmse(demo.shape(fit.values["id"], fit.values["exp"]), true_shape)
+    true_shape, _ = demo.shape(truth["id"], truth["exp"])
+    rmse = aligned_rmse(demo.shape(fit.values["id"], fit.values["exp"])[0], true_shape)
     baseline = aligned_rmse(demo.mean_shape, true_shape)
     points = fit.crop.to_full(fit.fitted_landmarks())
     landmark_error = np.linalg.norm(points - sample["clean_landmarks"], axis=1).mean()
@@ -213,7 +213,7 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     assert metrics["psnr_face_db"] > 30.0
     assert (tmp_path / "checkpoint.npz").exists() and (tmp_path / "loss_curve.png").exists()
     cam = camera_matrices(fit, sample["photo"].shape[:2])      # the exported camera of the photo
-    X = demo.landmarks(demo.shape(fit.values["id"], fit.values["exp"])) @ cam["R"].T + cam["t"]
+    X = demo.landmarks(demo.shape(fit.values["id"], fit.values["exp"])[0])[0] @ cam["R"].T + cam["t"]
     x = X @ cam["K"].T
     np.testing.assert_allclose(x[:, :2] / x[:, 2:], points, atol=1e-6)
     assert [h["stage"] for h in fit.result.history][0] == "landmarks"

@@ -34,8 +34,8 @@ def test_shape_is_mean_plus_std_scaled_directions():
     c_id, c_exp = np.array([1.0, -2.0, 0.5, 0.0]), np.array([0.3, 0.0, -1.0])
     expected = m.mean_shape + np.einsum("k,kvc->vc", c_id * m.id_std, m.id_basis) \
         + np.einsum("k,kvc->vc", c_exp * m.exp_std, m.exp_basis)
-    np.testing.assert_allclose(m.shape(c_id, c_exp), expected, rtol=0, atol=1e-15)
-    np.testing.assert_array_equal(m.shape(np.zeros(4), np.zeros(3)), m.mean_shape)
+    np.testing.assert_allclose(m.shape(c_id, c_exp)[0], expected, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(m.shape(np.zeros(4), np.zeros(3))[0], m.mean_shape)
 
 
 def test_sizes_and_dtypes():
@@ -51,12 +51,13 @@ def test_shape_vjp_matches_finite_differences_and_dot_product():
     rng = np.random.default_rng(1)
     x = rng.normal(size=m.n_id + m.n_exp)
     split = lambda x: (x[:m.n_id], x[m.n_id:])  # noqa: E731
-    jac = central_jacobian(lambda x: m.shape(*split(x)), x)
+    jac = central_jacobian(lambda x: m.shape(*split(x))[0], x)
     g = rng.normal(size=(m.n_vertices, 3))
-    g_id, g_exp = m.shape_vjp(g)
+    grads = m.shape_vjp(m.shape(*split(x))[1], g)
+    g_id, g_exp = grads["id_coeffs"], grads["exp_coeffs"]
     np.testing.assert_allclose(np.concatenate([g_id, g_exp]), jac.T @ g.reshape(-1), rtol=1e-7, atol=1e-12)
     v = rng.normal(size=x.size)
-    jv = m.shape(*split(v)) - m.mean_shape
+    jv = m.shape(*split(v))[0] - m.mean_shape
     assert np.isclose(np.sum(g * jv), g_id @ v[:m.n_id] + g_exp @ v[m.n_id:], rtol=1e-12)
 
 
@@ -65,40 +66,45 @@ def test_albedo_and_its_vjp():
     rng = np.random.default_rng(2)
     c = rng.normal(size=m.n_albedo)
     expected = m.albedo_mean + np.einsum("k,kvc->vc", c * m.albedo_std, m.albedo_basis)
-    np.testing.assert_allclose(m.albedo(c), expected, atol=1e-15)
-    jac = central_jacobian(m.albedo, c)
+    albedo, ctx = m.albedo(c)
+    np.testing.assert_allclose(albedo, expected, atol=1e-15)
+    jac = central_jacobian(lambda x: m.albedo(x)[0], c)
     g = rng.normal(size=(m.n_vertices, 3))
-    np.testing.assert_allclose(m.albedo_vjp(g), jac.T @ g.reshape(-1), rtol=1e-7, atol=1e-12)
-    jv = m.albedo(c) - m.albedo_mean
-    assert np.isclose(np.sum(g * jv), m.albedo_vjp(g) @ c, rtol=1e-12)
+    np.testing.assert_allclose(m.albedo_vjp(ctx, g)["coeffs"], jac.T @ g.reshape(-1), rtol=1e-7, atol=1e-12)
+    jv = albedo - m.albedo_mean
+    assert np.isclose(np.sum(g * jv), m.albedo_vjp(ctx, g)["coeffs"] @ c, rtol=1e-12)
 
 
 def test_landmarks_interpolate_in_their_faces_and_vjp_is_exact():
     m = make_model()
     rng = np.random.default_rng(3)
-    verts = m.shape(rng.normal(size=4), rng.normal(size=3))
+    verts, _ = m.shape(rng.normal(size=4), rng.normal(size=3))
     tri = verts[m.faces[m.landmark_faces]]
-    np.testing.assert_allclose(m.landmarks(verts), np.einsum("lj,ljc->lc", m.landmark_bary, tri))
-    jac = central_jacobian(lambda x: m.landmarks(x.reshape(-1, 3)), verts.reshape(-1))
+    points, ctx = m.landmarks(verts)
+    np.testing.assert_allclose(points, np.einsum("lj,ljc->lc", m.landmark_bary, tri))
+    jac = central_jacobian(lambda x: m.landmarks(x.reshape(-1, 3))[0], verts.reshape(-1))
     g = rng.normal(size=(m.n_landmarks, 3))
-    np.testing.assert_allclose(m.landmarks_vjp(g).reshape(-1), jac.T @ g.reshape(-1), rtol=1e-7, atol=1e-10)
+    g_verts = m.landmarks_vjp(ctx, g)["vertices"]
+    np.testing.assert_allclose(g_verts.reshape(-1), jac.T @ g.reshape(-1), rtol=1e-7, atol=1e-10)
     dv = rng.normal(size=verts.shape)
-    assert np.isclose(np.sum(g * m.landmarks(dv)), np.sum(m.landmarks_vjp(g) * dv), rtol=1e-12)
+    assert np.isclose(np.sum(g * m.landmarks(dv)[0]), np.sum(g_verts * dv), rtol=1e-12)
 
 
 def test_vertex_landmark_one_hot_row_picks_the_vertex():
     m = make_model(n_lmk=0).with_landmarks([7], [[0.0, 1.0, 0.0]])
     verts = m.mean_shape
-    np.testing.assert_array_equal(m.landmarks(verts)[0], verts[m.faces[7, 1]])
+    np.testing.assert_array_equal(m.landmarks(verts)[0][0], verts[m.faces[7, 1]])
 
 
 def test_empty_expression_and_albedo_bases():
     m = make_model(k_exp=0, k_alb=0, n_lmk=0)
-    np.testing.assert_array_equal(m.shape(np.zeros(4), np.zeros(0)), m.mean_shape)
-    g_id, g_exp = m.shape_vjp(np.ones((30, 3)))
+    shape, ctx = m.shape(np.zeros(4), np.zeros(0))
+    np.testing.assert_array_equal(shape, m.mean_shape)
+    grads = m.shape_vjp(ctx, np.ones((30, 3)))
+    g_id, g_exp = grads["id_coeffs"], grads["exp_coeffs"]
     assert g_id.shape == (4,) and g_exp.shape == (0,)
-    np.testing.assert_array_equal(m.albedo(np.zeros(0)), m.albedo_mean)
-    assert m.landmarks(m.mean_shape).shape == (0, 3)
+    np.testing.assert_array_equal(m.albedo(np.zeros(0))[0], m.albedo_mean)
+    assert m.landmarks(m.mean_shape)[0].shape == (0, 3)
 
 
 def test_truncated_keeps_the_first_components():
@@ -106,7 +112,7 @@ def test_truncated_keeps_the_first_components():
     t = m.truncated(n_id=2, n_exp=0)
     assert (t.n_id, t.n_exp, t.n_albedo) == (2, 0, 2)
     np.testing.assert_array_equal(t.id_basis, m.id_basis[:2])
-    np.testing.assert_array_equal(t.shape([1.0, 2.0], []), m.shape([1.0, 2.0, 0, 0], [0, 0, 0]))
+    np.testing.assert_array_equal(t.shape([1.0, 2.0], [])[0], m.shape([1.0, 2.0, 0, 0], [0, 0, 0])[0])
     with pytest.raises(ValueError, match=r"n_id must be in \[0, 4\]"):
         m.truncated(n_id=5)
 
@@ -142,9 +148,9 @@ def test_wrong_coefficient_and_gradient_shapes():
     with pytest.raises(ValueError, match=r"id_coeffs must have shape \(4,\)"):
         m.shape(np.zeros(3), np.zeros(3))
     with pytest.raises(ValueError, match=r"grad_vertices must have shape \(30, 3\)"):
-        m.shape_vjp(np.zeros((29, 3)))
+        m.shape_vjp(m.shape(np.zeros(4), np.zeros(3))[1], np.zeros((29, 3)))
     with pytest.raises(ValueError, match=r"grad must have shape \(5, 3\)"):
-        m.landmarks_vjp(np.zeros((4, 3)))
+        m.landmarks_vjp(m.landmarks(m.mean_shape)[1], np.zeros((4, 3)))
 
 
 def test_save_and_load_round_trip(tmp_path):
