@@ -29,6 +29,7 @@ def target(tmp_path_factory, demo_body_model):
     return folder / "target.png", folder / "joints.txt"
 
 
+@pytest.mark.slow
 def test_fit_body_writes_every_output(tmp_path, capsys, target):
     out = tmp_path / "fit"
     image, joints = target
@@ -89,6 +90,7 @@ def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path, target):
     assert (out / "overlay.png").exists() and (out / "body.ply").exists()
 
 
+@pytest.mark.slow
 def test_bench_body_quick(tmp_path, capsys):
     assert main(["bench", "body", "--quick", "--json", "--out", str(tmp_path)]) == 0
     doc = json.loads((tmp_path / "body.json").read_text())

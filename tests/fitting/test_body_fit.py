@@ -135,6 +135,7 @@ def test_the_schedule_is_followed(model, monkeypatch):
     assert set(fit.result.outcomes) == {"joints", "image-1", "image-2", "image-3"}
 
 
+@pytest.mark.slow
 def test_a_small_synthetic_fit_recovers_a_known_pose(model):
     truth = body.rest_values(model)
     truth["body_pose"][_index(model, "left_shoulder")] = [0.0, 0.0, 0.5]      # arm raised sideways
