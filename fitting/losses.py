@@ -6,7 +6,14 @@ float64 array of that argument's shape. Targets, masks, weights and sigmas are c
 gradient). Weights between terms are applied in one place, :func:`weighted_sum`.
 
 Invalid inputs raise ``ValueError`` whose message starts with the argument's name: wrong shapes,
-NaN or infinite values, negative weights or masks, non-positive sigmas, bad face indices.
+NaN or infinite values, negative weights or masks, non-positive sigmas, bad face indices (the
+checks of :mod:`softras_cl.checks`, shared with every other entry point).
+
+Losses are the one deliberate exception to the project's ``y, ctx = f(x)`` /
+``f_vjp(ctx, grad_y)`` convention. A loss is a scalar terminal: its cotangent is always 1
+(a weight, applied by :func:`weighted_sum`), so its gradient costs no more than its value and
+there is nothing to keep between the two; a context and a second call would only add a step
+to every fit.
 
 Mesh terms (:func:`laplacian`, :func:`flatten`, :func:`edge_length`) share a topology (unique
 edges, vertex degrees, interior edges with their two opposite vertices) computed once per face
@@ -22,6 +29,8 @@ from typing import Mapping
 
 import numpy as np
 
+from softras_cl.checks import index_array, nonnegative, positive, real_array
+
 __all__ = [
     "MeshTopology", "mesh_topology",
     "image_l2", "image_l1", "silhouette_iou", "silhouette_l2", "landmarks_2d",
@@ -34,36 +43,14 @@ __all__ = [
 # validation helpers
 # ---------------------------------------------------------------------------------------------
 
-def _array(x, name: str) -> np.ndarray:
-    """``x`` as a finite float64 array, else ValueError naming ``name``."""
-    try:
-        a = np.asarray(x, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name}: cannot convert to a float64 array ({exc})") from None
-    if not np.isfinite(a).all():
-        bad = "NaN" if np.isnan(a).any() else "infinite"
-        raise ValueError(f"{name}: contains {bad} values")
-    return a
-
-
 def _same_shape(a: np.ndarray, b: np.ndarray, name_a: str, name_b: str) -> None:
     if a.shape != b.shape:
         raise ValueError(f"{name_b}: shape {b.shape} does not match {name_a} shape {a.shape}")
 
 
-def _nonnegative(a: np.ndarray, name: str) -> None:
-    if (a < 0).any():
-        raise ValueError(f"{name}: must be >= 0 (min {a.min():g})")
-
-
-def _positive(a: np.ndarray, name: str) -> None:
-    if (a <= 0).any():
-        raise ValueError(f"{name}: must be > 0 (min {a.min():g})")
-
-
 def _image_pair(pred, target) -> tuple[np.ndarray, np.ndarray]:
-    p = _array(pred, "pred")
-    t = _array(target, "target")
+    p = real_array("pred", pred)
+    t = real_array("target", target)
     _same_shape(p, t, "pred", "target")
     return p, t
 
@@ -72,8 +59,8 @@ def _image_mask(mask, shape: tuple) -> np.ndarray | None:
     """Mask as float64 broadcast to ``shape`` (H, W) or (H, W, C); None for no mask."""
     if mask is None:
         return None
-    m = _array(mask, "mask")
-    _nonnegative(m, "mask")
+    m = real_array("mask", mask)
+    nonnegative("mask", m)
     if len(shape) == 3 and m.shape == shape[:2]:
         m = m[:, :, None]                    # an (H, W) mask applies to every channel
     try:
@@ -152,8 +139,8 @@ def silhouette_iou(pred, target, eps: float = 1e-6) -> tuple[float, dict]:
     formula: ``((1 - 2t)(U + eps) - (U - I)(1 - t)) / (U + eps)**2``.
     """
     p, t = _image_pair(pred, target)
-    eps = float(_array(eps, "eps"))
-    _positive(np.asarray(eps), "eps")
+    eps = float(real_array("eps", eps))
+    positive("eps", np.asarray(eps))
     inter = float((p * t).sum())
     union = float((p + t - p * t).sum())
     den = union + eps
@@ -191,21 +178,21 @@ def landmarks_2d(points, target, weights=None, robust_sigma=None) -> tuple[float
     (the mean over points, not normalised by the weights' sum). N = 0 gives 0.
     Returns ``(value, {"points": (N, 2) gradient})``.
     """
-    p = _array(points, "points")
+    p = real_array("points", points)
     if p.ndim != 2 or p.shape[1] != 2:
         raise ValueError(f"points: expected shape (N, 2), got {p.shape}")
-    t = _array(target, "target")
+    t = real_array("target", target)
     _same_shape(p, t, "points", "target")
     n = p.shape[0]
     if weights is None:
         w = np.ones(n)
     else:
-        w = _array(weights, "weights")
+        w = real_array("weights", weights)
         if w.ndim == 0:
             w = np.full(n, float(w))
         elif w.shape != (n,):
             raise ValueError(f"weights: expected a scalar or shape ({n},), got {w.shape}")
-        _nonnegative(w, "weights")
+        nonnegative("weights", w)
     if n == 0:
         return 0.0, {"points": np.zeros_like(p)}
     d = p - t
@@ -214,10 +201,10 @@ def landmarks_2d(points, target, weights=None, robust_sigma=None) -> tuple[float
         rho = r2
         drho = np.ones(n)
     else:
-        s = _array(robust_sigma, "robust_sigma")
+        s = real_array("robust_sigma", robust_sigma)
         if s.ndim != 0:
             raise ValueError(f"robust_sigma: expected a scalar, got shape {s.shape}")
-        _positive(s, "robust_sigma")
+        positive("robust_sigma", s)
         s2 = float(s) ** 2
         den = r2 + s2
         rho = r2 / den
@@ -234,10 +221,10 @@ def gaussian_prior(coeffs, sigma, mean=0.0) -> tuple[float, dict]:
     ``coeffs``' shape (per-coefficient standard deviations), all > 0. ``mean``: scalar or
     broadcastable, default 0. Returns ``(value, {"coeffs": 2 (c - mean) / sigma**2})``.
     """
-    c = _array(coeffs, "coeffs")
-    s = _array(sigma, "sigma")
-    _positive(s, "sigma")
-    mu = _array(mean, "mean")
+    c = real_array("coeffs", coeffs)
+    s = real_array("sigma", sigma)
+    positive("sigma", s)
+    mu = real_array("mean", mean)
     for a, name in ((s, "sigma"), (mu, "mean")):
         try:
             if np.broadcast_shapes(a.shape, c.shape) != c.shape:
@@ -282,7 +269,7 @@ def sh_white(coeffs) -> tuple[float, dict]:
     brightness or direction; so the albedo, not the light, explains the colour of the skin.
     Returns ``(value, {"coeffs": (3, 9) gradient})``.
     """
-    c = _array(coeffs, "coeffs")
+    c = real_array("coeffs", coeffs)
     if c.shape != (3, 9):
         raise ValueError(f"coeffs: expected SH coefficients of shape (3, 9), got {c.shape}")
     d = c - c.mean(axis=0, keepdims=True)
@@ -290,16 +277,9 @@ def sh_white(coeffs) -> tuple[float, dict]:
 
 
 def _faces(faces, n_vertices: int) -> np.ndarray:
-    f = np.asarray(faces)
-    if f.ndim != 2 or f.shape[1] != 3:
-        raise ValueError(f"faces: expected shape (F, 3), got {f.shape}")
-    if f.size and not np.issubdtype(f.dtype, np.integer):
-        raise ValueError(f"faces: expected an integer array, got dtype {f.dtype}")
-    f = f.astype(np.int64, copy=False)
+    """(F, 3) integer faces -> int64, indices in [0, n_vertices), no face repeating a vertex."""
+    f = index_array("faces", faces, n_vertices, shape=(None, 3), expected="(F, 3)")
     if f.size:
-        if f.min() < 0 or f.max() >= n_vertices:
-            raise ValueError(f"faces: indices must be in [0, {n_vertices}), got "
-                             f"[{f.min()}, {f.max()}]")
         rep = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 2] == f[:, 0])
         if rep.any():
             raise ValueError(f"faces: face {int(np.argmax(rep))} repeats a vertex index "
@@ -351,7 +331,7 @@ def mesh_topology(faces, n_vertices: int) -> MeshTopology:
 
 
 def _mesh(vertices, faces) -> tuple[np.ndarray, MeshTopology]:
-    v = _array(vertices, "vertices")
+    v = real_array("vertices", vertices)
     if v.ndim != 2 or v.shape[1] != 3:
         raise ValueError(f"vertices: expected shape (V, 3), got {v.shape}")
     if isinstance(faces, MeshTopology):
@@ -430,8 +410,8 @@ def flatten(vertices, faces, eps: float = 1e-12) -> tuple[float, dict]:
     Returns ``(value, {"vertices": (V, 3)})``.
     """
     v, topo = _mesh(vertices, faces)
-    eps = float(_array(eps, "eps"))
-    _positive(np.asarray(eps), "eps")
+    eps = float(real_array("eps", eps))
+    positive("eps", np.asarray(eps))
     i0, i1, ia, ib = topo.interior.T
     if len(i0) == 0:
         return 0.0, {"vertices": np.zeros_like(v)}
