@@ -27,6 +27,9 @@ class _Stub:
         self.state = state
 
 
+_NUMPY_2 = int(np.__version__.split(".")[0]) >= 2
+
+
 def _stub_class(module: str, name: str) -> type:
     return type(name, (_Stub,), {"qualname": f"{module}.{name}"})
 
@@ -35,7 +38,7 @@ class _LegacyUnpickler(pickle.Unpickler):
     def find_class(self, module, name):
         if module.split(".")[0] == "chumpy" or module.startswith("scipy.sparse"):
             return _stub_class(module, name)
-        if module.startswith("numpy.core"):  # numpy 2 moved numpy.core to numpy._core
+        if module.startswith("numpy.core") and _NUMPY_2:  # numpy 2 moved numpy.core to numpy._core
             module = "numpy._core" + module[len("numpy.core"):]
         return super().find_class(module, name)
 

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from softras_cl.cl.layout import CORNER_COLORS, LIGHT_PARAMS, UV_ATTRS
 from softras_cl.raster.corners import gather_corners
 
 from softras_cl.raster.settings import RasterSettings
@@ -64,14 +65,14 @@ class MeshInputs:
     def face_attributes(self) -> np.ndarray:
         """(B*F, K) colour data per face for the kernel: 9 corner colours, R*R*3 texels, 6 uvs."""
         if self.colors is not None and self.normals is not None:
-            return np.concatenate([self.corners(self.colors).reshape(-1, 9),
-                                   self.corners(self.normals).reshape(-1, 9)], 1)
+            return np.concatenate([self.corners(self.colors).reshape(-1, CORNER_COLORS),
+                                   self.corners(self.normals).reshape(-1, CORNER_COLORS)], 1)
         if self.colors is not None:
-            return self.corners(self.colors).reshape(-1, 9)
+            return self.corners(self.colors).reshape(-1, CORNER_COLORS)
         if self.face_textures is not None:
             return self.face_textures.reshape(self.batch * self.n_faces, -1)
         if self.uvs is not None:
-            return self.corners(self.uvs).reshape(-1, 6)
+            return self.corners(self.uvs).reshape(-1, UV_ATTRS)
         return np.zeros(0)
 
     def texture_image_array(self) -> np.ndarray:
@@ -186,7 +187,7 @@ def _check_lighting(s: RasterSettings, mesh: MeshInputs, normals, light) -> None
             raise ValueError(f"{name} was given but settings.lighting is 'none' (or there is no rgb output)")
     if lit:
         mesh.normals, _ = _float_array("normals", normals, (mesh.n_vertices, 3))
-        mesh.light, _ = _float_array("light", np.ravel(light), (27,), allow_unbatched=True)
+        mesh.light, _ = _float_array("light", np.ravel(light), (LIGHT_PARAMS,), allow_unbatched=True)
         mesh.light = mesh.light[0]
 
 

@@ -69,13 +69,17 @@ class Renderer:
     renderer); shading: "vertex" (vertex normals and albedo, Gouraud), "face" (face normals,
     flat; albedo averaged over each face's corners), "pixel" (albedo and normals interpolated
     and lit per pixel in the kernel; Lambert or SH lights) or "none" (unlit: the colour input is
-    drawn as it is, with any texture mode); device: a pyopencl.Device or None for the default.
+    drawn as it is, with any texture mode); device: a pyopencl.Device or None for the default;
+    context, queue: a user's own pyopencl Context / in-order CommandQueue, checked as
+    SoftRasterizer checks them (softras_cl.cl.device.resolve_context).
     """
 
-    def __init__(self, settings: RasterSettings, shading: str = "vertex", device=None):
+    def __init__(self, settings: RasterSettings, shading: str = "vertex", device=None, context=None,
+                 queue=None):
         if shading not in SHADINGS:
             raise ValueError(f"shading must be one of {SHADINGS}, got {shading!r}")
-        self.settings, self.shading, self.device = settings, shading, device
+        self.settings, self.shading = settings, shading
+        self.device, self.context, self.queue = device, context, queue
         self._rasterizers: dict = {}
 
     def forward(self, vertices, faces, cameras, albedo=None, light=None, face_textures=None,
@@ -149,7 +153,8 @@ class Renderer:
         s = self.settings.replace(texture=texture, lighting=lighting,
                                   perspective_correct=projection == "perspective")
         if s not in self._rasterizers:
-            self._rasterizers[s] = SoftRasterizer(s, device=self.device)
+            self._rasterizers[s] = SoftRasterizer(s, device=self.device, context=self.context,
+                                                   queue=self.queue)
         return self._rasterizers[s]
 
     def _shading_vjp(self, saved: RenderContext, g_raster: dict) -> dict:

@@ -142,6 +142,25 @@ def test_only_requested_gradients_are_returned():
     assert out.saved.raster_out.saved.grads == ("colors",)   # no position adjoint compiled
 
 
+def test_own_context_and_queue_reach_the_rasterizer_and_change_nothing():
+    import pyopencl as cl
+
+    from softras_cl.cl.device import select_device
+
+    v, f, albedo = scene()
+    ctx = cl.Context([select_device()])
+    queue = cl.CommandQueue(ctx)
+    default = Renderer(settings()).forward(v, f, cameras()[0], albedo=albedo, light=LambertLight())
+    own = Renderer(settings(), context=ctx, queue=queue)
+    out = own.forward(v, f, cameras()[0], albedo=albedo, light=LambertLight())
+    np.testing.assert_array_equal(out.rgb, default.rgb)
+    assert [(r.ctx, r.queue) for r in own._rasterizers.values()] == [(ctx, queue)]
+    other = cl.CommandQueue(cl.Context([select_device()]))
+    with pytest.raises(ValueError, match="queue belongs to another context"):
+        Renderer(settings(), context=ctx, queue=other).forward(v, f, cameras()[0], albedo=albedo,
+                                                               light=LambertLight())
+
+
 def test_bad_scene_input_is_named():
     v, f, albedo = scene()
     renderer = Renderer(settings())
