@@ -77,7 +77,7 @@ MP468_TO_IBUG68 = np.array([v for v, _ in _TABLE], dtype=np.int64)
 IBUG68_NAMES = tuple(n for _, n in _TABLE)
 
 
-def _check_image(image) -> np.ndarray:
+def _uint8_rgb(image) -> np.ndarray:
     img = np.asarray(image)
     if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
         raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got shape {img.shape} dtype {img.dtype}")
@@ -89,7 +89,7 @@ def detect_mesh468(image) -> np.ndarray:
     confidence face, x, y in pixels (0-based pixel centres, x right, y down), z in the same
     pixel scale (relative depth). Raises ImportError (with install hint) without mediapipe and
     ValueError when no face is found."""
-    img = _check_image(image)
+    img = _uint8_rgb(image)
     try:
         from mediapipe.python.solutions import face_mesh
     except ImportError as e:
@@ -134,7 +134,7 @@ def draw_landmarks(image, points, scale: float = 1.0, numbers: bool = True):
     numbered and joined per part (jaw, brows, nose, eyes, lips) so the order can be checked."""
     from PIL import Image, ImageDraw
 
-    img = Image.fromarray(_check_image(image))
+    img = Image.fromarray(_uint8_rgb(image))
     if scale != 1.0:
         img = img.resize((round(img.width * scale), round(img.height * scale)), Image.LANCZOS)
     d = ImageDraw.Draw(img)

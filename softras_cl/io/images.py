@@ -143,7 +143,7 @@ def read_image(path) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Writing
 
-def _check_image(image) -> np.ndarray:
+def _image_to_write(image) -> np.ndarray:
     a = np.asarray(image)
     if a.dtype == object or not (np.issubdtype(a.dtype, np.floating)
                                  or np.issubdtype(a.dtype, np.integer)
@@ -174,7 +174,7 @@ def write_image(path, image, bits: int = 8) -> None:
     path = Path(path)
     if bits not in (8, 16):
         raise ValueError(f"bits must be 8 or 16, got {bits!r}")
-    a = _check_image(image)
+    a = _image_to_write(image)
     a = np.clip(a, 0.0, 1.0)
     if a.ndim == 2:
         enc = to_srgb(a)
