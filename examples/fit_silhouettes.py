@@ -7,7 +7,7 @@
 Builds a closed target mesh, renders its binary silhouettes from look-at cameras on an orbit
 (alternately 30 degrees above and below the equator), deforms an icosphere (global scale plus
 per-vertex offsets) by minimising the summed soft-IoU loss plus Laplacian and flatten
-regularisers with nlopt L-BFGS under a sigma schedule (fitting/silhouette.py), then prints the
+regularisers with nlopt L-BFGS under a sigma schedule (fitting/recipes/silhouette.py), then prints the
 Chamfer distance and volume IoU to the target of the template before and of the fit after.
 
 Writes to --out: fitted.ply (the fitted mesh), target.ply, comparison.png (target vs fitted

@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 # marker -> (module that must be importable, how to get it)
 OPTIONAL = {
-    "mitsuba": ("mitsuba", "pip install 'softras-cl[mitsuba]'"),
+    "mitsuba": ("mitsuba", "pip install 'softras-cl[validate]'"),
     "mediapipe": ("mediapipe", "pip install 'softras-cl[landmarks]'"),
     "torch": ("torch", "pip install torch"),
     "jax": ("jax", "pip install jax"),

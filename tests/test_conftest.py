@@ -25,7 +25,7 @@ def test_optional_marker_skips_only_when_the_module_is_missing(monkeypatch, mark
 def test_unmarked_and_slow_tests_never_skip(monkeypatch):
     monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)     # nothing installed at all
     assert conftest.missing_optional(["slow", "parametrize", "filterwarnings"]) is None
-    assert "pip install 'softras-cl[mitsuba]'" in conftest.missing_optional(["mitsuba"])
+    assert "pip install 'softras-cl[validate]'" in conftest.missing_optional(["mitsuba"])
 
 
 def test_run_cli_returns_code_and_output(run_cli, capsys):

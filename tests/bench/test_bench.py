@@ -1,4 +1,4 @@
-"""Tests of `softras-cl bench raster` (softras_cl/bench.py): the quick run end to end, and the
+"""Tests of `softras-cl bench raster` (softras_cl/bench/raster.py): the quick run end to end, and the
 exact pixel-face pair count against a dense count over the whole image."""
 import json
 import math

@@ -1,6 +1,6 @@
 """Hard cases: nothing NaN or Inf in outputs or gradients, forward or backward, in
 float32 and float64, plus a value check wherever one exists, and agreement with the dense
-float64 reference (softras_cl/reference.py) where that is cheap.
+float64 reference (softras_cl/raster/reference.py) where that is cheap.
 
 Every case runs forward(grads=("vertices", "colors")) (alpha-only cases: grads=("vertices",), as
 no colour input goes with them) and backward() with random cotangents for every output. Pixel centres follow docs/conventions.md: x = (2 (i + 0.5) - W) / s,

@@ -1,4 +1,4 @@
-"""Normals and lighting (softras_cl/shading.py, docs/scene.md): hand-computed values, every vjp
+"""Normals and lighting (softras_cl/scene/shading.py, docs/scene.md): hand-computed values, every vjp
 against central finite differences in float64, SH order/constants, and bad input."""
 import numpy as np
 import pytest

@@ -1,6 +1,6 @@
 """softras-cl against Mitsuba 3: silhouette, depth and flat Lambert shading
 agree at sharp settings. Runs only when the optional extra is installed (pip install
-'softras-cl[mitsuba]'); see softras_cl/mitsuba_ref.py for how the two renderers are made to
+'softras-cl[validate]'); see softras_cl/validate/mitsuba.py for how the two renderers are made to
 compute the same thing."""
 import json
 import math
