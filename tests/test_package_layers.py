@@ -1,6 +1,7 @@
 """The package's layers import only downwards, and every package directory ships.
 
-Layers (lowest first): softras_cl.checks (numpy only) and softras_cl.io stand alone;
+Layers (lowest first): softras_cl.checks (numpy only) and softras_cl.errors (the error classes
+and exit codes) stand below everything; softras_cl.io stands alone;
 softras_cl.cl < softras_cl.raster (and the top-level ``softras_cl``, which re-exports it)
 < softras_cl.scene < softras_cl.validate < softras_cl.fitting < softras_cl.cli / softras_cl.bench.
 softras_cl.provenance (versions, device, machine of a result) sits on cl and the top level and
@@ -31,9 +32,10 @@ TOP = "softras_cl"
 DATA_PACKAGES = {"softras_cl.kernels"}       # OpenCL C sources shipped as package data
 
 # layer -> the layers it may import (besides itself)
-LOW = {"checks"}
+LOW = {"checks", "errors"}
 ALLOWED = {
     "checks": set(),
+    "errors": set(),
     "io": LOW,
     "cl": LOW,
     "raster": LOW | {"cl"},

@@ -17,6 +17,8 @@ import re
 
 import pyopencl as cl
 
+from softras_cl.errors import DeviceError, InputError
+
 logger = logging.getLogger(__name__)
 
 ENV_VAR = "SOFTRAS_CL_DEVICE"
@@ -37,7 +39,7 @@ def _entries() -> list[tuple[int, int, cl.Platform, cl.Device]]:
     try:
         platforms = cl.get_platforms()
     except cl.Error as e:
-        raise RuntimeError(f"{NO_PLATFORM_HELP} (pyopencl: {e})") from e
+        raise DeviceError(f"{NO_PLATFORM_HELP} (pyopencl: {e})") from e
     out = []
     for pi, p in enumerate(platforms):
         try:
@@ -46,7 +48,7 @@ def _entries() -> list[tuple[int, int, cl.Platform, cl.Device]]:
             continue
         out.extend((pi, di, p, d) for di, d in enumerate(devices))
     if not out:
-        raise RuntimeError(NO_PLATFORM_HELP)
+        raise DeviceError(NO_PLATFORM_HELP)
     return out
 
 
@@ -89,7 +91,7 @@ def _from_softras_env(entries, value: str):
         matches = [e for e in entries if value.strip().lower() in _label(e[2], e[3]).lower()]
         found = min(matches, key=_rank) if matches else None
     if found is None:
-        raise ValueError(f"{ENV_VAR}={value!r} matches no OpenCL device. Use 'P:D' indices or a "
+        raise InputError(f"{ENV_VAR}={value!r} matches no OpenCL device. Use 'P:D' indices or a "
                          f"substring of platform name+version+device name. Available: "
                          f"{_available(entries)}")
     return found
@@ -104,7 +106,7 @@ def _from_pyopencl_env(entries, value: str):
 
     matches = [e for e in entries if ok(p_part, e[0], e[2].name) and ok(d_part, e[1], e[3].name)]
     if not matches:
-        raise ValueError(f"PYOPENCL_CTX={value!r} matches no OpenCL device. "
+        raise InputError(f"PYOPENCL_CTX={value!r} matches no OpenCL device. "
                          f"Available: {_available(entries)}")
     return matches[0]
 

@@ -3,15 +3,25 @@
 Each command module has `register(subparsers)`, which adds its parser (every option with a help
 text) and sets `func`, a callable (args) -> exit code. Modules import their heavy dependencies
 inside `func`, so building the parser (and `softras-cl --help`) stays fast.
+
+`main` is the one place errors become exit codes: a command raises (softras_cl.errors, or a
+ValueError/OSError about its input) and `main` prints one line to stderr and returns the code
+of softras_cl.errors; an unexpected exception is reported as an internal error (the traceback
+with -vv). SIGTERM stops a command the way Ctrl-C does.
 """
 from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
+import threading
+import traceback
 from importlib import import_module
 
 from softras_cl import __version__
+from softras_cl.errors import (EXIT_INPUT, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_RESOURCE,
+                               SoftrasError)
 
 # command name -> module of softras_cl.cli (or softras_cl.bench) that registers it
 COMMANDS = {
@@ -61,11 +71,65 @@ def configure_logging(verbose: int = 0, quiet: bool = False) -> None:
     logger.setLevel(level)
 
 
+def exit_code(error: BaseException) -> int:
+    """The documented exit code (softras_cl.errors) for an exception that ended a command."""
+    if isinstance(error, KeyboardInterrupt):
+        return EXIT_INTERRUPTED
+    if isinstance(error, SoftrasError):
+        return error.exit_code
+    if isinstance(error, MemoryError) or type(error).__module__.startswith("pyopencl"):
+        return EXIT_RESOURCE
+    if isinstance(error, (ValueError, OSError)):
+        return EXIT_INPUT
+    return EXIT_INTERNAL
+
+
+def _report(command: str, error: BaseException, verbose: int) -> int:
+    """Print one line about ``error`` to stderr (the traceback too when it is a bug and -vv was
+    given); return its exit code."""
+    code = exit_code(error)
+    prefix = f"softras-cl {command}".rstrip()
+    if code == EXIT_INTERRUPTED:
+        print(f"{prefix}: interrupted", file=sys.stderr)
+    elif code == EXIT_INTERNAL:
+        if verbose >= 2:
+            traceback.print_exception(error, file=sys.stderr)
+        print(f"{prefix}: internal error: {type(error).__name__}: {error} "
+              f"({'see the traceback above' if verbose >= 2 else 'run with -vv for the traceback'}; "
+              f"please report it)", file=sys.stderr)
+    else:
+        print(f"{prefix}: {error}", file=sys.stderr)
+    return code
+
+
+class _SigtermAsInterrupt:
+    """While active (main thread only), SIGTERM raises KeyboardInterrupt like Ctrl-C, so a
+    terminated run stops cleanly and keeps its results."""
+
+    def __enter__(self):
+        self.previous = None
+        if threading.current_thread() is threading.main_thread():
+            self.previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+        return self
+
+    def __exit__(self, *exc):
+        if self.previous is not None:
+            signal.signal(signal.SIGTERM, self.previous)
+        return False
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `softras-cl` console script; returns the exit code."""
-    args = build_parser().parse_args(argv)
-    configure_logging(args.verbose, args.quiet)
-    return args.func(args)
+    command, verbose = "", 0
+    with _SigtermAsInterrupt():
+        try:
+            args = build_parser().parse_args(argv)
+            command = " ".join(n for n in (args.command, getattr(args, "benchmark", None)) if n)
+            verbose = args.verbose
+            configure_logging(args.verbose, args.quiet)
+            return args.func(args)
+        except (Exception, KeyboardInterrupt) as error:    # the top of the program: one line
+            return _report(command, error, verbose)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,176 @@
+"""Writing results without ever losing or mixing them.
+
+- :func:`atomic_path` / :func:`write_bytes` / :func:`write_text`: a file is written under a
+  temporary name in its own folder, flushed to disk, then renamed over the final name, so a
+  reader sees the old file or the complete new one, never a truncated one. When the write fails
+  (disk full, read-only folder) or is interrupted, the temporary file is removed and the old
+  file is left unchanged; the error is an :class:`~softras_cl.errors.OutputError` naming the file.
+- :class:`OutputFolder`: an output folder checked up front (a usable path, creatable, writable)
+  and locked while a run writes into it, so a second run into the same folder refuses with a
+  clear message instead of mixing its files with the first one's. The lock is an OS file lock
+  (``flock``; ``msvcrt.locking`` on Windows) on ``.softras-cl.lock``: it is released when the
+  process ends, even by ``kill -9``, so a crashed run never blocks the next one.
+"""
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Iterator
+
+from softras_cl.errors import OutputError
+
+__all__ = ["atomic_path", "write_bytes", "write_text", "OutputFolder", "LOCK_NAME"]
+
+LOCK_NAME = ".softras-cl.lock"
+
+
+def _describe(err: OSError) -> str:
+    """'No space left on device' rather than '[Errno 28] No space left on device: ...'."""
+    return err.strerror or str(err)
+
+
+@contextlib.contextmanager
+def atomic_path(path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path`` (same suffix, so writers that pick a format from
+    the extension still work); when the block succeeds it is flushed and renamed to ``path``.
+
+    On any error or interrupt in the block, the temporary file is removed, ``path`` keeps its
+    old content, and an OSError is re-raised as OutputError("cannot write PATH: reason; ...").
+    """
+    path = Path(path)
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}")
+    except OSError as e:
+        raise OutputError(f"cannot write {path}: {_describe(e)}") from e
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        with open(tmp, "rb+") as f:     # the data must be on disk before the rename publishes it
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        if isinstance(e, OSError) and not isinstance(e, OutputError):
+            kept = " (the existing file is unchanged)" if path.exists() else ""
+            raise OutputError(f"cannot write {path}: {_describe(e)}{kept}") from e
+        raise
+
+
+def write_bytes(path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (see :func:`atomic_path`)."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def write_text(path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_path`)."""
+    write_bytes(path, text.encode("utf-8"))
+
+
+def _check_folder_path(path, option: str) -> Path:
+    """The folder ``path`` as a Path, or OutputError saying why it cannot be an output folder."""
+    text = os.fspath(path) if isinstance(path, os.PathLike) else path
+    if not isinstance(text, str) or not text.strip():
+        raise OutputError(f"{option} must name a folder, got {path!r}")
+    folder = Path(text)
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(f"{option} {folder} exists and is not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"{option} {folder}: cannot create the folder: {_describe(e)}") from e
+    return folder
+
+
+class OutputFolder:
+    """An output folder, locked while the ``with`` block runs.
+
+    ``OutputFolder(path, what="fit-face")`` checks and creates the folder; entering takes the
+    lock or raises OutputError naming the run that holds it; leaving releases it and removes the
+    lock file. ``option`` is how the error messages name the folder (e.g. "--out").
+    """
+
+    def __init__(self, path, what: str = "softras-cl", option: str = "output folder"):
+        self.path = _check_folder_path(path, option)
+        self.what, self.option = what, option
+        self._file = None
+
+    @property
+    def lock_path(self) -> Path:
+        return self.path / LOCK_NAME
+
+    def __enter__(self) -> "OutputFolder":
+        for _ in range(10):     # the file may be replaced between open and lock: retry
+            f = self._open_lock_file()
+            if not _try_lock(f):
+                holder = _read_holder(self.lock_path)
+                f.close()
+                raise OutputError(f"{self.option} {self.path} is in use by another softras-cl run"
+                                  f"{holder}; wait for it to finish or choose another {self.option}")
+            if _same_file(f, self.lock_path):
+                break
+            f.close()
+        else:
+            raise OutputError(f"{self.option} {self.path}: could not take the lock {self.lock_path}")
+        self._file = f
+        f.seek(0)
+        f.truncate()
+        f.write(json.dumps(dict(pid=os.getpid(), run=self.what,
+                                started=time.strftime("%Y-%m-%d %H:%M:%S"))).encode())
+        f.flush()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._file is not None:
+            with contextlib.suppress(OSError):
+                self.lock_path.unlink()      # before unlocking: a waiter then re-creates it
+            self._file.close()               # closing releases the lock
+            self._file = None
+
+    def _open_lock_file(self):
+        try:
+            return open(self.lock_path, "a+b")
+        except OSError as e:
+            raise OutputError(f"{self.option} {self.path} is not writable: {_describe(e)}") from e
+
+
+def _try_lock(f) -> bool:
+    """Take an exclusive lock on the open file ``f`` without waiting; False if another holds it."""
+    try:
+        if sys.platform == "win32":
+            import msvcrt
+            f.seek(0)
+            msvcrt.locking(f.fileno(), msvcrt.LK_NBLCK, 1)
+        else:
+            import fcntl
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except OSError as e:
+        if e.errno in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK, errno.EDEADLK):
+            return False
+        raise OutputError(f"cannot lock {f.name}: {_describe(e)}") from e
+
+
+def _same_file(f, path: Path) -> bool:
+    """Is the open file ``f`` still the file at ``path`` (not unlinked by the previous holder)?"""
+    try:
+        return os.path.samestat(os.fstat(f.fileno()), os.stat(path))
+    except OSError:
+        return False
+
+
+def _read_holder(lock_path: Path) -> str:
+    """' (pid N, fit-face, started ...)' from a lock file, or '' when it cannot be read."""
+    try:
+        info = json.loads(lock_path.read_text())
+        return f" (pid {info['pid']}, {info['run']}, started {info['started']})"
+    except (OSError, ValueError, KeyError, TypeError):
+        return ""
