@@ -52,14 +52,21 @@ Files (``out_dir``)
 -------------------
 - ``checkpoint.npz``: the best values so far (one array per block name) plus ``__stage__``
   (stage name), ``__iter__`` (evaluation of that stage at which the best was found), ``__loss__``
-  (its loss) and ``__evals__`` (evaluations so far, all stages). Written atomically (temp file,
-  then ``os.replace``) when the best improves, at most every ``CHECKPOINT_INTERVAL`` seconds,
-  and always at the end of each stage, on interruption and before raising. Read it with
-  :func:`load_checkpoint` or ``np.load``.
+  (its loss), ``__evals__`` (evaluations so far, all stages) and ``__completed__`` (stages
+  finished). Written atomically (temp file, then ``os.replace``) when the best improves, at most
+  every ``CHECKPOINT_INTERVAL`` seconds, and always at the end of each stage, on interruption
+  and before raising. Read it with :func:`load_checkpoint` or ``np.load``.
 - ``history.json``: ``{"stages": [...], "outcomes": {...}, "interrupted": bool, "history": [...]}``
   where each history entry is ``{"stage", "iter", "loss", "terms"}``, one per evaluation.
 - ``loss_curve.png``: total loss and each term against the evaluation index, log y axis, stage
   boundaries marked.
+
+Resuming
+--------
+``fit(..., out_dir=DIR, resume=True)`` continues the fit whose checkpoint.npz is in DIR: the
+values start from the checkpoint (which must hold exactly the blocks and shapes of ``params``),
+the stages it finished are skipped (their history and outcomes are read back from
+history.json), and the stage it was in runs again from its best point, with its full budget.
 
 A tqdm bar on stderr shows the stage, evaluation and loss (``progress=False`` disables it).
 """
@@ -68,10 +75,7 @@ from __future__ import annotations
 import json
 import math
 import os
-import signal
 import sys
-import tempfile
-import threading
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -81,12 +85,15 @@ import nlopt
 import numpy as np
 
 from softras_cl.fitting.params import ParamSet
+from softras_cl.errors import InputError
+from softras_cl.interrupts import first_interrupt_calls
+from softras_cl.io.outputs import atomic_path, write_bytes
 
 __all__ = ["Stage", "FitResult", "FitError", "Objective", "fit", "load_checkpoint",
            "CHECKPOINT_INTERVAL"]
 
 CHECKPOINT_INTERVAL = 0.5       # seconds between two checkpoint writes during a stage
-_META_KEYS = ("__stage__", "__iter__", "__loss__", "__evals__")
+_META_KEYS = ("__stage__", "__iter__", "__loss__", "__evals__", "__completed__")
 
 _RESULT_NAMES = {getattr(nlopt, n): n for n in (
     "SUCCESS", "STOPVAL_REACHED", "FTOL_REACHED", "XTOL_REACHED", "MAXEVAL_REACHED",
@@ -153,11 +160,13 @@ class _NonFinite(Exception):
 
 
 def load_checkpoint(path) -> tuple[dict, dict]:
-    """Read ``checkpoint.npz`` -> (values: name -> array, meta: dict(stage, iter, loss, evals))."""
+    """Read ``checkpoint.npz`` -> (values: name -> array, meta: dict(stage, iter, loss, evals,
+    completed)); ``completed`` (stages finished) is 0 in checkpoints that predate it."""
     with np.load(path, allow_pickle=False) as z:
         values = {k: np.array(z[k]) for k in z.files if k not in _META_KEYS}
         meta = {"stage": str(z["__stage__"]), "iter": int(z["__iter__"]),
-                "loss": float(z["__loss__"]), "evals": int(z["__evals__"])}
+                "loss": float(z["__loss__"]), "evals": int(z["__evals__"]),
+                "completed": int(z["__completed__"]) if "__completed__" in z.files else 0}
     return values, meta
 
 
@@ -166,51 +175,8 @@ def _new_opt(n: int):
     return nlopt.opt(nlopt.LD_LBFGS, n)
 
 
-def _atomic_write(path: Path, write: Callable) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}-", suffix=path.suffix + ".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-
-
 def _float_or_none(v):
     return float(v) if math.isfinite(v) else None
-
-
-class _SigintToFlag:
-    """While active, a first Ctrl-C sets a flag and forces nlopt to stop (instead of raising in
-    the middle of nlopt's callback, where nlopt would swallow it); a second one raises."""
-
-    def __init__(self, state):
-        self.state, self.prev, self.active = state, None, False
-
-    def __enter__(self):
-        if (threading.current_thread() is threading.main_thread()
-                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
-            self.prev = signal.signal(signal.SIGINT, self._handler)
-            self.active = True
-        return self
-
-    def _handler(self, signum, frame):
-        self.state.interrupt = True
-        if self.state.opt is not None:
-            try:
-                self.state.opt.force_stop()
-            except Exception:
-                pass
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-
-    def __exit__(self, *exc):
-        if self.active:
-            signal.signal(signal.SIGINT, self.prev)
-        return False
 
 
 class _State:
@@ -232,6 +198,7 @@ class _Fit:
         self.current = params.values()        # best values so far (start of the next stage)
         self.current_loss = math.inf
         self.ckpt_meta = ("", 0, math.inf)    # (stage, iter, loss) of self.current
+        self.completed = 0                    # stages finished (the next one to run)
         self.bar = None
         self.progress = progress
 
@@ -242,8 +209,10 @@ class _Fit:
         arrays = {k: np.asarray(v, dtype=np.float64) for k, v in values.items()}
         arrays.update(__stage__=np.array(stage), __iter__=np.array(it, dtype=np.int64),
                       __loss__=np.array(loss, dtype=np.float64),
-                      __evals__=np.array(self.evals, dtype=np.int64))
-        _atomic_write(self.out / "checkpoint.npz", lambda f: np.savez(f, **arrays))
+                      __evals__=np.array(self.evals, dtype=np.int64),
+                      __completed__=np.array(self.completed, dtype=np.int64))
+        with atomic_path(self.out / "checkpoint.npz") as tmp:
+            np.savez(tmp, **arrays)
         self.last_write = time.monotonic()
 
     def write_history(self, interrupted):
@@ -261,7 +230,7 @@ class _Fit:
         head = json.dumps({k: v for k, v in doc.items() if k != "history"}, indent=1, default=str)
         rows = ",\n".join("  " + json.dumps(h, default=str) for h in doc["history"])
         text = (head[:-2] + ',\n "history": [\n' + rows + "\n ]\n}\n").encode()
-        _atomic_write(self.out / "history.json", lambda f: f.write(text))
+        write_bytes(self.out / "history.json", text)
 
     def write_plot(self):
         if self.out is None:
@@ -312,12 +281,20 @@ class _Fit:
         if n:
             ax.legend(fontsize=8, loc="upper right")
         fig.tight_layout()
-        _atomic_write(self.out / "loss_curve.png", lambda f: fig.savefig(f, format="png"))
+        with atomic_path(self.out / "loss_curve.png") as tmp:
+            fig.savefig(tmp, format="png")
 
     def write_all(self, interrupted):
         self.write_checkpoint(self.current, *self.ckpt_meta)
         self.write_history(interrupted)
         self.write_plot()
+
+    def stop_at_next_evaluation(self, signum):
+        """The first Ctrl-C/SIGTERM: nlopt stops after the running evaluation (raising inside
+        nlopt's callback would be swallowed by nlopt); the best values are kept."""
+        self.state.interrupt = True
+        if self.state.opt is not None:
+            self.state.opt.force_stop()
 
     # ---- one stage -------------------------------------------------------------------------
     def run_stage(self, stage: Stage):
@@ -330,7 +307,7 @@ class _Fit:
         abort: list[BaseException] = []
         k = [0]
         budget, over_budget = int(stage.max_iters), [False]
-        self.boundaries.append((self.evals + 1, stage.name))
+        self.boundaries.append((len(self.history) + 1, stage.name))
         opt = _new_opt(x0.size)
         self.state.opt = opt
 
@@ -441,18 +418,63 @@ class _Fit:
             raise FitError(f"stage {stage.name!r}: nlopt stopped with {outcome} "
                            f"({type(error).__name__}: {error}) before any finite evaluation",
                            stage=stage.name) from error
+        if not self.state.interrupt:
+            self.completed += 1
         self.write_checkpoint(self.current, *self.ckpt_meta)
+
+    # ---- resuming --------------------------------------------------------------------------
+    def resume(self) -> None:
+        """Start from out/checkpoint.npz: its values, the stages it finished skipped, their
+        history and outcomes read back from history.json. InputError when it does not fit."""
+        path = self.out / "checkpoint.npz"
+        if not path.is_file():
+            raise InputError(f"cannot resume: {path} does not exist (no fit was started there)")
+        try:
+            values, meta = load_checkpoint(path)
+        except (OSError, ValueError, KeyError) as e:
+            raise InputError(f"cannot resume from {path}: not a readable checkpoint ({e})") from e
+        expected = {n: self.params.shape(n) for n in self.params.names}
+        found = {n: tuple(v.shape) for n, v in values.items()}
+        names = [st.name for st in self.stages]
+        if found != expected or meta["completed"] > len(names) or meta["stage"] not in names + [""]:
+            raise InputError(f"cannot resume from {path}: it is the checkpoint of another fit "
+                             f"(blocks {found}, stage {meta['stage']!r}); this fit has blocks "
+                             f"{expected} and stages {names}")
+        try:
+            self.params.set(values)
+        except ValueError as e:
+            raise InputError(f"cannot resume from {path}: {e}") from e
+        self.current, self.current_loss = self.params.values(), meta["loss"]
+        self.ckpt_meta = (meta["stage"], meta["iter"], meta["loss"])
+        self.completed, self.evals = meta["completed"], meta["evals"]
+        self._read_back_history(set(names[:self.completed]))
+
+    def _read_back_history(self, finished: set) -> None:
+        """History entries and outcomes of the ``finished`` stages from history.json, if any."""
+        try:
+            doc = json.loads((self.out / "history.json").read_text())
+        except (OSError, ValueError):
+            return
+        for h in doc.get("history", []):
+            if h.get("stage") in finished:
+                if not self.history or self.history[-1]["stage"] != h["stage"]:
+                    self.boundaries.append((len(self.history) + 1, h["stage"]))
+                loss = math.nan if h.get("loss") is None else float(h["loss"])
+                terms = {k: math.nan if v is None else float(v) for k, v in h.get("terms", {}).items()}
+                self.history.append({"stage": h["stage"], "iter": h["iter"], "loss": loss, "terms": terms})
+        self.outcomes.update({k: v for k, v in doc.get("outcomes", {}).items() if k in finished})
 
     def run(self) -> FitResult:
         from tqdm import tqdm
-        total = sum(int(s.max_iters) for s in self.stages)
+        remaining = self.stages[self.completed:]
+        total = sum(int(s.max_iters) for s in remaining)
         self.bar = tqdm(total=total, file=sys.stderr, disable=not self.progress, leave=True,
                         dynamic_ncols=True, unit="eval")
         if self.bar.disable:
             self.bar = None
         try:
-            with _SigintToFlag(self.state):
-                for stage in self.stages:
+            with first_interrupt_calls(self.stop_at_next_evaluation):
+                for stage in remaining:
                     if self.state.interrupt:
                         break
                     self.run_stage(stage)
@@ -496,8 +518,9 @@ def _check_stages(params: ParamSet, stages) -> list[Stage]:
 
 
 def fit(params: ParamSet, objective: Objective, stages: Sequence[Stage], out_dir=None,
-        progress: bool = True) -> FitResult:
+        progress: bool = True, resume: bool = False) -> FitResult:
     """Run the stages in order from ``params``' current values; see the module docstring.
+    ``resume`` (needs ``out_dir``) continues from the checkpoint.npz there (see "Resuming").
 
     On return (and on interruption) ``params`` holds the best values found, and so does
     ``FitResult.values``.
@@ -510,6 +533,11 @@ def fit(params: ParamSet, objective: Objective, stages: Sequence[Stage], out_dir
     clash = [n for n in params.names if n in _META_KEYS]
     if clash:
         raise ValueError(f"block name(s) {clash} are reserved for checkpoint metadata")
+    if resume and out_dir is None:
+        raise ValueError("resume=True needs out_dir (the folder holding checkpoint.npz)")
     if out_dir is not None:
         os.makedirs(out_dir, exist_ok=True)
-    return _Fit(params, objective, stages, out_dir, progress).run()
+    run = _Fit(params, objective, stages, out_dir, progress)
+    if resume:
+        run.resume()
+    return run.run()

@@ -32,10 +32,11 @@ TOP = "softras_cl"
 DATA_PACKAGES = {"softras_cl.kernels"}       # OpenCL C sources shipped as package data
 
 # layer -> the layers it may import (besides itself)
-LOW = {"checks", "errors"}
+LOW = {"checks", "errors", "interrupts"}
 ALLOWED = {
     "checks": set(),
     "errors": set(),
+    "interrupts": set(),
     "io": LOW,
     "cl": LOW,
     "raster": LOW | {"cl"},

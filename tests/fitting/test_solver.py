@@ -276,6 +276,80 @@ def test_interruption_leaves_a_readable_checkpoint(tmp_path, how):
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
 
 
+def test_sigterm_stops_like_ctrl_c_when_its_handler_raises_keyboard_interrupt(tmp_path):
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("needs the main thread")
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)   # as `softras-cl` sets it
+    try:
+        seen = []
+
+        def obj(values, stage):
+            if len(seen) == 3:
+                os.kill(os.getpid(), signal.SIGTERM)
+            seen.append(1)
+            return rosen(values, stage)
+
+        res = fit(rosen_params(0.0, 0.0), obj, [Stage("s1", ("x", "y"), max_iters=200)],
+                  out_dir=tmp_path, progress=False)
+        assert res.interrupted and res.outcomes == {"s1": "INTERRUPTED"} and len(seen) == 4
+        assert load_checkpoint(tmp_path / "checkpoint.npz")[1]["completed"] == 0
+        assert signal.getsignal(signal.SIGTERM) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+QUAD_STAGES = [Stage("coarse", ("a",), max_iters=60), Stage("fine", ("b",), max_iters=60)]
+
+
+def test_resume_after_an_interrupt_in_the_second_stage_reaches_the_same_answer(tmp_path):
+    uninterrupted = fit(quad_params(), Quadratic(), QUAD_STAGES, progress=False)
+    calls = []
+
+    def interrupted(values, stage):
+        calls.append(stage.name)
+        if stage.name == "fine" and calls.count("fine") == 3:
+            raise KeyboardInterrupt
+        return Quadratic()(values, stage)
+
+    first = fit(quad_params(), interrupted, QUAD_STAGES, out_dir=tmp_path, progress=False)
+    assert first.interrupted and load_checkpoint(tmp_path / "checkpoint.npz")[1]["completed"] == 1
+    n_coarse = calls.count("coarse")
+
+    obj = Quadratic()
+    resumed = fit(quad_params(), obj, QUAD_STAGES, out_dir=tmp_path, progress=False, resume=True)
+    assert not resumed.interrupted
+    assert {s.name for s, *_ in obj.seen} == {"fine"}          # the finished stage is skipped
+    np.testing.assert_array_equal(obj.seen[0][3]["a"], first.values["a"])   # from the checkpoint
+    np.testing.assert_allclose(resumed.values["b"], uninterrupted.values["b"], rtol=1e-6)
+    np.testing.assert_array_equal(resumed.values["a"], uninterrupted.values["a"])
+    # the finished stage's history and outcome are read back; the interrupted stage reruns
+    assert [h["stage"] for h in resumed.history] == ["coarse"] * n_coarse + ["fine"] * len(obj.seen)
+    assert resumed.outcomes["coarse"] == first.outcomes["coarse"]
+    assert load_checkpoint(tmp_path / "checkpoint.npz")[1]["completed"] == 2
+
+
+def test_resume_of_a_finished_fit_runs_nothing(tmp_path):
+    done = fit(quad_params(), Quadratic(), QUAD_STAGES, out_dir=tmp_path, progress=False)
+    obj = Quadratic()
+    again = fit(quad_params(), obj, QUAD_STAGES, out_dir=tmp_path, progress=False, resume=True)
+    assert obj.seen == []
+    for name in ("a", "b"):
+        np.testing.assert_array_equal(again.values[name], done.values[name])
+
+
+def test_resume_refuses_a_missing_or_foreign_checkpoint(tmp_path):
+    with pytest.raises(ValueError, match="does not exist"):
+        fit(quad_params(), Quadratic(), QUAD_STAGES, out_dir=tmp_path, progress=False, resume=True)
+    fit(rosen_params(), rosen, [Stage("s1", ("x", "y"), max_iters=3)], out_dir=tmp_path, progress=False)
+    with pytest.raises(ValueError, match="checkpoint of another fit"):
+        fit(quad_params(), Quadratic(), QUAD_STAGES, out_dir=tmp_path, progress=False, resume=True)
+    (tmp_path / "checkpoint.npz").write_bytes(b"not an npz")
+    with pytest.raises(ValueError, match="not a readable checkpoint"):
+        fit(quad_params(), Quadratic(), QUAD_STAGES, out_dir=tmp_path, progress=False, resume=True)
+    with pytest.raises(ValueError, match="needs out_dir"):
+        fit(quad_params(), Quadratic(), QUAD_STAGES, progress=False, resume=True)
+
+
 def test_nan_gradient_raises_naming_stage_and_block(tmp_path):
     params = quad_params()
     n = [0]
