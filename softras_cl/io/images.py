@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.io.outputs import atomic_path
+
 __all__ = ["read_image", "write_image", "to_srgb", "to_linear"]
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -169,7 +171,7 @@ def write_image(path, image, bits: int = 8) -> None:
     image: (H, W, 3) linear RGB, (H, W, 4) linear RGB + alpha, or (H, W) linear grey; values are
     clipped to [0, 1], colour channels encoded with the sRGB curve (alpha stored as is) and
     rounded to `bits` = 8 (any format Pillow writes, chosen by the extension: .png, .jpg, ...)
-    or 16 (.png only).
+    or 16 (.png only). The file is replaced atomically (softras_cl.io.outputs.atomic_path).
     """
     path = Path(path)
     if bits not in (8, 16):
@@ -191,7 +193,7 @@ def write_image(path, image, bits: int = 8) -> None:
         channels = 1 if q.ndim == 2 else q.shape[-1]
         writer = png.Writer(width=w, height=h, greyscale=channels == 1, alpha=channels == 4,
                             bitdepth=16)
-        with open(path, "wb") as f:
+        with atomic_path(path) as tmp, open(tmp, "wb") as f:
             writer.write(f, q.reshape(h, w * channels))
         return
     from PIL import Image
@@ -200,7 +202,11 @@ def write_image(path, image, bits: int = 8) -> None:
     if q.ndim == 3 and q.shape[-1] == 4 and suffix in (".jpg", ".jpeg"):
         raise ValueError(f"JPEG cannot store alpha: write an (H, W, 3) image to {path}, "
                          "or use .png")
+    fmt = Image.registered_extensions().get(suffix)
+    if fmt is None:
+        raise ValueError(f"cannot write image {path}: unknown extension {path.suffix!r}")
     try:
-        Image.fromarray(q).save(path)
-    except (KeyError, ValueError) as e:   # Pillow: unknown extension, or mode not writable
+        with atomic_path(path) as tmp:
+            Image.fromarray(q).save(tmp, format=fmt)
+    except (KeyError, ValueError) as e:   # Pillow: mode not writable in this format
         raise ValueError(f"cannot write image {path}: {e}") from e

@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from softras_cl.io.images import pil_to_array, to_linear, to_srgb
+from softras_cl.io.outputs import write_bytes, write_text
 
 __all__ = ["Mesh", "load_mesh", "save_mesh", "MESH_EXTENSIONS", "SAVE_EXTENSIONS"]
 
@@ -441,7 +442,7 @@ def save_mesh(path, vertices, faces, colors=None) -> None:
 
     colors (V, 3) linear RGB are clipped to [0, 1], sRGB-encoded and rounded to 8 bits (PLY
     uchar red/green/blue/alpha; OBJ `v x y z r g b` with r, g, b = byte / 255). PLY stores
-    positions as float32; OBJ with 10 decimals.
+    positions as float32; OBJ with 10 decimals. The file is replaced atomically.
     """
     import trimesh
     from trimesh.exchange.obj import export_obj
@@ -460,9 +461,7 @@ def save_mesh(path, vertices, faces, colors=None) -> None:
     tm = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, vertex_colors=rgba,
                          process=False)
     if ext == ".ply":
-        data = export_ply(tm, encoding="binary", vertex_normal=False)
-        path.write_bytes(data)
+        write_bytes(path, export_ply(tm, encoding="binary", vertex_normal=False))
     else:
-        text = export_obj(tm, include_normals=False, include_color=rgba is not None,
-                          include_texture=False, digits=10)
-        path.write_text(text)
+        write_text(path, export_obj(tm, include_normals=False, include_color=rgba is not None,
+                                    include_texture=False, digits=10))

@@ -1,0 +1,136 @@
+"""Atomic writes and locked output folders (softras_cl.io.outputs)."""
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from softras_cl.errors import OutputError
+from softras_cl.io.images import write_image
+from softras_cl.io.outputs import LOCK_NAME, OutputFolder, atomic_path, write_text
+
+
+def leftovers(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if ".tmp" in p.name)
+
+
+def test_atomic_write_replaces_the_file_and_leaves_no_temporary(tmp_path):
+    target = tmp_path / "a.json"
+    write_text(target, "old")
+    write_text(target, "new")
+    assert target.read_text() == "new" and leftovers(tmp_path) == []
+
+
+def test_a_failed_write_keeps_the_old_file_and_names_it(tmp_path):
+    target = tmp_path / "figure.png"
+    write_text(target, "old result")
+    with pytest.raises(OutputError, match=r"cannot write .*figure.png: No space left on device "
+                                          r"\(the existing file is unchanged\)"):
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"half")
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    assert target.read_text() == "old result" and leftovers(tmp_path) == []
+
+
+def test_an_interrupted_write_keeps_the_old_file(tmp_path):
+    target = tmp_path / "params.npz"
+    write_text(target, "old")
+    with pytest.raises(KeyboardInterrupt):
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"partial")
+            raise KeyboardInterrupt
+    assert target.read_text() == "old" and leftovers(tmp_path) == []
+
+
+@contextlib.contextmanager
+def tiny_filesystem(tmp_path: Path, size: str = "64k"):
+    """A real tmpfs of ``size`` (root only), so 'disk full' is the kernel's, not a mock."""
+    mount = tmp_path / "tiny"
+    mount.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs",
+                                            str(mount)], capture_output=True).returncode != 0:
+        pytest.skip("a full disk is simulated with a small tmpfs, which needs root and mount")
+    try:
+        yield mount
+    finally:
+        subprocess.run(["umount", str(mount)], check=False)
+
+
+def test_a_full_disk_keeps_the_existing_image(tmp_path):
+    with tiny_filesystem(tmp_path) as disk:
+        target = disk / "render.png"
+        write_image(target, np.full((8, 8, 3), 0.5))
+        before = target.read_bytes()
+        noise = np.random.default_rng(0).random((256, 256, 3))   # does not compress: > 64 kB
+        with pytest.raises(OutputError, match="No space left on device"):
+            write_image(target, noise)
+        assert target.read_bytes() == before and leftovers(disk) == []
+
+
+@pytest.mark.parametrize("path, message", [
+    ("", "must name a folder"),
+    ("   ", "must name a folder"),
+    ("/proc/softras-cl-out", "cannot create the folder"),
+])
+def test_unusable_output_folders_are_refused(path, message):
+    with pytest.raises(OutputError, match=message):
+        OutputFolder(path, option="--out")
+
+
+def test_an_existing_file_is_not_a_folder(tmp_path):
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(OutputError, match="exists and is not a folder"):
+        OutputFolder(tmp_path / "file", option="--out")
+
+
+HOLD = """
+import sys, time
+from softras_cl.io.outputs import OutputFolder
+with OutputFolder(sys.argv[1], "holder test"):
+    print("locked", flush=True)
+    time.sleep(60)
+"""
+
+
+def start_holder(folder: Path) -> subprocess.Popen:
+    holder = subprocess.Popen([sys.executable, "-c", HOLD, str(folder)], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "locked"
+    return holder
+
+
+def test_a_second_writer_is_refused_while_the_first_holds_the_folder(tmp_path):
+    holder = start_holder(tmp_path)
+    try:
+        with pytest.raises(OutputError, match=rf"in use by another softras-cl run \(pid {holder.pid}, "
+                                              r"holder test, started .*\); wait for it"):
+            with OutputFolder(tmp_path, option="--out"):
+                pass
+    finally:
+        holder.terminate()
+        holder.wait()
+    with OutputFolder(tmp_path) as out:          # free again once the holder has gone
+        assert out.lock_path.exists()
+    assert not (tmp_path / LOCK_NAME).exists()   # removed on exit
+
+
+def test_a_killed_holder_does_not_block_the_next_run(tmp_path):
+    holder = start_holder(tmp_path)
+    holder.send_signal(signal.SIGKILL)
+    holder.wait()
+    assert (tmp_path / LOCK_NAME).exists()       # left behind by kill -9, but not locked
+    with OutputFolder(tmp_path):
+        pass
+
+
+def test_the_lock_is_exclusive_within_one_process_too(tmp_path):
+    with OutputFolder(tmp_path, "first"):
+        with pytest.raises(OutputError, match="first"):
+            with OutputFolder(tmp_path, "second"):
+                pass
