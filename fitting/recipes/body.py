@@ -507,7 +507,8 @@ class BodyFit:
 
 
 def fit_body(target, model, config: BodyFitConfig = BodyFitConfig(), joints=None, joint_weights=None,
-             init: dict | None = None, out_dir=None, progress: bool = True, observer=None) -> BodyFit:
+             init: dict | None = None, out_dir=None, progress: bool = True, observer=None,
+             resume: bool = False) -> BodyFit:
     """Fit ``model`` to a target image and optional 2D joints.
 
     target: (H, W) silhouette, (H, W, 3) part-coloured linear RGB on ``config.background`` or
@@ -515,7 +516,8 @@ def fit_body(target, model, config: BodyFitConfig = BodyFitConfig(), joints=None
     init: starting blocks (default: mean shape in the rest pose, moved so its silhouette centroid
     matches the target's). With ``out_dir`` the solver writes checkpoint.npz (best values so far)
     as it goes, history.json and loss_curve.png; Ctrl-C stops and keeps the best values
-    (result.interrupted). observer: see :class:`BodyObjective`.
+    (result.interrupted); ``resume`` continues from the checkpoint in ``out_dir`` (see
+    softras_cl.fitting.solver). observer: see :class:`BodyObjective`.
     """
     data = prepare_target(target, config.size, config.background, joints, joint_weights, model.n_joints)
     scene = BodyScene(model, data.alpha.shape, config)
@@ -524,5 +526,6 @@ def fit_body(target, model, config: BodyFitConfig = BodyFitConfig(), joints=None
         init["translation"] = initial_translation(scene, init, data.alpha)
     params = body_params(model, {k: np.asarray(v, np.float64) for k, v in init.items()})
     objective = BodyObjective(scene, data, config.robust_px, observer)
-    result = fit(params, objective, default_stages(config, data), out_dir=out_dir, progress=progress)
+    result = fit(params, objective, default_stages(config, data), out_dir=out_dir, progress=progress,
+                 resume=resume)
     return BodyFit(result.values, scene, data, result)

@@ -524,11 +524,12 @@ class FaceFit:
 
 
 def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), out_dir=None,
-             progress: bool = True) -> FaceFit:
+             progress: bool = True, resume: bool = False) -> FaceFit:
     """Fit ``model`` to a photo (H, W, 3) linear RGB and its 68 landmarks (68, 2) pixels.
 
     With ``out_dir`` the solver writes checkpoint.npz (best values so far) as it goes,
-    history.json and loss_curve.png; Ctrl-C stops and keeps the best values (result.interrupted).
+    history.json and loss_curve.png; Ctrl-C stops and keeps the best values (result.interrupted);
+    ``resume`` continues from the checkpoint in ``out_dir`` (see softras_cl.fitting.solver).
     """
     if model.n_landmarks != N_LANDMARKS:
         raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
@@ -552,7 +553,7 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
     sh = initial_light(scene, values, image)
     params = face_params(model, focal, rotation, translation, sh)
     stages = default_stages(config, fit_focal=config.focal is None)
-    result = fit(params, objective, stages, out_dir=out_dir, progress=progress)
+    result = fit(params, objective, stages, out_dir=out_dir, progress=progress, resume=resume)
     mask = objective.mask if objective.mask is not None else objective.face_region(result.values, 1e-6, 1e-4)
     return FaceFit(result.values, scene, image, target, crop, mask, result, objective)
 

@@ -11,12 +11,12 @@
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from softras_cl.io.meshes import save_mesh
+from softras_cl.io.outputs import atomic_path, write_figure, write_json
 from softras_cl.fitting.recipes.body import BodyFit, BodyScene
 from softras_cl.fitting.reports.face import SHARP
 from softras_cl.provenance import provenance
@@ -60,7 +60,7 @@ def save_overlay(fit: BodyFit, target: np.ndarray, path: Path) -> None:
         ax.scatter(*given[seen].T, s=6, c="lime", marker="x", zorder=3)
     ax.set(xlim=(-0.5, w - 0.5), ylim=(h - 0.5, -0.5))
     ax.axis("off")
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
 
 
 def camera_matrices(camera) -> dict:
@@ -70,8 +70,9 @@ def camera_matrices(camera) -> dict:
 
 
 def write_outputs(fit: BodyFit, target: np.ndarray, out_dir, extra: dict | None = None,
-                  run_config=None) -> dict:
-    """Write every output of a fit into ``out_dir``; returns the metrics written.
+                  run_config=None, metrics: dict | None = None) -> dict:
+    """Write every output of a fit into ``out_dir`` (each file replaced atomically); returns the
+    metrics written (``metrics``: those of ``fit.metrics()`` if the caller has them already).
 
     target: the full-size target as given to fit_body; extra: more JSON-able facts for
     params.json; run_config: the run's effective configuration, recorded with the versions,
@@ -79,14 +80,15 @@ def write_outputs(fit: BodyFit, target: np.ndarray, out_dir, extra: dict | None 
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    metrics = fit.metrics()
+    metrics = fit.metrics() if metrics is None else metrics
     state, _ = fit.scene.pose(fit.values)
     save_mesh(out / "body.ply", state.vertices, fit.scene.model.faces, colors=fit.scene.colors)
     save_overlay(fit, target, out / "overlay.png")
     camera = full_size_scene(fit, max(fit.target.full_size)).camera
     arrays = {**{k: np.asarray(v) for k, v in fit.values.items()}, **camera_matrices(camera),
               "joints_3d": state.joints, "joints_px": camera.project_pixels(state.joints)[0]}
-    np.savez(out / "params.npz", **arrays)
+    with atomic_path(out / "params.npz") as tmp:
+        np.savez(tmp, **arrays)
     config = fit.scene.config
     doc = dict(metrics=metrics, interrupted=fit.result.interrupted, outcomes=fit.result.outcomes,
                target_size=list(fit.target.full_size), working_size=list(fit.scene.image_size),
@@ -94,5 +96,5 @@ def write_outputs(fit: BodyFit, target: np.ndarray, out_dir, extra: dict | None 
                joint_names=fit.scene.model.joint_names,
                params={k: np.asarray(v).tolist() for k, v in arrays.items()},
                provenance=provenance(config if run_config is None else run_config), **(extra or {}))
-    (out / "params.json").write_text(json.dumps(doc, indent=2))
+    write_json(out / "params.json", doc)
     return metrics

@@ -10,7 +10,6 @@
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +17,7 @@ import numpy as np
 from softras_cl.scene.rotation import axis_angle_to_matrix
 from softras_cl.io.images import to_srgb, write_image
 from softras_cl.io.meshes import save_mesh
+from softras_cl.io.outputs import atomic_path, write_figure, write_json
 from softras_cl.scene.shading import SHLight
 from softras_cl.fitting.recipes.face import CAMERA_ROTATION, FaceFit, FaceScene
 from softras_cl.provenance import provenance
@@ -98,7 +98,7 @@ def save_figure(fit: FaceFit, path: Path, metrics: dict) -> None:
     fig.suptitle(f"landmark error {metrics['landmark_error_px_full']:.2f} px (full size), "
                  f"face-region PSNR {metrics['psnr_face_db']:.1f} dB (sRGB)", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path, dpi=110)
 
 
 def camera_matrices(fit: FaceFit, photo_size) -> dict:
@@ -112,8 +112,9 @@ def camera_matrices(fit: FaceFit, photo_size) -> dict:
 
 
 def write_outputs(fit: FaceFit, photo: np.ndarray, out_dir, extra: dict | None = None,
-                  run_config=None) -> dict:
-    """Write every output of a fit into ``out_dir``; returns the metrics written.
+                  run_config=None, metrics: dict | None = None) -> dict:
+    """Write every output of a fit into ``out_dir`` (each file replaced atomically); returns the
+    metrics written (``metrics``: those of ``fit.metrics()`` if the caller has them already).
 
     photo (H, W, 3) linear RGB at full size; extra: more JSON-able facts for params.json;
     run_config: the run's effective configuration (e.g. its FaceFitConfig), recorded with the
@@ -121,7 +122,7 @@ def write_outputs(fit: FaceFit, photo: np.ndarray, out_dir, extra: dict | None =
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    metrics = fit.metrics()
+    metrics = fit.metrics() if metrics is None else metrics
     values = fit.values
     model = fit.scene.model
     save_mesh(out / "face.ply", model.shape(values["id"], values["exp"])[0], model.faces,
@@ -130,11 +131,12 @@ def write_outputs(fit: FaceFit, photo: np.ndarray, out_dir, extra: dict | None =
     save_figure(fit, out / "figure.png", metrics)
     cam = camera_matrices(fit, photo.shape[:2])
     arrays = {**{k: np.asarray(v) for k, v in values.items()}, **cam}
-    np.savez(out / "params.npz", **arrays)
+    with atomic_path(out / "params.npz") as tmp:
+        np.savez(tmp, **arrays)
     doc = dict(metrics=metrics, interrupted=fit.result.interrupted, outcomes=fit.result.outcomes,
                model=model.name, photo_size=list(photo.shape[:2]),
                working_size=list(fit.image.shape[:2]),
                params={k: np.asarray(v).tolist() for k, v in arrays.items()},
                provenance=provenance(run_config), **(extra or {}))
-    (out / "params.json").write_text(json.dumps(doc, indent=2))
+    write_json(out / "params.json", doc)
     return metrics

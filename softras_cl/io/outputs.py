@@ -10,12 +10,19 @@
   clear message instead of mixing its files with the first one's. The lock is an OS file lock
   (``flock``; ``msvcrt.locking`` on Windows) on ``.softras-cl.lock``: it is released when the
   process ends, even by ``kill -9``, so a crashed run never blocks the next one.
+- The run records of a folder: :meth:`OutputFolder.begin` writes ``run.json`` (the command, a
+  SHA-256 of each input file and the options that change the result) and removes
+  ``complete.json``; :meth:`OutputFolder.finish` writes ``complete.json`` after every other
+  output. A folder without ``complete.json`` holds an unfinished run; resuming it is allowed only
+  for the same inputs and options (:meth:`OutputFolder.begin` with ``resume=True``).
 """
 from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import json
+import math
 import os
 import sys
 import tempfile
@@ -23,11 +30,15 @@ import time
 from pathlib import Path
 from typing import Iterator
 
-from softras_cl.errors import OutputError
+from softras_cl.errors import InputError, OutputError
 
-__all__ = ["atomic_path", "write_bytes", "write_text", "OutputFolder", "LOCK_NAME"]
+__all__ = ["atomic_path", "write_bytes", "write_text", "write_json", "write_figure", "json_safe",
+           "file_sha256", "OutputFolder", "LOCK_NAME",
+           "RUN_RECORD", "COMPLETE_RECORD"]
 
 LOCK_NAME = ".softras-cl.lock"
+RUN_RECORD = "run.json"
+COMPLETE_RECORD = "complete.json"
 
 
 def _describe(err: OSError) -> str:
@@ -73,6 +84,48 @@ def write_bytes(path, data: bytes) -> None:
 def write_text(path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_path`)."""
     write_bytes(path, text.encode("utf-8"))
+
+
+def json_safe(value):
+    """``value`` with numpy scalars and arrays turned into Python numbers and lists, and every
+    non-finite float into None (JSON has no NaN or Infinity)."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):   # numpy array/scalar
+        return json_safe(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_json(path, doc, indent: int | None = 2) -> None:
+    """Write ``doc`` as strict JSON (see :func:`json_safe`; other objects as str) atomically."""
+    write_text(path, json.dumps(json_safe(doc), indent=indent, default=str, allow_nan=False) + "\n")
+
+
+def write_figure(figure, path, **savefig_options) -> None:
+    """``figure.savefig(path, **savefig_options)`` atomically, the format from the extension."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        figure.savefig(tmp, format=path.suffix.lstrip(".").lower() or None, **savefig_options)
+
+
+def file_sha256(path) -> str:
+    """The SHA-256 of a file's bytes, as hex."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _read_json(path: Path):
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
 
 
 def _check_folder_path(path, option: str) -> Path:
@@ -135,11 +188,48 @@ class OutputFolder:
             self._file.close()               # closing releases the lock
             self._file = None
 
+    def begin(self, record: dict, resume: bool = False) -> None:
+        """Record that a run of ``record`` (JSON-able: command, input digests, options) is under
+        way: write run.json, remove complete.json. With ``resume``, the folder's run.json must
+        hold the same record (InputError naming what differs)."""
+        record = json_safe(record)
+        if resume:
+            previous = _read_json(self.path / RUN_RECORD)
+            if not isinstance(previous, dict):
+                raise InputError(f"cannot resume in {self.path}: no run was started there "
+                                 f"({RUN_RECORD} is missing or unreadable)")
+            differs = _differences(previous, record)
+            if differs:
+                raise InputError(f"cannot resume in {self.path}: it holds a run with other "
+                                 f"{', '.join(differs)}; resume with the same ones or use another "
+                                 f"{self.option}")
+        with contextlib.suppress(FileNotFoundError):
+            (self.path / COMPLETE_RECORD).unlink()
+        write_json(self.path / RUN_RECORD, record)
+
+    def finish(self, summary: dict) -> None:
+        """Mark the run complete: complete.json = run.json's record plus ``summary``. Call it
+        after every other output is written."""
+        record = _read_json(self.path / RUN_RECORD) or {}
+        write_json(self.path / COMPLETE_RECORD, {**record, **summary})
+
     def _open_lock_file(self):
         try:
             return open(self.lock_path, "a+b")
         except OSError as e:
             raise OutputError(f"{self.option} {self.path} is not writable: {_describe(e)}") from e
+
+
+def _differences(old: dict, new: dict) -> list[str]:
+    """'inputs photo', 'options size', ... : the entries in which two run records differ."""
+    out = []
+    for key in sorted(set(old) | set(new)):
+        a, b = old.get(key), new.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += [f"{key} {k}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+        elif a != b:
+            out.append(key)
+    return out
 
 
 def _try_lock(f) -> bool:
