@@ -169,11 +169,14 @@ def scene_light(light, light_params: dict | None):
     return type(light)(**{**known, **params})
 
 
-def render_batch(vertices_shape: tuple, cameras) -> int:
-    """B of a renderer call: the vertices' batch axis, else the number of cameras."""
+def render_batch(vertices_shape: tuple, cameras, camera_param_shapes=()) -> int:
+    """B of a renderer call: the vertices' batch axis, else the number of cameras (a list's
+    length, or N of (N, k) camera parameters), else 1."""
     if len(vertices_shape) == 3:
         return vertices_shape[0]
-    return 1 if not isinstance(cameras, (list, tuple)) else len(cameras)
+    if isinstance(cameras, (list, tuple)):
+        return len(cameras)
+    return next((shape[0] for shape in camera_param_shapes if len(shape) == 2), 1)
 
 
 def render_groups(wanted) -> tuple[str, ...]:
