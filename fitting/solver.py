@@ -85,7 +85,7 @@ import nlopt
 import numpy as np
 
 from softras_cl.fitting.params import ParamSet
-from softras_cl.errors import InputError
+from softras_cl.errors import InputError, ResultError
 from softras_cl.interrupts import first_interrupt_calls
 from softras_cl.io.outputs import atomic_path, write_bytes
 
@@ -145,7 +145,7 @@ class FitResult:
     interrupted: bool = False
 
 
-class FitError(RuntimeError):
+class FitError(ResultError):
     """A fit cannot go on: non-finite loss or gradient, or an nlopt failure with no finite
     evaluation. ``stage``: stage name; ``blocks``: blocks with a non-finite gradient (may be
     empty); ``iter``: evaluation within the stage (None when not tied to one)."""

@@ -3,11 +3,14 @@ from __future__ import annotations
 
 import argparse
 import io
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from softras_cl.cli.runs import checked_metrics, finishing_outputs, run_state
+from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK
+from softras_cl.io.outputs import OutputFolder
 
 DESCRIPTION = """\
 Fit an SMPL-like body model (shape betas, joint rotations, global rotation, translation) to one
@@ -18,8 +21,10 @@ joints (--joints) add a reprojection term and a first joints-only stage. The ima
 follow a sigma/gamma schedule (--budget). Writes into --out: body.ply (fitted posed mesh with
 part colours), overlay.png (fit blended over the target, joints drawn), params.json and
 params.npz (fitted blocks, 3D joints and their pixels, camera K, R, t, metrics),
-loss_curve.png, history.json and checkpoint.npz (best values so far, written as the fit goes).
-Ctrl-C stops the fit and still writes every output from the best values found so far.
+loss_curve.png, history.json, checkpoint.npz (best values so far, written as the fit goes),
+run.json (inputs and options) and, last, complete.json. Every file is replaced atomically and
+--out is locked while the fit runs. Ctrl-C or SIGTERM stops the fit and still writes every
+output from the best values found so far (exit 130; --resume continues it).
 
 Camera: at (0, --height, --distance) looking at (0, --height, 0) (the model's y up, the body
 facing +z and standing near the origin), --fov degrees across the shorter image side."""
@@ -100,6 +105,9 @@ def register(sub) -> None:
                    help=f"field of view in degrees across the shorter image side (default {d.fov_deg})")
     p.add_argument("--robust-joints", type=float, default=None, metavar="PX",
                    help="Geman-McClure scale in pixels for the joint term (default: plain squares)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the interrupted fit in --out from its checkpoint.npz (same target, "
+                        "model, joints and options, else refused); finished stages are skipped")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -127,26 +135,40 @@ def _load_inputs(args):
     return target, joints, weights, model, config
 
 
+def _run_record(args: argparse.Namespace) -> dict:
+    """What makes a run of this command: the inputs' digests and the options that change the fit."""
+    from softras_cl.io.outputs import file_sha256
+
+    inputs = {name: None if path is None else file_sha256(path)
+              for name, path in (("target", args.target), ("model", args.model), ("joints", args.joints))}
+    options = {k: getattr(args, k) for k in ("silhouette", "background", "budget", "size", "distance",
+                                             "height", "fov", "robust_joints")}
+    return dict(command="fit-body", inputs=inputs, options=options)
+
+
 def run(args: argparse.Namespace) -> int:
     from softras_cl.fitting.recipes.body import fit_body, prepare_target
     from softras_cl.fitting.reports.body import write_outputs
 
-    try:
-        target, joints, weights, model, config = _load_inputs(args)
-        prepare_target(target, config.size, config.background, joints, weights, model.n_joints)
-    except (ValueError, OSError) as e:
-        print(f"softras-cl fit-body: {e}", file=sys.stderr)
-        return 2
-    out = Path(args.out)
-    start = time.perf_counter()
-    fit = fit_body(target, model, config, joints, weights, out_dir=out, progress=not args.no_progress)
-    seconds = time.perf_counter() - start
-    metrics = write_outputs(fit, target, out, extra=dict(target=str(args.target), seconds=seconds,
-                                                          budget=args.budget),
-                            run_config=dict(fit=config, options=args))
-    state = "interrupted; outputs are from the best values so far" if fit.result.interrupted else "done"
+    target, joints, weights, model, config = _load_inputs(args)
+    prepare_target(target, config.size, config.background, joints, weights, model.n_joints)
+    with OutputFolder(args.out, "fit-body", "--out") as out:
+        out.begin(_run_record(args), resume=args.resume)
+        start = time.perf_counter()
+        fit = fit_body(target, model, config, joints, weights, out_dir=out.path,
+                       progress=not args.no_progress, resume=args.resume)
+        seconds = time.perf_counter() - start
+        required = ("silhouette_iou",) + (("joint_error_px_full",) if joints is not None else ())
+        metrics = checked_metrics(fit, out.path, required)
+        with finishing_outputs() as late:
+            write_outputs(fit, target, out.path, metrics=metrics,
+                          extra=dict(target=str(args.target), seconds=seconds, budget=args.budget),
+                          run_config=dict(fit=config, options=args))
+            interrupted = fit.result.interrupted or late.signum is not None
+            if not interrupted:
+                out.finish(dict(status="done", metrics=metrics, seconds=seconds))
     joints_msg = (f", joint error {metrics['joint_error_px_full']:.1f} px" if "joint_error_px_full" in metrics
                   else "")
-    print(f"fit-body {state} in {seconds:.1f} s: silhouette IoU {metrics['silhouette_iou']:.3f}{joints_msg}; "
-          f"outputs in {out}/")
-    return 130 if fit.result.interrupted else 0
+    print(f"fit-body {run_state(interrupted)} in {seconds:.1f} s: silhouette IoU "
+          f"{metrics['silhouette_iou']:.3f}{joints_msg}; outputs in {out.path}/")
+    return EXIT_INTERRUPTED if interrupted else EXIT_OK

@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
+
+from softras_cl.cli.runs import checked_metrics, finishing_outputs, run_state
+from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK
+from softras_cl.io.outputs import OutputFolder
 
 DESCRIPTION = """\
 Fit a morphable face model to one photo and its 68 iBUG landmarks: shape (identity and
@@ -14,8 +16,10 @@ stages then fit everything to the photo in linear RGB over the rendered face reg
 sigma/gamma schedule. Writes into --out: face.ply (fitted mesh with albedo colours),
 overlay.png, figure.png (photo / fit / albedo / shading / error), params.json and params.npz
 (fitted blocks, camera K, R, t for the photo, metrics), loss_curve.png, history.json and
-checkpoint.npz (best values so far, written as the fit goes). Ctrl-C stops the fit and still
-writes every output from the best values found so far."""
+checkpoint.npz (best values so far, written as the fit goes), run.json (inputs and options) and,
+last, complete.json. Every file is replaced atomically and --out is locked while the fit runs.
+Ctrl-C or SIGTERM stops the fit and still writes every output from the best values found so
+far (exit 130; --resume continues it)."""
 
 
 def register(sub) -> None:
@@ -49,6 +53,9 @@ def register(sub) -> None:
     p.add_argument("--n-id", type=int, default=None, help="identity components to use (default: all)")
     p.add_argument("--n-exp", type=int, default=None, help="expression components to use (default: all)")
     p.add_argument("--n-albedo", type=int, default=None, help="albedo components to use (default: all)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the interrupted fit in --out from its checkpoint.npz (same photo, "
+                        "landmarks, model and options, else refused); finished stages are skipped")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -70,30 +77,41 @@ def _load_inputs(args):
     return photo, landmarks, model
 
 
+def _run_record(args: argparse.Namespace) -> dict:
+    """What makes a run of this command: the inputs' digests and the options that change the fit."""
+    from softras_cl.io.outputs import file_sha256
+
+    inputs = {name: None if path is None else file_sha256(path)
+              for name, path in (("photo", args.photo), ("landmarks", args.landmarks),
+                                 ("model", args.model), ("model_landmarks", args.model_landmarks))}
+    options = {k: getattr(args, k) for k in ("budget", "size", "photo_weight", "focal", "n_id",
+                                             "n_exp", "n_albedo")}
+    return dict(command="fit-face", inputs=inputs, options=options)
+
+
 def run(args: argparse.Namespace) -> int:
     from softras_cl.fitting.recipes.face import FaceFitConfig, fit_face
     from softras_cl.fitting.reports.face import write_outputs
 
-    try:
-        photo, landmarks, model = _load_inputs(args)
-        config = FaceFitConfig.from_budget(args.budget, photo_weight=args.photo_weight, size=args.size,
-                                           focal=args.focal, n_id=args.n_id, n_exp=args.n_exp,
-                                           n_albedo=args.n_albedo)
-    except (ValueError, OSError) as e:
-        print(f"softras-cl fit-face: {e}", file=sys.stderr)
-        return 2
-    out = Path(args.out)
-    start = time.perf_counter()
-    try:
-        fit = fit_face(photo, landmarks, model, config, out_dir=out, progress=not args.no_progress)
-    except ValueError as e:
-        print(f"softras-cl fit-face: {e}", file=sys.stderr)
-        return 2
-    seconds = time.perf_counter() - start
-    metrics = write_outputs(fit, photo, out, extra=dict(photo=str(args.photo), seconds=seconds,
-                                                          budget=args.budget),
-                            run_config=dict(fit=config, options=args))
-    state = "interrupted; outputs are from the best values so far" if fit.result.interrupted else "done"
-    print(f"fit-face {state} in {seconds:.1f} s: landmark error {metrics['landmark_error_px_full']:.2f} px, "
-          f"face-region PSNR {metrics['psnr_face_db']:.1f} dB (sRGB); outputs in {out}/")
-    return 130 if fit.result.interrupted else 0
+    photo, landmarks, model = _load_inputs(args)
+    config = FaceFitConfig.from_budget(args.budget, photo_weight=args.photo_weight, size=args.size,
+                                       focal=args.focal, n_id=args.n_id, n_exp=args.n_exp,
+                                       n_albedo=args.n_albedo)
+    with OutputFolder(args.out, "fit-face", "--out") as out:
+        out.begin(_run_record(args), resume=args.resume)
+        start = time.perf_counter()
+        fit = fit_face(photo, landmarks, model, config, out_dir=out.path,
+                       progress=not args.no_progress, resume=args.resume)
+        seconds = time.perf_counter() - start
+        metrics = checked_metrics(fit, out.path, ("landmark_error_px_full", "psnr_face_db"))
+        with finishing_outputs() as late:
+            write_outputs(fit, photo, out.path, metrics=metrics,
+                          extra=dict(photo=str(args.photo), seconds=seconds, budget=args.budget),
+                          run_config=dict(fit=config, options=args))
+            interrupted = fit.result.interrupted or late.signum is not None
+            if not interrupted:
+                out.finish(dict(status="done", metrics=metrics, seconds=seconds))
+    print(f"fit-face {run_state(interrupted)} in {seconds:.1f} s: landmark error "
+          f"{metrics['landmark_error_px_full']:.2f} px, face-region PSNR {metrics['psnr_face_db']:.1f} "
+          f"dB (sRGB); outputs in {out.path}/")
+    return EXIT_INTERRUPTED if interrupted else EXIT_OK

@@ -1,0 +1,41 @@
+"""What the fitting commands share around a fit: failed results, late interrupts, the summary."""
+from __future__ import annotations
+
+import contextlib
+import math
+import sys
+from typing import Iterator
+
+from softras_cl.errors import ResultError
+from softras_cl.interrupts import Caught, first_interrupt_calls
+
+
+def checked_metrics(fit, out_dir, required: tuple[str, ...]) -> dict:
+    """``fit.metrics()``, or ResultError when one of the ``required`` metrics is not finite (a
+    meaningless fit must not be reported as a success)."""
+    metrics = fit.metrics()
+    bad = [f"{name} is {metrics[name]}" for name in required if not math.isfinite(metrics[name])]
+    if bad:
+        raise ResultError(f"the fit failed: {', '.join(bad)}; checkpoint.npz, history.json and "
+                          f"loss_curve.png in {out_dir} show how it went")
+    return metrics
+
+
+def _say_finishing(signum: int) -> None:
+    print("softras-cl: interrupted; writing the outputs first (interrupt again to stop at once: "
+          "every file already written stays complete)", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def finishing_outputs() -> Iterator[Caught]:
+    """A first Ctrl-C/SIGTERM while the outputs are written is noted (``caught.signum``) and the
+    writing goes on; a second one stops at once."""
+    with first_interrupt_calls(_say_finishing) as caught:
+        yield caught
+
+
+def run_state(interrupted: bool) -> str:
+    """How the summary line describes the run."""
+    if interrupted:
+        return "interrupted; outputs are from the best values so far (--resume continues the fit)"
+    return "done"
