@@ -33,10 +33,13 @@ if [ ! -x .venv/bin/python ]; then
     fi
 fi
 
-# 3. Editable install with test extras, skipped when pyproject.toml is unchanged since last time.
+# 3. Editable install with the test extras and both bridges' extras (torch, jax), skipped when
+#    pyproject.toml is unchanged since last time. torch is pinned first to the 2.13 CPU build: a
+#    bare "torch>=2.1" could resolve to a newer release that pulls GBs of CUDA packages.
 HASH=$(.venv/bin/python -c 'import hashlib; print(hashlib.sha256(open("pyproject.toml", "rb").read()).hexdigest())')
 if [ ! -x .venv/bin/softras-cl ] || [ "$(cat "$STAMP" 2>/dev/null)" != "$HASH" ]; then
-    echo "setup: pip install -e .[test]"
-    .venv/bin/python -m pip install -q -e ".[test]" </dev/null
+    echo "setup: pip install torch==2.13.*, then -e .[test,torch,jax]"
+    .venv/bin/python -m pip install -q "torch==2.13.*" </dev/null
+    .venv/bin/python -m pip install -q -e ".[test,torch,jax]" </dev/null
     echo "$HASH" > "$STAMP"
 fi

@@ -5,7 +5,9 @@ and exit codes) stand below everything; softras_cl.io stands alone;
 softras_cl.cl < softras_cl.raster (and the top-level ``softras_cl``, which re-exports it)
 < softras_cl.scene < softras_cl.validate < softras_cl.fitting < softras_cl.cli / softras_cl.bench.
 softras_cl.provenance (versions, device, machine of a result) sits on cl and the top level and
-serves the layers from validate up. A new top-level module or package needs an entry in ALLOWED.
+serves the layers from validate up. The framework bridges softras_cl.torch and softras_cl.jax (and
+their numpy plumbing softras_cl.interop) sit on raster and scene; only bench uses them, and no
+lower layer loads torch or jax. A new top-level module or package needs an entry in ALLOWED.
 
 The import graph is read statically with ``ast`` from the source files: module-level and
 function-level imports, absolute and relative, and ``import_module("literal")`` calls. The file ->
@@ -46,7 +48,12 @@ ALLOWED = {
     "validate": LOW | {"cl", "raster", "root", "scene", "io", "provenance"},
     "fitting": LOW | {"cl", "raster", "root", "scene", "io", "provenance", "validate"},
     "cli": LOW | {"cl", "raster", "root", "scene", "io", "provenance", "validate", "fitting", "bench"},
-    "bench": LOW | {"cl", "raster", "root", "scene", "io", "provenance", "validate", "fitting", "cli"},
+    "bench": LOW | {"cl", "raster", "root", "scene", "io", "provenance", "validate", "fitting", "cli",
+                    "interop", "torch", "jax"},
+    # the PyTorch / JAX bridges and their shared numpy plumbing sit on the numpy API (raster, scene)
+    "interop": LOW | {"cl", "raster", "root", "scene"},
+    "torch": LOW | {"cl", "raster", "root", "scene", "interop"},
+    "jax": LOW | {"cl", "raster", "root", "scene", "interop"},
 }
 
 
@@ -293,7 +300,8 @@ def forbidden_loaded(loaded: set[str], forbidden: tuple[str, ...]) -> list[str]:
 # ------------------------------------------------------------------------------------------------
 # the package as it is
 
-UPPER = ("softras_cl.fitting", "softras_cl.cli", "softras_cl.bench", "softras_cl.validate", "matplotlib")
+UPPER = ("softras_cl.fitting", "softras_cl.cli", "softras_cl.bench", "softras_cl.validate", "matplotlib",
+         "torch", "jax")         # the optional frameworks load only through softras_cl.torch / .jax
 
 
 @pytest.fixture(scope="module")
