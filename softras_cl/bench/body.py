@@ -19,12 +19,13 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from softras_cl.errors import InputError
+from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
 from softras_cl.provenance import provenance
 
 DEFAULT_BUDGETS = ("fast", "default")
@@ -122,7 +123,7 @@ def save_chart(summary: dict, rest: dict, path: Path) -> None:
     ax2.legend(fontsize=8)
     fig.suptitle("bench body: accuracy against time per budget")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path, dpi=110)
 
 
 def save_strip(samples: list[dict], rows: list[dict], path: Path, n: int = 5) -> None:
@@ -177,32 +178,27 @@ def run(args: argparse.Namespace) -> int:
         args.poses, args.size, args.budgets = 1, 32, "fast"
     from softras_cl.bench.tools import parse_budgets
 
-    try:
-        budgets = parse_budgets(args.budgets, BUDGETS)
-    except ValueError as e:
-        print(f"softras-cl bench body: {e}", file=sys.stderr)
-        return 2
+    budgets = parse_budgets(args.budgets, BUDGETS)
     if args.poses < 1 or args.size < 16:
-        print("softras-cl bench body: --poses must be >= 1 and --size >= 16", file=sys.stderr)
-        return 2
-    model = load_demo_body_model() if args.model is None else load_body_model(args.model)
-    rng = np.random.default_rng(args.seed)
-    samples = [synthetic_body(model, rng, args.size, args.joints) for _ in range(args.poses)]
-    per_budget = {b: run_budget(model, samples, b, args.size, not args.json) for b in budgets}
-    summary = {b: summarise(rows) for b, rows in per_budget.items()}
-    rest = rest_baseline(model, samples, args.size)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    doc = dict(size=args.size, seed=args.seed, joints=args.joints,
-               camera="one frontal camera, 3.7 m, 30 deg fov, aimed at 0.9 m height",
-               rest_pose=rest, summary=summary,
-               poses={b: [{k: v for k, v in r.items() if k != "fit"} for r in rows]
-                      for b, rows in per_budget.items()},
-               provenance=provenance(dict(options=args)))
-    (out / "body.json").write_text(json.dumps(doc, indent=2))
-    save_chart(summary, rest, out / "body.png")
-    save_strip(samples, per_budget[budgets[-1]], out / "body_strip.png")
-    print(json.dumps(doc, indent=2) if args.json else format_table(summary, rest))
+        raise InputError(f"--poses must be >= 1 and --size >= 16, got {args.poses} and {args.size}")
+    with OutputFolder(args.out, "bench body", "--out") as folder:
+        out = folder.path
+        model = load_demo_body_model() if args.model is None else load_body_model(args.model)
+        rng = np.random.default_rng(args.seed)
+        samples = [synthetic_body(model, rng, args.size, args.joints) for _ in range(args.poses)]
+        per_budget = {b: run_budget(model, samples, b, args.size, not args.json) for b in budgets}
+        summary = {b: summarise(rows) for b, rows in per_budget.items()}
+        rest = rest_baseline(model, samples, args.size)
+        doc = dict(size=args.size, seed=args.seed, joints=args.joints,
+                   camera="one frontal camera, 3.7 m, 30 deg fov, aimed at 0.9 m height",
+                   rest_pose=rest, summary=summary,
+                   poses={b: [{k: v for k, v in r.items() if k != "fit"} for r in rows]
+                          for b, rows in per_budget.items()},
+                   provenance=provenance(dict(options=args)))
+        write_json(out / "body.json", doc)
+        save_chart(summary, rest, out / "body.png")
+        save_strip(samples, per_budget[budgets[-1]], out / "body_strip.png")
+        print(json.dumps(json_safe(doc), indent=2) if args.json else format_table(summary, rest))
     return 0
 
 

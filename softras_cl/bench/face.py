@@ -21,12 +21,13 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from softras_cl.errors import InputError
+from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
 from softras_cl.provenance import provenance
 
 DEFAULT_BUDGETS = ("fast", "default", "thorough")
@@ -173,7 +174,7 @@ def save_chart(summary: dict, path: Path) -> None:
     ax2.legend(fontsize=8)
     fig.suptitle("bench face: accuracy against time per budget")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path, dpi=110)
 
 
 def save_strip(rows: list[dict], path: Path, n: int = 4) -> None:
@@ -209,31 +210,26 @@ def run(args: argparse.Namespace) -> int:
 
     from softras_cl.bench.tools import parse_budgets
 
-    try:
-        budgets = parse_budgets(args.budgets, BUDGETS)
-    except ValueError as e:
-        print(f"softras-cl bench face: {e}", file=sys.stderr)
-        return 2
+    budgets = parse_budgets(args.budgets, BUDGETS)
     if args.faces < 1 or args.size < 16:
-        print("softras-cl bench face: --faces must be >= 1 and --size >= 16", file=sys.stderr)
-        return 2
-    model = load_demo_face_model() if args.model is None else load_face_model(args.model)
-    rng = np.random.default_rng(args.seed)
-    samples = [synthetic_face(model, rng, args.size) for _ in range(args.faces)]
-    per_budget = {b: run_budget(model, samples, b, args.size, not args.json, args.photo_weight)
-                  for b in budgets}
-    summary = {b: summarise(rows) for b, rows in per_budget.items()}
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    doc = dict(size=args.size, seed=args.seed, model=model.name, photo_weight=args.photo_weight,
-               summary=summary,
-               faces={b: [{k: v for k, v in r.items() if k != "fit"} for r in rows]
-                      for b, rows in per_budget.items()},
-               provenance=provenance(dict(options=args)))
-    (out / "face.json").write_text(json.dumps(doc, indent=2))
-    save_chart(summary, out / "face.png")
-    save_strip(per_budget[budgets[-1]], out / "face_strip.png")
-    print(json.dumps(doc, indent=2) if args.json else format_table(summary))
+        raise InputError(f"--faces must be >= 1 and --size >= 16, got {args.faces} and {args.size}")
+    with OutputFolder(args.out, "bench face", "--out") as folder:
+        out = folder.path
+        model = load_demo_face_model() if args.model is None else load_face_model(args.model)
+        rng = np.random.default_rng(args.seed)
+        samples = [synthetic_face(model, rng, args.size) for _ in range(args.faces)]
+        per_budget = {b: run_budget(model, samples, b, args.size, not args.json, args.photo_weight)
+                      for b in budgets}
+        summary = {b: summarise(rows) for b, rows in per_budget.items()}
+        doc = dict(size=args.size, seed=args.seed, model=model.name, photo_weight=args.photo_weight,
+                   summary=summary,
+                   faces={b: [{k: v for k, v in r.items() if k != "fit"} for r in rows]
+                          for b, rows in per_budget.items()},
+                   provenance=provenance(dict(options=args)))
+        write_json(out / "face.json", doc)
+        save_chart(summary, out / "face.png")
+        save_strip(per_budget[budgets[-1]], out / "face_strip.png")
+        print(json.dumps(json_safe(doc), indent=2) if args.json else format_table(summary))
     return 0
 
 

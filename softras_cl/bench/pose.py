@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
 from softras_cl.provenance import provenance
 
 PAPER = {"random guess": 126.48, "NMR": 93.40, "NMR (scheduled)": 80.94,
@@ -137,7 +138,7 @@ def save_geodesics(scene, cases, stages, path: Path, fit_kwargs: dict, max_cases
         ax.legend(fontsize=7)
     fig.suptitle("loss between the target and failed fits' end points", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
 
 
 def save_strip(scene, target, init, stages, path: Path) -> None:
@@ -165,7 +166,7 @@ def save_strip(scene, target, init, stages, path: Path) -> None:
         ax.set_title(title, fontsize=7)
         ax.axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path, dpi=110)
 
 
 def save_chart(rows: dict, path: Path) -> None:
@@ -183,7 +184,7 @@ def save_chart(rows: dict, path: Path) -> None:
     ax.set(xlabel="median seconds per fit", ylabel="mean rotation error (deg)",
            title="colour-cube pose fitting: accuracy against time")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -191,33 +192,33 @@ def run(args: argparse.Namespace) -> int:
 
     from softras_cl.fitting.recipes.rigid import PoseScene, random_rotations, rotation_error_deg
 
-    trials = 3 if args.quick else args.trials
-    scene = PoseScene(size=32 if args.quick else args.size)
-    rng = np.random.default_rng(args.seed)
-    targets, inits = random_rotations(trials, rng), random_rotations(trials, rng)
-    chosen = variants(args.quick)
-    rows = {}
-    with tqdm(total=trials * len(chosen), desc="pose fits", file=sys.stderr, disable=args.json) as bar:
-        for name, stages in chosen.items():
-            bar.set_postfix_str(name)
-            rows[name] = run_trials(scene, stages, targets, inits, bar)
-    random_guess = float(np.mean([rotation_error_deg(a, b) for a, b in zip(targets, inits)]))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    result = dict(trials=trials, seed=args.seed, size=scene.size, random_guess_deg=random_guess,
-                  paper=PAPER, variants=rows)
-    save_chart(rows, out / "pose.png")
-    default = "3 steps x 30" if args.quick else "5 steps x 100"
-    save_strip(scene, targets[0], inits[0], chosen[default], out / "pose_strip.png")
-    from softras_cl.fitting.recipes.rigid import FIRST_STEP, PYRAMID
+    with OutputFolder(args.out, "bench pose", "--out") as folder:
+        out = folder.path
+        trials = 3 if args.quick else args.trials
+        scene = PoseScene(size=32 if args.quick else args.size)
+        rng = np.random.default_rng(args.seed)
+        targets, inits = random_rotations(trials, rng), random_rotations(trials, rng)
+        chosen = variants(args.quick)
+        rows = {}
+        with tqdm(total=trials * len(chosen), desc="pose fits", file=sys.stderr, disable=args.json) as bar:
+            for name, stages in chosen.items():
+                bar.set_postfix_str(name)
+                rows[name] = run_trials(scene, stages, targets, inits, bar)
+        random_guess = float(np.mean([rotation_error_deg(a, b) for a, b in zip(targets, inits)]))
+        result = dict(trials=trials, seed=args.seed, size=scene.size, random_guess_deg=random_guess,
+                      paper=PAPER, variants=rows)
+        save_chart(rows, out / "pose.png")
+        default = "3 steps x 30" if args.quick else "5 steps x 100"
+        save_strip(scene, targets[0], inits[0], chosen[default], out / "pose_strip.png")
+        from softras_cl.fitting.recipes.rigid import FIRST_STEP, PYRAMID
 
-    failed = [(t, np.array(r)) for t, r, e in zip(targets, rows[default]["rotations"],
-                                                   rows[default]["errors_deg"]) if e >= 10]
-    save_geodesics(scene, failed, chosen[default], out / "pose_geodesics.png", dict(pyramid=PYRAMID))
-    result.update(pyramid=PYRAMID, first_step_rad=FIRST_STEP,
-                  provenance=provenance(dict(options=args, variants=chosen)))
-    (out / "pose.json").write_text(json.dumps(result, indent=1))
-    print(json.dumps(result, indent=1) if args.json else format_table(result))
+        failed = [(t, np.array(r)) for t, r, e in zip(targets, rows[default]["rotations"],
+                                                       rows[default]["errors_deg"]) if e >= 10]
+        save_geodesics(scene, failed, chosen[default], out / "pose_geodesics.png", dict(pyramid=PYRAMID))
+        result.update(pyramid=PYRAMID, first_step_rad=FIRST_STEP,
+                      provenance=provenance(dict(options=args, variants=chosen)))
+        write_json(out / "pose.json", result, indent=1)
+        print(json.dumps(json_safe(result), indent=1) if args.json else format_table(result))
     return 0
 
 

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from softras_cl.bench.tools import device_info, format_table, relative_inf_error
+from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
 from softras_cl.provenance import provenance
 
 SIZES = (256, 1024)
@@ -375,7 +376,7 @@ def save_chart(result: dict, path: Path) -> None:
                 ylabel="forward+backward ms", title="speed table: time against pairs (float32)")
     axes[2].legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
 
 
 # ---- driver --------------------------------------------------------------------------------
@@ -421,22 +422,18 @@ def run_raster(args: argparse.Namespace) -> int:
     """`softras-cl bench raster`: run, print the tables (or JSON), write OUT/raster.{json,png}."""
     from tqdm import tqdm
 
-    try:
-        p = plan(args)
-    except ValueError as e:
-        print(f"softras-cl bench raster: {e}", file=sys.stderr)
-        return 2
-    steps = 2 * len(p["sizes"]) * len(p["faces"]) + len(p["variants"])
-    with tqdm(total=steps, file=sys.stderr, unit="step") as progress:
-        result = run_benchmark(p, progress)
-    result["tables"] = report_text(result)
-    result["provenance"] = provenance(dict(options=args, plan=p))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "raster.json").write_text(json.dumps(result, indent=2))
-    save_chart(result, out / "raster.png")
-    print(json.dumps(result, indent=2) if args.json else result["tables"])
-    print(f"wrote {out / 'raster.json'} and {out / 'raster.png'}", file=sys.stderr)
+    p = plan(args)
+    with OutputFolder(args.out, "bench raster", "--out") as folder:
+        out = folder.path
+        steps = 2 * len(p["sizes"]) * len(p["faces"]) + len(p["variants"])
+        with tqdm(total=steps, file=sys.stderr, unit="step") as progress:
+            result = run_benchmark(p, progress)
+        result["tables"] = report_text(result)
+        result["provenance"] = provenance(dict(options=args, plan=p))
+        write_json(out / "raster.json", result)
+        save_chart(result, out / "raster.png")
+        print(json.dumps(json_safe(result), indent=2) if args.json else result["tables"])
+        print(f"wrote {out / 'raster.json'} and {out / 'raster.png'}", file=sys.stderr)
     return 0
 
 

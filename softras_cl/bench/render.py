@@ -13,6 +13,7 @@ import numpy as np
 
 from softras_cl.bench.raster import BASE_SETTINGS, REPEATS, settings_for
 from softras_cl.bench.tools import device_info, format_table, relative_inf_error
+from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
 from softras_cl.provenance import provenance
 
 RENDER_DOC = """Speed of the whole differentiable render path: forward + backward of
@@ -379,7 +380,7 @@ def save_render_chart(result: dict, path: Path) -> None:
     for ax in (ax1, ax2):
         ax.set_xlim(0, ax.get_xlim()[1] * 1.25)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
 
 
 def render_plan(args: argparse.Namespace) -> dict:
@@ -395,21 +396,17 @@ def run_render(args: argparse.Namespace) -> int:
     """`softras-cl bench render`: run, print the tables (or JSON), write OUT/render.{json,png}."""
     from tqdm import tqdm
 
-    try:
-        p = render_plan(args)
-    except ValueError as e:
-        print(f"softras-cl bench render: {e}", file=sys.stderr)
-        return 2
-    with tqdm(total=len(EFFECTS) + p["repeats"], file=sys.stderr, unit="step") as progress:
-        result = run_render_benchmark(p, progress)
-    result["tables"] = render_report_text(result)
-    result["provenance"] = provenance(dict(options=args, plan=p))
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "render.json").write_text(json.dumps(result, indent=2))
-    save_render_chart(result, out / "render.png")
-    print(json.dumps(result, indent=2) if args.json else result["tables"])
-    print(f"wrote {out / 'render.json'} and {out / 'render.png'}", file=sys.stderr)
+    p = render_plan(args)
+    with OutputFolder(args.out, "bench render", "--out") as folder:
+        out = folder.path
+        with tqdm(total=len(EFFECTS) + p["repeats"], file=sys.stderr, unit="step") as progress:
+            result = run_render_benchmark(p, progress)
+        result["tables"] = render_report_text(result)
+        result["provenance"] = provenance(dict(options=args, plan=p))
+        write_json(out / "render.json", result)
+        save_render_chart(result, out / "render.png")
+        print(json.dumps(json_safe(result), indent=2) if args.json else result["tables"])
+        print(f"wrote {out / 'render.json'} and {out / 'render.png'}", file=sys.stderr)
     return 0
 
 

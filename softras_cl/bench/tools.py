@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.io.outputs import write_figure
 from softras_cl.provenance import opencl_device as device_info  # the device the benchmarks run on
 
 
@@ -24,7 +25,7 @@ def save_image_strip(columns, path: Path, cell=(2.4, 2.6)) -> None:
             ax.set_title(title, fontsize=8)
             ax.axis("off")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
 
 
 def parse_budgets(text: str, known) -> list[str]:
