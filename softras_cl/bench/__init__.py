@@ -1,7 +1,8 @@
 """`softras-cl bench`: one module per benchmark, each adding its subcommand to `bench`.
 
 raster (the soft rasteriser: speed, memory, accuracy), render (the whole differentiable render
-path), pose, face and body (the fitting recipes on synthetic targets with known answers).
+path), pose, face and body (the fitting recipes on synthetic targets with known answers), interop
+(the PyTorch and JAX bridges' overhead over the numpy call).
 """
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ from importlib import import_module
 
 # benchmark name -> module whose register(which) adds it; each module imports its heavy
 # dependencies inside its runner, so building the parser stays light.
-BENCHMARKS = {"raster": "raster", "render": "render", "pose": "pose", "face": "face", "body": "body"}
+BENCHMARKS = {"raster": "raster", "render": "render", "pose": "pose", "face": "face", "body": "body",
+              "interop": "interop"}
 
 
 def register(sub) -> None:
