@@ -1,6 +1,6 @@
 """Make examples/data/*.pts and *_landmarks.png with MediaPipe Face Mesh (run once; outputs are committed).
 
-Run it with a Python that has mediapipe (the `landmarks` extra, numpy<2), e.g.
+Run it with a Python that has mediapipe (the `landmarks-mediapipe` extra, numpy<2), e.g.
 
     python3.11 -m venv /tmp/lmkvenv && /tmp/lmkvenv/bin/pip install "mediapipe==0.10.21" pillow
     /tmp/lmkvenv/bin/python scripts/make_example_landmarks.py
@@ -23,7 +23,7 @@ spec.loader.exec_module(ld)
 for photo in ["astronaut.png", "grace_hopper.jpg"]:
     stem = photo.rsplit(".", 1)[0]
     image = np.asarray(Image.open(DATA / photo).convert("RGB"))
-    points = ld.detect_landmarks(image)
+    points = ld.detect_landmarks(image, backend="mediapipe")
     (DATA / f"{stem}.pts").write_text(ld.format_pts(points))
     # overlay: the face region (landmark box + 25 % margin), scaled to 640 px wide
     lo, hi = points.min(0), points.max(0)

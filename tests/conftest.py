@@ -3,7 +3,8 @@ shared by several folders live in tests/support/ (this folder is on sys.path for
 
 Markers (registered in pyproject.toml, which also sets --strict-markers):
   slow                          more than about 5 s; the default run includes these.
-  mitsuba, mediapipe, torch, jax  the test needs that optional dependency: it is skipped, saying
+  mitsuba, landmarks (dlib), mediapipe, torch, jax
+                                the test needs that optional dependency: it is skipped, saying
                                 which extra to install, only when the module cannot be found.
                                 Installed but broken, it runs and fails.
 
@@ -25,7 +26,8 @@ REPO = Path(__file__).resolve().parents[1]
 # marker -> (module that must be importable, how to get it)
 OPTIONAL = {
     "mitsuba": ("mitsuba", "pip install 'softras-cl[validate]'"),
-    "mediapipe": ("mediapipe", "pip install 'softras-cl[landmarks]'"),
+    "landmarks": ("dlib", "pip install 'softras-cl[landmarks]'"),
+    "mediapipe": ("mediapipe", "pip install 'softras-cl[landmarks-mediapipe]'"),
     "torch": ("torch", "pip install torch"),
     "jax": ("jax", "pip install jax"),
 }
