@@ -259,3 +259,20 @@ def test_bad_inputs_name_the_argument(monkeypatch):
     with pytest.raises(ValueError, match="light_params has keys \\['shininess'\\]"):
         renderer(torch.tensor(rv), rf, cameras()[0], albedo=ra, light=LIGHTS["lambert"],
                  light_params=dict(shininess=torch.tensor(2.0, requires_grad=True)))
+
+
+@pytest.mark.jax
+def test_bench_interop_quick_runs_every_bridge(tmp_path):
+    """`softras-cl bench interop --quick` times all four operations through numpy, torch and
+    JAX and writes its JSON with provenance."""
+    import json
+
+    from softras_cl.cli import main
+
+    assert main(["bench", "interop", "--quick", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "interop.json").read_text())
+    assert [r["operation"] for r in result["rows"]] == ["render_fb", "render_f", "raster_fb", "raster_f"]
+    for row in result["rows"]:
+        assert row["numpy_ms"] > 0 and row["torch_ms"] > 0 and row["jax_ms"] > 0
+        assert row["torch_overhead"] == pytest.approx(row["torch_ms"] / row["numpy_ms"] - 1)
+    assert "provenance" in result and set(result["versions"]) == {"torch", "jax"}
