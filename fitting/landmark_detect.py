@@ -303,7 +303,7 @@ def detect_faces(image, backend: str | None = None, *, upsample: int = 1,
 
     backend: "dlib", "mediapipe" or None (dlib when installed, else mediapipe).
     upsample (dlib): how many times the image is doubled before the HOG detector runs; 1 finds
-        faces down to about 40 px across (0: about 80 px) and takes about 4x the time.
+        faces down to about 40 px across (0: about 80 px) and takes about 3x the time.
     min_score (dlib): detections scoring below this are dropped. dlib's own threshold is 0; 0.5
         drops a false face (score 0.12) that upsample 1 finds in examples/data/astronaut.png,
         while the faces of the shipped photos, alone or pasted at 60 % size, score 1.1-1.6.

@@ -67,7 +67,7 @@ def register(sub) -> None:
                    help="write every face found (largest first) instead of only the largest")
     p.add_argument("--upsample", type=int, default=1, metavar="N",
                    help="dlib: double the image N times before detecting (default 1: faces down to "
-                        "about 40 px; 0: about 80 px, 4x faster)")
+                        "about 40 px; 0: about 80 px, 3x faster)")
     p.add_argument("--min-score", type=float, default=0.5, metavar="S",
                    help="dlib: drop detections scoring below S (default 0.5; dlib's own threshold is 0)")
     p.set_defaults(func=_run_detect)
