@@ -18,6 +18,7 @@ from softras_cl.cl.program import build_kernel
 from softras_cl.raster.binning import Bins, bin_faces, face_setup, tile_grid
 from softras_cl.raster.corners import scatter_corners
 from softras_cl.raster.inputs import MeshInputs, check_cotangent, check_inputs
+from softras_cl.raster.memory import check_forward_memory
 from softras_cl.raster.settings import RasterSettings
 
 GRAD_NAMES = ("vertices", "colors")
@@ -137,6 +138,7 @@ class SoftRasterizer:
         if "colors" in grads and s.texture == "uv" and not has_int64_atomics(self.device):
             raise ValueError(f"uv-texture gradients need cl_khr_int64_base_atomics, which device "
                              f"{self.device.name!r} lacks")
+        check_forward_memory(s, self.device, mesh.batch, mesh.n_faces, grads, mesh.tex_res, mesh.tex_shape)
         geom, drawable = face_setup(mesh, s)
         bins = bin_faces(geom, drawable, mesh.batch, mesh.n_faces, s)
         buffers = self._upload(mesh, geom, bins)
