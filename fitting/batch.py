@@ -433,13 +433,23 @@ def publish(partial: Path, final: Path) -> None:
 
 def fit_into(item: Item, record: dict, final: Path) -> tuple[dict, float]:
     """Fit ``item`` into the temporary folder beside ``final``, then rename it into place.
-    Returns (metrics, seconds of the fit)."""
+    Returns (metrics, seconds of the fit).
+    A fit that fails on its input leaves nothing; one with a non-finite result (ResultError)
+    leaves the temporary folder (its checkpoint and loss curve show what happened) until the
+    next attempt."""
     partial = final.with_name(PARTIAL.format(final.name))
-    with OutputFolder(partial, f"fit of {item.name}", "item folder") as out:
-        _empty(partial)
-        out.begin(record)
-        metrics, seconds = FITTERS[item.kind](item, partial)
-        out.finish(dict(status="done", metrics=metrics, seconds=seconds))
+    held = False
+    try:
+        with OutputFolder(partial, f"fit of {item.name}", "item folder") as out:
+            held = True
+            _empty(partial)
+            out.begin(record)
+            metrics, seconds = FITTERS[item.kind](item, partial)
+            out.finish(dict(status="done", metrics=metrics, seconds=seconds))
+    except Exception as error:
+        if held and not isinstance(error, ResultError):
+            shutil.rmtree(partial, ignore_errors=True)
+        raise
     publish(partial, final)
     return metrics, seconds
 

@@ -2,14 +2,12 @@
 from __future__ import annotations
 
 import argparse
-import io
 import time
-from pathlib import Path
 
-import numpy as np
-
+from softras_cl.cli.batch import BATCH_EPILOG, add_batch_options, is_batch, run_batch
 from softras_cl.cli.runs import checked_metrics, finishing_outputs, run_state
-from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK
+from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
+from softras_cl.fitting.body_files import parse_background, read_joints, read_target  # noqa: F401 (re-exported)
 from softras_cl.io.outputs import OutputFolder
 
 DESCRIPTION = """\
@@ -27,49 +25,9 @@ run.json (inputs and options) and, last, complete.json. Every file is replaced a
 output from the best values found so far (exit 130; --resume continues it).
 
 Camera: at (0, --height, --distance) looking at (0, --height, 0) (the model's y up, the body
-facing +z and standing near the origin), --fov degrees across the shorter image side."""
+facing +z and standing near the origin), --fov degrees across the shorter image side.
 
-
-def read_joints(path, n_joints: int) -> tuple[np.ndarray, np.ndarray]:
-    """2D joints file -> (points (J, 2) float64 pixels, weights (J,) float64).
-
-    Text: one row per model joint, 'x y' or 'x y weight' (whitespace or commas; '#' comments;
-    0-based pixel centres, x right, y down; weight 0 = not seen, its x y may be nan). .npy: an
-    (J, 2) or (J, 3) array. ValueError naming the file on anything else or a wrong row count.
-    """
-    path = Path(path)
-    try:
-        rows = np.load(path) if path.suffix.lower() == ".npy" else np.loadtxt(
-            io.StringIO(path.read_text().replace(",", " ")), ndmin=2)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"joints file {path}: cannot read it ({e})") from e
-    rows = np.asarray(rows, np.float64)
-    if rows.ndim != 2 or rows.shape[1] not in (2, 3):
-        raise ValueError(f"joints file {path}: expected rows 'x y' or 'x y weight', got shape {rows.shape}")
-    if len(rows) != n_joints:
-        raise ValueError(f"joints file {path}: has {len(rows)} joints, the model has {n_joints}")
-    weights = rows[:, 2] if rows.shape[1] == 3 else np.ones(n_joints)
-    return rows[:, :2], weights
-
-
-def read_target(path, silhouette: bool) -> np.ndarray:
-    """The target as fit_body takes it: an image file (sRGB, decoded to linear; RGBA keeps its
-    alpha) or an .npy of linear values; with ``silhouette`` an (H, W) mask (the alpha channel
-    when there is one, else the mean of the colour channels)."""
-    from softras_cl.io.images import read_image
-
-    path = Path(path)
-    if path.suffix.lower() == ".npy":
-        try:
-            img = np.load(path)
-        except (OSError, ValueError) as e:
-            raise ValueError(f"cannot read target {path}: {e}") from e
-    else:
-        img = read_image(path)
-    img = np.asarray(img, np.float64)
-    if silhouette and img.ndim == 3 and img.shape[2] in (3, 4):
-        img = img[..., 3] if img.shape[2] == 4 else img.mean(-1)
-    return img
+""" + BATCH_EPILOG
 
 
 def register(sub) -> None:
@@ -79,8 +37,10 @@ def register(sub) -> None:
     d = BodyFitConfig()
     p = sub.add_parser("fit-body", help="fit a body model to a part-coloured image or silhouette",
                        description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("target", help="target image (PNG/JPEG/..., or .npy of linear values): part colours "
-                                  "on --background, RGBA, or a mask with --silhouette")
+    p.add_argument("targets", nargs="*", metavar="TARGET",
+                   help="target image (PNG/JPEG/..., or .npy of linear values): part colours on "
+                        "--background, RGBA, or a mask with --silhouette; several targets, folders or "
+                        "glob patterns fit each into its own folder under --out")
     p.add_argument("--model", default=None,
                    help="body model file: SMPL .pkl/.npz or the project's .npz "
                         "(default: the demo model shipped with softras-cl)")
@@ -108,6 +68,7 @@ def register(sub) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue the interrupted fit in --out from its checkpoint.npz (same target, "
                         "model, joints and options, else refused); finished stages are skipped")
+    add_batch_options(p, "body")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -121,12 +82,7 @@ def _load_inputs(args):
     model = load_demo_body_model() if args.model is None else load_body_model(args.model)
     target = read_target(args.target, args.silhouette)
     joints, weights = (None, None) if args.joints is None else read_joints(args.joints, model.n_joints)
-    try:
-        background = tuple(float(c) for c in args.background.split(","))
-    except ValueError:
-        background = ()
-    if len(background) != 3:
-        raise ValueError(f"--background must be 'r,g,b', got {args.background!r}")
+    background = parse_background(args.background)
     if args.size < 16:
         raise ValueError(f"--size must be >= 16, got {args.size}")
     config = BodyFitConfig.from_budget(args.budget, size=args.size, distance=args.distance,
@@ -137,16 +93,31 @@ def _load_inputs(args):
 
 def _run_record(args: argparse.Namespace) -> dict:
     """What makes a run of this command: the inputs' digests and the options that change the fit."""
-    from softras_cl.io.outputs import file_sha256
+    from softras_cl.fitting.batch import body_record
 
-    inputs = {name: None if path is None else file_sha256(path)
-              for name, path in (("target", args.target), ("model", args.model), ("joints", args.joints))}
-    options = {k: getattr(args, k) for k in ("silhouette", "background", "budget", "size", "distance",
-                                             "height", "fov", "robust_joints")}
-    return dict(command="fit-body", inputs=inputs, options=options)
+    return body_record(args.target, args.joints, _options(args))
+
+
+def _options(args: argparse.Namespace) -> dict:
+    """The options of a fit (softras_cl.fitting.batch.BODY_OPTIONS) from the command line."""
+    from softras_cl.fitting.batch import BODY_OPTIONS
+
+    return {k: getattr(args, k) for k in BODY_OPTIONS}
 
 
 def run(args: argparse.Namespace) -> int:
+    """One target into --out itself, or a batch (several targets, folders, globs, a manifest)."""
+    if not args.targets and not args.manifest:
+        raise InputError("give a target image (or several, folders, glob patterns, or --manifest CSV)")
+    if is_batch(args, args.targets):
+        if args.size < 16:
+            raise InputError(f"--size must be >= 16, got {args.size}")
+        return run_batch(args, "body", args.targets, _options(args), args.joints)
+    args.target = args.targets[0]
+    return run_one(args)
+
+
+def run_one(args: argparse.Namespace) -> int:
     from softras_cl.fitting.recipes.body import fit_body, prepare_target
     from softras_cl.fitting.reports.body import write_outputs
 

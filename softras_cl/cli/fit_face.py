@@ -1,15 +1,17 @@
-"""`softras-cl fit-face PHOTO --landmarks FILE [--model FILE] --out DIR`."""
+"""`softras-cl fit-face PHOTO [--landmarks FILE] [--model FILE] --out DIR`, and many photos:
+`softras-cl fit-face PHOTO|FOLDER|GLOB ... [--manifest CSV] --out DIR` (softras_cl.cli.batch)."""
 from __future__ import annotations
 
 import argparse
 import time
 
+from softras_cl.cli.batch import BATCH_EPILOG, add_batch_options, is_batch, run_batch
 from softras_cl.cli.runs import checked_metrics, finishing_outputs, run_state
-from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK
+from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
 from softras_cl.io.outputs import OutputFolder
 
 DESCRIPTION = """\
-Fit a morphable face model to one photo and its 68 iBUG landmarks: shape (identity and
+Fit a morphable face model to a photo and its 68 iBUG landmarks: shape (identity and
 expression), skin albedo, spherical-harmonic light and head pose (paper sec. 5.3, figure 14).
 Stage 1 fits pose, focal length, identity and expression to the landmarks; the photometric
 stages then fit everything to the photo in linear RGB over the rendered face region, with a
@@ -19,7 +21,12 @@ overlay.png, figure.png (photo / fit / albedo / shading / error), params.json an
 checkpoint.npz (best values so far, written as the fit goes), run.json (inputs and options) and,
 last, complete.json. Every file is replaced atomically and --out is locked while the fit runs.
 Ctrl-C or SIGTERM stops the fit and still writes every output from the best values found so
-far (exit 130; --resume continues it)."""
+far (exit 130; --resume continues it).
+
+Landmarks: --landmarks FILE, else a file beside the photo (PHOTO.pts/.txt/.npy, i.e. the photo's
+name with that suffix), else the landmark detector (the "landmarks" extra), largest face first.
+
+""" + BATCH_EPILOG
 
 
 def register(sub) -> None:
@@ -28,10 +35,16 @@ def register(sub) -> None:
 
     p = sub.add_parser("fit-face", help="fit a face model to a photo and its 68 landmarks",
                        description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("photo", help="the photo (PNG/JPEG/...; sRGB, decoded to linear RGB for fitting)")
-    p.add_argument("--landmarks", required=True,
+    p.add_argument("photos", nargs="*", metavar="PHOTO",
+                   help="the photo (PNG/JPEG/...; sRGB, decoded to linear RGB for fitting); several "
+                        "photos, folders or glob patterns fit each into its own folder under --out")
+    p.add_argument("--landmarks", default=None,
                    help="68 landmarks of the photo in the iBUG 300-W order: .pts (iBUG, 1-based), "
-                        ".txt (68 rows 'x y', 0-based pixel centres) or .npy (68, 2)")
+                        ".txt (68 rows 'x y', 0-based pixel centres) or .npy (68, 2) (default: "
+                        "PHOTO.pts/.txt/.npy beside the photo, else detected)")
+    p.add_argument("--all-faces", action="store_true",
+                   help="fit every face the detector finds, each into its own folder under --out "
+                        "(NAME-face0 for the largest, NAME-face1, ...); without it, the largest")
     p.add_argument("--model", default=None,
                    help="face model file: the project's .npz, BFM 2009 .mat, BFM 2017 .h5 or FLAME "
                         ".pkl (default: the demo model shipped with softras-cl)")
@@ -56,18 +69,26 @@ def register(sub) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue the interrupted fit in --out from its checkpoint.npz (same photo, "
                         "landmarks, model and options, else refused); finished stages are skipped")
+    add_batch_options(p, "face")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
+
+
+def _options(args: argparse.Namespace) -> dict:
+    """The options of a fit (softras_cl.fitting.batch.FACE_OPTIONS) from the command line."""
+    from softras_cl.fitting.batch import FACE_OPTIONS
+
+    return {k: getattr(args, k) for k in FACE_OPTIONS}
 
 
 def _load_inputs(args):
     """(photo (H, W, 3) linear RGB, landmarks (68, 2), model); ValueError/OSError on bad input."""
     from softras_cl.io.images import read_image
-    from softras_cl.io.landmarks import read_landmarks
+    from softras_cl.fitting.landmark_detect import resolve_landmarks
     from softras_cl.fitting.models.face_loaders import load_demo_face_model, load_face_model
 
     photo = read_image(args.photo)[..., :3]
-    landmarks = read_landmarks(args.landmarks, image_size=photo.shape[:2])
+    landmarks = resolve_landmarks(args.photo, args.landmarks)[0].points
     if args.model is None:
         if args.model_landmarks is not None:
             raise ValueError("--model-landmarks needs --model (the demo model has its landmarks)")
@@ -78,18 +99,24 @@ def _load_inputs(args):
 
 
 def _run_record(args: argparse.Namespace) -> dict:
-    """What makes a run of this command: the inputs' digests and the options that change the fit."""
-    from softras_cl.io.outputs import file_sha256
+    """What makes a run of this command: the inputs' digests and the options that change the fit
+    (the same record a batch item of this photo has)."""
+    from softras_cl.fitting.batch import face_landmarks_source, face_record
 
-    inputs = {name: None if path is None else file_sha256(path)
-              for name, path in (("photo", args.photo), ("landmarks", args.landmarks),
-                                 ("model", args.model), ("model_landmarks", args.model_landmarks))}
-    options = {k: getattr(args, k) for k in ("budget", "size", "photo_weight", "focal", "n_id",
-                                             "n_exp", "n_albedo")}
-    return dict(command="fit-face", inputs=inputs, options=options)
+    return face_record(args.photo, face_landmarks_source(args.photo, args.landmarks), _options(args))
 
 
 def run(args: argparse.Namespace) -> int:
+    """One photo into --out itself, or a batch (several photos, folders, globs, a manifest)."""
+    if not args.photos and not args.manifest:
+        raise InputError("give a photo (or several, folders, glob patterns, or --manifest CSV)")
+    if is_batch(args, args.photos):
+        return run_batch(args, "face", args.photos, _options(args), args.landmarks)
+    args.photo = args.photos[0]
+    return run_one(args)
+
+
+def run_one(args: argparse.Namespace) -> int:
     from softras_cl.fitting.recipes.face import FaceFitConfig, fit_face
     from softras_cl.fitting.reports.face import write_outputs
 

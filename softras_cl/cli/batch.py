@@ -1,0 +1,82 @@
+"""What `fit-face` and `fit-body` share for many photos: the options, when a run is a batch, and
+the batch run itself (softras_cl.fitting.batch.fit_many)."""
+from __future__ import annotations
+
+import argparse
+import glob
+from pathlib import Path
+
+from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError, ResultError
+
+BATCH_EPILOG = """\
+Many photos: give several photos, folders (their image files, not subfolders; X_landmarks.png
+drawings beside a photo X are left out) or quoted glob patterns, and/or --manifest CSV. Each
+item is fitted into its own folder under --out, named after the photo's file name (a hash of
+the path is appended when two share a name; --all-faces appends -face0, -face1, ... largest
+first); --out also gets results.csv, results.jsonl and summary.png. Items run on a Dask
+cluster: a LocalCluster of --workers processes on this machine by default, or --scheduler.
+Running the same command again skips every item whose folder holds a complete.json with the
+same inputs and options, and redoes the others. Exit code 0 when every item succeeded, 1 when
+some failed (results.csv says which and why), 130 on Ctrl-C (finished items and the table are
+kept)."""
+
+
+def add_batch_options(p: argparse.ArgumentParser, kind: str) -> None:
+    """--manifest, --workers, --threads-per-worker, --scheduler on a fit-face/fit-body parser."""
+    side = "landmarks" if kind == "face" else "joints"
+    p.add_argument("--manifest", default=None, metavar="CSV",
+                   help=f"CSV of items: a 'photo' column, optional '{side}' and 'name' columns, and "
+                        "any option of this command as a column (e.g. size, budget); empty cells "
+                        "take the command line's value; paths relative to the CSV's folder")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes of the local Dask cluster (default: cores / "
+                        "--threads-per-worker, i.e. one per core)")
+    p.add_argument("--threads-per-worker", type=int, default=None, metavar="T",
+                   help="OpenCL (PoCL) threads of each worker (default: cores / --workers, so that "
+                        "workers x threads fills the cores without oversubscribing them)")
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                   help="run the items on this running Dask scheduler's workers instead (they need "
+                        "softras-cl installed and must see the photos and --out at the same paths)")
+
+
+def is_batch(args: argparse.Namespace, inputs: list[str]) -> bool:
+    """Several inputs, a folder, a glob pattern, a manifest, --all-faces or a cluster option make
+    a batch; one photo file alone is the single-photo run (outputs in --out itself)."""
+    if len(inputs) != 1 or args.manifest or getattr(args, "all_faces", False):
+        return True
+    if any(getattr(args, k) is not None for k in ("workers", "threads_per_worker", "scheduler")):
+        return True
+    return Path(inputs[0]).is_dir() or (not Path(inputs[0]).exists() and glob.has_magic(inputs[0]))
+
+
+def check_batch_args(args: argparse.Namespace) -> None:
+    """InputError for options that do not apply to a batch."""
+    if args.resume:
+        raise InputError("--resume continues the fit of one photo; run the batch again instead: it "
+                         "skips the finished items and redoes the others")
+    if args.scheduler is not None and (args.workers is not None or args.threads_per_worker is not None):
+        raise InputError("--workers and --threads-per-worker start a local cluster; with --scheduler "
+                         "the cluster's own workers run the items (start them with "
+                         "POCL_MAX_PTHREAD_COUNT=T dask worker ... --nthreads 1)")
+
+
+def run_batch(args: argparse.Namespace, kind: str, inputs: list[str], options: dict,
+              side_file: str | None) -> int:
+    """Fit every item (softras_cl.fitting.batch), print one summary line; the exit code."""
+    from softras_cl.fitting.batch import collect_items, fit_many, load_model
+
+    check_batch_args(args)
+    items = collect_items(inputs, kind, options, manifest=args.manifest, landmarks=side_file)
+    load_model(kind, options.get("model"), options.get("model_landmarks"))   # a bad model: exit 2 now
+    result = fit_many(items, args.out, kind, scheduler=args.scheduler, workers=args.workers,
+                      threads_per_worker=args.threads_per_worker,
+                      all_faces=getattr(args, "all_faces", False), progress=not args.no_progress)
+    counts = ", ".join(f"{n} {s}" for s, n in result.counts.items())
+    print(f"fit-{kind}: {len(result.rows)} items: {counts}; results in {result.out}/results.csv")
+    if result.interrupted:
+        return EXIT_INTERRUPTED
+    if result.failed:
+        first = result.failed[0]
+        raise ResultError(f"{len(result.failed)} of {len(result.rows)} items failed (first: "
+                          f"{first['name']}: {first['error']}); {result.out}/results.csv says which")
+    return EXIT_OK
