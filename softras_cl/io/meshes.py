@@ -380,6 +380,36 @@ def _obj_without_normals(data: bytes) -> bytes:
     return b"\n".join(out) + b"\n"
 
 
+def _check_obj_indices(data: bytes, path: Path) -> None:
+    """ValueError naming the line if an OBJ face indexes a vertex (or texture coordinate) the
+    file does not have: indices are 1-based and at most the file's count; negative ones count
+    back from the last one defined before the face."""
+    lines = [line.split() for line in data.splitlines()]
+    total = {kind: sum(1 for tokens in lines if tokens[:1] == [kind]) for kind in (b"v", b"vt")}
+    seen = {b"v": 0, b"vt": 0}
+    names = {b"v": ("vertex", "vertices"), b"vt": ("texture coordinate", "texture coordinates")}
+    for number, tokens in enumerate(lines, 1):
+        if tokens[:1] in ([b"v"], [b"vt"]):
+            seen[tokens[0]] += 1
+        if tokens[:1] != [b"f"]:
+            continue
+        for corner in tokens[1:]:
+            for kind, text in zip((b"v", b"vt"), corner.split(b"/")[:2]):
+                if not text:
+                    continue
+                try:
+                    i = int(text)
+                except ValueError:
+                    raise ValueError(f"mesh {path}: line {number}: face corner "
+                                     f"{corner.decode(errors='replace')!r} is not an index") from None
+                if i == 0 or i > total[kind] or i < -seen[kind]:
+                    one, many = names[kind]
+                    where = (f"{seen[kind]} {many} are defined before it" if i < 0
+                             else f"the file has {total[kind]} {many}")
+                    raise ValueError(f"mesh {path}: line {number}: a face indexes {one} {i}, but "
+                                     f"{where} (OBJ indices are 1-based; negative ones count back)")
+
+
 def _drop_normal(token: bytes) -> bytes:
     """One OBJ face corner `v`, `v/vt`, `v/vt/vn` or `v//vn` -> `v` or `v/vt`."""
     parts = token.split(b"/")
@@ -403,10 +433,13 @@ def load_mesh(path) -> Mesh:
     if ext not in MESH_EXTENSIONS:
         raise ValueError(f"unknown mesh file extension {path.suffix!r} for {path}; "
                          f"supported: {', '.join(MESH_EXTENSIONS)}")
+    if ext == ".obj":
+        data = path.read_bytes()
+        _check_obj_indices(data, path)
     try:
         if ext == ".obj":    # without normals, so trimesh splits vertices at UV seams only
             scene = trimesh.load_scene(
-                io.BytesIO(_obj_without_normals(path.read_bytes())), file_type="obj",
+                io.BytesIO(_obj_without_normals(data)), file_type="obj",
                 resolver=trimesh.resolvers.FilePathResolver(str(path)), process=False)
         else:
             scene = trimesh.load_scene(str(path), file_type=ext[1:], process=False)

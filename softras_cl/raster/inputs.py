@@ -1,5 +1,9 @@
 """Argument checks for the rasteriser: every problem is reported, naming the argument and what
-was expected, before any kernel runs. Arrays come out batched and in float64 / int64."""
+was expected, before any kernel runs. Arrays come out batched and in float64 / int64.
+
+float32 kernels: every float input must stay within FLOAT32_LIMIT in magnitude (finite in
+float64 is not enough: the kernels square depths and distances and multiply colours by
+cotangents, so larger values give Inf/NaN images or gradients)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -9,7 +13,8 @@ import numpy as np
 from softras_cl.cl.layout import CORNER_COLORS, LIGHT_PARAMS, UV_ATTRS
 from softras_cl.raster.corners import gather_corners
 
-from softras_cl.raster.settings import RasterSettings
+from softras_cl.checks import check_finite
+from softras_cl.raster.settings import FLOAT32_LIMIT, RasterSettings
 
 _COLOUR_ARGS = {"vertex": ("colors",), "face": ("face_textures",), "uv": ("texture_image", "uvs")}
 
@@ -103,11 +108,23 @@ def _float_array(name: str, value, trailing: tuple, allow_unbatched: bool = True
                              f"(n >= 1), got {arr.shape}")
     if batched and arr.shape[0] < 1:
         raise ValueError(f"{name} has batch size 0; expected at least 1")
-    if not np.isfinite(arr).all():
-        bad = np.argwhere(~np.isfinite(arr))[0]
-        raise ValueError(f"{name} contains NaN or Inf (first at index {tuple(int(i) for i in bad)})")
+    check_finite(name, arr)
     arr = arr.astype(np.float64)
     return (arr if batched else arr[None]), batched
+
+
+def check_float32_range(name: str, arr: np.ndarray | None, dtype: str) -> None:
+    """With float32 kernels (`dtype`), ValueError if some |value| of `arr` exceeds FLOAT32_LIMIT,
+    naming the argument, the largest magnitude and where it is."""
+    if arr is None or dtype != "float32" or arr.size == 0:
+        return
+    big = np.abs(arr) > FLOAT32_LIMIT
+    if big.any():
+        first = tuple(int(i) for i in np.argwhere(big)[0])
+        raise ValueError(f"{name} has values up to {np.abs(arr).max():.3g} in magnitude (first at "
+                         f"index {first}), beyond what the float32 kernels handle (|value| <= "
+                         f"{FLOAT32_LIMIT:.3g} = 2^64, the square root of float32's largest value); "
+                         f"rescale it or use dtype='float64'")
 
 
 def _shape_text(trailing: tuple, allow_unbatched: bool) -> str:
@@ -171,6 +188,8 @@ def check_inputs(s: RasterSettings, vertices, faces, colors=None, face_textures=
     color = next((getattr(mesh, n) for n in ("colors", "face_textures", "texture_image")
                   if getattr(mesh, n) is not None), None)
     mesh.colors_batch = color.shape[0] if color is not None else 1
+    for name in ("vertices", "colors", "face_textures", "texture_image", "uvs", "normals", "light"):
+        check_float32_range(name, getattr(mesh, name), s.dtype)
     for name in ("colors", "face_textures", "texture_image", "uvs", "normals"):
         if getattr(mesh, name) is not None:
             setattr(mesh, name, _match_batch(name, getattr(mesh, name), b))
@@ -203,6 +222,5 @@ def check_cotangent(name: str, value, shape: tuple, produced: bool) -> np.ndarra
         raise TypeError(f"{name} must be a float array, got dtype {arr.dtype}")
     if arr.shape != want:
         raise ValueError(f"{name} must have shape {want}, got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise ValueError(f"{name} contains NaN or Inf")
+    check_finite(name, arr)
     return arr

@@ -155,10 +155,10 @@ class Camera:
                 image_size=(256, 256)) -> "Camera":
         """Perspective camera at `eye` looking at `target`; fov_deg in (0, 180) spans the
         shorter image side; `up` appears up in the image."""
-        eye, target = _eye_target(eye, target)
         fov = number("fov_deg", fov_deg)
         if not 0.0 < fov < 180.0:
             raise ValueError(f"fov_deg must be in (0, 180) degrees, got {fov_deg!r}")
+        eye, target = _eye_target(eye, target)
         h, w = _image_size(image_size)
         R = _look_at_rotation(eye, target, up)
         f = 0.5 * min(h, w) / math.tan(math.radians(fov) / 2.0)
