@@ -618,35 +618,42 @@ def fit_many(inputs, out_dir, kind: str = "face", options: dict | None = None, *
     results.jsonl and summary.png. Ctrl-C cancels what is in flight and returns with
     ``interrupted=True`` after writing the table and the summary.
     """
+    from softras_cl.interrupts import first_interrupt_calls
+    from softras_cl.fitting.reports.batch import ResultsTable
+
     items = [it if isinstance(it, Item) else None for it in inputs]
     if None in items:
         items = collect_items(inputs, kind, options)
     with OutputFolder(out_dir, f"fit-{kind} (batch)", "--out") as folder:
-        with _client(client, scheduler, workers, threads_per_worker) as c:
-            if all_faces:
-                items = expand_faces(c, items)
-            return run_items(c, items, folder.path, retries, progress)
+        table = None
+        try:
+            with _client(client, scheduler, workers, threads_per_worker) as c:
+                if all_faces:
+                    items = expand_faces(c, items)
+                table = ResultsTable(folder.path, items)
+                interrupted = run_items(c, items, table, retries, progress)
+        except KeyboardInterrupt:       # before the items ran, or again while the cluster closed
+            if table is None:
+                raise
+            interrupted = True
+        with first_interrupt_calls(lambda signum: None):      # another Ctrl-C stops at once
+            table.finish(interrupted)       # after the local workers stopped: the table is final
+        return BatchResult(table.rows(), interrupted, folder.path, table.counts())
 
 
-def run_items(client, items: list[Item], out: Path, retries: int = 2, progress: bool = True) -> BatchResult:
-    """Submit one run_item task per item, collect the rows (table written as they arrive), and
-    on Ctrl-C cancel the rest. The summary figure is written at the end either way."""
-    from softras_cl.interrupts import first_interrupt_calls
-    from softras_cl.fitting.reports.batch import ResultsTable
-
-    table = ResultsTable(out, items)
+def run_items(client, items: list[Item], table, retries: int = 2, progress: bool = True) -> bool:
+    """Submit one run_item task per item and add the rows to ``table`` (a ResultsTable) as they
+    arrive; on Ctrl-C cancel the rest. Returns whether the run was interrupted."""
     token = uuid.uuid4().hex[:8]
-    futures = {client.submit(run_item, item, str(out.resolve()), key=f"fit-{item.name}-{token}",
+    out = str(table.out.resolve())
+    futures = {client.submit(run_item, item, out, key=f"fit-{item.name}-{token}",
                              retries=retries, pure=False): item for item in items}
-    interrupted = False
     try:
         _collect(futures, table, progress)
     except KeyboardInterrupt:
-        interrupted = True
         client.cancel(list(futures), force=True)
-    with first_interrupt_calls(lambda signum: None):      # a second Ctrl-C stops at once
-        table.finish(interrupted)
-    return BatchResult(table.rows(), interrupted, out, table.counts())
+        return True
+    return False
 
 
 def _collect(futures: dict, table, progress: bool) -> None:

@@ -42,6 +42,7 @@ class ResultsTable:
         self.items = {item.name: item for item in items}
         self._rows: dict[str, dict] = {}
         self._written = 0.0
+        self.started = time.time()
 
     def add(self, row: dict) -> None:
         """Record one item's row; rewrite the tables when the last write is ``every`` s old."""
@@ -60,6 +61,22 @@ class ResultsTable:
             counts[row["status"]] += 1
         return {s: n for s, n in counts.items() if n}
 
+    def _unreported(self, item) -> dict:
+        """The row of an item whose task did not report: ok when its folder was completed
+        during this run (it finished as the run was stopped), else cancelled."""
+        row = dict(input=item.photo, name=item.name, face=item.face, status="cancelled",
+                   error="interrupted before it finished", metrics={}, seconds=None, output=None)
+        folder = self.out / item.name
+        try:
+            fresh = (folder / "complete.json").stat().st_mtime >= self.started
+            doc = json.loads((folder / "complete.json").read_text()) if fresh else {}
+        except (OSError, ValueError):
+            doc = {}
+        if isinstance(doc, dict) and doc.get("status") == "done":
+            row.update(status="ok", error="", metrics=doc.get("metrics") or {},
+                       seconds=doc.get("seconds"), output=str(folder.resolve()))
+        return row
+
     def write(self) -> None:
         """Rewrite results.jsonl and results.csv (atomically)."""
         rows = self.rows()
@@ -74,10 +91,7 @@ class ResultsTable:
         if interrupted:
             for name in self.order:
                 if name not in self._rows:
-                    item = self.items[name]
-                    self._rows[name] = dict(input=item.photo, name=name, face=item.face,
-                                            status="cancelled", error="interrupted before it finished",
-                                            metrics={}, seconds=None, output=None)
+                    self._rows[name] = self._unreported(self.items[name])
         self.write()
         save_summary(self.rows(), self.out / "summary.png")
 
