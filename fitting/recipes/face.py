@@ -47,6 +47,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from softras_cl.checks import check_finite, number
+from softras_cl.errors import InputError
 from softras_cl.scene.camera import Camera
 from softras_cl.scene.rotation import RodriguesContext, matrix_to_axis_angle, rodrigues, rodrigues_vjp
 from softras_cl.scene.renderer import Renderer
@@ -63,6 +65,14 @@ __all__ = ["FaceFitConfig", "Crop", "FaceScene", "FaceFit", "BUDGETS", "landmark
            "fit_face", "psnr"]
 
 N_LANDMARKS = 68
+# Smallest working image (pixels a side). Measured on astronaut with the fast budget: the face
+# region left after the 2-pixel erosion and the eye and mouth cut-outs has 0 pixels at 16 (PSNR
+# NaN), 23 at 24, 66 at 32 and 245 at 48. A photo's face must therefore span at least
+# MIN_SIZE / 2 pixels (the working image is twice the landmarks' extent).
+MIN_SIZE = 32
+# Smallest ratio of the landmarks' two singular values (centred): a face spans an area (0.92 on
+# both shipped photos); points on a line, or all at one point, fix no pose.
+MIN_LANDMARK_SPREAD = 0.05
 JAW = slice(0, 17)          # iBUG 300-W: jaw line; a fixed-vertex contour only approximates it
 # iBUG outlines: the face (jaw line, then the brows back) and what a skin model cannot explain
 # inside it (the eyes and the inside of the mouth)
@@ -112,17 +122,65 @@ class FaceFitConfig:
     n_albedo: int | None = None
     dtype: str = "float64"
 
+    def __post_init__(self):
+        _check_face_config(self)
+
     @classmethod
     def from_budget(cls, name: str, photo_weight: float | None = None, **changes) -> "FaceFitConfig":
         """The config of a schedule budget (BUDGETS), optionally with another photo weight."""
         if name not in BUDGETS:
-            raise ValueError(f"budget must be one of {sorted(BUDGETS)}, got {name!r}")
+            raise InputError(f"budget must be one of {sorted(BUDGETS)}, got {name!r}")
         config = cls(**{**BUDGETS[name], **changes})
         if photo_weight is None:
             return config
-        if not photo_weight > 0:
-            raise ValueError(f"photo_weight must be > 0, got {photo_weight!r}")
+        _check(lambda: number("photo_weight", photo_weight, positive=True))
         return dataclasses.replace(config, weights={**config.weights, "photo": float(photo_weight)})
+
+
+def _check(fn):
+    """Run a softras_cl.checks check, turning its ValueError into InputError (exit 2)."""
+    try:
+        return fn()
+    except InputError:
+        raise
+    except ValueError as e:
+        raise InputError(str(e)) from None
+
+
+def _int_at_least(name: str, value, low: int, why: str = "") -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+        raise InputError(f"{name} must be an integer >= {low}{why}, got {value!r}")
+
+
+def _check_face_config(c: FaceFitConfig) -> None:
+    """InputError naming the first bad field of a FaceFitConfig."""
+    _int_at_least("size", c.size, MIN_SIZE, f" (pixels a side of the working image; below {MIN_SIZE} "
+                  "the face region left to fit the photo is a few pixels or none)")
+    if c.focal is not None:
+        _check(lambda: number("focal", c.focal, positive=True))
+    fov = _check(lambda: number("fov_deg", c.fov_deg))
+    if not 0 < fov < 180:
+        raise InputError(f"fov_deg must be in (0, 180) degrees, got {c.fov_deg!r}")
+    _int_at_least("landmark_iters", c.landmark_iters, 0)
+    for i, stage in enumerate(c.photo_stages):
+        if len(stage) != 3:
+            raise InputError(f"photo_stages[{i}] must be (sigma, gamma, evaluations), got {stage!r}")
+        _check(lambda: number(f"photo_stages[{i}] sigma", stage[0], positive=True))
+        _check(lambda: number(f"photo_stages[{i}] gamma", stage[1], positive=True))
+        _int_at_least(f"photo_stages[{i}] evaluations", stage[2], 0)
+    for name, w in c.weights.items():
+        if _check(lambda: number(f"weights[{name!r}]", w)) < 0:
+            raise InputError(f"weights[{name!r}] must be >= 0, got {w!r}")
+    if _check(lambda: number("landmark_weight_photo", c.landmark_weight_photo)) < 0:
+        raise InputError(f"landmark_weight_photo must be >= 0, got {c.landmark_weight_photo!r}")
+    _int_at_least("mask_erosion", c.mask_erosion, 0)
+    if _check(lambda: number("forehead", c.forehead)) < 0:
+        raise InputError(f"forehead must be >= 0, got {c.forehead!r}")
+    for name in ("n_id", "n_exp", "n_albedo"):
+        if getattr(c, name) is not None:
+            _int_at_least(name, getattr(c, name), 0)
+    if c.dtype not in ("float32", "float64"):
+        raise InputError(f"dtype must be 'float32' or 'float64', got {c.dtype!r}")
 
 
 def landmark_weights() -> np.ndarray:
@@ -155,20 +213,33 @@ class Crop:
 
 
 def _check_inputs(photo, landmarks) -> tuple[np.ndarray, np.ndarray]:
+    """Checked (photo (H, W, 3) float64, landmarks (68, 2) float64); InputError naming what is
+    wrong: shape, non-finite values, a landmark outside the photo, or landmarks that span no
+    area (collinear or coincident) or less than MIN_SIZE / 2 pixels."""
     img = np.asarray(photo, np.float64)
     if img.ndim != 3 or img.shape[2] != 3:
-        raise ValueError(f"photo must be an (H, W, 3) RGB image, got shape {img.shape}")
-    if not np.isfinite(img).all():
-        raise ValueError("photo contains NaN or Inf")
+        raise InputError(f"photo must be an (H, W, 3) RGB image, got shape {img.shape}")
+    _check(lambda: check_finite("photo", img))
     pts = np.asarray(landmarks, np.float64)
     if pts.shape != (N_LANDMARKS, 2):
-        raise ValueError(f"landmarks must have shape ({N_LANDMARKS}, 2), got {pts.shape}")
+        raise InputError(f"landmarks must have shape ({N_LANDMARKS}, 2), got {pts.shape}")
+    _check(lambda: check_finite("landmarks", pts))
     h, w = img.shape[:2]
     outside = (pts[:, 0] < -0.5) | (pts[:, 0] > w - 0.5) | (pts[:, 1] < -0.5) | (pts[:, 1] > h - 0.5)
-    if not np.isfinite(pts).all() or outside.any():
-        i = int(np.argmax(outside | ~np.isfinite(pts).all(1)))
-        raise ValueError(f"landmark {i} at {pts[i].tolist()} is outside the {w}x{h} photo "
+    if outside.any():
+        i = int(np.argmax(outside))
+        raise InputError(f"landmark {i} at {pts[i].tolist()} is outside the {w}x{h} photo "
                          "(do the landmarks belong to this photo?)")
+    extent = float(np.ptp(pts, axis=0).max())
+    if extent < MIN_SIZE / 2:
+        raise InputError(f"the landmarks span {extent:.3g} pixels of the {w}x{h} photo; fitting needs "
+                         f"a face at least {MIN_SIZE // 2} pixels across (a working image of "
+                         f"{MIN_SIZE} pixels); use a larger photo")
+    spread = np.linalg.svd(pts - pts.mean(0), compute_uv=False)
+    if spread[1] < MIN_LANDMARK_SPREAD * spread[0]:
+        raise InputError(f"the landmarks lie on a line (spread ratio {spread[1] / spread[0]:.2g}, "
+                         f"smallest over largest singular value; a face gives about 0.9, at least "
+                         f"{MIN_LANDMARK_SPREAD} is needed): are they the 68 points of a face?")
     return img, pts
 
 

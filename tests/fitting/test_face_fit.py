@@ -149,7 +149,7 @@ def test_prepare_photo_crops_around_the_landmarks_and_maps_pixel_centres():
 def test_prepare_photo_pads_a_face_at_the_border_with_edge_pixels():
     photo = np.zeros((100, 100, 3))
     photo[:, 0] = 1.0
-    lmk = np.column_stack([np.linspace(0, 30, 68), np.linspace(40, 60, 68)])
+    lmk = np.column_stack([np.linspace(0, 30, 68), 40 + 20 * (np.arange(68) % 2)])   # spans an area
     image, points, crop = face.prepare_photo(photo, lmk, 200)
     assert crop.x0 < 0 and image.shape == (60, 60, 3)
     assert np.all(image[:, :int(-crop.x0) + 1] == 1.0)       # columns left of the photo repeat its edge
