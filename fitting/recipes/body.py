@@ -47,6 +47,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from softras_cl.checks import check_finite, number
+from softras_cl.errors import InputError
 from softras_cl.scene.camera import Camera
 from softras_cl.scene.renderer import Renderer
 from softras_cl.raster.settings import RasterSettings
@@ -203,11 +205,51 @@ class BodyFitConfig:
     robust_px: float | None = None
     dtype: str = "float64"
 
+    def __post_init__(self):
+        _check_body_config(self)
+
     @classmethod
     def from_budget(cls, name: str, **changes) -> BodyFitConfig:
         if name not in BUDGETS:
-            raise ValueError(f"budget must be one of {sorted(BUDGETS)}, got {name!r}")
+            raise InputError(f"budget must be one of {sorted(BUDGETS)}, got {name!r}")
         return cls(**{**BUDGETS[name], **changes})
+
+
+MIN_SIZE = 16       # pixels: the smallest working image side prepare_target makes
+
+
+def _number(name: str, value, positive: bool = False) -> float:
+    """softras_cl.checks.number, raising InputError (exit 2) naming `name`."""
+    try:
+        return number(name, value, positive=positive)
+    except ValueError as e:
+        raise InputError(str(e)) from None
+
+
+def _check_body_config(c: BodyFitConfig) -> None:
+    """InputError naming the first bad field of a BodyFitConfig."""
+    if isinstance(c.size, bool) or not isinstance(c.size, (int, np.integer)) or c.size < MIN_SIZE:
+        raise InputError(f"size must be an integer >= {MIN_SIZE} (pixels of the working image's "
+                         f"longer side), got {c.size!r}")
+    _number("distance", c.distance, positive=True)
+    _number("height", c.height)
+    fov = _number("fov_deg", c.fov_deg)
+    if not 0 < fov < 180:
+        raise InputError(f"fov_deg must be in (0, 180) degrees, got {c.fov_deg!r}")
+    bg = np.asarray(c.background, dtype=object)
+    if bg.shape != (3,):
+        raise InputError(f"background must be 3 numbers (linear RGB), got {c.background!r}")
+    for i, v in enumerate(c.background):
+        _number(f"background[{i}]", v)
+    if isinstance(c.joint_iters, bool) or not isinstance(c.joint_iters, (int, np.integer)) or c.joint_iters < 0:
+        raise InputError(f"joint_iters must be an integer >= 0, got {c.joint_iters!r}")
+    for name, w in c.weights.items():
+        if _number(f"weights[{name!r}]", w) < 0:
+            raise InputError(f"weights[{name!r}] must be >= 0, got {w!r}")
+    if c.robust_px is not None:
+        _number("robust_px", c.robust_px, positive=True)
+    if c.dtype not in ("float32", "float64"):
+        raise InputError(f"dtype must be 'float32' or 'float64', got {c.dtype!r}")
 
 
 @dataclass
@@ -229,6 +271,11 @@ class BodyTarget:
 def _split_target(target, background) -> tuple[np.ndarray | None, np.ndarray]:
     """(H, W) | (H, W, 3) | (H, W, 4) -> (rgb composited on the background or None, alpha)."""
     img = np.asarray(target, np.float64)
+    if img.ndim in (2, 3):
+        try:
+            check_finite("target", img)
+        except ValueError as e:
+            raise InputError(str(e)) from None
     if img.ndim == 2:
         return None, np.clip(img, 0.0, 1.0)
     if img.ndim != 3 or img.shape[2] not in (3, 4):
@@ -254,7 +301,12 @@ def _check_joints(joints, weights, n_joints: int, size) -> tuple[np.ndarray, np.
         raise ValueError(f"joint weights must be {n_joints} finite values >= 0")
     h, wd = size
     seen = w > 0
-    bad = seen & ~(np.isfinite(pts).all(1) & (pts[:, 0] >= -0.5) & (pts[:, 0] <= wd - 0.5)
+    nonfinite = seen & ~np.isfinite(pts).all(1)
+    if nonfinite.any():
+        j = int(np.argmax(nonfinite))
+        raise InputError(f"joint {j} is {pts[j].tolist()}: a seen joint (weight > 0) needs finite "
+                         "pixel coordinates (give weight 0 to a joint that is not seen)")
+    bad = seen & ~((pts[:, 0] >= -0.5) & (pts[:, 0] <= wd - 0.5)
                    & (pts[:, 1] >= -0.5) & (pts[:, 1] <= h - 0.5))
     if bad.any():
         j = int(np.argmax(bad))
