@@ -1,0 +1,333 @@
+"""Every kernel variant, forward and backward, at tiny sizes: the sweep run under Oclgrind.
+
+    oclgrind --data-races --uninitialized --check-api python scripts/oclgrind_sweep.py
+
+Under `oclgrind` the only OpenCL platform is Oclgrind's simulator, which reports out-of-bounds
+accesses, data races and uses of uninitialised memory on stderr; this program drives every
+kernel variant through the public API (SoftRasterizer and Renderer) on an 11 x 13 image and
+checks that every output and gradient is finite. It exits 1 on a non-finite value or an
+exception, 2 when the chosen device is not Oclgrind's (unless --any-device). The Oclgrind
+reports themselves are judged by tests/validate/test_oclgrind.py, which runs this program and
+fails on any of them. docs/oclgrind.md lists the variants.
+
+--any-device runs the same sweep on whatever device softras_cl would choose (a quick check of
+finiteness on PoCL); --list prints the variants and exits; --only SUBSTRING runs the variants
+whose name contains it.
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+import time
+
+import numpy as np
+import pyopencl as cl
+
+from softras_cl import RasterSettings, SoftRasterizer
+from softras_cl.cl.device import select_device
+from softras_cl.scene.camera import Camera
+from softras_cl.scene.meshes import icosphere
+from softras_cl.scene.renderer import Renderer
+from softras_cl.scene.shading import LambertLight, PhongLight, SHLight
+
+H, W = 13, 11   # odd, non-square, neither side a multiple of a tile (8 x 8, 4 x 8 in float64)
+
+
+def pixel_centre(col: int, row: int) -> tuple[float, float]:
+    """NDC of a pixel centre (docs/conventions.md): the shorter side (W here) spans [-1, 1]."""
+    s = min(W, H)
+    return (2 * col + 1 - W) / s, (H - 2 * row - 1) / s
+
+
+# One face per entry, three vertices of its own: (x, y, z) per corner, screen space, CCW unless
+# named otherwise. Some are dropped before any kernel (zero area, behind the camera, all beyond
+# far, back-facing when single-sided); the rest overlap, straddle near or far, run off the image
+# into the padding columns or rows, are thinner than a pixel or have corners on pixel centres.
+_C0, _C4 = pixel_centre(0, 0), pixel_centre(4, 4)
+FACES = [
+    ("large", [(-0.8, -0.9, 2.0), (0.7, -0.6, 3.0), (-0.2, 0.9, 2.5)]),
+    ("back-facing", [(-0.5, -0.4, 2.2), (0.2, 0.8, 2.4), (0.6, -0.5, 2.6)]),
+    ("covers image", [(-4.0, -4.0, 6.0), (4.0, -4.0, 6.0), (0.0, 4.0, 6.0)]),
+    ("straddles near", [(-0.7, 0.1, 0.5), (0.1, 0.2, 3.0), (-0.3, 0.8, 3.0)]),
+    ("straddles far", [(0.0, -0.9, 4.0), (0.8, -0.9, 14.0), (0.4, -0.1, 14.0)]),
+    ("needle", [(-0.8, 0.5, 2.0), (0.8, 0.52, 2.0), (0.8, 0.5201, 2.0)]),
+    ("sub-pixel", [(0.1, -0.2, 1.5), (0.13, -0.2, 1.5), (0.11, -0.17, 1.5)]),
+    ("corners on pixel centres", [(_C0[0], _C0[1], 2.2), (_C0[0], _C4[1], 2.2), (_C4[0], _C0[1], 2.2)]),
+    ("into padding columns", [(0.75, -0.3, 1.8), (1.6, -0.2, 1.8), (0.8, 0.4, 1.8)]),
+    ("into padding rows", [(-0.6, -1.0, 1.9), (0.4, -1.6, 1.9), (0.3, -0.8, 1.9)]),
+    ("off screen", [(2.5, 2.5, 2.0), (3.0, 2.5, 2.0), (2.7, 3.0, 2.0)]),
+    ("zero area", [(0.2, 0.2, 2.0), (0.2, 0.2, 2.0), (0.4, 0.5, 2.0)]),
+    ("collinear", [(-0.5, -0.5, 2.0), (0.0, 0.0, 2.0), (0.5, 0.5, 2.0)]),
+    ("behind camera", [(-0.3, -0.3, -1.0), (0.3, -0.3, 2.0), (0.0, 0.3, 2.0)]),
+    ("beyond far", [(-0.3, -0.3, 20.0), (0.3, -0.3, 20.0), (0.0, 0.3, 20.0)]),
+]
+NEAR, FAR = 1.0, 10.0
+
+
+_kept_buffers: list = []
+
+
+def keep_buffers_alive() -> None:
+    """Never release an OpenCL buffer while the sweep runs (a workaround for Oclgrind 21.10).
+
+    Oclgrind's --uninitialized plugin keeps a buffer's shadow (which bytes are initialised) after
+    the buffer is released. A later buffer that gets the same slot and is never written by the
+    host inherits the old, smaller shadow: the kernels' stores past its end are dropped from the
+    shadow and loads there read as uninitialised, so correct kernels get false reports. Keeping
+    every buffer alive gives each new buffer a fresh slot (the sweep's buffers are tiny).
+    """
+    base = cl.Buffer
+    if getattr(base, "_kept_alive", False):
+        return
+
+    class KeptBuffer(base):
+        _kept_alive = True
+
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            _kept_buffers.append(self)
+
+    cl.Buffer = KeptBuffer
+
+
+def skip_pyopencl_nvidia_probe() -> None:
+    """Stop pyopencl asking non-NVIDIA devices for NVIDIA's compute capability.
+
+    pyopencl queries CL_DEVICE_COMPUTE_CAPABILITY_MAJOR_NV for every kernel it creates and
+    catches the CL_INVALID_VALUE other drivers return; `--check-api` reports each such call as
+    an API error, so without this every kernel would add one report that is not ours.
+    """
+    import pyopencl.characterize as characterize
+    probe = characterize.nv_compute_capability
+    if getattr(probe, "_skips_others", False):
+        return
+
+    def nvidia_only(dev):
+        return probe(dev) if "nvidia" in dev.platform.name.lower() else None
+
+    nvidia_only._skips_others = True
+    characterize.nv_compute_capability = nvidia_only
+
+
+def raster_scene(batch: int, texture: str, tex_res: int = 2, seed: int = 0) -> tuple:
+    """(vertices (B, V, 3), faces (F, 3), colour inputs for `texture`): FACES, jittered per item."""
+    rng = np.random.default_rng(seed)
+    base = np.array([corner for _, corners in FACES for corner in corners], np.float64)
+    vertices = np.repeat(base[None], batch, 0)
+    vertices[1:, :, :2] += rng.normal(scale=0.02, size=(batch - 1, len(base), 2))
+    faces = np.arange(len(base)).reshape(-1, 3)
+    n_v, n_f = len(base), len(faces)
+    colors = {
+        "vertex": lambda: dict(colors=rng.uniform(0, 1, (batch, n_v, 3))),
+        "face": lambda: dict(face_textures=rng.uniform(0, 1, (batch, n_f, tex_res, tex_res, 3))),
+        "uv": lambda: dict(texture_image=rng.uniform(0, 1, (batch, 5, 7, 3)),
+                           uvs=rng.uniform(-0.1, 1.1, (batch, n_v, 2))),
+    }[texture]()
+    return vertices, faces, colors
+
+
+def raster_settings(**kw) -> RasterSettings:
+    base = dict(image_size=(H, W), sigma=1e-3, gamma=1e-2, dist_eps=1e-4, near=NEAR, far=FAR,
+                double_sided=True, outputs=("rgb", "alpha", "depth"), background=(0.2, 0.3, 0.4))
+    return RasterSettings(**{**base, **kw})
+
+
+def _finite(what: str, value) -> None:
+    if value is None:
+        return
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _finite(f"{what}[{k}]", v)
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            _finite(f"{what}[{i}]", v)
+    elif not np.all(np.isfinite(np.asarray(value))):
+        raise AssertionError(f"{what} has non-finite values")
+
+
+def _drawn(out, s: RasterSettings) -> None:
+    """Fail when the image shows no face (the sweep would then exercise nothing)."""
+    if out.alpha is not None:
+        drawn = out.alpha.max() > 0.5
+    elif out.depth is not None:
+        drawn = out.depth.min() < s.far
+    else:
+        drawn = np.abs(out.rgb - np.asarray(s.background)).max() > 0.1
+    if not drawn:
+        raise AssertionError("no face drawn")
+
+
+def _cotangents(out, rng, skip=()) -> dict:
+    """Random dL/d(output) for each output produced, except those named in skip (left None)."""
+    return {f"grad_{n}": rng.normal(size=getattr(out, n).shape)
+            for n in ("rgb", "alpha", "depth") if getattr(out, n) is not None and n not in skip}
+
+
+def run_raster(batch: int, grads: tuple, tex_res: int = 2, skip_cot: tuple = (),
+               faces_per_item: bool = False, **kw) -> None:
+    s = raster_settings(**kw)
+    vertices, faces, colors = raster_scene(batch, s.texture, tex_res)
+    if "rgb" not in s.outputs:
+        colors = {}
+    if s.lighting != "none":
+        normals = np.random.default_rng(2).normal(size=vertices.shape)
+        light = (np.r_[0.3, 0.4, 0.5, 0.6, 0.5, 0.4, 0.36, 0.8, 0.48, np.zeros(18)]
+                 if s.lighting == "lambert" else np.random.default_rng(3).normal(scale=0.3, size=27))
+        colors = dict(colors, normals=normals, light=light)
+    if faces_per_item:
+        faces = np.repeat(faces[None], batch, 0)
+    raster = SoftRasterizer(s)
+    plain = raster.forward(vertices, faces, **colors)
+    _finite("forward", [plain.rgb, plain.alpha, plain.depth])
+    _drawn(plain, s)
+    if not grads:
+        return
+    out = raster.forward(vertices, faces, grads=grads, **colors)
+    _finite("forward with state", [out.rgb, out.alpha, out.depth])
+    g = raster.backward(out, **_cotangents(out, np.random.default_rng(1), skip_cot))
+    _finite("gradients", g)
+
+
+RENDER_LIGHTS = {
+    "lambert": LambertLight(ambient=(0.3, 0.4, 0.5), directional=(0.6, 0.5, 0.4), direction=(0.3, 1.0, 0.6)),
+    "phong": PhongLight(ambient=0.3, directional=0.6, direction=(0.5, 0.8, 0.7), specular=0.3, shininess=5.0),
+    "sh": SHLight(np.random.default_rng(3).normal(scale=0.3, size=(3, 9)) + SHLight.ambient(0.8).coefficients),
+}
+
+
+def run_render(batch: int, shading: str, light: str | None, texture: str = "vertex",
+               projection: str = "perspective", dtype: str = "float32") -> None:
+    rng = np.random.default_rng(4)
+    v, f = icosphere(0, radius=0.6)
+    v = v + rng.normal(scale=0.03, size=v.shape)
+    eyes = [(0.4, 0.5, 3.0), (-1.5, 0.3, 2.2)][:batch]
+    if projection == "perspective":
+        cams = [Camera.look_at(e, (0.0, 0.05, 0.0), fov_deg=35, image_size=(H, W)) for e in eyes]
+    else:
+        cams = [Camera.orthographic(e, (0.0, 0.05, 0.0), scale=0.8, image_size=(H, W)) for e in eyes]
+    cameras = cams[0] if batch == 1 else cams
+    s = RasterSettings(image_size=(H, W), sigma=1e-3, gamma=1e-2, near=0.5, far=10.0,
+                       outputs=("rgb", "alpha", "depth"), dtype=dtype)
+    inputs = dict(albedo=rng.uniform(0.2, 0.9, v.shape))
+    if shading == "none" and texture == "face":
+        inputs = dict(face_textures=rng.uniform(0, 1, (batch, len(f), 2, 2, 3)))
+    elif shading == "none" and texture == "uv":
+        inputs = dict(texture_image=rng.uniform(0, 1, (batch, 6, 5, 3)),
+                      uvs=rng.uniform(0, 1, (len(v), 2)))
+    groups = ("vertices", "albedo", "camera") + (("light",) if light else ())
+    renderer = Renderer(s, shading=shading)
+    lit = dict(light=RENDER_LIGHTS[light]) if light else {}
+    out = renderer.forward(v, f, cameras, grads=groups, **inputs, **lit)
+    _finite("render", [out.rgb, out.alpha, out.depth])
+    _drawn(out, s)
+    g = renderer.backward(out, **_cotangents(out, rng))
+    _finite("render gradients", g)
+
+
+def variants() -> list[tuple[str, callable]]:
+    """(name, thunk) of every case the sweep runs."""
+    out = []
+    both = ("vertices", "colors")
+    # the full build-time matrix of the rasteriser, all three outputs, both gradients
+    for i, (dtype, metric, texture, color_agg, alpha_agg) in enumerate(itertools.product(
+            ("float32", "float64"), ("euclidean", "barycentric"), ("vertex", "face", "uv"),
+            ("softmax", "hard"), ("occupancy", "sum", "hard"))):
+        kw = dict(dtype=dtype, metric=metric, texture=texture, color_agg=color_agg,
+                  alpha_agg=alpha_agg, perspective_correct=i % 2 == 0)
+        batch = 1 + i % 2
+        name = f"raster {dtype} {metric} {texture} {color_agg}/{alpha_agg} B={batch}" + \
+               ("" if kw["perspective_correct"] else " linear")
+        out.append((name, lambda b=batch, kw=kw: run_raster(b, both, **kw)))
+    for dtype in ("float32", "float64"):
+        extra = [
+            ("lambert per-pixel", 2, both, dict(lighting="lambert")),
+            ("sh per-pixel", 1, both, dict(lighting="sh")),
+            ("sh per-pixel hard", 2, both, dict(lighting="sh", color_agg="hard", alpha_agg="hard")),
+            ("lambert per-pixel vertices only", 1, ("vertices",), dict(lighting="lambert")),
+            ("lambert per-pixel colours only", 2, ("colors",), dict(lighting="lambert")),
+            ("outputs alpha", 2, ("vertices",), dict(outputs=("alpha",))),
+            ("outputs depth", 1, ("vertices",), dict(outputs=("depth",))),
+            ("outputs depth hard", 2, ("vertices",), dict(outputs=("depth",), color_agg="hard")),
+            ("outputs rgb", 1, both, dict(outputs=("rgb",))),
+            ("outputs rgb+depth sum", 2, both, dict(outputs=("rgb", "depth"), alpha_agg="sum")),
+            ("vertices only", 2, ("vertices",), dict()),
+            ("colours only uv", 2, ("colors",), dict(texture="uv")),
+            ("colours only face", 1, ("colors",), dict(texture="face")),
+            ("face texture R=1", 2, both, dict(texture="face", tex_res=1)),
+            ("single-sided", 2, both, dict(double_sided=False)),
+            ("paper defaults sigma 1e-5 gamma 1e-4", 2, both, dict(sigma=1e-5, gamma=1e-4)),
+            ("dist_eps 0", 1, both, dict(dist_eps=0.0)),
+            ("fast maths", 2, both, dict(fast_math=True)),
+            ("fast maths sh per-pixel", 1, both, dict(fast_math=True, lighting="sh")),
+            ("no rgb cotangent", 2, both, dict(skip_cot=("rgb",))),
+            ("only rgb cotangent uv", 2, both, dict(texture="uv", skip_cot=("alpha", "depth"))),
+            ("faces per item", 2, both, dict(faces_per_item=True, texture="uv")),
+            ("forward only", 2, (), dict()),
+        ]
+        for label, batch, grads, kw in extra:
+            out.append((f"raster {dtype} {label} B={batch}",
+                        lambda b=batch, g=grads, kw=kw, d=dtype: run_raster(b, g, dtype=d, **kw)))
+        renders = [
+            ("vertex lambert", 2, "vertex", "lambert", "vertex", "perspective"),
+            ("vertex phong", 1, "vertex", "phong", "vertex", "perspective"),
+            ("vertex sh orthographic", 2, "vertex", "sh", "vertex", "orthographic"),
+            ("face lambert", 1, "face", "lambert", "vertex", "perspective"),
+            ("face sh", 2, "face", "sh", "vertex", "perspective"),
+            ("pixel lambert", 2, "pixel", "lambert", "vertex", "perspective"),
+            ("pixel sh", 1, "pixel", "sh", "vertex", "perspective"),
+            ("pixel sh orthographic", 2, "pixel", "sh", "vertex", "orthographic"),
+            ("unlit vertex colours", 1, "none", None, "vertex", "perspective"),
+            ("unlit face textures", 2, "none", None, "face", "perspective"),
+            ("unlit uv texture", 2, "none", None, "uv", "perspective"),
+            ("unlit uv texture orthographic", 1, "none", None, "uv", "orthographic"),
+        ]
+        for label, batch, shading, light, texture, projection in renders:
+            out.append((f"render {dtype} {label} B={batch}",
+                        lambda b=batch, sh=shading, li=light, t=texture, p=projection, d=dtype:
+                        run_render(b, sh, li, t, p, d)))
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--any-device", action="store_true", help="do not insist on Oclgrind's device")
+    ap.add_argument("--list", action="store_true", help="print the variants and exit")
+    ap.add_argument("--only", default="", help="run only variants whose name contains this")
+    ap.add_argument("--release-buffers", action="store_true",
+                    help="let buffers be released (shows Oclgrind 21.10's false reports; see "
+                         "keep_buffers_alive)")
+    args = ap.parse_args(argv)
+    cases = [(n, f) for n, f in variants() if args.only in n]
+    if args.list:
+        print("\n".join(n for n, _ in cases))
+        return 0
+    device = select_device()
+    label = f"{device.platform.name} {device.platform.version} / {device.name}"
+    print(f"oclgrind-sweep: device {label}", flush=True)
+    if "oclgrind" not in device.platform.name.lower() and not args.any_device:
+        print("oclgrind-sweep: error: the device is not Oclgrind's; run under `oclgrind ...` "
+              "(or pass --any-device)", file=sys.stderr)
+        return 2
+    skip_pyopencl_nvidia_probe()
+    if not args.release_buffers:
+        keep_buffers_alive()
+    start, failed = time.perf_counter(), 0
+    for i, (name, thunk) in enumerate(cases, 1):
+        t0 = time.perf_counter()
+        # a marker on stderr ties the Oclgrind reports that follow to this variant
+        print(f"oclgrind-sweep: variant {name}", file=sys.stderr, flush=True)
+        try:
+            thunk()
+            status = "ok"
+        except Exception as e:    # report every failing variant, not only the first
+            failed += 1
+            status = f"FAILED: {type(e).__name__}: {e}"
+        print(f"[{i}/{len(cases)}] {name}: {status} ({time.perf_counter() - t0:.2f} s)", flush=True)
+    total = time.perf_counter() - start
+    print(f"oclgrind-sweep: {len(cases)} variants, {failed} failed, {total:.1f} s", flush=True)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
