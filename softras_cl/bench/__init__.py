@@ -2,7 +2,8 @@
 
 raster (the soft rasteriser: speed, memory, accuracy), render (the whole differentiable render
 path), pose, face and body (the fitting recipes on synthetic targets with known answers), interop
-(the PyTorch and JAX bridges' overhead over the numpy call).
+(the PyTorch and JAX bridges' overhead over the numpy call), batch (photos per minute of many
+fits against Dask workers and threads).
 """
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from importlib import import_module
 # benchmark name -> module whose register(which) adds it; each module imports its heavy
 # dependencies inside its runner, so building the parser stays light.
 BENCHMARKS = {"raster": "raster", "render": "render", "pose": "pose", "face": "face", "body": "body",
-              "interop": "interop"}
+              "interop": "interop", "batch": "batch"}
 
 
 def register(sub) -> None:
