@@ -7,11 +7,19 @@ converted from linear RGB to sRGB and written as an 8-bit RGB PNG.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
+from softras_cl.cli.view import check_command_memory, positive_float, positive_int
+
 DEFAULT_OUT = Path("out") / "demo.png"
+# 20 * 4**8 = 1,310,720 faces: about 1.1 GB and 15 s on 2 cores at 512^2, with faces already
+# smaller than a pixel at that size; every further subdivision quadruples time and memory
+# (9: ~4 GB, about a minute), and at 20 building the sphere alone needs terabytes.
+MAX_SUBDIVISIONS = 8
+# Peak bytes per pixel after rendering (float64 sRGB encoding and the PNG), measured at 2048^2
+# and 4096^2 with max RSS.
+BYTES_PER_PIXEL = 190
 
 
 def render_demo(out: str | Path = DEFAULT_OUT, size: int = 512, subdivisions: int = 3,
@@ -50,34 +58,27 @@ def render_demo(out: str | Path = DEFAULT_OUT, size: int = 512, subdivisions: in
                 faces=len(faces), image=srgb)
 
 
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text}")
-    return value
-
-
-def _non_negative_int(text: str) -> int:
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text}")
-    return value
-
-
-def _positive_float(text: str) -> float:
-    value = float(text)
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+def _subdivisions(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if not 0 <= value <= MAX_SUBDIVISIONS:
+        raise argparse.ArgumentTypeError(
+            f"must be an integer in [0, {MAX_SUBDIVISIONS}] (20 * 4**{MAX_SUBDIVISIONS} = "
+            f"{20 * 4 ** MAX_SUBDIVISIONS:,} faces, already smaller than a pixel at 512^2; each step "
+            f"quadruples time and memory), got {text}")
     return value
 
 
 def _run(args: argparse.Namespace) -> int:
-    try:
-        result = render_demo(args.out, size=args.size, subdivisions=args.faces, sigma=args.sigma,
-                             gamma=args.gamma)
-    except (RuntimeError, ValueError, OSError) as e:
-        print(f"softras-cl demo: {e}", file=sys.stderr)
-        return 1
+    from softras_cl.raster.settings import RasterSettings
+
+    settings = RasterSettings(image_size=(args.size, args.size), sigma=args.sigma, gamma=args.gamma,
+                              background=(1.0, 1.0, 1.0), outputs=("rgb",))
+    check_command_memory("demo", settings, 20 * 4 ** args.faces, BYTES_PER_PIXEL)
+    result = render_demo(args.out, size=args.size, subdivisions=args.faces, sigma=args.sigma,
+                         gamma=args.gamma)
     print(f"wrote {result['path']} ({args.size}x{args.size}, {result['faces']} faces) in "
           f"{result['seconds']:.2f} s (rasteriser {result['render_seconds'] * 1000:.1f} ms)")
     return 0
@@ -91,12 +92,13 @@ def register(sub) -> None:
                                    "and the time taken.")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT,
                    help=f"where to write the PNG (default: {DEFAULT_OUT}); folders are created")
-    p.add_argument("--size", type=_positive_int, default=512,
+    p.add_argument("--size", type=positive_int, default=512,
                    help="image width and height in pixels (default: 512)")
-    p.add_argument("--faces", type=_non_negative_int, default=3, metavar="SUBDIVISIONS",
-                   help="icosphere subdivisions: 20 * 4**SUBDIVISIONS faces (default: 3, 1280 faces)")
-    p.add_argument("--sigma", type=_positive_float, default=1e-5,
+    p.add_argument("--faces", type=_subdivisions, default=3, metavar="SUBDIVISIONS",
+                   help=f"icosphere subdivisions, 0 to {MAX_SUBDIVISIONS}: 20 * 4**SUBDIVISIONS faces "
+                        "(default: 3, 1280 faces)")
+    p.add_argument("--sigma", type=positive_float, default=1e-5,
                    help="sharpness of the probability maps, squared NDC units (default: 1e-5)")
-    p.add_argument("--gamma", type=_positive_float, default=1e-4,
+    p.add_argument("--gamma", type=positive_float, default=1e-4,
                    help="sharpness of the softmax colour aggregation (default: 1e-4)")
     p.set_defaults(func=_run)

@@ -3,17 +3,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 
 
 def _run(args: argparse.Namespace) -> int:
     from softras_cl.cl import device
 
-    try:
-        rows = device.list_devices()
-    except RuntimeError as e:
-        print(f"softras-cl: {e}", file=sys.stderr)
-        return 1
+    rows = device.list_devices()       # DeviceError (exit 4) when there is no platform
     if args.json:
         print(json.dumps(rows, indent=2))
     else:
@@ -25,11 +20,7 @@ def _run(args: argparse.Namespace) -> int:
         widths = [max(len(row[i]) for row in table) for i in range(len(table[0]))]
         for row in table:
             print("  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip())
-    try:
-        device.select_device()
-    except ValueError as e:  # a bad SOFTRAS_CL_DEVICE / PYOPENCL_CTX: listed above, none used
-        print(f"softras-cl: {e}", file=sys.stderr)
-        return 2
+    device.select_device()   # a bad SOFTRAS_CL_DEVICE / PYOPENCL_CTX: InputError (exit 2), after the list
     return 0
 
 

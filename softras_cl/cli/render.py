@@ -2,46 +2,56 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
-from softras_cl.cli.view import add_view_options, load_view, make_light, triple
+from softras_cl.cli.view import (add_view_options, check_command_memory, check_drawable, finite_float,
+                                 load_view, make_light, positive_float, triple)
+
+# Peak bytes per pixel of the whole command after rendering, measured (max RSS, 2048^2 and
+# 4096^2): the float64 copies and sRGB encoding of write_image dominate (rgb 183, rgba 219,
+# the depth PNG +8).
+BYTES_PER_PIXEL = dict(rgb=190, rgba=230, depth=20)
 
 
 def _run_render(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from softras_cl.errors import ResultError
     from softras_cl.io.images import write_image
     from softras_cl.scene.renderer import Renderer
     from softras_cl.raster.settings import RasterSettings
 
-    try:
-        mesh, camera = load_view(args)
-        outputs = ("rgb", "alpha", "depth") if args.depth_out else ("rgb", "alpha")
-        settings = RasterSettings(image_size=tuple(camera.image_size), sigma=args.sigma, gamma=args.gamma,
-                                  dist_eps=args.dist_eps, background=args.background, outputs=outputs,
-                                  double_sided=args.double_sided, dtype=args.dtype, near=0.1, far=100.0)
-        textured = mesh.texture is not None and mesh.uvs is not None
-        albedo = mesh.colors if mesh.colors is not None else np.full(mesh.vertices.shape, 0.7)
-        start = time.perf_counter()
-        if textured or args.light == "none":
-            color = dict(texture_image=mesh.texture[None], uvs=mesh.uvs) if textured else dict(albedo=albedo)
-            out = Renderer(settings, shading="none").forward(mesh.vertices, mesh.faces, camera, **color)
-        else:
-            out = Renderer(settings, shading=args.shading).forward(mesh.vertices, mesh.faces, camera,
-                                                                   albedo=albedo, light=make_light(args))
-        seconds = time.perf_counter() - start
-        image = out.rgba()[0] if args.transparent else out.rgb[0]
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        write_image(args.out, image.astype(np.float64))
-        if args.depth_out:
-            _write_depth(args.depth_out, out.depth[0], out.alpha[0])
-    except (ValueError, OSError, RuntimeError) as e:
-        print(f"softras-cl render: {e}", file=sys.stderr)
-        return 1
+    mesh, camera = load_view(args)
+    check_drawable(mesh, args.mesh.name)
+    outputs = ("rgb", "alpha", "depth") if args.depth_out else ("rgb", "alpha")
+    settings = RasterSettings(image_size=tuple(camera.image_size), sigma=args.sigma, gamma=args.gamma,
+                              dist_eps=args.dist_eps, background=args.background, outputs=outputs,
+                              double_sided=args.double_sided, dtype=args.dtype, near=0.1, far=100.0)
+    per_pixel = BYTES_PER_PIXEL["rgba" if args.transparent else "rgb"] + BYTES_PER_PIXEL["depth"] * bool(args.depth_out)
+    check_command_memory("render", settings, mesh.n_faces, per_pixel)
+    textured = mesh.texture is not None and mesh.uvs is not None
+    albedo = mesh.colors if mesh.colors is not None else np.full(mesh.vertices.shape, 0.7)
+    start = time.perf_counter()
+    if textured or args.light == "none":
+        color = dict(texture_image=mesh.texture[None], uvs=mesh.uvs) if textured else dict(albedo=albedo)
+        out = Renderer(settings, shading="none").forward(mesh.vertices, mesh.faces, camera, **color)
+    else:
+        out = Renderer(settings, shading=args.shading).forward(mesh.vertices, mesh.faces, camera,
+                                                               albedo=albedo, light=make_light(args))
+    seconds = time.perf_counter() - start
+    if not (out.alpha[0] > 0.5).any():
+        raise ResultError(f"nothing was drawn: no pixel of {args.mesh.name} is covered (the mesh is "
+                          f"outside the view{'' if args.double_sided else ' or faces away: try --double-sided'}); "
+                          f"{args.out} not written")
+    image = out.rgba()[0] if args.transparent else out.rgb[0]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    write_image(args.out, image.astype(np.float64))
+    if args.depth_out:
+        _write_depth(args.depth_out, out.depth[0], out.alpha[0])
     print(f"wrote {args.out} ({camera.image_size[1]}x{camera.image_size[0]}, {len(mesh.faces)} faces, "
-          f"{'textured, unlit' if textured else args.light}) in {seconds * 1000:.0f} ms")
+          f"{'textured, unlit' if textured else args.light}): rendered in {seconds * 1000:.0f} ms, "
+          f"{time.perf_counter() - start:.1f} s with writing")
     return 0
 
 
@@ -74,10 +84,10 @@ def register(sub) -> None:
     p.add_argument("--light-dir", type=triple, default=(0.0, 1.0, 0.0),
                    help="direction towards the light, x,y,z world (default 0,1,0: from above)")
     p.add_argument("--specular", type=triple, default=(0.2,) * 3, help="Phong specular intensity (default 0.2)")
-    p.add_argument("--shininess", type=float, default=32.0, help="Phong exponent (default 32)")
-    p.add_argument("--sigma", type=float, default=1e-5, help="probability-map sharpness, squared NDC (default 1e-5)")
-    p.add_argument("--gamma", type=float, default=1e-4, help="aggregation sharpness (default 1e-4)")
-    p.add_argument("--dist-eps", type=float, default=1e-4, help="cut-off on the probability map (default 1e-4)")
+    p.add_argument("--shininess", type=positive_float, default=32.0, help="Phong exponent (default 32)")
+    p.add_argument("--sigma", type=positive_float, default=1e-5, help="probability-map sharpness, squared NDC (default 1e-5)")
+    p.add_argument("--gamma", type=positive_float, default=1e-4, help="aggregation sharpness (default 1e-4)")
+    p.add_argument("--dist-eps", type=finite_float, default=1e-4, help="cut-off on the probability map (default 1e-4)")
     p.add_argument("--background", type=triple, default=(1.0,) * 3, help="background colour, linear (default 1 = white)")
     p.add_argument("--double-sided", action="store_true", help="draw back faces too (for open meshes)")
     p.add_argument("--transparent", action="store_true", help="write RGBA with the soft alpha instead of RGB")

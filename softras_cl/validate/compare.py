@@ -106,15 +106,59 @@ def metrics(rgb, alpha, depth, ref_rgb, ref: RayCastImage) -> dict:
     from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
     ours = alpha > 0.5
-    iou = (ours & ref.mask).sum() / max((ours | ref.mask).sum(), 1)
+    union = (ours | ref.mask).sum()
+    iou = (ours & ref.mask).sum() / union if union else float("nan")
     inner = interior(ours & ref.mask)
     rel = np.abs(depth[inner] - ref.depth[inner]) / ref.depth[inner]
-    return dict(silhouette_iou=float(iou),
+    with np.errstate(divide="ignore"):     # identical images: PSNR inf (see invalid_metrics)
+        psnr = float(peak_signal_noise_ratio(ref_rgb, np.clip(rgb, 0, 1), data_range=1.0))
+    return dict(silhouette_iou=float(iou), silhouette_pixels=int(ours.sum()),
+                reference_pixels=int(ref.mask.sum()),
                 depth_rel_err_max=float(rel.max()) if rel.size else float("nan"),
                 depth_rel_err_mean=float(rel.mean()) if rel.size else float("nan"),
                 interior_pixels=int(inner.sum()),
-                psnr_db=float(peak_signal_noise_ratio(ref_rgb, np.clip(rgb, 0, 1), data_range=1.0)),
+                psnr_db=psnr,
                 ssim=float(structural_similarity(ref_rgb, np.clip(rgb, 0, 1), channel_axis=2, data_range=1.0)))
+
+
+def invalid_metrics(m: dict) -> dict[str, str]:
+    """{metric name: why it has no finite value} for the metrics of :func:`metrics` that are NaN
+    or infinite (empty: every metric is a number)."""
+    why = {}
+    if not m.get("reference_pixels") and not m.get("silhouette_pixels"):
+        empty = "neither renderer covers any pixel (zero-area faces, or the mesh is outside the view)"
+    elif not m.get("reference_pixels") or not m.get("silhouette_pixels"):
+        who = "the reference" if not m.get("reference_pixels") else "softras-cl"
+        empty = f"{who} covers no pixel"
+    else:
+        empty = "no pixel lies inside both silhouettes with its 8 neighbours"
+    reasons = dict(silhouette_iou=empty, depth_rel_err_max=empty, depth_rel_err_mean=empty,
+                   psnr_db="the images are identical (PSNR is infinite)",
+                   ssim="SSIM is undefined for these images")
+    for key, value in m.items():
+        if isinstance(value, float) and not np.isfinite(value):
+            why[key] = reasons.get(key, "not a finite number")
+    return why
+
+
+def degenerate(m: dict) -> str | None:
+    """Why the comparison measures nothing (no pixel covered by both renderers, so no IoU or
+    depth error), or None when it is a valid comparison. An infinite PSNR alone (identical
+    images over a covered silhouette) is valid."""
+    if m.get("interior_pixels", 0) > 0 and np.isfinite(m["silhouette_iou"]):
+        return None
+    bad = invalid_metrics(m)
+    return bad.get("silhouette_iou") or bad.get("depth_rel_err_max") or "no pixel to compare"
+
+
+def json_metrics(m: dict) -> dict:
+    """The metrics with NaN and infinities as None (strict JSON), and "invalid": {name: reason}
+    for each of them when there are any."""
+    bad = invalid_metrics(m)
+    out = {k: (None if k in bad else v) for k, v in m.items()}
+    if bad:
+        out["invalid"] = bad
+    return out
 
 
 def save_comparison(result: Comparison, path: Path, title: str = "",

@@ -56,5 +56,5 @@ def test_render_command_reports_bad_mesh(tmp_path, run_cli):
     bad = tmp_path / "points.ply"
     trimesh.PointCloud(np.random.default_rng(0).normal(size=(10, 3))).export(bad)
     result = run_cli("render", str(bad), "--out", str(tmp_path / "x.png"))
-    assert result.code == 1
-    assert "no faces" in result.err
+    assert result.code == 2                              # an input file problem (softras_cl.errors)
+    assert "no faces" in result.err and "Traceback" not in result.err

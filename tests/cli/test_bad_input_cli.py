@@ -1,0 +1,305 @@
+"""Every bad input gets one line on stderr naming what is wrong, the documented exit code
+(softras_cl.errors) and no traceback, before any kernel runs."""
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from softras_cl.errors import EXIT_INPUT, EXIT_RESOURCE, EXIT_RESULT
+
+
+def one_line(result) -> str:
+    """The error line of a failed run: exactly one line, no traceback."""
+    assert "Traceback" not in result.err, result.err
+    lines = [line for line in result.err.splitlines() if line.strip()]
+    assert lines, "no message on stderr"
+    return lines[-1]
+
+
+@pytest.fixture(scope="module")
+def sphere(tmp_path_factory):
+    path = tmp_path_factory.mktemp("meshes") / "sphere.ply"
+    trimesh.creation.icosphere(subdivisions=2).export(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def flat(tmp_path_factory):
+    """Two faces, both of zero area (collinear corners, a repeated vertex)."""
+    path = tmp_path_factory.mktemp("meshes") / "flat.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nv 0 1 0\nf 1 2 3\nf 1 1 4\n")
+    return path
+
+
+# ---- render / demo: options -------------------------------------------------------------------
+@pytest.mark.parametrize("option, value, says", [
+    ("--width", "0", "argument --width: must be an integer >= 1, got 0"),
+    ("--height", "-5", "argument --height: must be an integer >= 1, got -5"),
+    ("--size", "0", "argument --size: must be an integer >= 1, got 0"),
+    ("--fov", "0", "argument --fov: must be in (0, 180) degrees, got 0"),
+    ("--fov", "180", "argument --fov: must be in (0, 180) degrees, got 180"),
+    ("--elevation", "120", "argument --elevation: must be in [-90, 90] degrees"),
+    ("--azimuth", "nan", "argument --azimuth: must be a finite number, got 'nan'"),
+    ("--sigma", "0", "argument --sigma: must be a finite number > 0, got '0'"),
+    ("--gamma", "inf", "argument --gamma: must be a finite number > 0, got 'inf'"),
+    ("--background", "1,2", "argument --background: expected one number or three comma-separated numbers"),
+    ("--light-dir", "x", "argument --light-dir: expected one number or three comma-separated numbers"),
+])
+def test_render_refuses_bad_options(run_cli, sphere, tmp_path, option, value, says):
+    result = run_cli("render", sphere, option, value, "--out", tmp_path / "r.png")
+    assert result.code == EXIT_INPUT
+    assert says in one_line(result)
+    assert not (tmp_path / "r.png").exists()
+
+
+def test_render_dist_eps_out_of_range_names_it(run_cli, sphere, tmp_path):
+    result = run_cli("render", sphere, "--dist-eps", "0.7", "--size", "32", "--out", tmp_path / "r.png")
+    assert result.code == EXIT_INPUT
+    assert "dist_eps must be in [0, 0.5), got 0.7" in one_line(result)
+
+
+@pytest.mark.parametrize("value, says", [
+    ("20", "argument --faces: must be an integer in [0, 8]"),
+    ("-1", "argument --faces: must be an integer in [0, 8]"),
+    ("x", "argument --faces: expected an integer, got 'x'"),
+])
+def test_demo_bounds_the_subdivisions(run_cli, tmp_path, value, says):
+    result = run_cli("demo", "--faces", value, "--out", tmp_path / "d.png")
+    assert result.code == EXIT_INPUT
+    assert says in one_line(result)
+    assert "1,310,720 faces" in result.err or value == "x"
+
+
+def test_elevation_90_looks_straight_down(run_cli, sphere, tmp_path):
+    """At the pole the camera's up is chosen for the user (the image is the sphere, seen from above)."""
+    from softras_cl.io.images import read_image
+
+    for elevation in ("90", "-90"):
+        out = tmp_path / f"e{elevation}.png"
+        result = run_cli("render", sphere, "--elevation", elevation, "--size", "48", "--out", out)
+        assert result.code == 0, result.err
+        image = read_image(out)
+        assert image[24, 24].max() < 0.95 and image[0, 0].min() > 0.99   # sphere in the middle, page in the corner
+
+
+# ---- memory --------------------------------------------------------------------------------------
+def test_render_too_large_for_one_device_buffer(run_cli, sphere, tmp_path):
+    result = run_cli("render", sphere, "--size", "30000", "--out", tmp_path / "r.png")
+    assert result.code == EXIT_RESOURCE
+    line = one_line(result)
+    assert line.startswith("softras-cl render: render at 30000 x 30000 needs a 10.1 GB buffer, but device")
+    assert "in one buffer; use a smaller --size (at most" in line
+
+
+def test_render_larger_than_the_machine_is_refused_up_front(run_cli, sphere, tmp_path, monkeypatch):
+    """The check uses the machine's available memory: with 1 GB 'available', 4096^2 (~3 GB) is refused."""
+    from softras_cl.raster import memory
+
+    monkeypatch.setattr(memory, "available_host_memory", lambda: 1024 ** 3)
+    result = run_cli("render", sphere, "--size", "4096", "--out", tmp_path / "r.png")
+    assert result.code == EXIT_RESOURCE
+    line = one_line(result)
+    assert "render at 4096 x 4096 needs ~3.0 GB of memory, but the machine has 1.0 GB available" in line
+    assert "use a smaller --size (at most 23" in line           # ~2300^2 at 190 bytes a pixel
+    assert not (tmp_path / "r.png").exists()
+
+
+def test_demo_size_is_checked_against_memory(run_cli, tmp_path, monkeypatch):
+    from softras_cl.raster import memory
+
+    monkeypatch.setattr(memory, "available_host_memory", lambda: 512 * 1024 ** 2)
+    result = run_cli("demo", "--size", "4000", "--out", tmp_path / "d.png")
+    assert result.code == EXIT_RESOURCE
+    assert "demo at 4000 x 4000 needs ~2.8 GB of memory, but the machine has 0.5 GB available" in one_line(result)
+
+
+# ---- mesh files ----------------------------------------------------------------------------------
+def test_obj_with_out_of_range_index_names_the_line(run_cli, tmp_path):
+    mesh = tmp_path / "tri.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 5\n")
+    result = run_cli("render", mesh, "--out", tmp_path / "r.png")
+    assert result.code == EXIT_INPUT
+    assert one_line(result) == (f"softras-cl render: mesh {mesh}: line 4: a face indexes vertex 5, but the "
+                                "file has 3 vertices (OBJ indices are 1-based; negative ones count back)")
+
+
+def test_missing_mesh_file(run_cli, tmp_path):
+    result = run_cli("render", tmp_path / "none.ply", "--out", tmp_path / "r.png")
+    assert result.code == EXIT_INPUT
+    assert "mesh file not found" in one_line(result)
+
+
+# ---- degenerate scenes ----------------------------------------------------------------------------
+def test_render_of_zero_area_mesh_is_a_result_error(run_cli, flat, tmp_path):
+    result = run_cli("render", flat, "--out", tmp_path / "r.png")
+    assert result.code == EXIT_RESULT
+    assert one_line(result) == ("softras-cl render: every face of flat.obj (2) has zero area "
+                                "(degenerate triangles): there is nothing to draw")
+    assert not (tmp_path / "r.png").exists()
+
+
+def test_render_that_draws_nothing_is_a_result_error(run_cli, sphere, tmp_path):
+    """A unit sphere 3 units to the side of a camera 4.8 units away with a 30 degree view: in
+    front of the camera (no vertex behind it) but outside the image."""
+    far = tmp_path / "far.ply"
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    mesh.apply_translation((3.0, 0.0, 0.0))
+    mesh.export(far)
+    result = run_cli("render", far, "--no-normalize", "--azimuth", "0", "--elevation", "0", "--size", "32",
+                     "--out", tmp_path / "r.png")
+    assert result.code == EXIT_RESULT
+    assert "nothing was drawn: no pixel of far.ply is covered" in one_line(result)
+    assert not (tmp_path / "r.png").exists()
+
+
+def test_compare_on_degenerate_scene_is_exit_1_with_valid_json(run_cli, flat, tmp_path):
+    result = run_cli("compare", flat, "--size", "32", "--out", tmp_path / "c.png", "--json")
+    assert result.code == EXIT_RESULT
+    assert "degenerate scene, nothing to compare: neither renderer covers any pixel" in one_line(result)
+    assert "RuntimeWarning" not in result.err
+    doc = json.loads(result.out, parse_constant=lambda c: pytest.fail(f"{c} in JSON"))
+    assert doc["silhouette_iou"] is None and doc["depth_rel_err_max"] is None and doc["psnr_db"] is None
+    assert set(doc["invalid"]) == {"silhouette_iou", "depth_rel_err_max", "depth_rel_err_mean", "psnr_db"}
+    assert "neither renderer covers any pixel" in doc["invalid"]["silhouette_iou"]
+    assert doc["error"].startswith("degenerate scene")
+
+
+def test_compare_text_mode_on_degenerate_scene(run_cli, flat, tmp_path):
+    result = run_cli("compare", flat, "--size", "32", "--out", tmp_path / "c.png")
+    assert result.code == EXIT_RESULT
+    assert "neither renderer covers any pixel" in one_line(result)
+    assert result.out == ""
+
+
+def test_compare_bad_option(run_cli, sphere, tmp_path):
+    result = run_cli("compare", sphere, "--fov", "-3", "--out", tmp_path / "c.png")
+    assert result.code == EXIT_INPUT
+    assert "argument --fov: must be in (0, 180) degrees, got -3" in one_line(result)
+
+
+# ---- fit-face / fit-body: checks in the library configs reach the CLI -----------------------------
+@pytest.mark.parametrize("option, value, says", [
+    ("--size", "1", "size must be an integer >= 32"),
+    ("--size", "0", "size must be an integer >= 32"),
+    ("--focal", "0", "focal must be > 0, got 0.0"),
+    ("--focal", "nan", "focal must be a finite number, got nan"),
+    ("--photo-weight", "inf", "photo_weight must be a finite number, got inf"),
+])
+def test_fit_face_refuses_bad_options(run_cli, examples_data, tmp_path, option, value, says):
+    result = run_cli("fit-face", examples_data / "astronaut.png", "--landmarks",
+                     examples_data / "astronaut.pts", "--out", tmp_path / "f", option, value, "--no-progress")
+    assert result.code == EXIT_INPUT
+    assert says in one_line(result)
+
+
+@pytest.mark.parametrize("points, says", [
+    (np.column_stack([np.linspace(50, 150, 68), np.linspace(60, 160, 68)]), "the landmarks lie on a line"),
+    (np.full((68, 2), 100.0), "the landmarks span 0 pixels of the 256x256 photo; fitting needs a face "
+                              "at least 16 pixels across"),
+])
+def test_fit_face_refuses_landmarks_spanning_no_area(run_cli, tmp_path, points, says):
+    from softras_cl.io.images import write_image
+
+    photo = tmp_path / "photo.png"
+    write_image(photo, np.full((256, 256, 3), 0.5))
+    np.save(tmp_path / "lm.npy", points)
+    result = run_cli("fit-face", photo, "--landmarks", tmp_path / "lm.npy", "--out", tmp_path / "f", "--no-progress")
+    assert result.code == EXIT_INPUT
+    assert says in one_line(result)
+    assert not (tmp_path / "f" / "params.json").exists()
+
+
+def test_fit_face_refuses_a_tiny_photo(run_cli, tmp_path):
+    from softras_cl.io.images import write_image
+
+    photo = tmp_path / "small.png"
+    write_image(photo, np.full((10, 10, 3), 0.5))
+    rng = np.random.default_rng(0)
+    np.save(tmp_path / "lm.npy", rng.uniform(1, 8, (68, 2)))
+    result = run_cli("fit-face", photo, "--landmarks", tmp_path / "lm.npy", "--out", tmp_path / "f", "--no-progress")
+    assert result.code == EXIT_INPUT
+    assert "pixels of the 10x10 photo; fitting needs a face at least 16 pixels across" in one_line(result)
+
+
+@pytest.mark.parametrize("option, value, says", [
+    ("--distance", "0", "distance must be > 0, got 0.0"),
+    ("--distance", "-3", "distance must be > 0, got -3.0"),
+    ("--fov", "0", "fov_deg must be in (0, 180) degrees, got 0.0"),
+    ("--height", "nan", "height must be a finite number, got nan"),
+    ("--robust-joints", "-1", "robust_px must be > 0, got -1.0"),
+])
+def test_fit_body_refuses_bad_options(run_cli, tmp_path, option, value, says):
+    disc = np.zeros((32, 32))
+    disc[8:24, 12:20] = 1.0
+    np.save(tmp_path / "disc.npy", disc)
+    result = run_cli("fit-body", tmp_path / "disc.npy", "--silhouette", "--out", tmp_path / "b",
+                     option, value, "--no-progress")
+    assert result.code == EXIT_INPUT
+    assert says in one_line(result)
+
+
+def test_fit_body_refuses_an_infinite_mask(run_cli, tmp_path):
+    disc = np.zeros((32, 32))
+    disc[8:24, 12:20] = 1.0
+    disc[3, 4] = np.inf
+    np.save(tmp_path / "disc.npy", disc)
+    result = run_cli("fit-body", tmp_path / "disc.npy", "--silhouette", "--out", tmp_path / "b", "--no-progress")
+    assert result.code == EXIT_INPUT
+    assert "target contains NaN or Inf (1 non-finite value(s), first at index (3, 4))" in one_line(result)
+
+
+# ---- devices: every command, through a real process (the environment is read at start) -----------
+COMMANDS = {
+    "devices": ["devices"],
+    "demo": ["demo", "--size", "16", "--faces", "0"],
+    "render": ["render", "{sphere}", "--size", "16"],
+    "compare": ["compare", "{sphere}", "--size", "16"],
+    "fit-body": ["fit-body", "{disc}", "--silhouette", "--size", "16", "--budget", "fast", "--no-progress"],
+    "fit-face": ["fit-face", "{photo}", "--landmarks", "{landmarks}", "--budget", "fast", "--size", "32",
+                 "--no-progress"],
+    "bench": ["bench", "raster", "--quick"],
+}
+
+
+def run_process(argv: list[str], env: dict, cwd) -> subprocess.CompletedProcess:
+    script = Path(sys.executable).with_name("softras-cl")     # the console script beside this Python
+    return subprocess.run([str(script), *argv], capture_output=True, text=True,
+                          env={**os.environ, **env}, cwd=cwd, timeout=300)
+
+
+def _argv(name, sphere, examples_data, tmp_path):
+    disc = np.zeros((32, 32))
+    disc[8:24, 12:20] = 1.0
+    np.save(tmp_path / "disc.npy", disc)
+    values = dict(sphere=sphere, disc=tmp_path / "disc.npy", photo=examples_data / "astronaut.png",
+                  landmarks=examples_data / "astronaut.pts")
+    argv = [a.format(**values) for a in COMMANDS[name]]
+    if name in ("demo", "render", "compare"):
+        argv += ["--out", str(tmp_path / "x.png")]
+    elif name.startswith("fit"):
+        argv += ["--out", str(tmp_path / "fit")]
+    return argv
+
+
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_bad_device_choice_is_one_line_exit_2(name, sphere, examples_data, tmp_path):
+    done = run_process(_argv(name, sphere, examples_data, tmp_path), {"SOFTRAS_CL_DEVICE": "nonsense"}, tmp_path)
+    assert done.returncode == EXIT_INPUT, done.stderr
+    assert "Traceback" not in done.stderr
+    assert "SOFTRAS_CL_DEVICE='nonsense' matches no OpenCL device" in done.stderr.strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_no_opencl_platform_is_one_line_exit_4(name, sphere, examples_data, tmp_path):
+    empty = tmp_path / "no-icds"
+    empty.mkdir()
+    env = {"OCL_ICD_VENDORS": str(empty), "OCL_ICD_FILENAMES": "", "SOFTRAS_CL_DEVICE": ""}
+    done = run_process(_argv(name, sphere, examples_data, tmp_path), env, tmp_path)
+    assert done.returncode == EXIT_RESOURCE, done.stderr
+    assert "Traceback" not in done.stderr
+    assert "No OpenCL platform found" in done.stderr.strip().splitlines()[-1]
