@@ -1,0 +1,166 @@
+"""Every kernel variant under Oclgrind (a simulated OpenCL device that reports out-of-bounds
+accesses, data races, uses of uninitialised memory and OpenCL API errors): scripts/oclgrind_sweep.py
+run as `oclgrind --data-races --uninitialized --check-api python ...` must leave no report.
+
+Skipped only when the `oclgrind` executable is not on PATH (Debian: apt-get install oclgrind;
+scripts/setup.sh installs it when run as root). docs/oclgrind.md has the details.
+"""
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+import textwrap
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+SWEEP = REPO / "scripts" / "oclgrind_sweep.py"
+OCLGRIND = shutil.which("oclgrind")
+FLAGS = ("--data-races", "--uninitialized", "--check-api")
+MARKER = "oclgrind-sweep: "
+
+needs_oclgrind = pytest.mark.skipif(
+    OCLGRIND is None, reason="the `oclgrind` executable is not on PATH (Debian/Ubuntu: "
+                             "apt-get install oclgrind; scripts/setup.sh does it as root)")
+
+# First lines of Oclgrind's reports (any report also has tab-indented "Kernel:" or "Function:"
+# lines, which catch kinds not listed here).
+HEADLINE = re.compile(r"^(Invalid (read|write)|Uninitiali[sz]ed|Controlflow depends|Instruction "
+                      r"depends|.*data race|Work-group divergence|Oclgrind|Unaligned|Atomic)")
+
+
+@dataclass
+class Report:
+    variant: str     # the sweep variant running when it was printed ("" before the first)
+    text: str
+
+
+def oclgrind_reports(stderr: str) -> list[Report]:
+    """Oclgrind's reports in a program's stderr: a report is a line at column 0 followed by
+    tab-indented lines, which either starts like one of Oclgrind's (HEADLINE) or names a kernel
+    or an API function. Lines of the sweep (MARKER) only say which variant is running."""
+    reports, variant, block = [], "", []
+
+    def close():
+        if block:
+            body = "\n".join(block)
+            if HEADLINE.match(block[0]) or re.search(r"^\t(Kernel|Function):", body, re.M):
+                reports.append(Report(variant, body))
+            block.clear()
+
+    for line in stderr.splitlines():
+        if line.startswith("\t") and block:
+            block.append(line)
+            continue
+        close()
+        if line.startswith(MARKER + "variant "):
+            variant = line[len(MARKER + "variant "):]
+        elif line.strip():
+            block.append(line)
+    close()
+    return reports
+
+
+def run_under_oclgrind(args: list, timeout: float) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k not in ("SOFTRAS_CL_DEVICE", "PYOPENCL_CTX")}
+    return subprocess.run([OCLGRIND, *FLAGS, sys.executable, *args], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+# Three faulty kernels and a correct one, run with the sweep's own set-up (buffers kept alive,
+# pyopencl's NVIDIA probe skipped) so the check also shows that set-up hides no real finding.
+FAULTY = textwrap.dedent("""
+    import sys
+    import numpy as np
+    import pyopencl as cl
+    sys.path.insert(0, {scripts!r})
+    import oclgrind_sweep as sweep
+    sweep.skip_pyopencl_nvidia_probe()
+    sweep.keep_buffers_alive()
+    ctx = cl.create_some_context(interactive=False)
+    queue = cl.CommandQueue(ctx)
+    program = cl.Program(ctx, '''
+    __kernel void past_end(__global float *a) {{ a[get_global_id(0) + 1] = 1.0f; }}
+    __kernel void same_slot(__global float *a) {{ a[0] = (float)get_global_id(0); }}
+    __kernel void unwritten(__global const float *a, __global float *b)
+    {{ b[get_global_id(0)] = a[get_global_id(0)] + 1.0f; }}
+    __kernel void correct(__global const float *a, __global float *b)
+    {{ b[get_global_id(0)] = 2.0f * a[get_global_id(0)]; }}
+    ''').build()
+    flags = cl.mem_flags
+    written = cl.Buffer(ctx, flags.READ_WRITE | flags.COPY_HOST_PTR, hostbuf=np.ones(8, np.float32))
+    for name in sys.argv[1:]:
+        print("oclgrind-sweep: variant " + name, file=sys.stderr, flush=True)
+        out = cl.Buffer(ctx, flags.READ_WRITE, 32)
+        if name == "past_end":
+            program.past_end(queue, (8,), (8,), out)
+        elif name == "same_slot":
+            program.same_slot(queue, (8,), (8,), out)
+        elif name == "unwritten":
+            program.unwritten(queue, (8,), (8,), cl.Buffer(ctx, flags.READ_WRITE, 32), out)
+        else:
+            program.correct(queue, (8,), (8,), written, out)
+        queue.finish()
+""")
+
+
+@pytest.mark.oclgrind
+@needs_oclgrind
+def test_report_parser_catches_real_findings(tmp_path):
+    script = tmp_path / "faulty.py"
+    script.write_text(FAULTY.format(scripts=str(REPO / "scripts")))
+    names = ["correct", "past_end", "same_slot", "unwritten", "correct"]
+    proc = run_under_oclgrind([str(script), *names], timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    reports = oclgrind_reports(proc.stderr)
+    by_variant = {n: [r.text for r in reports if r.variant == n] for n in names}
+    assert by_variant["correct"] == [], by_variant["correct"]
+    assert any(t.startswith("Invalid write") for t in by_variant["past_end"]), proc.stderr[-3000:]
+    assert any("data race" in t.split("\n")[0] for t in by_variant["same_slot"]), proc.stderr[-3000:]
+    assert any(t.startswith("Uninitialized value") for t in by_variant["unwritten"]), proc.stderr[-3000:]
+    assert {r.variant for r in reports} == {"past_end", "same_slot", "unwritten"}
+
+
+def test_report_parser_on_text():
+    text = ("oclgrind-sweep: variant a\n"
+            "Oclgrind - OpenCL runtime error detected\n\tFunction: clGetDeviceInfo\n\n"
+            "some warning from Python\n    indented by spaces\n"
+            "oclgrind-sweep: variant b\n"
+            "Something new\n\tKernel: soft_raster_bwd\n\tEntity: Global(0,0,0)\n\n")
+    reports = oclgrind_reports(text)
+    assert [(r.variant, r.text.split("\n")[0]) for r in reports] == [
+        ("a", "Oclgrind - OpenCL runtime error detected"), ("b", "Something new")]
+
+
+def test_sweep_covers_every_variant():
+    """The sweep lists the whole build-time matrix, the extras and the Renderer paths."""
+    names = subprocess.run([sys.executable, str(SWEEP), "--list"], capture_output=True,
+                           text=True, check=True, cwd=REPO).stdout.splitlines()
+    matrix = [n for n in names if n.startswith("raster ") and "/" in n]
+    assert len(matrix) == 2 * 2 * 3 * 2 * 3
+    for word in ("float32", "float64", "euclidean", "barycentric", "vertex", "face", "uv",
+                 "softmax/", "hard/", "/occupancy", "/sum", "/hard", "linear", "B=1", "B=2"):
+        assert any(word in n for n in matrix), word
+    for word in ("lambert per-pixel", "sh per-pixel", "outputs alpha", "outputs depth",
+                 "single-sided", "fast maths", "face texture R=1", "colours only uv",
+                 "render float32 pixel sh", "render float64 pixel lambert",
+                 "render float64 unlit uv texture", "render float32 face sh"):
+        assert any(word in n for n in names), word
+
+
+@pytest.mark.oclgrind
+@pytest.mark.slow
+@needs_oclgrind
+def test_every_variant_is_clean_under_oclgrind():
+    proc = run_under_oclgrind([str(SWEEP)], timeout=1500)
+    reports = oclgrind_reports(proc.stderr)
+    shown = "\n\n".join(f"[{r.variant}]\n{r.text}" for r in reports[:10])
+    assert not reports, f"{len(reports)} Oclgrind reports, the first ones:\n{shown}"
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "Oclgrind" in proc.stdout.splitlines()[0], proc.stdout[:500]
+    assert re.search(r"^oclgrind-sweep: \d+ variants, 0 failed", proc.stdout, re.M), proc.stdout[-2000:]
