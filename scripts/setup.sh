@@ -6,13 +6,17 @@ cd "$(dirname "${BASH_SOURCE[0]}")/.."
 export DEBIAN_FRONTEND=noninteractive PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_INPUT=1
 STAMP=.venv/.softras-cl-setup.sha256
 
-# 1. Debian's PoCL (a second CPU platform besides pip's pocl-binary-distribution).
+# 1. Debian's PoCL (a second CPU platform besides pip's pocl-binary-distribution) and Oclgrind
+#    (a simulated OpenCL device that checks the kernels' memory accesses: tests/validate/test_oclgrind.py).
 if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-    if ! dpkg-query -W -f='${Status}' pocl-opencl-icd 2>/dev/null | grep -q "ok installed"; then
-        echo "setup: installing pocl-opencl-icd ocl-icd-libopencl1 (apt-get)"
-        { apt-get update -qq && apt-get install -y -qq --no-install-recommends \
-              pocl-opencl-icd ocl-icd-libopencl1; } </dev/null >/dev/null \
+    installed() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep -q "ok installed"; }
+    if ! installed pocl-opencl-icd || ! installed oclgrind; then
+        echo "setup: installing pocl-opencl-icd ocl-icd-libopencl1 oclgrind (apt-get)"
+        apt-get update -qq </dev/null >/dev/null || true
+        apt-get install -y -qq --no-install-recommends pocl-opencl-icd ocl-icd-libopencl1 </dev/null >/dev/null \
             || echo "setup: warning: apt-get install of pocl-opencl-icd failed; continuing with pip's PoCL" >&2
+        apt-get install -y -qq --no-install-recommends oclgrind </dev/null >/dev/null \
+            || echo "setup: warning: apt-get install of oclgrind failed; the Oclgrind tests will be skipped" >&2
     fi
 fi
 
