@@ -143,7 +143,7 @@ def available_host_memory() -> int | None:
 
 
 def _gb(n: int) -> str:
-    return f"{n / GB:.1f} GB" if n >= 0.1 * GB else f"{n / 1024 ** 2:.0f} MB"
+    return f"{n / GB:.1f} GB" if n >= GB else f"{n / 1024 ** 2:.0f} MB"
 
 
 def check_memory(estimate: MemoryEstimate, device=None, advice: str = "lower image_size or the batch",
@@ -162,8 +162,7 @@ def check_memory(estimate: MemoryEstimate, device=None, advice: str = "lower ima
             unified = bool(device.type & cl.device_type.CPU) or bool(device.host_unified_memory)
         if e.largest_buffer > device.max_mem_alloc_size:
             raise ResourceError(f"{e.what} needs a {_gb(e.largest_buffer)} buffer, but {name} "
-                                f"allows at most {_gb(device.max_mem_alloc_size)} in one buffer "
-                                f"(~{_gb(e.shared if unified else e.device)} in all); {advice}")
+                                f"allows at most {_gb(device.max_mem_alloc_size)} in one buffer; {advice}")
         if e.device > device.global_mem_size:
             raise ResourceError(f"{e.what} needs ~{_gb(e.device)} of device memory, but {name} "
                                 f"has {_gb(device.global_mem_size)}; {advice}")
@@ -182,13 +181,3 @@ def check_forward_memory(settings: RasterSettings, device, batch: int, n_faces: 
     estimate = memory_estimate(settings, batch, n_faces, grads, tex_res, tex_shape)
     check_memory(estimate, device)
     return estimate
-
-
-def pixels_within(settings: RasterSettings, nbytes: float, **kw) -> int:
-    """The largest square image side whose estimate stays under `nbytes` (for messages)."""
-    lo, hi = 1, 1 << 17
-    while lo < hi:
-        mid = (lo + hi + 1) // 2
-        est = memory_estimate(settings.replace(image_size=(mid, mid)), **kw)
-        lo, hi = (mid, hi) if est.shared <= nbytes else (lo, mid - 1)
-    return lo

@@ -1,5 +1,7 @@
 """Body fitting recipe (fitting/body.py): exact objective gradients, the hinge limits, input
 checks, the schedule, and recovery of a known pose from its image and joints."""
+import re
+
 import numpy as np
 import pytest
 from softras_cl.fitting.recipes import body
@@ -152,3 +154,39 @@ def test_a_small_synthetic_fit_recovers_a_known_pose(model):
     metrics = fit.metrics()
     assert error.mean() < 40.0 and error.mean() < 0.5 * start.mean()      # mm
     assert metrics["silhouette_iou"] > 0.85 and metrics["joint_error_px"] < 1.0
+
+
+@pytest.mark.parametrize("changes, says", [
+    (dict(distance=0.0), "distance must be > 0, got 0.0"),
+    (dict(distance=-3.0), "distance must be > 0, got -3.0"),
+    (dict(fov_deg=0.0), "fov_deg must be in (0, 180) degrees, got 0.0"),
+    (dict(height=float("nan")), "height must be a finite number, got nan"),
+    (dict(robust_px=-1.0), "robust_px must be > 0, got -1.0"),
+    (dict(size=4), "size must be an integer >= 16"),
+    (dict(background=(0.0, 1.0)), "background must be 3 numbers"),
+])
+def test_body_config_names_a_bad_field(changes, says):
+    from softras_cl.errors import InputError
+
+    with pytest.raises(InputError, match=re.escape(says)):
+        body.BodyFitConfig(**changes)
+
+
+def test_prepare_target_refuses_an_infinite_mask_before_clipping():
+    mask = np.zeros((32, 32))
+    mask[8:24, 8:24] = 1.0
+    mask[2, 5] = np.inf
+    with pytest.raises(ValueError, match=re.escape("target contains NaN or Inf (1 non-finite value(s), "
+                                                   "first at index (2, 5))")):
+        body.prepare_target(mask, 32)
+
+
+def test_prepare_target_names_a_nan_joint_as_such():
+    mask = np.zeros((32, 32))
+    mask[8:24, 8:24] = 1.0
+    joints = np.full((3, 2), 10.0)
+    joints[1, 0] = np.nan
+    with pytest.raises(ValueError, match=re.escape("joint 1 is [nan, 10.0]: a seen joint (weight > 0) needs "
+                                                   "finite pixel coordinates")):
+        body.prepare_target(mask, 32, joints=joints, n_joints=3)
+    body.prepare_target(mask, 32, joints=joints, joint_weights=[1.0, 0.0, 1.0], n_joints=3)  # unseen: fine

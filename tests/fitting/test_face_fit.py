@@ -1,5 +1,7 @@
 """Face fitting recipe (fitting/face.py): exact objective gradients, closed-form initialisers,
 input checks, and recovery of a synthetic face from its photo and noisy landmarks."""
+import re
+
 import numpy as np
 import pytest
 
@@ -217,3 +219,38 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     x = X @ cam["K"].T
     np.testing.assert_allclose(x[:, :2] / x[:, 2:], points, atol=1e-6)
     assert [h["stage"] for h in fit.result.history][0] == "landmarks"
+
+
+@pytest.mark.parametrize("changes, says", [
+    (dict(size=1), "size must be an integer >= 32"),
+    (dict(size=0), "size must be an integer >= 32"),
+    (dict(focal=0.0), "focal must be > 0, got 0.0"),
+    (dict(focal=float("inf")), "focal must be a finite number, got inf"),
+    (dict(fov_deg=180.0), "fov_deg must be in (0, 180) degrees, got 180.0"),
+    (dict(photo_stages=((0.0, 1e-3, 10),)), "photo_stages[0] sigma must be > 0"),
+    (dict(weights=dict(photo=float("nan"))), "weights['photo'] must be a finite number"),
+    (dict(dtype="float16"), "dtype must be 'float32' or 'float64'"),
+])
+def test_face_config_names_a_bad_field(changes, says):
+    from softras_cl.errors import InputError
+
+    with pytest.raises(InputError, match=re.escape(says)):
+        face.FaceFitConfig(**changes)
+
+
+@pytest.mark.parametrize("lmk, says", [
+    (np.column_stack([np.linspace(20, 80, 68), np.linspace(30, 90, 68)]), "the landmarks lie on a line"),
+    (np.full((68, 2), 50.0), "the landmarks span 0 pixels of the 100x100 photo"),
+    (np.random.default_rng(1).uniform(40, 50, (68, 2)), "fitting needs a face at least 16 pixels across"),
+])
+def test_prepare_photo_refuses_landmarks_spanning_no_area(lmk, says):
+    with pytest.raises(ValueError, match=says):
+        face.prepare_photo(np.zeros((100, 100, 3)), lmk, 64)
+
+
+def test_prepare_photo_names_a_nan_landmark():
+    lmk = np.random.default_rng(0).uniform(10, 90, (68, 2))
+    lmk[7, 1] = np.nan
+    with pytest.raises(ValueError, match=re.escape("landmarks contains NaN or Inf (1 non-finite value(s), "
+                                                   "first at index (7, 1))")):
+        face.prepare_photo(np.zeros((100, 100, 3)), lmk, 64)

@@ -1,5 +1,7 @@
 """Mesh files: colours, uvs, textures and scene transforms survive load_mesh; save_mesh round
 trips; the Mesh checks; clear errors."""
+import re
+
 import numpy as np
 import pytest
 import trimesh
@@ -315,3 +317,23 @@ def test_load_errors(tmp_path):
     (tmp_path / "bad.ply").write_text("this is no ply\n")
     with pytest.raises(ValueError, match="cannot read mesh .*bad.ply"):
         load_mesh(tmp_path / "bad.ply")
+
+
+@pytest.mark.parametrize("face, says", [
+    ("f 1 2 5", "line 5: a face indexes vertex 5, but the file has 3 vertices"),
+    ("f 1 2 0", "line 5: a face indexes vertex 0, but the file has 3 vertices"),
+    ("f -1 -2 -4", "line 5: a face indexes vertex -4, but 3 vertices are defined before it"),
+    ("f 1/1 2/1 3/9", "line 5: a face indexes texture coordinate 9, but the file has 1 texture coordinates"),
+    ("f 1 2 x", "line 5: face corner 'x' is not an index"),
+])
+def test_obj_face_indices_out_of_range_name_the_line(tmp_path, face, says):
+    path = tmp_path / "bad.obj"
+    path.write_text(f"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\n{face}\n")
+    with pytest.raises(ValueError, match=re.escape(f"mesh {path}: {says}")):
+        load_mesh(path)
+
+
+def test_obj_negative_indices_in_range_load(tmp_path):
+    path = tmp_path / "neg.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf -3 -2 -1\n")
+    assert load_mesh(path).faces.tolist() == [[0, 1, 2]]

@@ -323,3 +323,100 @@ def test_backward_without_grads_in_forward(monkeypatch):
     monkeypatch.setattr(raster_module, "build_kernel", lambda *a, **k: pytest.fail("kernel built"))
     with raises(ValueError, "grads"):
         r.backward(out, grad_alpha=np.ones((1, 8, 8)))
+
+
+# ---- float32 range -----------------------------------------------------------------------------
+@pytest.mark.parametrize("arg, index", [("vertices", (3, 2)), ("colors", (1, 0))])
+def test_float32_kernels_refuse_values_beyond_2_to_the_64(no_kernels, arg, index):
+    """Finite in float64 is not enough: depth 1e30 gave NaN vertex gradients, colour 1e39 Inf."""
+    verts, colors = VERTS.copy(), COLORS.copy()
+    (verts if arg == "vertices" else colors)[index] = 1e30 if arg == "vertices" else 1e39
+    with raises(ValueError, arg, "float32", "2^64"):
+        rasterizer(far=1e19).forward(verts, FACES, colors=colors, grads=("vertices",))
+
+
+def test_float64_kernels_take_large_values():
+    verts = VERTS.copy()
+    verts[:, 2] *= 1e30
+    out = rasterizer(dtype="float64", near=1e29, far=1e32).forward(verts, FACES, colors=COLORS * 1e39)
+    assert np.isfinite(out.rgb).all() and out.alpha.max() > 0.5
+
+
+def test_limit_keeps_float32_gradients_finite():
+    """At the limit (depths of 1.8e19) images and gradients stay finite in float32."""
+    verts = VERTS.copy()
+    verts[:, 2] = 1.8e19
+    r = rasterizer(near=1.0, far=1.84e19)
+    out = r.forward(verts, FACES, colors=COLORS, grads=("vertices", "colors"))
+    g = r.backward(out, grad_rgb=np.ones_like(out.rgb), grad_depth=np.ones_like(out.depth),
+                   grad_alpha=np.ones_like(out.alpha))
+    assert all(np.isfinite(a).all() for a in (out.rgb, out.depth, out.alpha, *g.values()))
+
+
+@pytest.mark.parametrize("field, value, says", [
+    ("far", 1e38, "far=1e+38 is beyond what dtype='float32' kernels handle"),
+    ("sigma", 1e-39, "sigma=1e-39 is too small for dtype='float32' kernels"),
+    ("gamma", 1e-25, "gamma=1e-25 is too small for dtype='float32' kernels"),
+])
+def test_float32_settings_range(field, value, says):
+    with pytest.raises(ValueError, match=re.escape(says)):
+        RasterSettings(**{field: value})
+    RasterSettings(**{field: value}, dtype="float64")      # float64 takes them
+
+
+# ---- memory ------------------------------------------------------------------------------------
+class FakeDevice:
+    """A device with the given limits (bytes); type 0 = neither CPU nor GPU, own memory."""
+    name, type, host_unified_memory = "fake", 0, False
+
+    def __init__(self, max_alloc, global_mem):
+        self.max_mem_alloc_size, self.global_mem_size = max_alloc, global_mem
+
+
+def test_memory_estimate_bounds_what_a_forward_allocates():
+    """The estimate's device bytes are at least what the forward's context holds on the device."""
+    from softras_cl.raster.memory import memory_estimate
+
+    s = RasterSettings(image_size=(96, 130), outputs=("rgb", "alpha", "depth"))
+    r = SoftRasterizer(s)
+    out = r.forward(VERTS, FACES, colors=COLORS, grads=("vertices", "colors"))
+    est = memory_estimate(s, 1, F, ("vertices", "colors"))
+    held = out.saved.nbytes()
+    assert held <= est.device < 4 * held + 10_000
+    assert est.pixels == 96 * 130 and est.largest_buffer == 3 * 4 * 96 * 136   # rgb planes, padded width
+
+
+def test_memory_estimate_grows_with_pixels_batch_and_precision():
+    from softras_cl.raster.memory import memory_estimate
+
+    s = RasterSettings(image_size=(1024, 1024))
+    one = memory_estimate(s, 1, 320)
+    assert 30 < one.shared / 1024 ** 2 < 40          # rgb + alpha float32: ~36 bytes a pixel
+    assert memory_estimate(s, 4, 320).shared > 3.9 * one.shared
+    assert memory_estimate(s.replace(dtype="float64"), 1, 320).shared > 1.8 * one.shared
+    assert memory_estimate(s, 1, 320, ("vertices",)).shared > 3 * one.shared
+
+
+def test_request_over_the_device_buffer_limit_is_refused_before_allocation(no_kernels, monkeypatch):
+    from softras_cl.errors import ResourceError
+    from softras_cl.raster import memory
+
+    r = rasterizer(image_size=(4096, 4096))
+    r.device = FakeDevice(max_alloc=128 * 1024 ** 2, global_mem=1024 ** 3)
+    monkeypatch.setattr(raster_module, "face_setup", lambda *a: pytest.fail("set-up ran"))
+    with pytest.raises(ResourceError, match=r"rasterising 1 x 4096 x 4096 pixels needs a 192 MB buffer, "
+                                            r"but device 'fake' allows at most 128 MB in one buffer"):
+        r.forward(VERTS, FACES, colors=COLORS)
+    r.device = FakeDevice(max_alloc=1024 ** 3, global_mem=256 * 1024 ** 2)
+    with pytest.raises(ResourceError, match=r"needs ~3\d\d MB of device memory, but device 'fake' has 256 MB"):
+        r.forward(VERTS, FACES, colors=COLORS)
+    assert issubclass(ResourceError, MemoryError)
+    monkeypatch.setattr(memory, "available_host_memory", lambda: 100 * 1024 ** 2)
+    with pytest.raises(ResourceError, match=r"pixels needs ~707 MB of memory, but the machine has 100 MB available; lower image_size"):
+        memory.check_memory(memory.memory_estimate(r.settings, 1, F), None)
+
+
+def test_available_host_memory_is_a_positive_number():
+    from softras_cl.raster.memory import available_host_memory
+
+    assert available_host_memory() > 0

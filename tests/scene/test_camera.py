@@ -429,3 +429,23 @@ def test_project_pixels_matches_pinhole_formula(size):
     X = pts + [0.1, -0.2, 3.0]
     np.testing.assert_allclose(uv, np.stack([70 * X[:, 0] / X[:, 2] + 30.5, 60 * X[:, 1] / X[:, 2] + 20.0], -1),
                                atol=1e-10)
+
+
+def test_look_at_names_a_bad_fov_before_looking_at_the_eye():
+    """A 0 degree fov (which puts an infinitely distant eye in a caller's framing) is named as such."""
+    with pytest.raises(ValueError, match=re.escape("fov_deg must be in (0, 180) degrees, got 0")):
+        Camera.look_at((np.inf, 0.0, 0.0), (0.0, 0.0, 0.0), fov_deg=0)
+
+
+def test_orbit_camera_at_the_poles_matches_the_limit():
+    """The CLI's orbit camera takes elevation +-90 (up chosen for it) and agrees with 89.999."""
+    from softras_cl.cli.view import orbit_camera
+
+    for pole in (90.0, -90.0):
+        at = orbit_camera(30.0, pole, 30.0, (32, 32)).rotation_matrix()
+        near = orbit_camera(30.0, pole - np.sign(pole) * 1e-3, 30.0, (32, 32)).rotation_matrix()
+        np.testing.assert_allclose(at, near, atol=1e-4)
+    old = Camera.look_at(orbit_camera(30.0, 20.0, 30.0, (32, 32)).center(), (0.0, 0.0, 0.0), fov_deg=30.0,
+                         image_size=(32, 32))
+    np.testing.assert_allclose(orbit_camera(30.0, 20.0, 30.0, (32, 32)).rotation_matrix(),
+                               old.rotation_matrix(), atol=1e-12)     # same camera as up = +y
