@@ -5,7 +5,7 @@ import argparse
 import json
 from pathlib import Path
 
-from softras_cl.cli.view import add_view_options, check_command_memory, finite_float, load_view
+from softras_cl.cli.view import add_view_options, check_command_memory, finite_float, load_view, output_folder
 
 # Peak bytes per pixel of compare after rendering (ray cast, metrics, the side-by-side figure),
 # measured from max RSS at 512^2 and 1024^2 (350).
@@ -21,6 +21,7 @@ def _run_compare(args: argparse.Namespace) -> int:
     settings = RasterSettings(image_size=tuple(camera.image_size), outputs=("rgb", "alpha", "depth"),
                               dist_eps=args.dist_eps, near=0.1, far=100.0, **SHARP)
     check_command_memory("compare", settings, mesh.n_faces, BYTES_PER_PIXEL)
+    output_folder(args.out)
     if args.reference == "mitsuba":
         from softras_cl.validate.mitsuba import compare_mitsuba
         result = compare_mitsuba(mesh, camera, dist_eps=args.dist_eps)

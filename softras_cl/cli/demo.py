@@ -10,7 +10,7 @@ import argparse
 import time
 from pathlib import Path
 
-from softras_cl.cli.view import check_command_memory, positive_float, positive_int
+from softras_cl.cli.view import check_command_memory, output_folder, positive_float, positive_int
 
 DEFAULT_OUT = Path("out") / "demo.png"
 # 20 * 4**8 = 1,310,720 faces: about 1.1 GB and 15 s on 2 cores at 512^2, with faces already
@@ -77,6 +77,7 @@ def _run(args: argparse.Namespace) -> int:
     settings = RasterSettings(image_size=(args.size, args.size), sigma=args.sigma, gamma=args.gamma,
                               background=(1.0, 1.0, 1.0), outputs=("rgb",))
     check_command_memory("demo", settings, 20 * 4 ** args.faces, BYTES_PER_PIXEL)
+    output_folder(args.out)
     result = render_demo(args.out, size=args.size, subdivisions=args.faces, sigma=args.sigma,
                          gamma=args.gamma)
     print(f"wrote {result['path']} ({args.size}x{args.size}, {result['faces']} faces) in "

@@ -6,7 +6,7 @@ import time
 from pathlib import Path
 
 from softras_cl.cli.view import (add_view_options, check_command_memory, check_drawable, finite_float,
-                                 load_view, make_light, positive_float, triple)
+                                 load_view, make_light, output_folder, positive_float, triple)
 
 # Peak bytes per pixel of the whole command after rendering, measured (max RSS, 2048^2 and
 # 4096^2): the float64 copies and sRGB encoding of write_image dominate (rgb 183, rgba 219,
@@ -30,6 +30,9 @@ def _run_render(args: argparse.Namespace) -> int:
                               double_sided=args.double_sided, dtype=args.dtype, near=0.1, far=100.0)
     per_pixel = BYTES_PER_PIXEL["rgba" if args.transparent else "rgb"] + BYTES_PER_PIXEL["depth"] * bool(args.depth_out)
     check_command_memory("render", settings, mesh.n_faces, per_pixel)
+    output_folder(args.out)
+    if args.depth_out:
+        output_folder(args.depth_out, "--depth-out")
     textured = mesh.texture is not None and mesh.uvs is not None
     albedo = mesh.colors if mesh.colors is not None else np.full(mesh.vertices.shape, 0.7)
     start = time.perf_counter()
@@ -45,7 +48,6 @@ def _run_render(args: argparse.Namespace) -> int:
                           f"outside the view{'' if args.double_sided else ' or faces away: try --double-sided'}); "
                           f"{args.out} not written")
     image = out.rgba()[0] if args.transparent else out.rgb[0]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_image(args.out, image.astype(np.float64))
     if args.depth_out:
         _write_depth(args.depth_out, out.depth[0], out.alpha[0])

@@ -195,6 +195,17 @@ def _largest_side(settings, n_faces: int, post: float, free: int, device) -> int
     return lo
 
 
+def output_folder(path: Path, option: str = "--out") -> Path:
+    """Create the folder of an output file; OutputError (exit 3) naming `option` if it cannot be."""
+    from softras_cl.errors import OutputError
+
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"{option} {path}: cannot create its folder: {e.strerror or e}") from None
+    return path
+
+
 def make_light(args):
     from softras_cl.scene import shading
 

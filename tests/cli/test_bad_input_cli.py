@@ -115,7 +115,7 @@ def test_demo_size_is_checked_against_memory(run_cli, tmp_path, monkeypatch):
     monkeypatch.setattr(memory, "available_host_memory", lambda: 512 * 1024 ** 2)
     result = run_cli("demo", "--size", "4000", "--out", tmp_path / "d.png")
     assert result.code == EXIT_RESOURCE
-    assert "demo at 4000 x 4000 needs ~2.8 GB of memory, but the machine has 0.5 GB available" in one_line(result)
+    assert "demo at 4000 x 4000 needs ~2.8 GB of memory, but the machine has 512 MB available" in one_line(result)
 
 
 # ---- mesh files ----------------------------------------------------------------------------------
@@ -315,3 +315,14 @@ def test_no_opencl_platform_is_one_line_exit_4(name, sphere, examples_data, tmp_
     line = done.stderr.strip().splitlines()[-1]
     assert f"softras-cl {' '.join(COMMANDS[name][:2]) if name == 'bench' else name}: No OpenCL platform found. Install one" in line
     assert "PLATFORM_NOT_FOUND_KHR" in line
+
+
+def test_unusable_output_folder_is_exit_3(run_cli, sphere, tmp_path):
+    from softras_cl.errors import EXIT_OUTPUT
+
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    for argv in (["render", sphere, "--size", "16"], ["compare", sphere, "--size", "16"], ["demo", "--size", "16"]):
+        result = run_cli(*argv, "--out", blocker / "x.png")
+        assert result.code == EXIT_OUTPUT, result.err
+        assert f"--out {blocker / 'x.png'}: cannot create its folder: File exists" in one_line(result)
