@@ -329,15 +329,16 @@ class FaceScene:
                     rotation=rodrigues_vjp(ctx.rot_ctx, g_world.T @ ctx.shape)["omega"])
 
     def render(self, values: dict, sigma: float, gamma: float, grads=(), albedo=None,
-               light=None, world=None):
+               light=None, world=None, roi=None):
         """Render the face; albedo (V, 3) / light override the model's (for the report);
-        world: the world vertices if already computed."""
+        world: the world vertices if already computed; roi: None or an (H, W) bool mask, the
+        only pixels needed (Renderer.forward: other screen tiles are not rasterised)."""
         self.renderer.settings = dataclasses.replace(self.settings, sigma=sigma, gamma=gamma)
         world = self.geometry(values)[0] if world is None else world
         albedo = self.model.albedo(values["albedo"])[0] if albedo is None else albedo
         light = SHLight(values["sh"]) if light is None else light
         return self.renderer.forward(world, self.model.faces, self.camera(values["focal"][0]),
-                                     albedo=albedo, light=light, grads=grads)
+                                     albedo=albedo, light=light, grads=grads, roi=roi)
 
 
 def depth_range(translation) -> tuple[float, float]:
@@ -539,8 +540,9 @@ class FaceObjective:
     def photo_term(self, values: dict, world: np.ndarray, sigma: float, gamma: float) -> tuple[float, dict]:
         """Sum of squared linear-RGB errors over the face region; gradients wrt the world
         vertices ("world"), albedo, sh and focal."""
+        # only the face region's tiles are rasterised: the loss and its gradient are the same
         out = self.scene.render(values, sigma, gamma, grads=("vertices", "albedo", "light", "camera"),
-                                world=world)
+                                world=world, roi=self.mask)
         value, g = losses.image_l2(out.rgb[0], self.image, self.mask)
         count = 3.0 * max(int(self.mask.sum()), 1)
         g_img = self.scene.renderer.backward(out, grad_rgb=g["pred"][None] * count)

@@ -25,6 +25,9 @@ class Bins:
     tile_faces: (n_entries,) int32 global face index (batch * F + f), increasing within a tile
     tile_slots: (n_entries,) int32 position of the entry in face-major order
     face_start: (B*F + 1,) int64, face-major entries of face g are face_start[g]:face_start[g+1]
+
+    With a region of interest (bin_faces' tiles) the tile lists hold only the entries in its
+    tiles, while face_start and the slot positions still count every entry (n_entries).
     """
     tile_start: np.ndarray
     tile_faces: np.ndarray
@@ -132,12 +135,30 @@ def _pixel_ranges(boxes: np.ndarray, s: RasterSettings):
     return clip(c0, w), clip(c1, w), clip(r0, h), clip(r1, h)
 
 
+def roi_tiles(roi, batch: int, s: RasterSettings) -> np.ndarray | None:
+    """(B * nty * ntx,) bool: the tiles holding at least one pixel of the region of interest.
+
+    roi: None (every tile: returns None), an (H, W) bool mask shared by the batch or (B, H, W).
+    """
+    if roi is None:
+        return None
+    mask = np.asarray(roi)
+    if mask.dtype != bool or mask.shape not in ((s.height, s.width), (batch, s.height, s.width)):
+        raise ValueError(f"roi must be a bool mask of shape ({s.height}, {s.width}) or "
+                         f"({batch}, {s.height}, {s.width}), got {mask.dtype} {mask.shape}")
+    g = tile_grid(s)
+    padded = np.zeros((batch, g.hp, g.wp), bool)
+    padded[:, :s.height, :s.width] = mask
+    return padded.reshape(batch, g.nty, TILE_H, g.ntx, g.tile_w).any(axis=(2, 4)).reshape(-1)
+
+
 def bin_faces(geom: np.ndarray, drawable: np.ndarray, batch: int, n_faces: int,
-              s: RasterSettings) -> Bins:
+              s: RasterSettings, tiles: np.ndarray | None = None) -> Bins:
     """Bin every drawable face into the tiles its footprint touches.
 
-    geom: (B*F, FACE_STRIDE) from face_setup, drawable: (B*F,) bool; ValueError when the
-    (tile, face) pairs would overflow int32.
+    geom: (B*F, FACE_STRIDE) from face_setup, drawable: (B*F,) bool; tiles: None (all tiles) or
+    (B * nty * ntx,) bool from roi_tiles: only these tiles get faces, the others render as
+    background and pass no gradient. ValueError when the (tile, face) pairs would overflow int32.
     """
     g = tile_grid(s)
     c0, c1, r0, r1 = _pixel_ranges(geom[:, FACE_BOX:FACE_BOX + 4], s)
@@ -158,7 +179,14 @@ def bin_faces(geom: np.ndarray, drawable: np.ndarray, batch: int, n_faces: int,
     tx = tx0[face] + local % nx[face]
     ty = ty0[face] + local // nx[face]
     tile = ((face // n_faces) * g.nty + ty) * g.ntx + tx if total else np.zeros(0, np.int64)
+    slots = None
+    if tiles is not None:
+        # only the entries in the region of interest go to the kernels; they keep their slots
+        # in the full face-major list, whose other slots stay zero, so the per-face sums add
+        # the same numbers in the same order as without a region (bit-identical gradients)
+        slots = np.flatnonzero(tiles[tile])
+        face, tile = face[slots], tile[slots]
     order = np.argsort(tile, kind="stable")
     tile_start = np.concatenate([[0], np.cumsum(np.bincount(tile, minlength=batch * g.ntx * g.nty))])
     return Bins(tile_start.astype(np.int32), face[order].astype(np.int32),
-                order.astype(np.int32), face_start)
+                (order if slots is None else slots[order]).astype(np.int32), face_start)

@@ -15,7 +15,7 @@ import pyopencl as cl
 from softras_cl.cl.device import has_fp64, has_int64_atomics, resolve_context
 from softras_cl.cl.layout import LIGHT_PARAMS, vertex_attr_width
 from softras_cl.cl.program import build_kernel
-from softras_cl.raster.binning import Bins, bin_faces, face_setup, tile_grid
+from softras_cl.raster.binning import Bins, bin_faces, face_setup, roi_tiles, tile_grid
 from softras_cl.raster.corners import scatter_corners
 from softras_cl.raster.inputs import MeshInputs, check_cotangent, check_inputs
 from softras_cl.raster.memory import check_forward_memory
@@ -125,8 +125,14 @@ class SoftRasterizer:
 
     # ---- public API ------------------------------------------------------------------------
     def forward(self, vertices, faces, colors=None, face_textures=None, texture_image=None,
-                uvs=None, normals=None, light=None, grads=()) -> RasterOutput:
+                uvs=None, normals=None, light=None, grads=(), roi=None) -> RasterOutput:
         """Render. Shapes in docs/api.md; images come back as (B, H, W[, 3]) arrays.
+
+        roi: None, or an (H, W) / (B, H, W) bool mask of the pixels wanted: only the tiles
+        (binning.Grid) holding one of them are rasterised; every other pixel comes back as
+        background (rgb background, alpha 0, depth far) and passes no gradient. Pixels in those
+        tiles are bit-identical to a render without roi, and so are the gradients of a loss whose
+        cotangents are zero outside the tiles.
 
         normals (B, V, 3) and light (27,) only with per-pixel lighting (settings.lighting).
         grads: the gradients backward() will be asked for, subset of ("vertices", "colors");
@@ -140,7 +146,7 @@ class SoftRasterizer:
                              f"{self.device.name!r} lacks")
         check_forward_memory(s, self.device, mesh.batch, mesh.n_faces, grads, mesh.tex_res, mesh.tex_shape)
         geom, drawable = face_setup(mesh, s)
-        bins = bin_faces(geom, drawable, mesh.batch, mesh.n_faces, s)
+        bins = bin_faces(geom, drawable, mesh.batch, mesh.n_faces, s, roi_tiles(roi, mesh.batch, s))
         buffers = self._upload(mesh, geom, bins)
         state = self._state_buffers(mesh.batch) if grads else None
         images = self._run_forward(mesh, buffers, state)
@@ -366,12 +372,13 @@ def _round_up(n: int) -> int:
 
 # ---- gradient reduction ---------------------------------------------------------------------
 def _sum_slots(slots: np.ndarray, bins: Bins) -> np.ndarray:
-    """(n_entries, K) per-(tile, face) sums -> (B*F, K) per-face sums, always in the same order."""
+    """(n_entries, K) per-(tile, face) sums -> (B*F, K) float64 per-face sums, always in the same order."""
     counts = np.diff(bins.face_start)
     out = np.zeros((len(counts), slots.shape[1]))
     has = counts > 0
     if has.any():
-        out[has] = np.add.reduceat(slots[:bins.n_entries].astype(np.float64), bins.face_start[:-1][has], axis=0)
+        out[has] = np.add.reduceat(slots[:bins.n_entries].astype(np.float64, copy=False),
+                                   bins.face_start[:-1][has], axis=0)
     return out
 
 

@@ -83,14 +83,16 @@ class Renderer:
         self._rasterizers: dict = {}
 
     def forward(self, vertices, faces, cameras, albedo=None, light=None, face_textures=None,
-                texture_image=None, uvs=None, grads=()) -> RenderOutput:
+                texture_image=None, uvs=None, grads=(), roi=None) -> RenderOutput:
         """Render B views.
 
         vertices (V, 3) or (B, V, 3) world; faces (F, 3) int; cameras: a Camera or a list of B;
         albedo (V, 3) or (B, V, 3) linear RGB (vertex/face shading, or unlit vertex colours);
         light: shading.LambertLight / PhongLight / SHLight (default: the paper's Lambert);
         face_textures / texture_image + uvs: unlit textures (shading="none");
-        grads: subset of GRAD_GROUPS that backward() will return.
+        grads: subset of GRAD_GROUPS that backward() will return;
+        roi: None or an (H, W) / (B, H, W) bool mask: only the screen tiles holding its pixels
+        are rasterised (SoftRasterizer.forward), the rest is background without gradients.
         """
         grads = _check_grad_groups(grads, self.shading)
         single_camera = isinstance(cameras, Camera)
@@ -104,7 +106,7 @@ class Renderer:
         color_args, shade_ctx = self._colors(verts, faces, cameras, albedo, light, face_textures,
                                                texture_image, uvs)
         raster = self._rasterizer(cameras[0].projection, color_args, light)
-        out = raster.forward(screen, faces, grads=_raster_grads(grads, self.shading), **color_args)
+        out = raster.forward(screen, faces, grads=_raster_grads(grads, self.shading), roi=roi, **color_args)
         saved = RenderContext(raster, out, cameras, cam_ctx, shade_ctx, light, grads, batched,
                               single_camera, np.shape(albedo) if albedo is not None else None)
         return RenderOutput(out.rgb, out.alpha, out.depth, saved)
