@@ -114,13 +114,15 @@ def skip_pyopencl_nvidia_probe() -> None:
 
 
 def raster_scene(batch: int, texture: str, tex_res: int = 2, seed: int = 0) -> tuple:
-    """(vertices (B, V, 3), faces (F, 3), colour inputs for `texture`): FACES, jittered per item."""
+    """(vertices (B, V, 3), faces (F, 3), colour inputs for `texture`): FACES, each face moved
+    a little in x, y after the first item (a shift keeps degenerate faces degenerate)."""
     rng = np.random.default_rng(seed)
     base = np.array([corner for _, corners in FACES for corner in corners], np.float64)
+    n_v, n_f = len(base), len(FACES)
     vertices = np.repeat(base[None], batch, 0)
-    vertices[1:, :, :2] += rng.normal(scale=0.02, size=(batch - 1, len(base), 2))
-    faces = np.arange(len(base)).reshape(-1, 3)
-    n_v, n_f = len(base), len(faces)
+    shift = rng.normal(scale=0.02, size=(batch - 1, n_f, 1, 2))
+    vertices[1:, :, :2] += np.broadcast_to(shift, (batch - 1, n_f, 3, 2)).reshape(batch - 1, n_v, 2)
+    faces = np.arange(n_v).reshape(-1, 3)
     colors = {
         "vertex": lambda: dict(colors=rng.uniform(0, 1, (batch, n_v, 3))),
         "face": lambda: dict(face_textures=rng.uniform(0, 1, (batch, n_f, tex_res, tex_res, 3))),
