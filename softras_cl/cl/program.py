@@ -1,6 +1,8 @@
 """Build OpenCL programs from kernels/ with -D flags, cached per (context, device, flags).
 
 Every build also receives the host/kernel data layout (softras_cl.cl.layout.LAYOUT) as -D flags.
+Programs are kept per process (a lookup by source name and flags, without re-reading the source)
+and, as device binaries, on disk across processes (softras_cl.cl.binary_cache).
 """
 from __future__ import annotations
 
@@ -9,6 +11,7 @@ import logging
 
 import pyopencl as cl
 
+from softras_cl.cl import binary_cache
 from softras_cl.cl.layout import LAYOUT
 from softras_cl.cl.source import kernel_source
 
@@ -16,6 +19,7 @@ logger = logging.getLogger(__name__)
 
 _cache: dict = {}
 _kernels: dict = {}
+_by_name: dict = {}     # (context, source name, options) -> program: the per-call fast path
 
 # Every program is the shared header followed by one op file; concatenating on the host avoids
 # relying on each driver's #include search path.
@@ -43,15 +47,35 @@ def build_program(ctx: cl.Context, source_name: str, defines: dict, fast_math: b
     if clash:
         raise ValueError(f"defines must not set the layout constants {clash}: they come from "
                          "softras_cl.cl.layout")
-    source = kernel_source(_HEADER) + "\n" + kernel_source(source_name)
     options = [f"-D{name}={int(value)}" for name, value in sorted({**defines, **LAYOUT}.items())]
     if fast_math:
         options.append("-cl-fast-relaxed-math")
+    fast_key = (ctx.int_ptr, source_name, tuple(options))
+    program = _by_name.get(fast_key)
+    if program is not None:
+        return program
+    source = kernel_source(_HEADER) + "\n" + kernel_source(source_name)
     key = (ctx.int_ptr, hashlib.sha1(source.encode()).hexdigest(), tuple(options))
     if key not in _cache:
-        logger.debug("building %s with %s", source_name, " ".join(options) or "no options")
-        try:
-            _cache[key] = cl.Program(ctx, source).build(options=options)
-        except cl.RuntimeError as e:  # compile errors: show the flags that produced them
-            raise RuntimeError(f"building {source_name} with {' '.join(options)} failed:\n{e}") from e
+        _cache[key] = _build(ctx, source_name, source, options)
+    _by_name[fast_key] = _cache[key]
     return _cache[key]
+
+
+def _build(ctx: cl.Context, source_name: str, source: str, options: list[str]) -> cl.Program:
+    """Load the program from the on-disk binary cache (one-device contexts), else build it from
+    source and store its binary."""
+    devices = ctx.devices
+    disk_key = binary_cache.program_key(source, options, devices[0]) if len(devices) == 1 else None
+    if disk_key is not None:
+        program = binary_cache.load(ctx, devices[0], disk_key, options)
+        if program is not None:
+            return program
+    logger.debug("building %s with %s", source_name, " ".join(options) or "no options")
+    try:
+        program = cl.Program(ctx, source).build(options=options)
+    except cl.RuntimeError as e:  # compile errors: show the flags that produced them
+        raise RuntimeError(f"building {source_name} with {' '.join(options)} failed:\n{e}") from e
+    if disk_key is not None:
+        binary_cache.store(program, devices[0], disk_key)
+    return program
