@@ -169,8 +169,17 @@ def _cotangents(out, rng, skip=()) -> dict:
             for n in ("rgb", "alpha", "depth") if getattr(out, n) is not None and n not in skip}
 
 
+def roi_mask(batch: int, per_item: bool) -> np.ndarray:
+    """(H, W) bool region of interest (the top-left tile's lower rows and the tile below), or
+    (B, H, W) with a different region per item (the second one in the bottom-right tile)."""
+    mask = np.zeros((batch if per_item else 1, H, W), bool)
+    mask[0, 5:10, 2:6] = True
+    mask[1:, 10:, 8:] = True
+    return mask if per_item else mask[0]
+
+
 def run_raster(batch: int, grads: tuple, tex_res: int = 2, skip_cot: tuple = (),
-               faces_per_item: bool = False, **kw) -> None:
+               faces_per_item: bool = False, roi: str | None = None, **kw) -> None:
     s = raster_settings(**kw)
     vertices, faces, colors = raster_scene(batch, s.texture, tex_res)
     if "rgb" not in s.outputs:
@@ -182,6 +191,8 @@ def run_raster(batch: int, grads: tuple, tex_res: int = 2, skip_cot: tuple = (),
         colors = dict(colors, normals=normals, light=light)
     if faces_per_item:
         faces = np.repeat(faces[None], batch, 0)
+    if roi is not None:
+        colors = dict(colors, roi=roi_mask(batch, roi == "per item"))
     raster = SoftRasterizer(s)
     plain = raster.forward(vertices, faces, **colors)
     _finite("forward", [plain.rgb, plain.alpha, plain.depth])
@@ -202,7 +213,7 @@ RENDER_LIGHTS = {
 
 
 def run_render(batch: int, shading: str, light: str | None, texture: str = "vertex",
-               projection: str = "perspective", dtype: str = "float32") -> None:
+               projection: str = "perspective", dtype: str = "float32", roi: bool = False) -> None:
     rng = np.random.default_rng(4)
     v, f = icosphere(0, radius=0.6)
     v = v + rng.normal(scale=0.03, size=v.shape)
@@ -223,7 +234,8 @@ def run_render(batch: int, shading: str, light: str | None, texture: str = "vert
     groups = ("vertices", "albedo", "camera") + (("light",) if light else ())
     renderer = Renderer(s, shading=shading)
     lit = dict(light=RENDER_LIGHTS[light]) if light else {}
-    out = renderer.forward(v, f, cameras, grads=groups, **inputs, **lit)
+    out = renderer.forward(v, f, cameras, grads=groups, roi=roi_mask(batch, True) if roi else None,
+                           **inputs, **lit)
     _finite("render", [out.rgb, out.alpha, out.depth])
     _drawn(out, s)
     g = renderer.backward(out, **_cotangents(out, rng))
@@ -269,28 +281,32 @@ def variants() -> list[tuple[str, callable]]:
             ("only rgb cotangent uv", 2, both, dict(texture="uv", skip_cot=("alpha", "depth"))),
             ("faces per item", 2, both, dict(faces_per_item=True, texture="uv")),
             ("forward only", 2, (), dict()),
+            ("region of interest", 1, both, dict(roi="shared")),
+            ("region of interest per item uv", 2, both, dict(roi="per item", texture="uv")),
+            ("region of interest per item sh per-pixel", 2, both, dict(roi="per item", lighting="sh")),
         ]
         for label, batch, grads, kw in extra:
             out.append((f"raster {dtype} {label} B={batch}",
                         lambda b=batch, g=grads, kw=kw, d=dtype: run_raster(b, g, dtype=d, **kw)))
         renders = [
-            ("vertex lambert", 2, "vertex", "lambert", "vertex", "perspective"),
-            ("vertex phong", 1, "vertex", "phong", "vertex", "perspective"),
-            ("vertex sh orthographic", 2, "vertex", "sh", "vertex", "orthographic"),
-            ("face lambert", 1, "face", "lambert", "vertex", "perspective"),
-            ("face sh", 2, "face", "sh", "vertex", "perspective"),
-            ("pixel lambert", 2, "pixel", "lambert", "vertex", "perspective"),
-            ("pixel sh", 1, "pixel", "sh", "vertex", "perspective"),
-            ("pixel sh orthographic", 2, "pixel", "sh", "vertex", "orthographic"),
-            ("unlit vertex colours", 1, "none", None, "vertex", "perspective"),
-            ("unlit face textures", 2, "none", None, "face", "perspective"),
-            ("unlit uv texture", 2, "none", None, "uv", "perspective"),
-            ("unlit uv texture orthographic", 1, "none", None, "uv", "orthographic"),
+            ("vertex lambert", 2, "vertex", "lambert", "vertex", "perspective", False),
+            ("vertex phong", 1, "vertex", "phong", "vertex", "perspective", False),
+            ("vertex sh orthographic", 2, "vertex", "sh", "vertex", "orthographic", False),
+            ("face lambert", 1, "face", "lambert", "vertex", "perspective", False),
+            ("face sh", 2, "face", "sh", "vertex", "perspective", False),
+            ("pixel lambert", 2, "pixel", "lambert", "vertex", "perspective", False),
+            ("pixel sh", 1, "pixel", "sh", "vertex", "perspective", False),
+            ("pixel sh orthographic", 2, "pixel", "sh", "vertex", "orthographic", False),
+            ("unlit vertex colours", 1, "none", None, "vertex", "perspective", False),
+            ("unlit face textures", 2, "none", None, "face", "perspective", False),
+            ("unlit uv texture", 2, "none", None, "uv", "perspective", False),
+            ("unlit uv texture orthographic", 1, "none", None, "uv", "orthographic", False),
+            ("pixel lambert region of interest", 2, "pixel", "lambert", "vertex", "perspective", True),
         ]
-        for label, batch, shading, light, texture, projection in renders:
+        for label, batch, shading, light, texture, projection, roi in renders:
             out.append((f"render {dtype} {label} B={batch}",
-                        lambda b=batch, sh=shading, li=light, t=texture, p=projection, d=dtype:
-                        run_render(b, sh, li, t, p, d)))
+                        lambda b=batch, sh=shading, li=light, t=texture, p=projection, d=dtype, r=roi:
+                        run_render(b, sh, li, t, p, d, r)))
     return out
 
 

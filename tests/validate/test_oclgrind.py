@@ -41,9 +41,10 @@ class Report:
 
 
 def oclgrind_reports(stderr: str) -> list[Report]:
-    """Oclgrind's reports in a program's stderr: a report is a line at column 0 followed by
-    tab-indented lines, which either starts like one of Oclgrind's (HEADLINE) or names a kernel
-    or an API function. Lines of the sweep (MARKER) only say which variant is running."""
+    """Oclgrind's reports in a program's stderr. A block is a line at column 0 and the
+    tab-indented lines after it; it is a report if it starts like one of Oclgrind's (HEADLINE)
+    or names a kernel or an API function. Lines of the sweep (MARKER) only say which variant
+    is running."""
     reports, variant, block = [], "", []
 
     def close():
@@ -150,7 +151,8 @@ def test_sweep_covers_every_variant():
     for word in ("lambert per-pixel", "sh per-pixel", "outputs alpha", "outputs depth",
                  "single-sided", "fast maths", "face texture R=1", "colours only uv",
                  "render float32 pixel sh", "render float64 pixel lambert",
-                 "render float64 unlit uv texture", "render float32 face sh"):
+                 "render float64 unlit uv texture", "render float32 face sh",
+                 "region of interest per item uv", "render float64 pixel lambert region of interest"):
         assert any(word in n for n in names), word
 
 
