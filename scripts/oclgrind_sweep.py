@@ -325,6 +325,10 @@ def main(argv=None) -> int:
         return 0
     if not args.any_device:    # softras_cl's device choice, by name: Oclgrind's simulator
         os.environ[ENV_VAR] = "oclgrind"
+    # No programs from softras_cl's binary cache: pyopencl looks up `_source` on a program made
+    # from a binary, a clCreateKernel that --check-api reports as CL_INVALID_KERNEL_NAME.
+    # (pyopencl's own cache reads PYOPENCL_NO_CACHE at import; the test sets it.)
+    os.environ["SOFTRAS_CL_CACHE_DIR"] = "off"
     try:
         device = select_device()
     except InputError as e:

@@ -69,7 +69,9 @@ def oclgrind_reports(stderr: str) -> list[Report]:
 
 def run_under_oclgrind(args: list, timeout: float) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k not in ("SOFTRAS_CL_DEVICE", "PYOPENCL_CTX")}
-    env["PYOPENCL_NO_CACHE"] = "1"   # built from source, Oclgrind's reports quote the kernel lines
+    # built from source (neither pyopencl's nor softras_cl's binary cache), so that Oclgrind's
+    # reports quote the kernel lines
+    env.update(PYOPENCL_NO_CACHE="1", SOFTRAS_CL_CACHE_DIR="off")
     return subprocess.run([OCLGRIND, *FLAGS, sys.executable, *args], cwd=REPO, env=env,
                           capture_output=True, text=True, timeout=timeout)
 
