@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from softras_cl.cli.view import check_command_memory, output_folder, positive_float, positive_int
+from softras_cl.io.outputs import atomic_path
 
 DEFAULT_OUT = Path("out") / "demo.png"
 # 20 * 4**8 = 1,310,720 faces: about 1.1 GB and 15 s on 2 cores at 512^2, with faces already
@@ -53,7 +54,8 @@ def render_demo(out: str | Path = DEFAULT_OUT, size: int = 512, subdivisions: in
     srgb = np.clip(colour.cctf_encoding(np.clip(linear, 0.0, 1.0), function="sRGB"), 0.0, 1.0)
     path = Path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
-    matplotlib.image.imsave(path, (np.round(srgb * 255)).astype(np.uint8), format="png")
+    with atomic_path(path) as tmp:
+        matplotlib.image.imsave(tmp, (np.round(srgb * 255)).astype(np.uint8), format="png")
     return dict(path=path, seconds=time.perf_counter() - start, render_seconds=render_seconds,
                 faces=len(faces), image=srgb)
 

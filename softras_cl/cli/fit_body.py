@@ -5,7 +5,7 @@ import argparse
 import time
 
 from softras_cl.cli.batch import BATCH_EPILOG, add_batch_options, is_batch, run_batch
-from softras_cl.cli.runs import checked_metrics, finishing_outputs, run_state
+from softras_cl.cli.runs import named_as_options, checked_metrics, finishing_outputs, run_state
 from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
 from softras_cl.fitting.body_files import parse_background, read_joints, read_target  # noqa: F401 (re-exported)
 from softras_cl.io.outputs import OutputFolder
@@ -76,19 +76,27 @@ def register(sub) -> None:
 def _load_inputs(args):
     """(target, joints (J, 2) or None, joint weights or None, model, config); ValueError/OSError
     on bad input."""
-    from softras_cl.fitting.recipes.body import BodyFitConfig
     from softras_cl.fitting.models.body_loaders import load_body_model, load_demo_body_model
 
     model = load_demo_body_model() if args.model is None else load_body_model(args.model)
     target = read_target(args.target, args.silhouette)
     joints, weights = (None, None) if args.joints is None else read_joints(args.joints, model.n_joints)
-    background = parse_background(args.background)
-    if args.size < 16:
-        raise ValueError(f"--size must be >= 16, got {args.size}")
-    config = BodyFitConfig.from_budget(args.budget, size=args.size, distance=args.distance,
-                                       height=args.height, fov_deg=args.fov, background=background,
-                                       robust_px=args.robust_joints)
-    return target, joints, weights, model, config
+    return target, joints, weights, model, _config(args)
+
+
+CONFIG_OPTIONS = {"size": "--size", "distance": "--distance", "height": "--height", "fov_deg": "--fov",
+                  "background": "--background", "robust_px": "--robust-joints"}
+
+
+def _config(args: argparse.Namespace):
+    """The BodyFitConfig of the options; InputError naming the option that is out of range."""
+    from softras_cl.fitting.recipes.body import BodyFitConfig
+
+    with named_as_options(CONFIG_OPTIONS):
+        return BodyFitConfig.from_budget(args.budget, size=args.size, distance=args.distance,
+                                         height=args.height, fov_deg=args.fov,
+                                         background=parse_background(args.background),
+                                         robust_px=args.robust_joints)
 
 
 def _run_record(args: argparse.Namespace) -> dict:
@@ -109,9 +117,8 @@ def run(args: argparse.Namespace) -> int:
     """One target into --out itself, or a batch (several targets, folders, globs, a manifest)."""
     if not args.targets and not args.manifest:
         raise InputError("give a target image (or several, folders, glob patterns, or --manifest CSV)")
+    _config(args)                       # options checked before any target is read
     if is_batch(args, args.targets):
-        if args.size < 16:
-            raise InputError(f"--size must be >= 16, got {args.size}")
         return run_batch(args, "body", args.targets, _options(args), args.joints)
     args.target = args.targets[0]
     return run_one(args)

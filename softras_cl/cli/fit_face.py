@@ -6,7 +6,7 @@ import argparse
 import time
 
 from softras_cl.cli.batch import BATCH_EPILOG, add_batch_options, is_batch, run_batch
-from softras_cl.cli.runs import checked_metrics, finishing_outputs, run_state
+from softras_cl.cli.runs import named_as_options, checked_metrics, finishing_outputs, run_state
 from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
 from softras_cl.io.outputs import OutputFolder
 
@@ -110,20 +110,33 @@ def run(args: argparse.Namespace) -> int:
     """One photo into --out itself, or a batch (several photos, folders, globs, a manifest)."""
     if not args.photos and not args.manifest:
         raise InputError("give a photo (or several, folders, glob patterns, or --manifest CSV)")
+    _config(args)                       # options checked before any photo is read
     if is_batch(args, args.photos):
         return run_batch(args, "face", args.photos, _options(args), args.landmarks)
     args.photo = args.photos[0]
     return run_one(args)
 
 
+CONFIG_OPTIONS = {"size": "--size", "focal": "--focal", "photo_weight": "--photo-weight",
+                  "n_id": "--n-id", "n_exp": "--n-exp", "n_albedo": "--n-albedo"}
+
+
+def _config(args: argparse.Namespace):
+    """The FaceFitConfig of the options; InputError naming the option that is out of range."""
+    from softras_cl.fitting.recipes.face import FaceFitConfig
+
+    with named_as_options(CONFIG_OPTIONS):
+        return FaceFitConfig.from_budget(args.budget, photo_weight=args.photo_weight, size=args.size,
+                                         focal=args.focal, n_id=args.n_id, n_exp=args.n_exp,
+                                         n_albedo=args.n_albedo)
+
+
 def run_one(args: argparse.Namespace) -> int:
-    from softras_cl.fitting.recipes.face import FaceFitConfig, fit_face
+    from softras_cl.fitting.recipes.face import fit_face
     from softras_cl.fitting.reports.face import write_outputs
 
     photo, landmarks, model = _load_inputs(args)
-    config = FaceFitConfig.from_budget(args.budget, photo_weight=args.photo_weight, size=args.size,
-                                       focal=args.focal, n_id=args.n_id, n_exp=args.n_exp,
-                                       n_albedo=args.n_albedo)
+    config = _config(args)
     with OutputFolder(args.out, "fit-face", "--out") as out:
         out.begin(_run_record(args), resume=args.resume)
         start = time.perf_counter()

@@ -5,6 +5,7 @@ import argparse
 import time
 from pathlib import Path
 
+from softras_cl.io.outputs import atomic_path
 from softras_cl.cli.view import (add_view_options, check_command_memory, check_drawable, finite_float,
                                  load_view, make_light, output_folder, positive_float, triple)
 
@@ -65,7 +66,8 @@ def _write_depth(path: Path, depth, alpha) -> None:
     inside = alpha > 0.5
     shown = np.where(inside, depth, np.nan)
     path.parent.mkdir(parents=True, exist_ok=True)
-    matplotlib.image.imsave(path, shown, cmap="gray_r")
+    with atomic_path(path) as tmp:
+        matplotlib.image.imsave(tmp, shown, cmap="gray_r", format="png")
 
 
 def register(sub) -> None:

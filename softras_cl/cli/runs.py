@@ -6,7 +6,7 @@ import math
 import sys
 from typing import Iterator
 
-from softras_cl.errors import ResultError
+from softras_cl.errors import InputError, ResultError
 from softras_cl.interrupts import Caught, first_interrupt_calls
 
 
@@ -19,6 +19,19 @@ def checked_metrics(fit, out_dir, required: tuple[str, ...]) -> dict:
         raise ResultError(f"the fit failed: {', '.join(bad)}; checkpoint.npz, history.json and "
                           f"loss_curve.png in {out_dir} show how it went")
     return metrics
+
+
+@contextlib.contextmanager
+def named_as_options(options: dict[str, str]) -> Iterator[None]:
+    """Reword a configuration's InputError ("fov_deg must be ...") with the command's option for
+    that field ("--fov must be ..."); ``options`` maps field names to option names."""
+    try:
+        yield
+    except InputError as e:
+        field, _, rest = str(e).partition(" ")
+        if field not in options:
+            raise
+        raise InputError(f"{options[field]} {rest}") from None
 
 
 def _say_finishing(signum: int) -> None:

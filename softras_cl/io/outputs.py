@@ -59,9 +59,13 @@ def atomic_path(path) -> Iterator[Path]:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}")
     except OSError as e:
         raise OutputError(f"cannot write {path}: {_describe(e)}") from e
-    os.close(fd)
     tmp = Path(tmp)
     try:
+        try:
+            if hasattr(os, "fchmod"):       # not on Windows, where permissions work otherwise
+                os.fchmod(fd, _file_mode(path))
+        finally:
+            os.close(fd)
         yield tmp
         with open(tmp, "rb+") as f:     # the data must be on disk before the rename publishes it
             os.fsync(f.fileno())
@@ -73,6 +77,17 @@ def atomic_path(path) -> Iterator[Path]:
             kept = " (the existing file is unchanged)" if path.exists() else ""
             raise OutputError(f"cannot write {path}: {_describe(e)}{kept}") from e
         raise
+
+
+def _file_mode(path: Path) -> int:
+    """The permissions a replacement of ``path`` gets: the old file's, else what a plain open()
+    would give under the current umask (mkstemp's own 0600 would hide results from the group)."""
+    try:
+        return path.stat().st_mode & 0o777
+    except OSError:
+        umask = os.umask(0)
+        os.umask(umask)
+        return 0o666 & ~umask
 
 
 def write_bytes(path, data: bytes) -> None:

@@ -184,11 +184,11 @@ def test_compare_bad_option(run_cli, sphere, tmp_path):
 
 # ---- fit-face / fit-body: checks in the library configs reach the CLI -----------------------------
 @pytest.mark.parametrize("option, value, says", [
-    ("--size", "1", "size must be an integer >= 32"),
-    ("--size", "0", "size must be an integer >= 32"),
-    ("--focal", "0", "focal must be > 0, got 0.0"),
-    ("--focal", "nan", "focal must be a finite number, got nan"),
-    ("--photo-weight", "inf", "photo_weight must be a finite number, got inf"),
+    ("--size", "1", "--size must be an integer >= 32"),
+    ("--size", "0", "--size must be an integer >= 32"),
+    ("--focal", "0", "--focal must be > 0, got 0.0"),
+    ("--focal", "nan", "--focal must be a finite number, got nan"),
+    ("--photo-weight", "inf", "--photo-weight must be a finite number, got inf"),
 ])
 def test_fit_face_refuses_bad_options(run_cli, examples_data, tmp_path, option, value, says):
     result = run_cli("fit-face", examples_data / "astronaut.png", "--landmarks",
@@ -227,11 +227,11 @@ def test_fit_face_refuses_a_tiny_photo(run_cli, tmp_path):
 
 
 @pytest.mark.parametrize("option, value, says", [
-    ("--distance", "0", "distance must be > 0, got 0.0"),
-    ("--distance", "-3", "distance must be > 0, got -3.0"),
-    ("--fov", "0", "fov_deg must be in (0, 180) degrees, got 0.0"),
-    ("--height", "nan", "height must be a finite number, got nan"),
-    ("--robust-joints", "-1", "robust_px must be > 0, got -1.0"),
+    ("--distance", "0", "--distance must be > 0, got 0.0"),
+    ("--distance", "-3", "--distance must be > 0, got -3.0"),
+    ("--fov", "0", "--fov must be in (0, 180) degrees, got 0.0"),
+    ("--height", "nan", "--height must be a finite number, got nan"),
+    ("--robust-joints", "-1", "--robust-joints must be > 0, got -1.0"),
 ])
 def test_fit_body_refuses_bad_options(run_cli, tmp_path, option, value, says):
     disc = np.zeros((32, 32))

@@ -28,6 +28,20 @@ def test_atomic_write_replaces_the_file_and_leaves_no_temporary(tmp_path):
     assert target.read_text() == "new" and leftovers(tmp_path) == []
 
 
+@pytest.mark.skipif(not hasattr(os, "fchmod"), reason="POSIX permissions")
+def test_permissions_follow_the_umask_or_the_replaced_file(tmp_path):
+    old = os.umask(0o022)
+    try:
+        write_text(tmp_path / "new.json", "x")
+        assert (tmp_path / "new.json").stat().st_mode & 0o777 == 0o644
+        (tmp_path / "kept.json").write_text("x")
+        os.chmod(tmp_path / "kept.json", 0o640)
+        write_text(tmp_path / "kept.json", "y")
+        assert (tmp_path / "kept.json").stat().st_mode & 0o777 == 0o640
+    finally:
+        os.umask(old)
+
+
 def test_a_failed_write_keeps_the_old_file_and_names_it(tmp_path):
     target = tmp_path / "figure.png"
     write_text(target, "old result")
