@@ -41,6 +41,15 @@ inline realv log_sigmoid(realv x)
     return fmin(x, R(0)) - log1p(exp(-fabs(x)));
 }
 
+/* log(sigmoid(x)) and log(sigmoid(-x)) = log(1 - sigmoid(x)) together: both share
+ * log1p(exp(-|x|)), so one exp and one log1p serve both (bit-identical to two log_sigmoid calls). */
+inline void log_sigmoid_pair(realv x, realv *pos, realv *neg)
+{
+    const realv tail = log1p(exp(-fabs(x)));
+    *pos = fmin(x, R(0)) - tail;
+    *neg = fmin(-x, R(0)) - tail;
+}
+
 /* Sum of the SR_VEC lanes of a vector, in a fixed order (deterministic). */
 inline real lane_sum(realv v)
 {

@@ -412,6 +412,10 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
         const Frag r = eval_frag(&f, px, py, &p);
         if (!any(r.valid))
             continue;
+#if (SR_NEED_COLOR && !SR_COLOR_HARD) || (SR_OUT_ALPHA && SR_ALPHA_AGG != 2)
+        realv log_D, log_1mD;     /* log D and log(1 - D), sharing one exp and one log1p */
+        log_sigmoid_pair(r.x, &log_D, &log_1mD);
+#endif
 #if SR_NEED_COLOR
         realv C[3] = {(realv)R(0), (realv)R(0), (realv)R(0)};
 #if SR_OUT_RGB
@@ -419,7 +423,7 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
 #endif
 #if !SR_COLOR_HARD
         /* online softmax: one exp per pair, the running maximum m keeps every exp <= 1 */
-        realv t = log_sigmoid(r.x) + (far - r.Z) * p.inv_range * inv_gamma;
+        realv t = log_D + (far - r.Z) * p.inv_range * inv_gamma;
         realv diff = t - m, e = exp(-fabs(diff));
         maskv up = (diff > R(0)) & r.valid;
         realv old_scale = select((realv)R(1), e, up);
@@ -439,13 +443,13 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
 #endif
 #if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
         /* log(1 - D) summed; the most negative term is kept apart for a stable backward */
-        realv l1m = log_sigmoid(-r.x);
+        realv l1m = log_1mD;
         maskv lower = (l1m < l_min) & r.valid;
         l_rest += keep(select(l1m, l_min, lower), r.valid);
         l_min = select(l_min, l1m, lower);
         min_id = select(min_id, (idv)face, lower);
 #elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
-        sumD += keep(exp(log_sigmoid(r.x)), r.valid);
+        sumD += keep(exp(log_D), r.valid);
 #elif SR_OUT_ALPHA
         covered |= r.inside & r.valid;
 #endif
@@ -629,17 +633,21 @@ inline void pair_vjp(const Face *f, const Frag *r, const PixelIn *in, const Para
     realv g_Z = (realv)R(0);          /* dL/dZ, Z the interpolated depth */
     realv g_a[3] = {(realv)R(0), (realv)R(0), (realv)R(0)};
     gC[0] = gC[1] = gC[2] = (realv)R(0);
+#if (SR_NEED_COLOR && !SR_COLOR_HARD) || (SR_OUT_ALPHA && SR_ALPHA_AGG != 2)
+    realv log_D, log_1mD;             /* log D and log(1 - D), sharing one exp and one log1p */
+    log_sigmoid_pair(r->x, &log_D, &log_1mD);
+#endif
 #if SR_NEED_COLOR
     realv C[3] = {(realv)R(0), (realv)R(0), (realv)R(0)}, dC_du[3], dC_dv[3];
 #if SR_OUT_RGB
     face_color(attr, tex_image, light, face, tex_res, tex_h, tex_w, r, C, dC_du, dC_dv);
 #endif
 #if !SR_COLOR_HARD
-    realv t = log_sigmoid(r->x) + (p->far - r->Z) * p->inv_range * p->inv_gamma;
+    realv t = log_D + (p->far - r->Z) * p->inv_range * p->inv_gamma;
     realv w = keep(exp(t - in->lse), valid);
     realv g_t = w * (in->g[0] * C[0] + in->g[1] * C[1] + in->g[2] * C[2]
                      + in->g_depth * r->Z - in->g_dot_img);                /* eq. 11-12 */
-    g_x += g_t * exp(log_sigmoid(-r->x));                                    /* dlogD/dx = 1-D */
+    g_x += g_t * exp(log_1mD);                                               /* dlogD/dx = 1-D */
     g_Z -= g_t * p->inv_gamma * p->inv_range;
 #else
     realv w = select((realv)R(0), (realv)R(1), valid & (in->best_id == (idv)face));
@@ -663,11 +671,11 @@ inline void pair_vjp(const Face *f, const Frag *r, const PixelIn *in, const Para
 #endif
 #if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
     /* dA/dD_j = prod_{k != j} (1 - D_k), from the saved sums with the smallest term apart */
-    realv l1m = log_sigmoid(-r->x);
+    realv l1m = log_1mD;
     realv l_excl = select(in->l_rest + in->l_min - l1m, in->l_rest, in->min_id == (idv)face);
-    g_x += keep(in->g_alpha * exp(l_excl + log_sigmoid(r->x) + l1m), valid);
+    g_x += keep(in->g_alpha * exp(l_excl + log_D + l1m), valid);
 #elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
-    g_x += keep(in->g_alpha * exp(log_sigmoid(r->x) + log_sigmoid(-r->x)), valid & (in->sumD < R(1)));
+    g_x += keep(in->g_alpha * exp(log_D + log_1mD), valid & (in->sumD < R(1)));
 #endif
 
 #if SR_GRAD_POS

@@ -94,15 +94,28 @@ def run_once(raster, scene: Scene):
     return t1 - t0, time.perf_counter() - t0, out, grads
 
 
-def time_raster(raster, scene: Scene, repeats: int) -> dict:
-    """Median forward and forward+backward ms of `repeats` runs after one warm-up (which compiles).
+STAGES = ("setup", "binning", "upload", "forward", "backward_prep", "backward", "reductions")
 
-    Returns dict(fwd_ms, fwdbwd_ms, out, grads) with the last run's output and gradients.
+
+def time_raster(raster, scene: Scene, repeats: int) -> dict:
+    """Median forward and forward+backward ms of `repeats` runs after one warm-up (which compiles),
+    then the median ms of each stage (SoftRasterizer.stage_ms) over `repeats` more runs; those
+    wait for the device at every stage boundary, so the stages add up to a little more.
+
+    Returns dict(fwd_ms, fwdbwd_ms, stage_ms, out, grads) with the last run's output and gradients.
     """
     run_once(raster, scene)
     runs = [run_once(raster, scene) for _ in range(max(repeats, 1))]
+    stages = []
+    for _ in range(max(repeats, 1)):
+        raster.stage_ms = {}
+        run_once(raster, scene)
+        stages.append(raster.stage_ms)
+    raster.stage_ms = None
+    stage_ms = {k: statistics.median(st.get(k, 0.0) for st in stages) for k in STAGES}
     return dict(fwd_ms=1e3 * statistics.median(r[0] for r in runs),
-                fwdbwd_ms=1e3 * statistics.median(r[1] for r in runs), out=runs[-1][2], grads=runs[-1][3])
+                fwdbwd_ms=1e3 * statistics.median(r[1] for r in runs), stage_ms=stage_ms,
+                out=runs[-1][2], grads=runs[-1][3])
 
 
 def footprint_pixel_boxes(tri: np.ndarray, settings) -> np.ndarray:
@@ -242,6 +255,7 @@ def raster_row(scene: Scene, repeats: int) -> tuple[dict, dict]:
     timing = time_raster(SoftRasterizer(settings), scene, repeats)
     pairs = count_pairs(scene, settings)
     row = dict(faces=scene.n_faces, size=scene.size, fwd_ms=timing["fwd_ms"], fwdbwd_ms=timing["fwdbwd_ms"],
+               stage_ms=timing["stage_ms"], **{f"{k}_ms": v for k, v in timing["stage_ms"].items()},
                pairs=pairs, ns_per_pair=1e6 * timing["fwdbwd_ms"] / pairs if pairs else None,
                pairs_frac=pairs / (scene.size * scene.size * scene.n_faces),
                bin_entries=timing["out"].saved.bins.n_entries,
@@ -298,6 +312,8 @@ RASTER_COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("fwd ms", "fw
                   ("pairs/(HWF)", "pairs_frac", ".2e"), ("bin entries", "bin_entries", ",d"),
                   ("saved MiB", "saved_mib", ".1f"), ("peak RSS MiB", "peak_rss_mib", ".0f"),
                   ("ref ms", "ref_ms", ".0f"), ("ref/fwd", "ref_ratio", ",.0f"), ("ref err", "ref_max_err", ".1e")]
+STAGE_COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("fwd+bwd ms", "fwdbwd_ms", ".2f"),
+                 *((name.replace("_", " "), f"{name}_ms", ".2f") for name in STAGES)]
 ACCURACY_COLUMNS = [("dist_eps", "dist_eps", "g"), ("dtype", "dtype", "s"), ("fast_math", "fast_math", ""),
                     ("fwd ms", "fwd_ms", ".2f"), ("fwd+bwd ms", "fwdbwd_ms", ".2f"),
                     ("err rgb", "err_rgb", ".2e"), ("err alpha", "err_alpha", ".2e"),
@@ -316,8 +332,14 @@ def report_text(result: dict) -> str:
         f"dist_eps={BASE_SETTINGS['dist_eps']:g}, median of {result['repeats']}; ref = dense numpy "
         "float64 forward, timed once; saved = bins + device buffers kept for backward",
         format_table(result["raster"], RASTER_COLUMNS), *notes, "",
-        f"accuracy vs exact float64 (dist_eps=0, fast_math off): {acc['faces']} faces at {acc['size']}^2",
-        format_table(result["accuracy"], ACCURACY_COLUMNS)])
+        "where the time goes (ms, medians of separate runs that wait for the device at every stage "
+        "boundary): set-up = input checks + face set-up, binning, upload, forward = kernel + image "
+        "download, backward prep = cotangent planes + buffers, backward = kernel + slot download, "
+        "reductions = per-face sums + scatter onto vertices",
+        format_table(result["raster"], STAGE_COLUMNS),
+        *(["", f"accuracy vs exact float64 (dist_eps=0, fast_math off): {acc['faces']} faces at {acc['size']}^2",
+           format_table(result["accuracy"], ACCURACY_COLUMNS)] if result["accuracy"] else
+          ["", "(accuracy section skipped: --speed-only)"])])
 
 
 MARKERS = {("float64", False): "o", ("float64", True): "s", ("float32", False): "^", ("float32", True): "v"}
@@ -390,9 +412,10 @@ def plan(args: argparse.Namespace) -> dict:
         raise ValueError(f"--sizes must be >= 1, got {args.sizes}")
     if args.repeats is not None and args.repeats < 1:
         raise ValueError(f"--repeats must be >= 1, got {args.repeats}")
+    speed_only = bool(getattr(args, "speed_only", False))
     return dict(sizes=args.sizes or quick["sizes"], faces=faces,
                 repeats=args.repeats or quick["repeats"], scene=quick["scene"],
-                variants=accuracy_variants(args.quick))
+                variants=[] if speed_only else accuracy_variants(args.quick), speed_only=speed_only)
 
 
 def run_benchmark(p: dict, progress) -> dict:
@@ -406,15 +429,18 @@ def run_benchmark(p: dict, progress) -> dict:
             progress.set_description(f"raster {n} faces {size}^2")
             row, timing = raster_row(make_scene(n, size), p["repeats"])
             result["raster"].append(row)
-            if row["ref_note"] is None:
+            if row["ref_note"] is None and not p.get("speed_only"):
                 to_compare.append((row, timing))
+            elif p.get("speed_only"):
+                row["ref_note"] = "--speed-only"
             progress.update()
     for row, timing in to_compare:     # after all speed rows: the reference's peak RSS is big
         progress.set_description(f"dense reference {row['faces']} faces {row['size']}^2")
         row.update(reference_result(make_scene(row["faces"], row["size"]), settings_for(row["size"]), timing))
         progress.update()
     progress.update(len(result["raster"]) - len(to_compare))
-    result["accuracy"] = accuracy_rows(make_scene(*p["scene"]), p["variants"], p["repeats"], progress)
+    if p["variants"]:
+        result["accuracy"] = accuracy_rows(make_scene(*p["scene"]), p["variants"], p["repeats"], progress)
     return result
 
 
@@ -458,6 +484,9 @@ def register(which) -> None:
                    help=f"timed runs per configuration after one warm-up; the median is reported (default {REPEATS})")
     p.add_argument("--quick", action="store_true",
                    help="tiny run for tests/CI: 1280 faces at 64^2, 1 repeat, two accuracy rows")
+    p.add_argument("--speed-only", action="store_true",
+                   help="speed, memory and the per-stage split only: skip the dense reference and "
+                        "the accuracy section (which take minutes)")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of tables")
     p.add_argument("--out", default="out/bench",
                    help="directory for raster.json and raster.png (default out/bench)")

@@ -7,6 +7,7 @@ What a forward keeps for its backward is a `RasterContext`.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -122,6 +123,22 @@ class SoftRasterizer:
             raise ValueError(f"settings.dtype='float64' but device {self.device.name!r} has no "
                              "cl_khr_fp64; use dtype='float32' or another device")
         self.real = np.dtype(settings.dtype)
+        # stage_ms: None (default), or a dict that forward/backward add their stages' wall times
+        # to, in ms: "setup" (input checks, face set-up), "binning", "upload", "forward" (kernel
+        # and image download), "backward_prep" (cotangent planes and buffers), "backward"
+        # (kernel and slot download), "reductions" (per-face sums and scatter onto vertices).
+        # Kernel stages then end with a queue.finish(); for profiling (softras-cl bench raster).
+        self.stage_ms: dict | None = None
+
+    def _stage(self, name: str, start: float, finish: bool = False) -> float:
+        """Add the time since `start` to stage_ms[name] (when profiling); returns the new start."""
+        if self.stage_ms is None:
+            return start
+        if finish:
+            self.queue.finish()
+        now = time.perf_counter()
+        self.stage_ms[name] = self.stage_ms.get(name, 0.0) + 1e3 * (now - start)
+        return now
 
     # ---- public API ------------------------------------------------------------------------
     def forward(self, vertices, faces, colors=None, face_textures=None, texture_image=None,
@@ -139,6 +156,7 @@ class SoftRasterizer:
         with per-pixel lighting "colors" also gives "normals" and "light".
         """
         s = self.settings
+        t = time.perf_counter()
         grads = _check_grads(grads, s)
         mesh = check_inputs(s, vertices, faces, colors, face_textures, texture_image, uvs, normals, light)
         if "colors" in grads and s.texture == "uv" and not has_int64_atomics(self.device):
@@ -146,12 +164,17 @@ class SoftRasterizer:
                              f"{self.device.name!r} lacks")
         check_forward_memory(s, self.device, mesh.batch, mesh.n_faces, grads, mesh.tex_res, mesh.tex_shape)
         geom, drawable = face_setup(mesh, s)
+        t = self._stage("setup", t)
         bins = bin_faces(geom, drawable, mesh.batch, mesh.n_faces, s, roi_tiles(roi, mesh.batch, s))
+        t = self._stage("binning", t)
         buffers = self._upload(mesh, geom, bins)
         state = self._state_buffers(mesh.batch) if grads else None
+        t = self._stage("upload", t, finish=True)
         images = self._run_forward(mesh, buffers, state)
         saved = RasterContext(mesh, grads, bins, buffers, images, state) if grads else None
-        return RasterOutput(*(self._crop(images.get(n)) for n in ("rgb", "alpha", "depth")), saved)
+        out = RasterOutput(*(self._crop(images.get(n)) for n in ("rgb", "alpha", "depth")), saved)
+        self._stage("forward", t, finish=True)
+        return out
 
     def backward(self, output: RasterOutput, grad_rgb=None, grad_alpha=None, grad_depth=None) -> dict:
         """Gradients of a scalar loss given its cotangents dL/d(rgb, alpha, depth).
@@ -164,9 +187,14 @@ class SoftRasterizer:
         if saved is None:
             raise ValueError("output: forward() was called without grads=...; nothing to differentiate")
         s, mesh = self.settings, saved.mesh
+        t = time.perf_counter()
         cot = {name: check_cotangent(name, g, _cot_shape(name, mesh.batch, s), name[len("grad_"):] in s.outputs)
                for name, g in (("grad_rgb", grad_rgb), ("grad_alpha", grad_alpha), ("grad_depth", grad_depth))}
-        return self._gather_grads(saved, self._run_backward(saved, cot))
+        slots = self._run_backward(saved, cot, t)
+        t = time.perf_counter()
+        grads = self._gather_grads(saved, slots)
+        self._stage("reductions", t)
+        return grads
 
     # ---- kernels ---------------------------------------------------------------------------
     def _kernel(self, name: str, grads: tuple, save_state: bool) -> cl.Kernel:
@@ -231,8 +259,9 @@ class SoftRasterizer:
         bufs = (state.color, state.alpha, state.ids) if state is not None else (None,) * 3
         return [b if b is not None else self._dummy() for b in bufs]
 
-    def _run_backward(self, saved: RasterContext, cot: dict) -> dict:
-        """Run the backward kernel: per-(tile, face) slot sums and uv texel sums (host arrays)."""
+    def _run_backward(self, saved: RasterContext, cot: dict, t: float) -> dict:
+        """Run the backward kernel: per-(tile, face) slot sums and uv texel sums (host arrays).
+        t: perf_counter at the start of backward (stage timing)."""
         s, real, mesh, bins = self.settings, self.real, saved.mesh, saved.bins
         g = tile_grid(s)
         images, grads = saved.images, saved.grads
@@ -256,12 +285,14 @@ class SoftRasterizer:
         if not kernel_grads:    # colour gradients only, and no rgb cotangent: all zero
             return dict(pos=slot_pos, attr=slot_attr, light=slot_light, tex=tex_fixed, scale=scale)
         knl = self._kernel("soft_raster_bwd", kernel_grads, True)
+        t = self._stage("backward_prep", t, finish=True)
         knl(self.queue, (_round_up(g.ntx), g.nty, mesh.batch), GROUP, *self._geometry_args(mesh, saved.buffers),
             saved.buffers.tile_slots, *cot_bufs, g_dot_buf, *self._state_args(saved.state),
             real.type(scale), *out_bufs)
         for host, dev in zip(hosts, out_bufs):
             if host is not None:
                 cl.enqueue_copy(self.queue, host, dev)
+        self._stage("backward", t, finish=True)
         return dict(pos=slot_pos, attr=slot_attr, light=slot_light, tex=tex_fixed, scale=scale)
 
     def _color_grad_buffers(self, mesh: MeshInputs, grads: tuple, n_entries: int, grad_rgb):
