@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
@@ -118,8 +119,16 @@ class _SigtermAsInterrupt:
         return False
 
 
+# numpy's BLAS runs on one thread under the command line (unless the user sets these): the fits'
+# small matrix products gain nothing from more, a second thread waiting for a busy core stalls
+# them, and the last bits of a fit would otherwise depend on the machine's core count.
+SINGLE_THREAD_BLAS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `softras-cl` console script; returns the exit code."""
+    for variable in SINGLE_THREAD_BLAS:     # read when numpy loads, which is after this
+        os.environ.setdefault(variable, "1")
     command, verbose = "", 0
     with _SigtermAsInterrupt():
         try:

@@ -32,9 +32,10 @@ def render_demo(out: str | Path = DEFAULT_OUT, size: int = 512, subdivisions: in
     faces=int, image=(size, size, 3) float sRGB in [0, 1] as written).
     """
     start = time.perf_counter()     # includes the (slow) imports: the time a user waits
-    import colour
     import matplotlib.image
     import numpy as np
+
+    from softras_cl.io.images import to_srgb
 
     from softras_cl.scene.meshes import screen_space_sphere
     from softras_cl.raster.rasterizer import SoftRasterizer
@@ -51,7 +52,7 @@ def render_demo(out: str | Path = DEFAULT_OUT, size: int = 512, subdivisions: in
     rendered = raster.forward(verts, faces, colors=colors)
     render_seconds = time.perf_counter() - t0
     linear = rendered.rgb[0].astype(np.float64)
-    srgb = np.clip(colour.cctf_encoding(np.clip(linear, 0.0, 1.0), function="sRGB"), 0.0, 1.0)
+    srgb = np.clip(to_srgb(np.clip(linear, 0.0, 1.0)), 0.0, 1.0)
     path = Path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:

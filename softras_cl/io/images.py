@@ -1,8 +1,9 @@
 """Image files in and out, in linear RGB.
 
 All shading and losses in softras-cl work in linear RGB; files hold sRGB-encoded values. The
-transfer functions are colour-science's (`colour.cctf_decoding` / `colour.cctf_encoding` with
-function="sRGB", IEC 61966-2-1). Alpha is never encoded: it is stored and returned linear.
+transfer functions are IEC 61966-2-1's piecewise curves, written here in numpy (equal to
+colour-science's `cctf_decoding` / `cctf_encoding` with function="sRGB", which a test checks,
+without its ~1 s import on every run). Alpha is never encoded: it is stored and returned linear.
 
 - `read_image(path)`: (H, W, 3) or (H, W, 4) float64, linear RGB (+ alpha as stored, in [0, 1]).
   8-bit and 16-bit files; greyscale becomes 3 equal channels (grey + alpha: RGBA); palette
@@ -17,7 +18,6 @@ function="sRGB", IEC 61966-2-1). Alpha is never encoded: it is stored and return
 """
 from __future__ import annotations
 
-import functools
 from pathlib import Path
 
 import numpy as np
@@ -29,23 +29,25 @@ __all__ = ["read_image", "write_image", "to_srgb", "to_linear"]
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
-@functools.lru_cache(maxsize=1)
-def _colour_science():
-    """colour-science, imported on first use (its import takes about a second)."""
-    import colour
-    return colour
+def _signed_power(x: np.ndarray, p: float) -> np.ndarray:
+    """sign(x) |x|^p: the curves' extension to negative values."""
+    return np.sign(x) * np.abs(x) ** p
+
+
+_LINEAR_KNEE = 0.0031308
+_ENCODED_KNEE = 1.055 * _LINEAR_KNEE ** (1.0 / 2.4) - 0.055   # 0.0404499..., where the curves meet
 
 
 def to_linear(srgb) -> np.ndarray:
     """sRGB-encoded values (any shape) -> linear values, float64 (IEC 61966-2-1 decoding)."""
-    x = np.asarray(srgb, dtype=np.float64)
-    return np.asarray(_colour_science().cctf_decoding(x, function="sRGB"), dtype=np.float64)
+    v = np.asarray(srgb, dtype=np.float64)
+    return np.where(v <= _ENCODED_KNEE, v / 12.92, _signed_power((v + 0.055) / 1.055, 2.4))
 
 
 def to_srgb(linear) -> np.ndarray:
     """Linear values (any shape) -> sRGB-encoded values, float64 (IEC 61966-2-1 encoding)."""
     x = np.asarray(linear, dtype=np.float64)
-    return np.asarray(_colour_science().cctf_encoding(x, function="sRGB"), dtype=np.float64)
+    return np.where(x <= _LINEAR_KNEE, x * 12.92, 1.055 * _signed_power(x, 1.0 / 2.4) - 0.055)
 
 
 # ---------------------------------------------------------------------------------------------

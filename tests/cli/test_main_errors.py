@@ -63,3 +63,20 @@ def test_bench_refuses_an_unusable_out_before_running(tmp_path, run_cli, bench):
     result = run_cli("bench", bench, "--out", tmp_path / "file")
     assert result.code == EXIT_OUTPUT and "Traceback" not in result.err
     assert result.err.strip() == f"softras-cl bench {bench}: --out {tmp_path / 'file'} exists and is not a folder"
+
+
+@pytest.mark.parametrize("preset, expected", [(None, "1"), ("3", "3")])
+def test_the_command_line_runs_blas_on_one_thread_unless_the_user_says_otherwise(preset, expected):
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+    if preset is not None:
+        env["OPENBLAS_NUM_THREADS"] = preset
+    code = ("import os, sys; from softras_cl.cli import main; "
+            "assert 'numpy' not in sys.modules; main(['devices', '--json']); "
+            "print(os.environ['OPENBLAS_NUM_THREADS'], os.environ['MKL_NUM_THREADS'])")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split()[-2:] == [expected, "1"]

@@ -24,6 +24,14 @@ def test_srgb_known_values():
     assert to_linear(np.zeros((2, 3), np.float32)).dtype == np.float64
 
 
+def test_curves_equal_colour_science_bit_for_bit():
+    colour = pytest.importorskip("colour")
+    x = np.concatenate([np.linspace(-0.5, 1.5, 20001), np.arange(256) / 255.0,
+                        [0.0031308, 0.04045, 0.0404499, -1e-9, 0.0]])
+    np.testing.assert_array_equal(to_srgb(x), colour.cctf_encoding(x, function="sRGB"))
+    np.testing.assert_array_equal(to_linear(x), colour.cctf_decoding(x, function="sRGB"))
+
+
 @pytest.mark.parametrize("bits", [8, 16])
 @pytest.mark.parametrize("shape", [(6, 9, 3), (6, 9, 4), (6, 9)])
 def test_round_trip_within_quantisation(tmp_path, bits, shape):
