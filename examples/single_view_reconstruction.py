@@ -2,7 +2,7 @@
 """Single-view mesh reconstruction (paper sec. 5.2, at CPU scale) through softras_cl.torch.
 
     python examples/single_view_reconstruction.py                 # full run, about 30 min
-    python examples/single_view_reconstruction.py --quick --out out/sv_quick   # under a minute
+    python examples/single_view_reconstruction.py --quick    # under a minute, out/single_view_quick
 
 Data: examples/make_shapes_dataset.py (4 procedural categories, random views, cached under
 --out). Model: a small CNN encoder and an MLP decoder that deform a 642-vertex icosphere (the
@@ -32,7 +32,7 @@ import make_shapes_dataset as shapes  # noqa: E402
 
 from softras_cl import RasterSettings  # noqa: E402
 from softras_cl.fitting.losses import mesh_topology  # noqa: E402
-from softras_cl.io.outputs import write_figure, write_json  # noqa: E402
+from softras_cl.io.outputs import atomic_path, write_figure, write_json  # noqa: E402
 from softras_cl.provenance import provenance  # noqa: E402
 from softras_cl.scene.meshes import icosphere  # noqa: E402
 from softras_cl.torch import Renderer  # noqa: E402
@@ -365,7 +365,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     add = p.add_argument
-    add("--out", default="out/single_view", help="output folder (data set cache too)")
+    add("--out", default=None, help="output folder, data set cache too (default: "
+        "out/single_view, with --quick out/single_view_quick)")
     add("--quick", action="store_true", help="tiny data, few steps: a smoke test in seconds")
     add("--train", type=int, default=200, help="training shapes per category")
     add("--test", type=int, default=25, help="held-out shapes per category")
@@ -385,6 +386,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     add("--log-every", type=int, default=100)
     add("--seed", type=int, default=0)
     args = p.parse_args(argv)
+    if args.out is None:
+        args.out = "out/single_view_quick" if args.quick else "out/single_view"
     if args.quick:
         for k, v in QUICK.items():
             if p.get_default(k) == getattr(args, k):
@@ -410,7 +413,8 @@ def main(argv=None) -> int:
     rows = table(data, ev)
     print(markdown_table(rows), end="")
     write_figure(figure(data, ev, template[1], args.rows), out / "figure.png", dpi=110)
-    torch.save(model.state_dict(), out / "model.pt")
+    with atomic_path(out / "model.pt") as tmp:
+        torch.save(model.state_dict(), tmp)
     write_json(out / "results.json", dict(
         table=rows, train_seconds=run["seconds"], steps=run["steps"],
         eval_seconds=time.perf_counter() - t0, history=run["history"],
