@@ -1,6 +1,7 @@
 """examples/single_view_reconstruction.py and examples/make_shapes_dataset.py: the voxel IoU
 against known answers, the data set's meshes and determinism, the torch regularisers against
-the numpy ones in softras_cl.fitting.losses, and a --quick run end to end."""
+the numpy ones in softras_cl.fitting.losses, learning through the renderer on a fixed batch,
+and a --quick run end to end."""
 from __future__ import annotations
 
 import importlib
@@ -128,3 +129,33 @@ def test_quick_run_writes_finite_results(example, tmp_path):
     assert doc["steps"] == 8 and doc["train_seconds"] > 0
     assert all(math.isfinite(h["loss"]) for h in doc["history"])
     assert doc["provenance"]["config"]["quick"] is True
+
+
+@pytest.mark.torch
+@pytest.mark.slow
+def test_network_learns_a_fixed_batch_through_the_renderer(example, shapes):
+    """Gradients reach the network's weights through softras_cl.torch: on one fixed batch
+    (2 shapes, 4 views each, 32x32), 12 Adam steps halve the silhouette loss (0.64 -> 0.15
+    when written)."""
+    import torch
+    from softras_cl.scene.meshes import icosphere
+
+    torch.manual_seed(0)
+    data = shapes.make_dataset(1, 0, views=4, size=32, seed=1)
+    pick = np.array([0, 3])                                 # a box and a cone
+    template = icosphere(3, example.TEMPLATE_RADIUS)
+    model = example.Reconstructor(template[0], 32)
+    renderer = example.Renderer(example.raster_settings(32, 1e-4, 1e-4), shading="none")
+    cams = [c for s in pick for c in shapes.cameras(data["eyes"][s], 32)]
+    images = example.as_input(data["images"][pick, 0])
+    target = torch.from_numpy(data["masks"][pick].reshape(-1, 32, 32)).float()
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    losses = []
+    for _ in range(12):
+        verts = model(images).repeat_interleave(4, 0)
+        loss = example.iou_loss(renderer(verts, template[1], cams).alpha, target)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.5 * losses[0], losses
