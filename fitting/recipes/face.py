@@ -305,6 +305,7 @@ class FaceScene:
         self.settings = RasterSettings(image_size=self.image_size, outputs=("rgb", "alpha"),
                                        near=near, far=far, dtype=dtype, alpha_agg=alpha_agg)
         self.renderer = Renderer(self.settings, shading="vertex")
+        self._camera: tuple[float, Camera] | None = None
 
     def set_depth_range(self, translation) -> None:
         """Fit near/far to a face at ``translation`` (see :func:`depth_range`)."""
@@ -312,9 +313,14 @@ class FaceScene:
         self.settings = dataclasses.replace(self.settings, near=near, far=far)
 
     def camera(self, focal: float) -> Camera:
-        cx, cy = self.principal
-        K = [[focal, 0.0, cx], [0.0, focal, cy], [0.0, 0.0, 1.0]]
-        return Camera.from_opencv(K, CAMERA_ROTATION, np.zeros(3), self.image_size)
+        """The Camera of this focal length (pixels); the last one is kept (Cameras are frozen):
+        the landmark and photo terms of one evaluation share it."""
+        focal = float(focal)
+        if self._camera is None or self._camera[0] != focal:
+            cx, cy = self.principal
+            K = [[focal, 0.0, cx], [0.0, focal, cy], [0.0, 0.0, 1.0]]
+            self._camera = (focal, Camera.from_opencv(K, CAMERA_ROTATION, np.zeros(3), self.image_size))
+        return self._camera[1]
 
     def geometry(self, values: dict) -> tuple[np.ndarray, GeometryContext]:
         """-> (world vertices (V, 3) float64, GeometryContext for geometry_vjp)."""
