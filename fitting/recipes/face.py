@@ -61,7 +61,7 @@ from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
 __all__ = ["FaceFitConfig", "Crop", "FaceScene", "FaceFit", "BUDGETS", "landmark_weights", "default_stages",
-           "depth_range", "initial_pose", "initial_light", "prepare_photo", "face_params", "FaceObjective",
+           "depth_range", "half_resolution", "initial_pose", "initial_light", "prepare_photo", "face_params", "FaceObjective",
            "fit_face", "psnr"]
 
 N_LANDMARKS = 68
@@ -79,6 +79,9 @@ JAW = slice(0, 17)          # iBUG 300-W: jaw line; a fixed-vertex contour only 
 FACE_OUTLINE = tuple(range(0, 17)) + tuple(range(26, 16, -1))
 EXCLUDED_OUTLINES = (range(36, 42), range(42, 48), range(60, 68))
 CAMERA_ROTATION = np.diag([1.0, -1.0, -1.0])   # world (y up, camera looks down -z) -> OpenCV
+# Photometric stages whose sigma is at least this render at half the working resolution (see
+# FaceObjective.photo_level): the first stage of every budget.
+COARSE_SIGMA = 1e-4
 
 # Schedules: (sigma, gamma, evaluations) per photometric stage, and the landmark stage's budget.
 BUDGETS = {
@@ -347,6 +350,16 @@ class FaceScene:
                                      albedo=albedo, light=light, grads=grads, roi=roi)
 
 
+def half_resolution(image: np.ndarray):
+    """(image (h // 2, w // 2, 3): the mean of each 2x2 block of pixels, a function mapping
+    (N, 2) working pixels to its pixels): pixel centres map as ``u_half = (u + 0.5) / 2 - 0.5``;
+    an odd last row or column is left out."""
+    h, w = (n // 2 for n in image.shape[:2])
+    blocks = np.asarray(image, np.float64)[:2 * h, :2 * w].reshape(h, 2, w, 2, -1)
+    half = blocks.mean(axis=(1, 3))
+    return half, lambda points: (np.asarray(points, np.float64) + 0.5) * 0.5 - 0.5
+
+
 def depth_range(translation) -> tuple[float, float]:
     """(near, far) = (0.5, 2) x the face's distance: room for the fit to move the face while a
     face's own depth (~0.1 m) spans a good part of the normalised depth."""
@@ -457,12 +470,33 @@ class FaceObjective:
     """
 
     def __init__(self, scene: FaceScene, image, landmarks, mask_erosion: int = 2, focal0: float = 1.0,
-                 forehead: float = 0.15):
+                 forehead: float = 0.15, coarse_sigma: float | None = COARSE_SIGMA):
         self.scene, self.image, self.target = scene, image, np.asarray(landmarks, np.float64)
         self.focal0, self.forehead = float(focal0), float(forehead)
         self.landmark_weights = landmark_weights()
         self.mask_erosion = mask_erosion
         self.mask, self._mask_stage = None, None
+        self.coarse_sigma = coarse_sigma
+        self._coarse: FaceObjective | None = None
+
+    def photo_level(self, sigma: float) -> "FaceObjective":
+        """The objective whose image the photometric term of a stage with this sigma compares:
+        this one, or (sigma >= coarse_sigma, working image at least 2 * MIN_SIZE a side) its
+        half-resolution copy (see :func:`half_resolution`): the stage's blur already spans about
+        a working pixel, and the half-size render costs a quarter of the pixel-face pairs."""
+        if (self.coarse_sigma is None or sigma < self.coarse_sigma
+                or min(self.image.shape[:2]) < 2 * MIN_SIZE):
+            return self
+        if self._coarse is None:
+            scene = self.scene
+            image, to_half = half_resolution(self.image)
+            coarse_scene = FaceScene(scene.model, image.shape[:2], scene.settings.dtype,
+                                     scene.settings.alpha_agg, (scene.settings.near, scene.settings.far),
+                                     principal=to_half(np.array([scene.principal]))[0])
+            self._coarse = FaceObjective(coarse_scene, image, to_half(self.target),
+                                         max(1, self.mask_erosion // 2) if self.mask_erosion else 0,
+                                         self.focal0 * 0.5, self.forehead, coarse_sigma=None)
+        return self._coarse
 
     def __call__(self, values: dict, stage: Stage):
         w = stage.weights
@@ -471,11 +505,20 @@ class FaceObjective:
         if w.get("landmarks"):
             terms["landmarks"] = self.landmark_term(values, world)
         if w.get("photo"):
-            if self._mask_stage != stage.name:
+            level = self.photo_level(stage.sigma)
+            scale = 1.0 if level is self else 0.5
+            level_values = values if level is self else dict(values, focal=values["focal"] * scale)
+            if level._mask_stage != stage.name:
                 self.scene.set_depth_range(values["translation"])
-                self.mask = self.face_region(values, stage.sigma, stage.gamma)
-                self._mask_stage = stage.name
-            terms["photo"] = self.photo_term(values, world, stage.sigma, stage.gamma)
+                level.scene.set_depth_range(values["translation"])
+                level.mask = level.face_region(level_values, stage.sigma, stage.gamma)
+                level._mask_stage = stage.name
+            value, g = level.photo_term(level_values, world, stage.sigma, stage.gamma)
+            if level is not self:       # a half-size pixel stands for 4 working pixels
+                area = 1.0 / (scale * scale)
+                value, g = value * area, {k: v * area for k, v in g.items()}
+                g["focal"] = g["focal"] * scale
+            terms["photo"] = (value, g)
         for name, block in (("id_prior", "id"), ("exp_prior", "exp"), ("albedo_prior", "albedo")):
             if w.get(name):
                 value, g = losses.gaussian_prior(values[block], 1.0)

@@ -254,3 +254,34 @@ def test_prepare_photo_names_a_nan_landmark():
     with pytest.raises(ValueError, match=re.escape("landmarks contains NaN or Inf (1 non-finite value(s), "
                                                    "first at index (7, 1))")):
         face.prepare_photo(np.zeros((100, 100, 3)), lmk, 64)
+
+
+def test_coarse_stage_gradient_matches_central_differences_and_sums_like_full_resolution(toy):
+    rng = np.random.default_rng(3)
+    scene = face.FaceScene(toy, (64, 64))
+    values = toy_values(toy, rng)
+    image = rng.random((64, 64, 3)) * 0.5
+    objective = face.FaceObjective(scene, image, _spread_landmarks(64), mask_erosion=0)
+    stage = Stage("photo-1", ("id",), dict(photo=1.0), sigma=1e-3, gamma=1e-2)
+    level = objective.photo_level(stage.sigma)
+    assert level is not objective and level.image.shape == (32, 32, 3)
+    np.testing.assert_allclose(level.image[3, 5], image[6:8, 10:12].mean(axis=(0, 1)))
+    assert face.FaceObjective(scene, image, level.target, coarse_sigma=None).photo_level(1.0) is not level
+    loss, grads, _ = objective(values, stage)
+    assert level.mask.sum() > 100 and objective.mask is None
+    for name in ("focal", "translation", "albedo"):
+        v = values[name]
+        fd = np.zeros_like(v)
+        for i in np.ndindex(v.shape):
+            h = 1e-6 * max(1.0, abs(v[i]))
+            plus, minus = {**values, name: v.copy()}, {**values, name: v.copy()}
+            plus[name][i] += h
+            minus[name][i] -= h
+            fd[i] = (objective(plus, stage)[0] - objective(minus, stage)[0]) / (2 * h)
+        np.testing.assert_allclose(grads[name], fd, rtol=2e-5, atol=2e-5 * np.abs(fd).max() + 1e-9, err_msg=name)
+    # a half-size pixel counts for four: on a smooth photo the sum is near the full-resolution one
+    y, x = np.mgrid[0:64, 0:64] / 64.0
+    smooth = np.stack([0.2 + 0.3 * x, 0.4 - 0.2 * y, 0.3 + 0.1 * x * y], -1)
+    coarse = face.FaceObjective(scene, smooth, objective.target, mask_erosion=0)(values, stage)[0]
+    full = face.FaceObjective(scene, smooth, objective.target, mask_erosion=0, coarse_sigma=None)(values, stage)[0]
+    assert 0.8 < coarse / full < 1.25
