@@ -4,7 +4,8 @@ The model fit (``fitting.recipes.face``) explains a photo with a smooth PCA albe
 keeps its shape, pose and SH light and reads the skin's detail from the photo itself:
 
 1. **UV layout** (:func:`cylindrical_uvs`, :func:`uv_layout`): the model's mean face unrolled
-   about a vertical axis behind it (``u`` = arc length around the axis, ``v`` = height, one
+   about a vertical axis 10 cm behind its nose tip in the mid plane x = 0 (``u`` = arc length
+   around the axis, ``v`` = height, one
    scale for both), centred so that the mirror image x -> -x of a symmetric model is the flip
    u -> 1 - u of the texture. Each texel knows the triangle under it and its barycentric
    weights (softras-cl rasterises the mesh in uv space; where uv triangles overlap, the one
@@ -13,8 +14,9 @@ keeps its shape, pose and SH light and reads the skin's detail from the photo it
    full-size photo; its albedo is photo / shading, the shading being the fitted SH irradiance
    at the interpolated vertex normal (what the vertex-shaded render uses).
 3. **Visibility and confidence**: a texel is seen when its point faces the camera, is the
-   nearest surface at its pixel (depth buffer of the photo's render) and lies inside the photo,
-   and the shading is not too dark to divide by. Its confidence is the cosine of the view angle
+   surface shown at the four pixels its colour is read from (depth buffer of the photo's
+   render: no occluder, no background at a silhouette), lies inside the photo, and the shading
+   is not too dark to divide by. Its confidence is the cosine of the view angle
    times a ramp rising over ``ramp`` texels from the edge of the seen area.
 4. **Fill**: the photo's albedo takes over where the confidence reaches ``full_weight``;
    elsewhere it blends with the mirror texel's photo albedo (when that one is seen) and then
@@ -41,7 +43,7 @@ __all__ = ["TEXTURE_SIZE", "UVLayout", "FaceTexture", "cylindrical_uvs", "uv_lay
            "full_photo_scene", "estimate_texture", "render_textured", "save_textured_obj"]
 
 TEXTURE_SIZE = 512       # texels a side: about twice the face's pixels in a 512 px photo
-AXIS_Z = -0.07           # the unrolling axis, metres behind the eyes (model frame, face along +z)
+AXIS_DEPTH = 0.10        # the unrolling axis, metres behind the face's frontmost point (the nose tip)
 UV_MARGIN = 0.02         # empty border of the layout, as a fraction of its side
 SHADING_FLOOR = 0.05     # irradiance below which a texel is not un-lit (albedo = photo / shading)
 MIN_COS = 0.1            # a texel seen more obliquely than this counts as unseen
@@ -97,7 +99,7 @@ class FaceTexture:
 # uv layout
 # ---------------------------------------------------------------------------------------------
 
-def cylindrical_uvs(points, axis_z: float = AXIS_Z, margin: float = UV_MARGIN) -> np.ndarray:
+def cylindrical_uvs(points, axis_z: float, margin: float = UV_MARGIN) -> np.ndarray:
     """uvs (V, 2) float64 of points (V, 3) (model frame: y up, face along +z, x = 0 the mid
     plane): arc length around the vertical axis through (0, *, axis_z) and height, one scale,
     centred on u = 0.5 (x -> -x maps u -> 1 - u) and fitted into [margin, 1 - margin]."""
@@ -139,9 +141,10 @@ def face_uv_layout(model, size: int = TEXTURE_SIZE) -> UVLayout:
     """The layout of a face model: cylindrical uvs of its mean shape; where uv triangles
     overlap, the surface farther from the axis (the outer one) wins."""
     mean = model.mean_shape
-    radius = np.hypot(mean[:, 0], mean[:, 2] - AXIS_Z)
+    axis_z = mean[:, 2].max() - AXIS_DEPTH
+    radius = np.hypot(mean[:, 0], mean[:, 2] - axis_z)
     priority = (radius.max() - radius) / max(np.ptp(radius), 1e-12)
-    return uv_layout(cylindrical_uvs(mean), model.faces, size, priority)
+    return uv_layout(cylindrical_uvs(mean, axis_z), model.faces, size, priority)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -182,15 +185,19 @@ def _bilinear(image, xy) -> np.ndarray:
                      for c in range(image.shape[-1])], axis=-1)
 
 
-def _visible(depth, xy, z) -> np.ndarray:
-    """(N,) bool: points at pixels xy (N, 2) with view depth z (N,) not behind the depth
-    buffer (H, W) at any of their four nearest pixels (by DEPTH_TOLERANCE), inside the image."""
+def _visible(depth, xy, z, far: float, slack) -> np.ndarray:
+    """(N,) bool: points at pixels xy (N, 2) with view depth z (N,) that the four pixels their
+    bilinear sample reads all show: every one covered by the face (depth buffer (H, W) < far)
+    and none nearer than the point by more than DEPTH_TOLERANCE + slack (N,) (the depth the
+    point's own surface changes by over a pixel): no occluder, no background mixed into the
+    colour at a silhouette; inside the image."""
     h, w = depth.shape
     inside = (xy[:, 0] >= 0) & (xy[:, 0] <= w - 1) & (xy[:, 1] >= 0) & (xy[:, 1] <= h - 1)
     x0 = np.clip(np.floor(xy[:, 0]).astype(int), 0, w - 2)
     y0 = np.clip(np.floor(xy[:, 1]).astype(int), 0, h - 2)
-    farthest = np.max([depth[y0 + dy, x0 + dx] for dy in (0, 1) for dx in (0, 1)], axis=0)
-    return inside & (z <= farthest + DEPTH_TOLERANCE)
+    footprint = np.stack([depth[y0 + dy, x0 + dx] for dy in (0, 1) for dx in (0, 1)])
+    covered = footprint.max(axis=0) < far
+    return inside & covered & (z <= footprint.min(axis=0) + DEPTH_TOLERANCE + slack)
 
 
 def _texel_geometry(scene, values, layout: UVLayout) -> dict:
@@ -240,15 +247,18 @@ def estimate_texture(fit, photo, size: int = TEXTURE_SIZE, ramp: float = 8.0,
                      full_weight: float = 0.3, layout: UVLayout | None = None) -> FaceTexture:
     """The detail texture of a FaceFit from its photo (H, W, 3) linear RGB at full size.
 
-    ramp: texels over which the confidence rises from a visibility edge; full_weight: the
-    confidence from which the photo's albedo is used alone. See the module docstring.
+    size: texels a side (ignored when a layout is given: its size); ramp: texels over which the
+    confidence rises from a visibility edge; full_weight: the confidence from which the
+    photo's albedo is used alone. See the module docstring.
     """
     photo = np.asarray(photo, np.float64)[..., :3]
     scene, values = full_photo_scene(fit, photo.shape[:2])
     layout = face_uv_layout(scene.model, size) if layout is None else layout
+    size = layout.size
     geo = _texel_geometry(scene, values, layout)
     covered = layout.covered
-    visible = _visible(_depth_buffer(scene, values, geo["world"]), geo["xy"], geo["z"])
+    slack = geo["z"] / values["focal"][0] / np.maximum(geo["cos"], MIN_COS)   # one pixel of the surface
+    visible = _visible(_depth_buffer(scene, values, geo["world"]), geo["xy"], geo["z"], scene.settings.far, slack)
     lit = geo["irradiance"].min(axis=1) > SHADING_FLOOR
     seen_n = visible & lit & (geo["cos"] > MIN_COS)
     observed = np.zeros((size, size, 3))

@@ -1,11 +1,16 @@
 """What a face fit leaves on disk (``softras-cl fit-face --out DIR``).
 
 - ``face.ply``: the fitted shape (identity + expression, model frame) with albedo vertex colours;
-- ``overlay.png``: the render over the photo (at the photo's resolution, at most OVERLAY_MAX px);
-- ``figure.png``: photo with its landmarks / fit with the fitted landmarks / albedo / shading /
-  error map in the face region;
+- ``face_textured.obj`` + ``.mtl`` + ``.png``: the same mesh with uvs and its detail texture (the
+  photo's albedo, un-lit by the fitted light: ``fitting.recipes.face_texture``);
+- ``overlay.png``: the render with the detail texture over the photo, ``overlay_model.png`` the
+  model alone (at the photo's resolution, at most OVERLAY_MAX px; the photo shows through the
+  eye and mouth openings);
+- ``figure.png``: photo with its landmarks / model fit with the fitted landmarks / fit with the
+  detail texture / error maps in the face region / model and detail albedo / shading;
 - ``params.json`` and ``params.npz``: every fitted block, the camera of the full-size photo
-  (K, R, t), the metrics and the settings used;
+  (K, R, t), the metrics (``psnr_face_db``: the model alone, what the fit optimises;
+  ``psnr_face_db_textured``: with the detail texture) and the settings used;
 - ``loss_curve.png``, ``history.json``, ``checkpoint.npz``: written by the solver.
 """
 from __future__ import annotations
@@ -19,72 +24,157 @@ from softras_cl.io.images import to_srgb, write_image
 from softras_cl.io.meshes import save_mesh
 from softras_cl.io.outputs import atomic_path, write_figure, write_json
 from softras_cl.scene.shading import SHLight
+from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.recipes.face import CAMERA_ROTATION, FaceFit, FaceScene
+from softras_cl.fitting.recipes.face_texture import (FaceTexture, estimate_texture, full_photo_scene,
+                                                     render_textured, save_textured_obj)
 from softras_cl.provenance import provenance
 
 OVERLAY_MAX = 1024       # longest side of overlay.png (the photo's own size when smaller)
 SHARP = (1e-6, 1e-4)     # sigma, gamma of the report renders: the fitted surface, drawn sharp
+# Samples a side per pixel of the pictures. One sample per pixel draws the thin creases of the
+# fitted surface (under the lower lip, the chin's underside: sub-pixel, downward-facing
+# triangles, dark under a light from above) as dotted lines; averaged samples draw them as the
+# faint continuous shadows they are, and anti-alias the outline.
+SUPERSAMPLE = 3
+# iBUG outlines of the openings the face models close with a cap (eyes) or a slit (mouth): the
+# pictures show the photo through them, as a skin model does not draw eyes or teeth
+OPENINGS = (tuple(range(36, 42)), tuple(range(42, 48)), tuple(range(60, 68)))
+OPENING_GROWTH = 1.15    # each opening's polygon grown about its centre (the lids' thickness)
 
 
 def photo_scene(fit: FaceFit, photo_size, scale: float = 1.0) -> tuple[FaceScene, dict]:
     """A hard-alpha scene of the full photo (H, W) resized by ``scale``, and the fitted values
     with the focal length of that image."""
+    out_size = tuple(max(1, round(n * scale)) for n in photo_size)
+    return full_photo_scene(fit, photo_size, out_size)
+
+
+def display_scene(fit: FaceFit, samples: int = 1) -> FaceScene:
+    """The working image's scene with hard alpha (no seams between triangles): for pictures;
+    ``samples`` per pixel a side (the focal length then scales by as much: :func:`_sampled`)."""
+    h, w = fit.image.shape[:2]
+    cx, cy = fit.scene.principal
     settings = fit.scene.settings
+    return FaceScene(fit.scene.model, (h * samples, w * samples), settings.dtype, alpha_agg="hard",
+                     depth_range=(settings.near, settings.far),
+                     principal=((cx + 0.5) * samples - 0.5, (cy + 0.5) * samples - 0.5))
+
+
+def _sampled(fit: FaceFit, photo_size=None, scale: float = 1.0, k: int = SUPERSAMPLE):
+    """(scene, values) drawing k x k samples per pixel of the working image (photo_size None)
+    or of the full photo (H, W) resized by scale."""
+    if photo_size is None:
+        return display_scene(fit, k), dict(fit.values, focal=fit.values["focal"] * k)
     h, w = (max(1, round(n * scale)) for n in photo_size)
-    cx, cy = fit.crop.to_full([fit.scene.principal])[0]
-    scene = FaceScene(fit.scene.model, (h, w), settings.dtype, alpha_agg="hard",
-                      depth_range=(settings.near, settings.far),
-                      principal=((cx + 0.5) * scale - 0.5, (cy + 0.5) * scale - 0.5))
-    return scene, dict(fit.values, focal=fit.values["focal"] / fit.crop.scale * scale)
+    return full_photo_scene(fit, photo_size, (h * k, w * k))
 
 
-def display_scene(fit: FaceFit) -> FaceScene:
-    """The working image's scene with hard alpha (no seams between triangles): for pictures."""
-    size = fit.image.shape[:2]
-    settings = fit.scene.settings
-    return FaceScene(fit.scene.model, size, settings.dtype, alpha_agg="hard",
-                     depth_range=(settings.near, settings.far), principal=fit.scene.principal)
+def _downsample(image: np.ndarray, k: int) -> np.ndarray:
+    """(h k, w k, ...) -> (h, w, ...): the mean of each k x k block."""
+    h, w = image.shape[0] // k, image.shape[1] // k
+    return image.reshape(h, k, w, k, *image.shape[2:]).mean(axis=(1, 3))
 
 
-def render_over(fit: FaceFit, photo: np.ndarray, max_side: int = OVERLAY_MAX) -> np.ndarray:
-    """The fitted face rendered over ``photo`` (H, W, 3) linear RGB, downscaled to at most
-    ``max_side`` pixels: (h, w, 3) linear RGB."""
+def opening_mask(scene: FaceScene, values: dict, growth: float = OPENING_GROWTH) -> np.ndarray:
+    """(H, W) bool: inside the fitted eye and inner-mouth outlines (OPENINGS) of the scene's
+    image, each grown by ``growth`` about its centre."""
+    from skimage.draw import polygon
+
+    world, _ = scene.geometry(values)
+    points, _ = scene.camera(values["focal"][0]).project_pixels(scene.model.landmarks(world)[0])
+    inside = np.zeros(scene.image_size, bool)
+    for outline in OPENINGS:
+        pts = points[list(outline)]
+        pts = pts.mean(0) + growth * (pts - pts.mean(0))
+        inside[polygon(pts[:, 1], pts[:, 0], inside.shape)] = True
+    return inside
+
+
+def draw(scene: FaceScene, values: dict, k: int, texture: FaceTexture | None = None,
+         openings: bool = True, **overrides) -> tuple[np.ndarray, np.ndarray]:
+    """The face drawn at k x k samples per pixel and averaged: (rgb premultiplied by alpha
+    (h, w, 3), alpha (h, w)), h, w = the scene's size / k. texture: draw the detail texture
+    (else the model albedo, or ``overrides`` albedo= / light= of FaceScene.render); openings:
+    leave the eye and mouth openings empty, for the photo to show through."""
+    if texture is not None:
+        rgb, alpha = render_textured(scene, values, texture, *SHARP)
+    else:
+        out = scene.render(values, *SHARP, **overrides)
+        rgb, alpha = out.rgb[0], out.alpha[0]
+    if openings:
+        alpha = alpha * ~opening_mask(scene, values)
+    return _downsample(rgb * alpha[..., None], k), _downsample(alpha, k)
+
+
+def composite(drawn: tuple[np.ndarray, np.ndarray], image: np.ndarray) -> np.ndarray:
+    """A drawn face (see :func:`draw`) over image (h, w, 3) linear RGB."""
+    rgb, alpha = drawn
+    return rgb + (1.0 - alpha[..., None]) * image
+
+
+def render_over(fit: FaceFit, photo: np.ndarray, max_side: int = OVERLAY_MAX,
+                texture: FaceTexture | None = None) -> np.ndarray:
+    """The fitted face (with its detail texture if given) rendered over ``photo`` (H, W, 3)
+    linear RGB, downscaled to at most ``max_side`` pixels, the photo showing through the eye
+    and mouth openings: (h, w, 3) linear RGB."""
     from skimage.transform import resize
 
     h, w = photo.shape[:2]
     scale = min(1.0, max_side / max(h, w))
-    scene, values = photo_scene(fit, (h, w), scale)
-    image = resize(photo, scene.image_size, order=1, anti_aliasing=True) if scale < 1.0 else photo
-    out = scene.render(values, *SHARP)
-    alpha = out.alpha[0][..., None]
-    return alpha * out.rgb[0] + (1.0 - alpha) * image
+    scene, values = _sampled(fit, (h, w), scale)
+    size = (scene.image_size[0] // SUPERSAMPLE, scene.image_size[1] // SUPERSAMPLE)
+    image = resize(photo, size, order=1, anti_aliasing=True) if scale < 1.0 else photo
+    return composite(draw(scene, values, SUPERSAMPLE, texture), image)
 
 
-def _panels(fit: FaceFit) -> dict:
+def textured_metrics(fit: FaceFit, texture: FaceTexture) -> dict:
+    """Face-region PSNR (sRGB, dB) of the render with the detail texture, on the working image
+    and the face region of FaceFit.metrics (whose psnr_face_db is the model alone)."""
+    rgb, _ = render_textured(fit.scene, fit.values, texture, 1e-6, 1e-4)
+    mask = fit.objective.face_region(fit.values, 1e-6, 1e-4)
+    return dict(psnr_face_db_textured=psnr(to_srgb(np.clip(rgb, 0, 1)), to_srgb(np.clip(fit.image, 0, 1)), mask),
+                texture_seen_fraction=float(texture.seen.sum() / max(texture.layout.covered.sum(), 1)))
+
+
+def _error(rgb: np.ndarray, fit: FaceFit) -> np.ndarray:
+    """(h, w) mean |sRGB error| in the face region, NaN outside."""
+    diff = np.abs(to_srgb(np.clip(rgb, 0, 1)) - to_srgb(np.clip(fit.image, 0, 1))).mean(-1)
+    return np.where(fit.mask, diff, np.nan)
+
+
+def _panels(fit: FaceFit, texture: FaceTexture | None) -> dict:
     """name -> (h, w, 3) sRGB or (h, w) error image, all at the working resolution."""
-    scene, values = display_scene(fit), fit.values
-    n = scene.model.n_vertices
-    fitted = scene.render(values, *SHARP)
-    albedo = scene.render(values, *SHARP, light=SHLight.ambient(1.0))
-    shading = scene.render(values, *SHARP, albedo=np.full((n, 3), 0.5))
-    alpha = fitted.alpha[0][..., None]
-    composite = alpha * fitted.rgb[0] + (1 - alpha) * fit.image
-    error = np.where(fit.mask, np.abs(to_srgb(np.clip(fitted.rgb[0], 0, 1))
-                                      - to_srgb(np.clip(fit.image, 0, 1))).mean(-1), np.nan)
-    return {"photo + landmarks": to_srgb(np.clip(fit.image, 0, 1)),
-            "fit + fitted landmarks": to_srgb(np.clip(composite, 0, 1)),
-            "albedo": to_srgb(np.clip(albedo.rgb[0], 0, 1)),
-            "shading (grey albedo)": to_srgb(np.clip(shading.rgb[0], 0, 1)),
-            "|error| in the face region (sRGB)": error}
+    scene, values = _sampled(fit)
+    n, k = scene.model.n_vertices, SUPERSAMPLE
+    srgb = lambda x: to_srgb(np.clip(x, 0, 1))                                # noqa: E731
+    model = composite(draw(scene, values, k), fit.image)
+    panels = {"photo + landmarks": srgb(fit.image), "model fit + fitted landmarks": srgb(model)}
+    if texture is not None:
+        panels["fit with the detail texture"] = srgb(composite(draw(scene, values, k, texture), fit.image))
+    panels["|error| model (face region, sRGB)"] = _error(fit.scene.render(fit.values, 1e-6, 1e-4).rgb[0], fit)
+    panels["model albedo"] = srgb(draw(scene, values, k, openings=False, light=SHLight.ambient(1.0))[0])
+    if texture is not None:
+        white = SHLight.ambient(1.0)
+        panels["detail albedo"] = srgb(_downsample(render_textured(
+            scene, dict(values, sh=white.coefficients), texture, *SHARP)[0], k))
+    panels["shading (grey albedo)"] = srgb(draw(scene, values, k, openings=False, albedo=np.full((n, 3), 0.5))[0])
+    if texture is not None:
+        panels["|error| with the detail texture"] = _error(
+            render_textured(fit.scene, fit.values, texture, 1e-6, 1e-4)[0], fit)
+    return panels
 
 
-def save_figure(fit: FaceFit, path: Path, metrics: dict) -> None:
-    """photo / fit / albedo / shading / error map, one row, with the landmarks drawn."""
+def save_figure(fit: FaceFit, path: Path, metrics: dict, texture: FaceTexture | None = None) -> None:
+    """photo / model fit / fit with the detail texture / error maps / albedos / shading, with
+    the landmarks drawn (one row without a texture, two with one)."""
     from matplotlib.figure import Figure
 
-    panels = _panels(fit)
-    fig = Figure(figsize=(3.2 * len(panels), 3.6))
-    axes = fig.subplots(1, len(panels))
+    panels = _panels(fit, texture)
+    cols = 4 if texture is not None else len(panels)
+    rows = -(-len(panels) // cols)
+    fig = Figure(figsize=(3.2 * cols, 3.4 * rows + 0.3))
+    axes = np.atleast_1d(fig.subplots(rows, cols)).ravel()
     for ax, (title, img) in zip(axes, panels.items()):
         if img.ndim == 2:
             shown = ax.imshow(img, cmap="magma", vmin=0, vmax=0.2)
@@ -95,8 +185,11 @@ def save_figure(fit: FaceFit, path: Path, metrics: dict) -> None:
         ax.axis("off")
     axes[0].scatter(*fit.landmarks.T, s=4, c="lime")
     axes[1].scatter(*fit.fitted_landmarks().T, s=4, c="cyan")
-    fig.suptitle(f"landmark error {metrics['landmark_error_px_full']:.2f} px (full size), "
-                 f"face-region PSNR {metrics['psnr_face_db']:.1f} dB (sRGB)", fontsize=10)
+    title = (f"landmark error {metrics['landmark_error_px_full']:.2f} px (full size), "
+             f"face-region PSNR (sRGB): model {metrics['psnr_face_db']:.1f} dB")
+    if "psnr_face_db_textured" in metrics:
+        title += f", with the detail texture {metrics['psnr_face_db_textured']:.1f} dB"
+    fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     write_figure(fig, path, dpi=110)
 
@@ -125,10 +218,14 @@ def write_outputs(fit: FaceFit, photo: np.ndarray, out_dir, extra: dict | None =
     metrics = fit.metrics() if metrics is None else metrics
     values = fit.values
     model = fit.scene.model
-    save_mesh(out / "face.ply", model.shape(values["id"], values["exp"])[0], model.faces,
-              colors=np.clip(model.albedo(values["albedo"])[0], 0.0, 1.0))
-    write_image(out / "overlay.png", np.clip(render_over(fit, photo), 0.0, 1.0))
-    save_figure(fit, out / "figure.png", metrics)
+    shape = model.shape(values["id"], values["exp"])[0]
+    save_mesh(out / "face.ply", shape, model.faces, colors=np.clip(model.albedo(values["albedo"])[0], 0.0, 1.0))
+    texture = estimate_texture(fit, photo)
+    metrics = dict(metrics, **textured_metrics(fit, texture))
+    save_textured_obj(out / "face_textured.obj", shape, model.faces, texture.layout.uvs, texture.albedo)
+    write_image(out / "overlay.png", np.clip(render_over(fit, photo, texture=texture), 0.0, 1.0))
+    write_image(out / "overlay_model.png", np.clip(render_over(fit, photo), 0.0, 1.0))
+    save_figure(fit, out / "figure.png", metrics, texture)
     cam = camera_matrices(fit, photo.shape[:2])
     arrays = {**{k: np.asarray(v) for k, v in values.items()}, **cam}
     with atomic_path(out / "params.npz") as tmp:
