@@ -15,6 +15,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from softras_cl.cli import main
@@ -138,3 +139,29 @@ def test_scheduler_and_worker_processes(tmp_path, dask_processes, capsys):
     doc = json.loads((out / "astronaut" / "complete.json").read_text())
     assert doc["inputs"]["landmarks"].startswith("detected by dlib")
     assert doc["metrics"]["landmark_error_px_full"] < 30
+
+
+@pytest.mark.slow
+@pytest.mark.landmarks
+def test_all_faces_fits_each_detected_face_largest_first(tmp_path):
+    from PIL import Image
+
+    crop = Image.open(DATA / "astronaut.png").convert("RGB").crop((110, 20, 340, 250))
+    canvas = Image.new("RGB", (700, 400), (128, 128, 128))
+    canvas.paste(crop, (20, 40))                                   # the larger face, on the left
+    canvas.paste(crop.resize((138, 138), Image.LANCZOS), (450, 200))
+    photo = tmp_path / "two.png"
+    canvas.save(photo)
+    out = tmp_path / "batch"
+    assert main(["fit-face", str(photo), "--all-faces", "--workers", "1", "--out", str(out), *SMALL]) == 0
+    assert _statuses(out) == {"two-face0": "ok", "two-face1": "ok"}
+    head = {}
+    for name in ("two-face0", "two-face1"):
+        doc = json.loads((out / name / "params.json").read_text())
+        assert json.loads((out / name / "complete.json").read_text())["status"] == "done"
+        assert doc["metrics"]["landmark_error_px_full"] < 10          # fitted to its own landmarks
+        K, t = np.array(doc["params"]["K"]), np.array(doc["params"]["t"])
+        u, v, w = K @ t                                               # the head's origin in the photo
+        head[name] = (u / w, K[0, 0] / t[2])                          # its x, and pixels per metre
+    assert head["two-face0"][0] < 350 < head["two-face1"][0]         # left face, then right face
+    assert head["two-face0"][1] > head["two-face1"][1]               # the larger face first
