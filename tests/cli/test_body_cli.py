@@ -98,3 +98,22 @@ def test_bench_body_quick(tmp_path, capsys):
     assert row["poses"] == 1 and np.isfinite(row["mpjpe_mm"]) and 0.0 < row["silhouette_iou"] <= 1.0
     assert (tmp_path / "body.png").exists() and (tmp_path / "body_strip.png").exists()
     assert json.loads(capsys.readouterr().out)["summary"]["fast"]["poses"] == 1
+
+
+@pytest.mark.slow
+def test_fit_body_batch_from_a_manifest_with_joints(tmp_path, target):
+    pytest.importorskip("distributed")
+    image, joints = target
+    manifest = tmp_path / "items.csv"
+    manifest.write_text(f"target,joints,name,size\n{image},{joints},with_joints,40\n{image},,silhouette_only,32\n")
+    out = tmp_path / "batch"
+    assert main(["fit-body", "--manifest", str(manifest), "--workers", "1", "--out", str(out),
+                 "--budget", "fast", "--no-progress"]) == 0
+    rows = {json.loads(line)["name"]: json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()}
+    assert {n: r["status"] for n, r in rows.items()} == {"with_joints": "ok", "silhouette_only": "ok"}
+    with_joints = json.loads((out / "with_joints" / "params.json").read_text())
+    alone = json.loads((out / "silhouette_only" / "params.json").read_text())
+    assert with_joints["working_size"] == [40, 40] and alone["working_size"] == [32, 32]   # per-row size
+    assert with_joints["metrics"]["joint_error_px_full"] < 3.0 and "joint_error_px_full" not in alone["metrics"]
+    assert with_joints["metrics"]["silhouette_iou"] > 0.7
+    assert (out / "summary.png").stat().st_size > 0 and (out / "results.csv").exists()
