@@ -15,11 +15,14 @@ Fit a morphable face model to a photo and its 68 iBUG landmarks: shape (identity
 expression), skin albedo, spherical-harmonic light and head pose (paper sec. 5.3, figure 14).
 Stage 1 fits pose, focal length, identity and expression to the landmarks; the photometric
 stages then fit everything to the photo in linear RGB over the rendered face region, with a
-sigma/gamma schedule. Writes into --out: face.ply (fitted mesh with albedo colours),
-overlay.png, figure.png (photo / fit / albedo / shading / error), params.json and params.npz
-(fitted blocks, camera K, R, t for the photo, metrics), loss_curve.png, history.json and
-checkpoint.npz (best values so far, written as the fit goes), run.json (inputs and options) and,
-last, complete.json. Every file is replaced atomically and --out is locked while the fit runs.
+sigma/gamma schedule; then a detail texture is read off the photo (un-lit by the fitted light,
+the unseen side filled by symmetry or the model albedo). Writes into --out: face.ply (fitted
+mesh with the model's albedo colours), face_textured.obj/.mtl/.png (the same mesh with the
+detail texture), overlay.png (textured fit over the photo; overlay_model.png: the model alone),
+figure.png (photo / fit / albedo / shading / error), params.json and params.npz (fitted blocks,
+camera K, R, t for the photo, metrics: PSNR of the model and of the textured fit),
+loss_curve.png, history.json and checkpoint.npz (best values so far, written as the fit goes),
+run.json (inputs and options) and, last, complete.json. Every file is replaced atomically and --out is locked while the fit runs.
 Ctrl-C or SIGTERM stops the fit and still writes every output from the best values found so
 far (exit 130; --resume continues it).
 
@@ -145,13 +148,14 @@ def run_one(args: argparse.Namespace) -> int:
         seconds = time.perf_counter() - start
         metrics = checked_metrics(fit, out.path, ("landmark_error_px_full", "psnr_face_db"))
         with finishing_outputs() as late:
-            write_outputs(fit, photo, out.path, metrics=metrics,
-                          extra=dict(photo=str(args.photo), seconds=seconds, budget=args.budget),
-                          run_config=dict(fit=config, options=args))
+            metrics = write_outputs(fit, photo, out.path, metrics=metrics,
+                                    extra=dict(photo=str(args.photo), seconds=seconds, budget=args.budget),
+                                    run_config=dict(fit=config, options=args))
             interrupted = fit.result.interrupted or late.signum is not None
             if not interrupted:
                 out.finish(dict(status="done", metrics=metrics, seconds=seconds))
     print(f"fit-face {run_state(interrupted)} in {seconds:.1f} s: landmark error "
-          f"{metrics['landmark_error_px_full']:.2f} px, face-region PSNR {metrics['psnr_face_db']:.1f} "
-          f"dB (sRGB); outputs in {out.path}/")
+          f"{metrics['landmark_error_px_full']:.2f} px, face-region PSNR {metrics['psnr_face_db']:.1f} dB "
+          f"(model), {metrics['psnr_face_db_textured']:.1f} dB (with the detail texture; sRGB); "
+          f"outputs in {out.path}/")
     return EXIT_INTERRUPTED if interrupted else EXIT_OK
