@@ -189,3 +189,17 @@ def test_forward_argument_errors():
         model.forward(**{**p, "body_pose": np.zeros((3, 3))})
     with pytest.raises(ValueError, match=r"grad_vertices must have shape \(40, 3\)"):
         model.forward_vjp(model.forward(**p)[1], np.zeros((V, 2)))
+
+
+def test_batched_rodrigues_vjp_equals_one_call_per_joint_bit_for_bit():
+    from softras_cl.fitting.models.body_model import _rodrigues_vjp_rows
+    from softras_cl.scene.rotation import rodrigues, rodrigues_vjp
+
+    rng = np.random.default_rng(7)
+    omegas = rng.normal(size=(24, 3)) * 0.7
+    omegas[5] = 0.0                                    # the series branch near zero
+    omegas[6] *= 1e-9
+    ctxs = [rodrigues(w)[1] for w in omegas]
+    grads = rng.normal(size=(24, 3, 3)) * 10.0 ** rng.uniform(-4, 4, size=(24, 1, 1))
+    expected = np.stack([rodrigues_vjp(c, g)["omega"] for c, g in zip(ctxs, grads)])
+    assert np.array_equal(_rodrigues_vjp_rows(ctxs, grads), expected)
