@@ -35,7 +35,6 @@ import functools
 import glob
 import json
 import logging
-import math
 import os
 import shutil
 import time
@@ -44,6 +43,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from softras_cl.errors import InputError, ResultError, SoftrasError
+from softras_cl.fitting.metrics import finite_metrics
 from softras_cl.io.outputs import (COMPLETE_RECORD, LOCK_NAME, OutputFolder, file_sha256, json_safe)
 
 __all__ = ["Item", "BatchResult", "KINDS", "FACE_OPTIONS", "BODY_OPTIONS", "collect_items",
@@ -322,16 +322,6 @@ def load_model(kind: str, path: str | None = None, landmarks: str | None = None)
         return load_demo_face_model() if path is None else load_face_model(path, landmarks=landmarks)
     from softras_cl.fitting.models.body_loaders import load_body_model, load_demo_body_model
     return load_demo_body_model() if path is None else load_body_model(path)
-
-
-def finite_metrics(fit, folder, required) -> dict:
-    """``fit.metrics()``; ResultError when a required one is not finite."""
-    metrics = fit.metrics()
-    bad = [f"{k} is {metrics[k]}" for k in required if not math.isfinite(metrics[k])]
-    if bad:
-        raise ResultError(f"the fit failed: {', '.join(bad)}; checkpoint.npz, history.json and "
-                          f"loss_curve.png in {folder} show how it went")
-    return metrics
 
 
 def face_points(item: Item):

@@ -5,7 +5,8 @@ import argparse
 import time
 
 from softras_cl.cli.batch import BATCH_EPILOG, add_batch_options, is_batch, run_batch
-from softras_cl.cli.runs import named_as_options, checked_metrics, finishing_outputs, run_state
+from softras_cl.cli.runs import finishing_outputs, named_as_options, run_state
+from softras_cl.fitting.metrics import finite_metrics
 from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
 from softras_cl.fitting.body_files import parse_background, read_joints, read_target  # noqa: F401 (re-exported)
 from softras_cl.io.outputs import OutputFolder
@@ -137,7 +138,7 @@ def run_one(args: argparse.Namespace) -> int:
                        progress=not args.no_progress, resume=args.resume)
         seconds = time.perf_counter() - start
         required = ("silhouette_iou",) + (("joint_error_px_full",) if joints is not None else ())
-        metrics = checked_metrics(fit, out.path, required)
+        metrics = finite_metrics(fit, out.path, required)
         with finishing_outputs() as late:
             write_outputs(fit, target, out.path, metrics=metrics,
                           extra=dict(target=str(args.target), seconds=seconds, budget=args.budget),

@@ -6,7 +6,8 @@ import argparse
 import time
 
 from softras_cl.cli.batch import BATCH_EPILOG, add_batch_options, is_batch, run_batch
-from softras_cl.cli.runs import named_as_options, checked_metrics, finishing_outputs, run_state
+from softras_cl.cli.runs import finishing_outputs, named_as_options, run_state
+from softras_cl.fitting.metrics import finite_metrics
 from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
 from softras_cl.io.outputs import OutputFolder
 
@@ -146,7 +147,7 @@ def run_one(args: argparse.Namespace) -> int:
         fit = fit_face(photo, landmarks, model, config, out_dir=out.path,
                        progress=not args.no_progress, resume=args.resume)
         seconds = time.perf_counter() - start
-        metrics = checked_metrics(fit, out.path, ("landmark_error_px_full", "psnr_face_db"))
+        metrics = finite_metrics(fit, out.path, ("landmark_error_px_full", "psnr_face_db"))
         with finishing_outputs() as late:
             metrics = write_outputs(fit, photo, out.path, metrics=metrics,
                                     extra=dict(photo=str(args.photo), seconds=seconds, budget=args.budget),

@@ -1,24 +1,12 @@
-"""What the fitting commands share around a fit: failed results, late interrupts, the summary."""
+"""What the fitting commands share around a fit: option names in errors, late interrupts, the summary."""
 from __future__ import annotations
 
 import contextlib
-import math
 import sys
 from typing import Iterator
 
-from softras_cl.errors import InputError, ResultError
+from softras_cl.errors import InputError
 from softras_cl.interrupts import Caught, first_interrupt_calls
-
-
-def checked_metrics(fit, out_dir, required: tuple[str, ...]) -> dict:
-    """``fit.metrics()``, or ResultError when one of the ``required`` metrics is not finite (a
-    meaningless fit must not be reported as a success)."""
-    metrics = fit.metrics()
-    bad = [f"{name} is {metrics[name]}" for name in required if not math.isfinite(metrics[name])]
-    if bad:
-        raise ResultError(f"the fit failed: {', '.join(bad)}; checkpoint.npz, history.json and "
-                          f"loss_curve.png in {out_dir} show how it went")
-    return metrics
 
 
 @contextlib.contextmanager
