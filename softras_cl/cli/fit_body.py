@@ -2,14 +2,11 @@
 from __future__ import annotations
 
 import argparse
-import time
 
 from softras_cl.cli.batch import BATCH_EPILOG, add_batch_options, is_batch, run_batch
-from softras_cl.cli.runs import finishing_outputs, named_as_options, run_state
-from softras_cl.fitting.metrics import finite_metrics
+from softras_cl.cli.runs import named_as_options, run_fit, run_state
 from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
 from softras_cl.fitting.body_files import parse_background, read_joints, read_target  # noqa: F401 (re-exported)
-from softras_cl.io.outputs import OutputFolder
 
 DESCRIPTION = """\
 Fit an SMPL-like body model (shape betas, joint rotations, global rotation, translation) to one
@@ -131,23 +128,19 @@ def run_one(args: argparse.Namespace) -> int:
 
     target, joints, weights, model, config = _load_inputs(args)
     prepare_target(target, config.size, config.background, joints, weights, model.n_joints)
-    with OutputFolder(args.out, "fit-body", "--out") as out:
-        out.begin(_run_record(args), resume=args.resume)
-        start = time.perf_counter()
-        fit = fit_body(target, model, config, joints, weights, out_dir=out.path,
-                       progress=not args.no_progress, resume=args.resume)
-        seconds = time.perf_counter() - start
-        required = ("silhouette_iou",) + (("joint_error_px_full",) if joints is not None else ())
-        metrics = finite_metrics(fit, out.path, required)
-        with finishing_outputs() as late:
-            write_outputs(fit, target, out.path, metrics=metrics,
-                          extra=dict(target=str(args.target), seconds=seconds, budget=args.budget),
-                          run_config=dict(fit=config, options=args))
-            interrupted = fit.result.interrupted or late.signum is not None
-            if not interrupted:
-                out.finish(dict(status="done", metrics=metrics, seconds=seconds))
+    def fit(folder):
+        return fit_body(target, model, config, joints, weights, out_dir=folder,
+                        progress=not args.no_progress, resume=args.resume)
+
+    def write(fit, folder, metrics, seconds):
+        return write_outputs(fit, target, folder, metrics=metrics, run_config=dict(fit=config, options=args),
+                             extra=dict(target=str(args.target), seconds=seconds, budget=args.budget))
+
+    required = ("silhouette_iou",) + (("joint_error_px_full",) if joints is not None else ())
+    run = run_fit(args, "fit-body", _run_record(args), fit, required, write)
+    metrics = run.metrics
     joints_msg = (f", joint error {metrics['joint_error_px_full']:.1f} px" if "joint_error_px_full" in metrics
                   else "")
-    print(f"fit-body {run_state(interrupted)} in {seconds:.1f} s: silhouette IoU "
-          f"{metrics['silhouette_iou']:.3f}{joints_msg}; outputs in {out.path}/")
-    return EXIT_INTERRUPTED if interrupted else EXIT_OK
+    print(f"fit-body {run_state(run.interrupted)} in {run.seconds:.1f} s: silhouette IoU "
+          f"{metrics['silhouette_iou']:.3f}{joints_msg}; outputs in {run.folder}/")
+    return EXIT_INTERRUPTED if run.interrupted else EXIT_OK

@@ -3,13 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import time
 
 from softras_cl.cli.batch import BATCH_EPILOG, add_batch_options, is_batch, run_batch
-from softras_cl.cli.runs import finishing_outputs, named_as_options, run_state
-from softras_cl.fitting.metrics import finite_metrics
+from softras_cl.cli.runs import named_as_options, run_fit, run_state
 from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
-from softras_cl.io.outputs import OutputFolder
 
 DESCRIPTION = """\
 Fit a morphable face model to a photo and its 68 iBUG landmarks: shape (identity and
@@ -141,22 +138,18 @@ def run_one(args: argparse.Namespace) -> int:
 
     photo, landmarks, model = _load_inputs(args)
     config = _config(args)
-    with OutputFolder(args.out, "fit-face", "--out") as out:
-        out.begin(_run_record(args), resume=args.resume)
-        start = time.perf_counter()
-        fit = fit_face(photo, landmarks, model, config, out_dir=out.path,
-                       progress=not args.no_progress, resume=args.resume)
-        seconds = time.perf_counter() - start
-        metrics = finite_metrics(fit, out.path, ("landmark_error_px_full", "psnr_face_db"))
-        with finishing_outputs() as late:
-            metrics = write_outputs(fit, photo, out.path, metrics=metrics,
-                                    extra=dict(photo=str(args.photo), seconds=seconds, budget=args.budget),
-                                    run_config=dict(fit=config, options=args))
-            interrupted = fit.result.interrupted or late.signum is not None
-            if not interrupted:
-                out.finish(dict(status="done", metrics=metrics, seconds=seconds))
-    print(f"fit-face {run_state(interrupted)} in {seconds:.1f} s: landmark error "
+    def fit(folder):
+        return fit_face(photo, landmarks, model, config, out_dir=folder, progress=not args.no_progress,
+                        resume=args.resume)
+
+    def write(fit, folder, metrics, seconds):
+        return write_outputs(fit, photo, folder, metrics=metrics, run_config=dict(fit=config, options=args),
+                             extra=dict(photo=str(args.photo), seconds=seconds, budget=args.budget))
+
+    run = run_fit(args, "fit-face", _run_record(args), fit, ("landmark_error_px_full", "psnr_face_db"), write)
+    metrics = run.metrics
+    print(f"fit-face {run_state(run.interrupted)} in {run.seconds:.1f} s: landmark error "
           f"{metrics['landmark_error_px_full']:.2f} px, face-region PSNR {metrics['psnr_face_db']:.1f} dB "
           f"(model), {metrics['psnr_face_db_textured']:.1f} dB (with the detail texture; sRGB); "
-          f"outputs in {out.path}/")
-    return EXIT_INTERRUPTED if interrupted else EXIT_OK
+          f"outputs in {run.folder}/")
+    return EXIT_INTERRUPTED if run.interrupted else EXIT_OK

@@ -3,9 +3,14 @@ from __future__ import annotations
 
 import contextlib
 import sys
-from typing import Iterator
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterator
 
 from softras_cl.errors import InputError
+from softras_cl.fitting.metrics import finite_metrics
+from softras_cl.io.outputs import OutputFolder
 from softras_cl.interrupts import Caught, first_interrupt_calls
 
 
@@ -40,3 +45,33 @@ def run_state(interrupted: bool) -> str:
     if interrupted:
         return "interrupted; outputs are from the best values so far (--resume continues the fit)"
     return "done"
+
+
+@dataclass
+class FitRun:
+    """What `run_fit` reports: the metrics written, the fit's seconds, whether it was stopped
+    early (Ctrl-C/SIGTERM during the fit or while writing), and the output folder."""
+    metrics: dict
+    seconds: float
+    interrupted: bool
+    folder: Path
+
+
+def run_fit(args, command: str, record: dict, fit: Callable, required: tuple[str, ...],
+            write: Callable) -> FitRun:
+    """One fit into the locked folder ``args.out``: run.json from ``record`` (``args.resume``
+    continues the fit there), ``fit(folder) -> FaceFit | BodyFit``, its ``required`` metrics
+    checked finite, ``write(fit, folder, metrics, seconds) -> metrics`` under finishing_outputs,
+    and complete.json unless the run was interrupted."""
+    with OutputFolder(args.out, command, "--out") as out:
+        out.begin(record, resume=args.resume)
+        start = time.perf_counter()
+        result = fit(out.path)
+        seconds = time.perf_counter() - start
+        metrics = finite_metrics(result, out.path, required)
+        with finishing_outputs() as late:
+            metrics = write(result, out.path, metrics, seconds)
+            interrupted = result.result.interrupted or late.signum is not None
+            if not interrupted:
+                out.finish(dict(status="done", metrics=metrics, seconds=seconds))
+    return FitRun(metrics, seconds, interrupted, out.path)
