@@ -87,7 +87,7 @@ COARSE_SIGMA = 1e-4
 BUDGETS = {
     "fast": dict(landmark_iters=100, photo_stages=((1e-4, 3e-3, 40), (1e-5, 1e-3, 60))),
     "default": dict(landmark_iters=150,
-                    photo_stages=((1e-4, 3e-3, 60), (3e-5, 1e-3, 20), (1e-5, 1e-3, 100))),
+                    photo_stages=((1e-4, 3e-3, 100), (3e-5, 1e-3, 20), (1e-5, 1e-3, 100))),
     "thorough": dict(landmark_iters=200,
                      photo_stages=((1e-4, 3e-3, 80), (3e-5, 1e-3, 100), (1e-5, 1e-3, 150),
                                    (3e-6, 1e-3, 100))),
