@@ -133,6 +133,13 @@ def test_workers_get_their_opencl_threads(client):
         assert env == "1" and units == 1
 
 
+@pytest.mark.slow
+def test_workers_keep_the_default_malloc_trimming(client):
+    """Dask's MALLOC_TRIM_THRESHOLD_=65536 made every fit about twice as slow in a worker."""
+    found = client.run(lambda: (os.environ.get("MALLOC_TRIM_THRESHOLD_"), os.environ.get("OMP_NUM_THREADS")))
+    assert set(found.values()) == {(None, "1")}
+
+
 def _table(out: Path) -> list[dict]:
     with open(out / "results.csv", newline="") as f:
         return list(csv.DictReader(f))
