@@ -65,7 +65,7 @@ def _wait_for(predicate, timeout: float, what: str):
 
 @pytest.mark.slow
 def test_ctrl_c_keeps_finished_items_and_the_table(tmp_path):
-    make_photos(tmp_path / "in", 4, seed=2)
+    make_photos(tmp_path / "in", 10, seed=2)   # enough that some are in flight at the Ctrl-C
     out = tmp_path / "out"
     cmd = [str(BIN / "softras-cl"), "fit-face", str(tmp_path / "in"), "--out", str(out),
            "--workers", "2", "--threads-per-worker", "1", *SMALL]
