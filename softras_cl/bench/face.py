@@ -72,9 +72,14 @@ def smooth_background(rng: np.random.Generator, size: int) -> np.ndarray:
 def synthetic_face(model, rng: np.random.Generator, size: int = 256) -> dict:
     """One synthetic photo: truth, photo (size, size, 3) linear RGB, landmarks (68, 2) noisy and
     clean, the noise level in px."""
+    return photograph(model, random_truth(model, rng, size), rng, size)
+
+
+def photograph(model, truth: dict, rng: np.random.Generator, size: int = 256) -> dict:
+    """The synthetic photo of known parameters ``truth`` (see :func:`random_truth`) over a random
+    background, with noisy landmarks: what :func:`synthetic_face` returns."""
     from softras_cl.fitting.recipes.face import FaceScene, depth_range
 
-    truth = random_truth(model, rng, size)
     scene = FaceScene(model, (size, size), alpha_agg="hard", depth_range=depth_range(truth["translation"]))
     out = scene.render(truth, 1e-6, 1e-4)
     alpha = out.alpha[0][..., None]
