@@ -73,8 +73,8 @@ def raster_grads(wanted) -> tuple[str, ...]:
     if unknown:
         raise ValueError(f"no gradient for {sorted(unknown)}: differentiable rasteriser inputs are "
                          f"{RASTER_DIFFERENTIABLE} (uvs get none, the paper's choice)")
-    colour = wanted - {"vertices"}
-    return (("vertices",) if "vertices" in wanted else ()) + (("colors",) if colour else ())
+    color_inputs = wanted - {"vertices"}
+    return (("vertices",) if "vertices" in wanted else ()) + (("colors",) if color_inputs else ())
 
 
 def raster_forward(raster, arrays: dict, wanted=()):
