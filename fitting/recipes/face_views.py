@@ -1,0 +1,195 @@
+"""One face fitted to several photos of the same person (`fit-face A B C --same-person`).
+
+Every photo has the scene of the single-photo fit (fitting.recipes.face): its own working image,
+landmarks, camera, FaceScene and FaceObjective. What is shared and what is not:
+
+- shared by all photos: identity ``id`` (K_id,) and albedo ``albedo`` (K_alb,);
+- per photo k: expression ``exp.k``, SH light ``sh.k`` (3, 9), ``rotation.k`` (3,),
+  ``translation.k`` (3,) and ``focal.k`` (1,) in that photo's working pixels.
+
+The objective is the sum of the photos' single-photo objectives at their own values, with the
+identity and albedo priors counted once (in the first photo's objective only; the expression,
+focal and light terms stay per photo). The gradient of a shared block is the sum of the photos'
+gradients of it. With one photo the objective, the parameter layout and so the whole fit are
+those of :func:`~softras_cl.fitting.recipes.face.fit_face`.
+
+The stages are the single fit's (:func:`~softras_cl.fitting.recipes.face.default_stages`), each
+run jointly over all photos: a block free in the single fit's stage is free here in every photo.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from softras_cl.errors import InputError
+from softras_cl.fitting.params import Block, ParamSet
+from softras_cl.fitting.recipes.face import (N_LANDMARKS, FaceFit, FaceFitConfig, FaceObjective, FaceScene,
+                                             default_stages, depth_range, face_params, initial_light,
+                                             initial_pose, prepare_photo)
+from softras_cl.fitting.solver import FitResult, Stage, fit
+
+__all__ = ["SHARED", "PRIORS_ONCE", "view_block", "FaceViewsObjective", "FaceViewsFit", "joint_params",
+           "joint_stages", "prepare_view", "fit_face_views"]
+
+SHARED = ("id", "albedo")                  # blocks common to every photo of the person
+PRIORS_ONCE = ("id_prior", "albedo_prior")  # their priors: counted in the first photo's objective only
+
+
+def view_block(name: str, k: int) -> str:
+    """The joint fit's name of photo k's block ``name`` ("exp" -> "exp.0"; shared blocks keep
+    their name)."""
+    return name if name in SHARED else f"{name}.{k}"
+
+
+def view_values(values: dict, names, k: int) -> dict:
+    """Photo k's single-photo values (block names as in fit_face) out of the joint values."""
+    return {name: values[view_block(name, k)] for name in names}
+
+
+class FaceViewsObjective:
+    """``(values, stage) -> (loss, grads, terms)`` for fitting.solver.fit: the sum over the
+    photos of their FaceObjective (``views``, one per photo) at their own values.
+
+    terms: each weighted term summed over the photos (``photo`` is the photometric term of all
+    photos together)."""
+
+    BLOCKS = ("id", "exp", "albedo", "sh", "rotation", "translation", "focal")
+
+    def __init__(self, views: list[FaceObjective]):
+        if not views:
+            raise InputError("views must hold at least one FaceObjective, got none")
+        self.views = list(views)
+
+    def view_stage(self, stage: Stage, k: int) -> Stage:
+        """The stage photo k's objective sees: the shared priors weigh 0 after the first photo."""
+        if k == 0:
+            return stage
+        return dataclasses.replace(stage, weights={n: (0.0 if n in PRIORS_ONCE else w)
+                                                   for n, w in stage.weights.items()})
+
+    def __call__(self, values: dict, stage: Stage):
+        loss, grads, terms = 0.0, {}, {}
+        for k, objective in enumerate(self.views):
+            value, g, t = objective(view_values(values, self.BLOCKS, k), self.view_stage(stage, k))
+            loss += value
+            for name, grad in g.items():
+                key = view_block(name, k)
+                grads[key] = grads[key] + grad if key in grads else grad
+            for name, v in t.items():
+                terms[name] = terms.get(name, 0.0) + v
+        return loss, grads, terms
+
+
+def _block(params: ParamSet, name: str, new_name: str) -> Block:
+    """Block ``name`` of params (current value, bounds, scale) under another name."""
+    lower, upper = params.block_bounds(name)
+    value = params.values()[name]
+    scale = params.pack_grad({name: np.ones_like(value)}, [name]).reshape(value.shape)  # d/dx = d/dvalue * scale
+    return Block(new_name, value, lower, upper, scale)
+
+
+def joint_params(views: list[ParamSet]) -> ParamSet:
+    """The joint blocks from each photo's single-photo ParamSet (face_params): the shared blocks
+    (bounds, scale and start) of the first photo, every other block once per photo, in the
+    single fit's block order (so one photo gives its layout exactly)."""
+    blocks = []
+    for name in views[0].names:
+        if name in SHARED:
+            blocks.append(_block(views[0], name, name))
+        else:
+            blocks += [_block(v, name, view_block(name, k)) for k, v in enumerate(views)]
+    return ParamSet(blocks)
+
+
+def joint_stages(stages: list[Stage], n_views: int) -> list[Stage]:
+    """The single fit's stages run over all photos: each free per-photo block in every photo."""
+    return [dataclasses.replace(s, free=tuple(dict.fromkeys(
+        view_block(name, k) for name in s.free for k in range(n_views)))) for s in stages]
+
+
+@dataclass
+class View:
+    """One photo prepared for fitting: its FaceObjective (scene, working image, landmarks), the
+    crop from the full photo and its single-photo ParamSet at the starting point."""
+    objective: FaceObjective
+    crop: object
+    params: ParamSet
+
+
+def prepare_view(photo, landmarks, model, config: FaceFitConfig) -> View:
+    """Photo (H, W, 3) linear RGB and its landmarks (68, 2) pixels -> the View fit_face would
+    start from (working image, camera, initial pose and light)."""
+    image, target, crop = prepare_photo(photo, landmarks, config.size)
+    h, w = np.shape(photo)[:2]
+    principal = crop.to_work([[w / 2.0 - 0.5, h / 2.0 - 0.5]])[0]
+    if config.focal is None:
+        focal = 0.5 * max(h, w) / math.tan(math.radians(config.fov_deg) / 2.0) * crop.scale
+    else:
+        focal = float(config.focal) * crop.scale
+    zero = dict(id=np.zeros(model.n_id), exp=np.zeros(model.n_exp), albedo=np.zeros(model.n_albedo))
+    mean_landmarks, _ = model.landmarks(model.shape(zero["id"], zero["exp"])[0])
+    rotation, translation = initial_pose(mean_landmarks, target, focal, principal)
+    scene = FaceScene(model, image.shape[:2], config.dtype, depth_range=depth_range(translation),
+                      principal=principal)
+    objective = FaceObjective(scene, image, target, config.mask_erosion, focal0=focal, forehead=config.forehead)
+    values = dict(zero, rotation=rotation, translation=translation, focal=np.array([focal]))
+    sh = initial_light(scene, values, image)
+    return View(objective, crop, face_params(model, focal, rotation, translation, sh))
+
+
+@dataclass
+class FaceViewsFit:
+    """What :func:`fit_face_views` returns.
+
+    values: the joint blocks (see the module docstring); views: one FaceFit per photo (its
+    values, scene, working image, crop, face region; all share ``result``); result: the
+    solver's FitResult of the joint fit.
+    """
+    values: dict
+    views: list[FaceFit]
+    result: FitResult
+
+    def metrics(self) -> dict:
+        """Each photo's FaceFit.metrics() under ``views``, and their means (landmark error,
+        face-region PSNR) under the single fit's names."""
+        per_view = [v.metrics() for v in self.views]
+        means = {k: float(np.mean([m[k] for m in per_view]))
+                 for k in ("landmark_error_px", "landmark_error_px_full", "psnr_face_db")}
+        return dict(means, views=per_view)
+
+
+def _check_views(photos, landmarks) -> None:
+    if len(photos) < 1:
+        raise InputError("photos must hold at least one photo, got none")
+    if len(landmarks) != len(photos):
+        raise InputError(f"landmarks must hold one (68, 2) array per photo: {len(photos)} photos, "
+                         f"got {len(landmarks)} landmark arrays")
+
+
+def fit_face_views(photos, landmarks, model, config: FaceFitConfig = FaceFitConfig(), out_dir=None,
+                   progress: bool = True, resume: bool = False) -> FaceViewsFit:
+    """Fit one identity and albedo of ``model`` to several photos of a person, each with its
+    own pose, focal length, expression and light.
+
+    photos: sequence of (H_k, W_k, 3) linear RGB; landmarks: one (68, 2) pixel array per photo;
+    config, out_dir, progress, resume: as for fit_face (one checkpoint.npz of the joint blocks).
+    """
+    _check_views(photos, landmarks)
+    if model.n_landmarks != N_LANDMARKS:
+        raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
+                         f"{N_LANDMARKS} iBUG points (pass a landmark mapping file with the model)")
+    model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
+    views = [prepare_view(p, lm, model, config) for p, lm in zip(photos, landmarks)]
+    objective = FaceViewsObjective([v.objective for v in views])
+    stages = joint_stages(default_stages(config, fit_focal=config.focal is None), len(views))
+    result = fit(joint_params([v.params for v in views]), objective, stages, out_dir=out_dir,
+                 progress=progress, resume=resume)
+    fits = []
+    for k, view in enumerate(views):
+        obj, values = view.objective, view_values(result.values, FaceViewsObjective.BLOCKS, k)
+        mask = obj.mask if obj.mask is not None else obj.face_region(values, 1e-6, 1e-4)
+        fits.append(FaceFit(values, obj.scene, obj.image, obj.target, view.crop, mask, result, obj))
+    return FaceViewsFit(result.values, fits, result)

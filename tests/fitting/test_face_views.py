@@ -1,0 +1,147 @@
+"""One face over several photos (fitting/recipes/face_views.py): the joint objective's gradients
+against central differences, shared priors counted once, and one photo = the single-photo fit."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from softras_cl.bench.face import synthetic_face
+from softras_cl.errors import InputError
+from softras_cl.fitting.recipes import face, face_views
+from softras_cl.fitting.solver import Stage
+from softras_cl.scene.shading import sh_ambient
+from support.toy_face import toy_face_model
+
+ALL_TERMS = dict(landmarks=0.3, photo=1.0, id_prior=1.0, exp_prior=1.0, albedo_prior=1.0, sh_white=2.0,
+                 focal_prior=1.0)
+PER_VIEW = ("exp", "sh", "rotation", "translation", "focal")
+
+
+@pytest.fixture(scope="module")
+def toy():
+    return toy_face_model()
+
+
+def _objective(model, rng, size):
+    scene = face.FaceScene(model, (size, size))
+    return face.FaceObjective(scene, rng.random((size, size, 3)) * 0.5, rng.random((68, 2)) * (size - 8) + 4,
+                              focal0=80.0)
+
+
+def _joint_values(model, rng, n_views):
+    values = dict(id=rng.normal(size=model.n_id) * 0.5, albedo=rng.normal(size=model.n_albedo) * 0.5)
+    for k in range(n_views):
+        values.update({f"exp.{k}": rng.normal(size=model.n_exp) * 0.5,
+                       f"sh.{k}": sh_ambient(0.8) + rng.normal(0, 0.1, (3, 9)),
+                       f"rotation.{k}": np.radians([10.0, -20.0 + 25 * k, 5.0]),
+                       f"translation.{k}": np.array([0.01, -0.005 + 0.01 * k, -0.6]),
+                       f"focal.{k}": np.array([90.0 + 5 * k])})
+    return values
+
+
+def test_joint_gradient_matches_central_differences(toy):
+    """Two photos of different sizes, every term on: the shared blocks' gradients add up."""
+    rng = np.random.default_rng(3)
+    objective = face_views.FaceViewsObjective([_objective(toy, rng, 36), _objective(toy, rng, 28)])
+    values = _joint_values(toy, rng, 2)
+    stage = Stage("photo-1", ("id",), ALL_TERMS, sigma=1e-3, gamma=1e-2)
+    loss, grads, terms = objective(values, stage)
+    assert set(terms) == set(ALL_TERMS) and np.isclose(sum(terms.values()), loss)
+    for name, v in values.items():
+        fd = np.zeros_like(v)
+        for i in np.ndindex(v.shape):
+            h = 1e-6 * max(1.0, abs(v[i]))
+            plus, minus = {**values, name: v.copy()}, {**values, name: v.copy()}
+            plus[name][i] += h
+            minus[name][i] -= h
+            fd[i] = (objective(plus, stage)[0] - objective(minus, stage)[0]) / (2 * h)
+        np.testing.assert_allclose(grads[name], fd, rtol=2e-5, atol=2e-5 * np.abs(fd).max() + 1e-9, err_msg=name)
+
+
+def test_shared_priors_count_once_and_the_rest_adds_up(toy):
+    """The same photo twice at the same values: twice the single objective, less one identity
+    and one albedo prior."""
+    rng = np.random.default_rng(4)
+    single = _objective(toy, rng, 32)
+    twin = face.FaceObjective(single.scene, single.image, single.target, focal0=single.focal0)
+    values = _joint_values(toy, rng, 1)
+    both = dict(values, **{f"{b}.1": values[f"{b}.0"] for b in PER_VIEW})
+    stage = Stage("photo-1", ("id",), ALL_TERMS, sigma=1e-3, gamma=1e-2)
+    one, g_one, t_one = face_views.FaceViewsObjective([single])(values, stage)
+    two, g_two, t_two = face_views.FaceViewsObjective([single, twin])(both, stage)
+    once = t_one["id_prior"] + t_one["albedo_prior"]
+    assert once > 0
+    np.testing.assert_allclose(two, 2 * one - once, rtol=1e-12)
+    assert t_two["id_prior"] == t_one["id_prior"] and t_two["exp_prior"] == 2 * t_one["exp_prior"]
+    prior_grad = {"id": 2 * values["id"], "albedo": 2 * values["albedo"]}   # d/dc of sum c^2
+    for b in face_views.SHARED:
+        np.testing.assert_allclose(g_two[b], 2 * g_one[b] - prior_grad[b], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(g_two["sh.1"], g_one["sh.0"], rtol=1e-12)
+
+
+def test_one_photo_objective_is_the_single_photo_objective(toy):
+    rng = np.random.default_rng(5)
+    single = _objective(toy, rng, 32)
+    values = _joint_values(toy, rng, 1)
+    plain = {b: values[face_views.view_block(b, 0)] for b in face_views.FaceViewsObjective.BLOCKS}
+    stage = Stage("photo-1", ("id",), ALL_TERMS, sigma=1e-3, gamma=1e-2)
+    loss, grads, terms = face_views.FaceViewsObjective([single])(values, stage)
+    loss1, grads1, terms1 = single(plain, stage)
+    assert loss == loss1 and terms == terms1
+    for b, g in grads1.items():
+        np.testing.assert_array_equal(grads[face_views.view_block(b, 0)], g)
+
+
+@pytest.fixture(scope="module")
+def demo():
+    from softras_cl.fitting.models.face_loaders import load_demo_face_model
+
+    return load_demo_face_model().truncated(6, 4, 3)
+
+
+TINY = dict(landmark_iters=15, photo_stages=((1e-4, 3e-3, 6), (1e-5, 1e-3, 6)))
+
+
+def test_one_photo_fit_is_the_single_photo_fit(demo):
+    """Same parameter layout, stages and objective: the fitted values and every evaluation's
+    loss are those of fit_face."""
+    sample = synthetic_face(demo, np.random.default_rng(7), size=64)
+    config = face.FaceFitConfig(size=64, **TINY)
+    single = face.fit_face(sample["photo"], sample["landmarks"], demo, config, progress=False)
+    joint = face_views.fit_face_views([sample["photo"]], [sample["landmarks"]], demo, config, progress=False)
+    assert [h["loss"] for h in joint.result.history] == [h["loss"] for h in single.result.history]
+    for b, v in single.values.items():
+        np.testing.assert_array_equal(joint.views[0].values[b], v, err_msg=b)
+    assert joint.metrics()["psnr_face_db"] == single.metrics()["psnr_face_db"]
+
+
+def test_joint_fit_of_three_photos_shares_identity_and_albedo(demo, tmp_path):
+    rng = np.random.default_rng(8)
+    photos = [synthetic_face(demo, rng, size=64) for _ in range(3)]
+    config = face.FaceFitConfig(size=64, **TINY)
+    fit = face_views.fit_face_views([p["photo"] for p in photos], [p["landmarks"] for p in photos], demo,
+                                    config, out_dir=tmp_path, progress=False)
+    assert {"id", "albedo", "exp.2", "focal.2"} <= set(fit.values) and "exp" not in fit.values
+    for view in fit.views:
+        np.testing.assert_array_equal(view.values["id"], fit.values["id"])
+    assert not np.array_equal(fit.views[0].values["rotation"], fit.views[1].values["rotation"])
+    metrics = fit.metrics()
+    assert len(metrics["views"]) == 3
+    assert metrics["landmark_error_px"] == pytest.approx(np.mean([m["landmark_error_px"] for m in metrics["views"]]))
+    assert np.load(tmp_path / "checkpoint.npz")["exp.2"].shape == (demo.n_exp,)
+
+
+def test_joint_stages_free_every_photos_blocks():
+    stages = face.default_stages(face.FaceFitConfig(), fit_focal=True)
+    joint = face_views.joint_stages(stages, 2)
+    assert joint[0].free == ("rotation.0", "rotation.1", "translation.0", "translation.1", "focal.0", "focal.1",
+                             "id", "exp.0", "exp.1")
+    assert [dataclasses.replace(s, free=()) for s in joint] == [dataclasses.replace(s, free=()) for s in stages]
+
+
+def test_one_landmark_array_per_photo_is_required(demo):
+    sample = synthetic_face(demo, np.random.default_rng(9), size=64)
+    with pytest.raises(InputError, match="landmarks must hold one .* 2 photos, got 1"):
+        face_views.fit_face_views([sample["photo"]] * 2, [sample["landmarks"]], demo, progress=False)
+    with pytest.raises(InputError, match="at least one photo"):
+        face_views.fit_face_views([], [], demo, progress=False)
