@@ -14,7 +14,10 @@ against the true shape in mm, after a similarity (Procrustes with scale) alignme
 photo does not tell a face's absolute size, and the same for the mean face as the baseline; the
 ratio of the two; the same ratio after a rigid alignment only (scale errors included); the
 landmark error in pixels against the noise-free landmarks; the PSNR of the fit in the face
-region (sRGB); the time per fit.
+region (sRGB); the relative error of the fitted focal length |f - f*| / f* (median and max
+over the faces); the time per fit. A landmarks-only row (the default budget's landmark stage
+alone, no photometric stage) is the baseline the photo has to beat: what the photo adds to the
+shape, the pose and the focal length is the difference.
 """
 from __future__ import annotations
 
@@ -31,6 +34,7 @@ from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_j
 from softras_cl.provenance import provenance
 
 DEFAULT_BUDGETS = ("fast", "default", "thorough")
+LANDMARKS_ONLY = "landmarks-only"    # the baseline row: the default budget without photometric stages
 
 
 # ---------------------------------------------------------------------------------------------
@@ -107,6 +111,11 @@ def aligned_rmse(a: np.ndarray, b: np.ndarray, scale: bool = True) -> float:
     return float(np.sqrt(np.mean(np.sum((s * ca @ (U @ d @ Vt) - cb) ** 2, axis=1))))
 
 
+def focal_error(fitted: float, true: float) -> float:
+    """Relative focal-length error |f - f*| / f* (both in the same pixels)."""
+    return abs(float(fitted) - float(true)) / float(true)
+
+
 def evaluate(fit, sample: dict, model, seconds: float) -> dict:
     """The bench's numbers for one fit of one synthetic face."""
     truth = sample["truth"]
@@ -114,13 +123,17 @@ def evaluate(fit, sample: dict, model, seconds: float) -> dict:
     shape, _ = fit.scene.model.shape(fit.values["id"], fit.values["exp"])
     metrics = fit.metrics()
     landmarks = fit.crop.to_full(fit.fitted_landmarks())
+    focal = fit.values["focal"][0] / fit.crop.scale      # working-image pixels -> the photo's
     return dict(rmse_mm=1e3 * aligned_rmse(shape, true_shape),
                 mean_face_rmse_mm=1e3 * aligned_rmse(model.mean_shape, true_shape),
                 rigid_rmse_mm=1e3 * aligned_rmse(shape, true_shape, scale=False),
                 rigid_mean_face_rmse_mm=1e3 * aligned_rmse(model.mean_shape, true_shape, scale=False),
                 landmark_error_px=float(np.linalg.norm(landmarks - sample["clean_landmarks"],
                                                        axis=1).mean()),
-                psnr_face_db=metrics["psnr_face_db"], seconds=seconds,
+                psnr_face_db=metrics["psnr_face_db"],
+                focal_px=float(focal), true_focal_px=float(truth["focal"][0]),
+                focal_error=focal_error(focal, truth["focal"][0]),
+                seconds=seconds,
                 interrupted=fit.result.interrupted)
 
 
@@ -135,6 +148,8 @@ def summarise(rows: list[dict]) -> dict:
                 rigid_ratio=mean("rigid_rmse_mm") / mean("rigid_mean_face_rmse_mm"),
                 landmark_error_px=mean("landmark_error_px"), psnr_face_db=mean("psnr_face_db"),
                 psnr_face_db_min=float(min(r["psnr_face_db"] for r in rows)),
+                focal_error_median=float(statistics.median(r["focal_error"] for r in rows)),
+                focal_error_max=float(max(r["focal_error"] for r in rows)),
                 median_seconds=float(statistics.median(r["seconds"] for r in rows)),
                 median_cpu_seconds=float(statistics.median(r.get("cpu_seconds", float("nan")) for r in rows)))
 
@@ -143,13 +158,25 @@ def summarise(rows: list[dict]) -> dict:
 # the run
 # ---------------------------------------------------------------------------------------------
 
+def budget_config(budget: str, size: int, photo_weight: float | None = None):
+    """The FaceFitConfig of a budget name, LANDMARKS_ONLY meaning the default budget's landmark
+    stage alone."""
+    from softras_cl.fitting.recipes.face import FaceFitConfig
+
+    if budget == LANDMARKS_ONLY:
+        return FaceFitConfig.from_budget("default", photo_weight=photo_weight, size=size, photo_stages=())
+    return FaceFitConfig.from_budget(budget, photo_weight=photo_weight, size=size)
+
+
 def run_budget(model, samples: list[dict], budget: str, size: int, progress: bool,
                photo_weight: float | None = None) -> list[dict]:
+    """Fit every sample at one budget (or LANDMARKS_ONLY); one evaluate() row per sample, with
+    its CPU seconds and the fit itself under "fit"."""
     from tqdm import tqdm
 
-    from softras_cl.fitting.recipes.face import FaceFitConfig, fit_face
+    from softras_cl.fitting.recipes.face import fit_face
 
-    config = FaceFitConfig.from_budget(budget, photo_weight=photo_weight, size=size)
+    config = budget_config(budget, size, photo_weight)
     rows = []
     for sample in tqdm(samples, desc=f"bench face [{budget}]", disable=not progress):
         start, cpu = time.perf_counter(), time.process_time()
@@ -202,12 +229,14 @@ def save_strip(rows: list[dict], path: Path, n: int = 4) -> None:
 
 
 def format_table(summary: dict) -> str:
-    head = ("budget", "faces", "RMSE mm", "mean-face mm", "ratio", "rigid ratio", "lmk px", "PSNR dB",
-            "min PSNR", "median s/fit", "median CPU s")
+    head = ("budget", "faces", "RMSE mm", "mean-face mm", "ratio", "rigid ratio", "lmk px", "focal err",
+            "max focal err", "PSNR dB", "min PSNR", "median s/fit", "median CPU s")
     lines = ["  ".join(f"{h:>12}" for h in head)]
     for name, s in summary.items():
         cells = (name, s["faces"], f"{s['rmse_mm']:.3f}", f"{s['mean_face_rmse_mm']:.3f}",
-                 f"{s['rmse_ratio']:.3f}", f"{s['rigid_ratio']:.3f}", f"{s['landmark_error_px']:.2f}", f"{s['psnr_face_db']:.1f}",
+                 f"{s['rmse_ratio']:.3f}", f"{s['rigid_ratio']:.3f}", f"{s['landmark_error_px']:.2f}",
+                 f"{100 * s['focal_error_median']:.1f}%", f"{100 * s['focal_error_max']:.1f}%",
+                 f"{s['psnr_face_db']:.1f}",
                  f"{s['psnr_face_db_min']:.1f}", f"{s['median_seconds']:.1f}",
                  f"{s.get('median_cpu_seconds', float('nan')):.1f}")
         lines.append("  ".join(f"{c:>12}" for c in cells))
@@ -229,7 +258,7 @@ def run(args: argparse.Namespace) -> int:
         rng = np.random.default_rng(args.seed)
         samples = [synthetic_face(model, rng, args.size) for _ in range(args.faces)]
         per_budget = {b: run_budget(model, samples, b, args.size, not args.json, args.photo_weight)
-                      for b in budgets}
+                      for b in [LANDMARKS_ONLY] + budgets}
         summary = {b: summarise(rows) for b, rows in per_budget.items()}
         doc = dict(size=args.size, seed=args.seed, model=model.name, photo_weight=args.photo_weight,
                    summary=summary,
