@@ -14,7 +14,8 @@ from importlib import import_module
 # benchmark name -> module whose register(which) adds it; each module imports its heavy
 # dependencies inside its runner, so building the parser stays light.
 BENCHMARKS = {"raster": "raster", "render": "render", "pose": "pose", "face": "face", "body": "body",
-              "interop": "interop", "batch": "batch"}
+              "interop": "interop", "batch": "batch",
+              "face-views": "face_views"}
 
 
 def register(sub) -> None:

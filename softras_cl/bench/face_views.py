@@ -1,0 +1,176 @@
+"""`softras-cl bench face-views`: one identity from several photos against the best single photo.
+
+Each synthetic subject has one identity and albedo drawn from the model's prior; it is
+photographed 3 times (--views) by the generator of `softras-cl bench face`, each photo with its
+own random pose, expression, SH light, field of view, background and landmark noise. Every
+photo is fitted alone (fit-face), then all of them jointly (fit-face --same-person).
+
+Reported per subject: the identity's shape error, i.e. the vertex RMSE of the fitted neutral
+face (identity, expression 0) against the true one after a similarity alignment (as bench face
+does: one photo does not tell a face's size), divided by the mean face's RMSE: "ratio". For the
+single-photo fits, the best of the photos (the lowest ratio: an oracle choice) and their mean;
+the joint fit's ratio; their reduction 1 - joint / best; the seconds (wall and CPU) per fit.
+Target: the median reduction over the subjects is at least 30%.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+from softras_cl.errors import InputError
+from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
+from softras_cl.provenance import provenance
+
+TARGET_REDUCTION = 0.30   # the joint fit's ratio at least 30% below the best single photo's (median)
+
+
+def subject(model, rng: np.random.Generator, size: int, views: int) -> list[dict]:
+    """``views`` synthetic photos (bench face's samples) of one random identity and albedo."""
+    from softras_cl.bench.face import photograph, random_truth
+
+    person = random_truth(model, rng, size)
+    return [photograph(model, dict(random_truth(model, rng, size), id=person["id"], albedo=person["albedo"]),
+                       rng, size) for _ in range(views)]
+
+
+def identity_ratio(model, id_coeffs, true_id) -> float:
+    """RMSE of the neutral face of ``id_coeffs`` against the true one (similarity-aligned), over
+    the mean face's RMSE."""
+    from softras_cl.bench.face import aligned_rmse
+
+    zero = np.zeros(model.n_exp)
+    truth = model.shape(true_id, zero)[0]
+    return aligned_rmse(model.shape(id_coeffs, zero)[0], truth) / aligned_rmse(model.mean_shape, truth)
+
+
+def _timed(fn):
+    """(fn(), wall seconds, CPU seconds of the process: host and the OpenCL CPU device's threads)."""
+    start, cpu = time.perf_counter(), time.process_time()
+    result = fn()
+    return result, time.perf_counter() - start, time.process_time() - cpu
+
+
+def run_subject(model, photos: list[dict], config) -> dict:
+    """Fit each photo alone, then all jointly; the subject's row."""
+    from softras_cl.fitting.recipes.face import fit_face
+    from softras_cl.fitting.recipes.face_views import fit_face_views
+
+    true_id = photos[0]["truth"]["id"]
+    single, single_wall, single_cpu = [], [], []
+    for p in photos:
+        fit, wall, cpu = _timed(lambda: fit_face(p["photo"], p["landmarks"], model, config, progress=False))
+        single.append(identity_ratio(model, fit.values["id"], true_id))
+        single_wall.append(wall)
+        single_cpu.append(cpu)
+    joint, wall, cpu = _timed(lambda: fit_face_views([p["photo"] for p in photos], [p["landmarks"] for p in photos],
+                                                     model, config, progress=False))
+    ratio = identity_ratio(model, joint.values["id"], true_id)
+    best = min(single)
+    return dict(single_ratios=single, best_single_ratio=best, mean_single_ratio=float(np.mean(single)),
+                joint_ratio=ratio, reduction=1.0 - ratio / best,
+                single_seconds=single_wall, single_cpu_seconds=single_cpu, joint_seconds=wall,
+                joint_cpu_seconds=cpu, joint_psnr_face_db=joint.metrics()["psnr_face_db"],
+                yaw_deg=[float(np.degrees(p["truth"]["rotation"][1])) for p in photos])
+
+
+def summarise(rows: list[dict]) -> dict:
+    """Medians over the subjects, and whether the target is reached."""
+    def median(key):
+        return float(statistics.median(r[key] for r in rows))
+
+    reduction = median("reduction")
+    return dict(subjects=len(rows), median_best_single_ratio=median("best_single_ratio"),
+                median_mean_single_ratio=median("mean_single_ratio"), median_joint_ratio=median("joint_ratio"),
+                median_reduction=reduction, target_reduction=TARGET_REDUCTION,
+                target_reached=reduction >= TARGET_REDUCTION,
+                median_single_seconds=float(statistics.median(s for r in rows for s in r["single_seconds"])),
+                median_single_cpu_seconds=float(statistics.median(s for r in rows for s in r["single_cpu_seconds"])),
+                median_joint_seconds=median("joint_seconds"), median_joint_cpu_seconds=median("joint_cpu_seconds"))
+
+
+def format_table(rows: list[dict], summary: dict) -> str:
+    head = ("subject", "single ratios", "best single", "joint", "reduction", "single s", "joint s", "joint CPU s")
+    lines = ["  ".join(f"{h:>14}" for h in head)]
+    for i, r in enumerate(rows):
+        cells = (i, "/".join(f"{x:.3f}" for x in r["single_ratios"]), f"{r['best_single_ratio']:.3f}",
+                 f"{r['joint_ratio']:.3f}", f"{100 * r['reduction']:.0f}%",
+                 f"{statistics.median(r['single_seconds']):.1f}", f"{r['joint_seconds']:.1f}",
+                 f"{r['joint_cpu_seconds']:.1f}")
+        lines.append("  ".join(f"{c:>14}" for c in cells))
+    s = summary
+    lines.append(f"median: best single {s['median_best_single_ratio']:.3f}, mean single "
+                 f"{s['median_mean_single_ratio']:.3f}, joint {s['median_joint_ratio']:.3f}, reduction "
+                 f"{100 * s['median_reduction']:.0f}% (target >= {100 * TARGET_REDUCTION:.0f}%: "
+                 f"{'reached' if s['target_reached'] else 'NOT reached'}); s/fit single "
+                 f"{s['median_single_seconds']:.1f} (CPU {s['median_single_cpu_seconds']:.1f}), joint "
+                 f"{s['median_joint_seconds']:.1f} (CPU {s['median_joint_cpu_seconds']:.1f})")
+    return "\n".join(lines)
+
+
+def save_chart(rows: list[dict], path: Path) -> None:
+    """Per subject: every single photo's ratio, the best one and the joint fit's."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 3.6))
+    ax = fig.subplots()
+    for i, r in enumerate(rows):
+        ax.plot([i] * len(r["single_ratios"]), r["single_ratios"], "o", c="silver",
+                label="single photo" if i == 0 else None)
+        ax.plot(i, r["best_single_ratio"], "s", c="tab:blue", label="best single photo" if i == 0 else None)
+        ax.plot(i, r["joint_ratio"], "D", c="tab:red", label="joint (--same-person)" if i == 0 else None)
+    ax.set(xlabel="subject", ylabel="identity RMSE / mean face's", ylim=(0, None))
+    ax.legend(fontsize=8)
+    fig.suptitle("bench face-views: identity shape error, single photos against all jointly")
+    fig.tight_layout()
+    write_figure(fig, path, dpi=110)
+
+
+def run(args: argparse.Namespace) -> int:
+    from softras_cl.fitting.models.face_loaders import load_demo_face_model, load_face_model
+    from softras_cl.fitting.recipes.face import BUDGETS, FaceFitConfig
+
+    if args.subjects < 1 or args.views < 2 or args.size < 32:
+        raise InputError(f"--subjects must be >= 1, --views >= 2 and --size >= 32, got {args.subjects}, "
+                         f"{args.views} and {args.size}")
+    if args.budget not in BUDGETS:
+        raise InputError(f"--budget must be one of {sorted(BUDGETS)}, got {args.budget!r}")
+    config = FaceFitConfig.from_budget(args.budget, size=args.size)
+    with OutputFolder(args.out, "bench face-views", "--out") as folder:
+        model = load_demo_face_model() if args.model is None else load_face_model(args.model)
+        rng = np.random.default_rng(args.seed)
+        rows, load = [], [os.getloadavg()]
+        for i in range(args.subjects):
+            rows.append(run_subject(model, subject(model, rng, args.size, args.views), config))
+            load.append(os.getloadavg())
+            if not args.json:
+                print(f"subject {i}: best single {rows[-1]['best_single_ratio']:.3f}, joint "
+                      f"{rows[-1]['joint_ratio']:.3f}", flush=True)
+        summary = summarise(rows)
+        doc = dict(size=args.size, seed=args.seed, views=args.views, budget=args.budget, model=model.name,
+                   summary=summary, subjects=rows, load_average=load, provenance=provenance(dict(options=args)))
+        write_json(folder.path / "face_views.json", doc)
+        save_chart(rows, folder.path / "face_views.png")
+        print(json.dumps(json_safe(doc), indent=2) if args.json else format_table(rows, summary))
+    return 0
+
+
+def register(which) -> None:
+    """Add `face-views` to the `softras-cl bench` subparsers."""
+    p = which.add_parser("face-views", help="one identity from several photos against the best single photo",
+                         description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1])
+    p.add_argument("--subjects", type=int, default=6, help="synthetic subjects (default 6)")
+    p.add_argument("--views", type=int, default=3, help="photos per subject (default 3)")
+    p.add_argument("--size", type=int, default=256, help="square photo size in pixels (default 256)")
+    p.add_argument("--budget", default="default", help="schedule budget of every fit (default: default)")
+    p.add_argument("--seed", type=int, default=0, help="random seed of the subjects (default 0)")
+    p.add_argument("--model", default=None, help="face model file (default: the shipped demo model)")
+    p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
+    p.add_argument("--out", default="out/bench",
+                   help="directory for face_views.json and face_views.png")
+    p.set_defaults(func=run)
