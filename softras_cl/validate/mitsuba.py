@@ -48,6 +48,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from softras_cl.errors import InputError
 from softras_cl.scene.camera import Camera
 from softras_cl.validate.compare import GREY, SHARP, Comparison, metrics
 from softras_cl.io.meshes import Mesh
@@ -69,8 +70,9 @@ def _mitsuba():
     try:
         import mitsuba as mi
     except ImportError as e:
-        raise RuntimeError("the Mitsuba reference needs the optional extra: pip install "
-                           "'softras-cl[validate]' (or pip install mitsuba)") from e
+        # a missing optional extra is fixed by the user, like a bad option (exit code 2)
+        raise InputError("the Mitsuba reference needs the optional extra: pip install "
+                         "'softras-cl[validate]' (or pip install mitsuba)") from e
     if mi.variant() != VARIANT:
         mi.set_variant(VARIANT)
     return mi

@@ -15,6 +15,7 @@ pytest.importorskip("mitsuba")
 
 from softras_cl.scene.camera import Camera
 from softras_cl.cli import main
+from softras_cl.errors import EXIT_INPUT
 from softras_cl.validate.compare import default_camera, interior
 from softras_cl.io.meshes import Mesh, save_mesh
 from softras_cl.validate.mitsuba import compare_mitsuba, mitsuba_available, render_mitsuba
@@ -152,7 +153,7 @@ def test_missing_mitsuba_is_reported(monkeypatch, tmp_path, capsys):
     mesh = icosphere()
     save_mesh(path, mesh.vertices, mesh.faces)
     assert main(["compare", str(path), "--reference", "mitsuba", "--size", "32",
-                 "--out", str(tmp_path / "c.png")]) == 1
+                 "--out", str(tmp_path / "c.png")]) == EXIT_INPUT
     assert "pip install" in capsys.readouterr().err
 
 
