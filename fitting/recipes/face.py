@@ -82,6 +82,11 @@ CAMERA_ROTATION = np.diag([1.0, -1.0, -1.0])   # world (y up, camera looks down 
 # Photometric stages whose sigma is at least this render at half the working resolution (see
 # FaceObjective.photo_level): the first stage of every budget.
 COARSE_SIGMA = 1e-4
+# Robust photometric term (FaceObjective.start_stage): Geman-McClure scale = ROBUST_SCALE x the
+# median per-pixel linear-RGB error at a stage's start, never below MIN_ROBUST_SCALE (an error
+# that small is noise, not something the model cannot explain).
+ROBUST_SCALE: float | None = None    # chosen by measurement: see docs/face_fitting.md
+MIN_ROBUST_SCALE = 0.02
 
 # Schedules: (sigma, gamma, evaluations) per photometric stage, and the landmark stage's budget.
 BUDGETS = {
@@ -106,6 +111,9 @@ class FaceFitConfig:
         (sigma, gamma, evaluations) per stage).
     weights: loss-term weights by name (see the module docstring for their meaning).
     mask_erosion / forehead: the face region (see FaceObjective.face_region).
+    robust_scale: the photometric term's Geman-McClure scale in multiples of the median
+        per-pixel colour error at each photometric stage's start (see FaceObjective), or None
+        for the plain sum of squared errors.
     n_id / n_exp / n_albedo: use only the first components of the model (None: all).
     dtype: rasteriser precision; float64 keeps line searches clean.
     """
@@ -118,6 +126,7 @@ class FaceFitConfig:
         landmarks=1.0 / 4.0, photo=10.0, id_prior=1.0, exp_prior=1.0,
         albedo_prior=1.0, sh_white=1000.0, focal_prior=1.0))
     landmark_weight_photo: float = 1.0    # landmark weight in the photometric stages, relative
+    robust_scale: float | None = ROBUST_SCALE
     mask_erosion: int = 2
     forehead: float = 0.15
     n_id: int | None = None
@@ -177,6 +186,8 @@ def _check_face_config(c: FaceFitConfig) -> None:
     if _check(lambda: number("landmark_weight_photo", c.landmark_weight_photo)) < 0:
         raise InputError(f"landmark_weight_photo must be >= 0, got {c.landmark_weight_photo!r}")
     _int_at_least("mask_erosion", c.mask_erosion, 0)
+    if c.robust_scale is not None:
+        _check(lambda: number("robust_scale", c.robust_scale, positive=True))
     if _check(lambda: number("forehead", c.forehead)) < 0:
         raise InputError(f"forehead must be >= 0, got {c.forehead!r}")
     for name in ("n_id", "n_exp", "n_albedo"):
@@ -449,8 +460,8 @@ def default_stages(config: FaceFitConfig, fit_focal: bool) -> list[Stage]:
                     max_iters=config.landmark_iters)]
     for k, (sigma, gamma, iters) in enumerate(config.photo_stages):
         weights = dict(landmarks=w["landmarks"] * config.landmark_weight_photo, photo=w["photo"],
-                       albedo_prior=w["albedo_prior"], sh_white=w["sh_white"], **priors)
-        stages.append(Stage(f"photo-{k + 1}", ("id", "exp", "albedo", "sh", "rotation", "translation"),
+                       albedo_prior=w["albedo_prior"], sh_white=w["sh_white"], **priors, **focal_prior)
+        stages.append(Stage(f"photo-{k + 1}", ("id", "exp", "albedo", "sh") + pose,
                             weights, sigma=sigma, gamma=gamma, max_iters=iters))
     return stages
 
@@ -464,18 +475,21 @@ class FaceObjective:
 
     image (H, W, 3) linear RGB; landmarks (68, 2) pixels; focal0: the focal length the
     focal prior is centred on; forehead: how far above the brows the face region reaches, in
-    chin-to-nose-bridge distances. At the first evaluation of each photometric stage the depth
-    range is fitted to the face and the face-region mask is taken from the render; both stay
+    chin-to-nose-bridge distances; robust_scale: see :meth:`start_stage` (None: plain squared
+    errors). At the first evaluation of each photometric stage the depth range is fitted to the
+    face and the face-region mask and the robust scale are taken from the render; all stay
     fixed within the stage (see the module docstring).
     """
 
     def __init__(self, scene: FaceScene, image, landmarks, mask_erosion: int = 2, focal0: float = 1.0,
-                 forehead: float = 0.15, coarse_sigma: float | None = COARSE_SIGMA):
+                 forehead: float = 0.15, coarse_sigma: float | None = COARSE_SIGMA,
+                 robust_scale: float | None = ROBUST_SCALE):
         self.scene, self.image, self.target = scene, image, np.asarray(landmarks, np.float64)
         self.focal0, self.forehead = float(focal0), float(forehead)
         self.landmark_weights = landmark_weights()
         self.mask_erosion = mask_erosion
         self.mask, self._mask_stage = None, None
+        self.robust_scale, self.photo_scale = robust_scale, None
         self.coarse_sigma = coarse_sigma
         self._coarse: FaceObjective | None = None
 
@@ -495,7 +509,8 @@ class FaceObjective:
                                      principal=to_half(np.array([scene.principal]))[0])
             self._coarse = FaceObjective(coarse_scene, image, to_half(self.target),
                                          max(1, self.mask_erosion // 2) if self.mask_erosion else 0,
-                                         self.focal0 * 0.5, self.forehead, coarse_sigma=None)
+                                         self.focal0 * 0.5, self.forehead, coarse_sigma=None,
+                                         robust_scale=self.robust_scale)
         return self._coarse
 
     def __call__(self, values: dict, stage: Stage):
@@ -510,9 +525,7 @@ class FaceObjective:
             level_values = values if level is self else dict(values, focal=values["focal"] * scale)
             if level._mask_stage != stage.name:
                 self.scene.set_depth_range(values["translation"])
-                level.scene.set_depth_range(values["translation"])
-                level.mask = level.face_region(level_values, stage.sigma, stage.gamma)
-                level._mask_stage = stage.name
+                level.start_stage(level_values, stage)
             value, g = level.photo_term(level_values, world, stage.sigma, stage.gamma)
             if level is not self:       # a half-size pixel stands for 4 working pixels
                 area = 1.0 / (scale * scale)
@@ -553,16 +566,33 @@ class FaceObjective:
         r = math.log(focal[0] / self.focal0) / math.log(2.0)
         return r * r, dict(focal=np.array([2.0 * r / (math.log(2.0) * focal[0])]))
 
+    def start_stage(self, values: dict, stage: Stage) -> None:
+        """Fix what a photometric stage's function depends on, from one render at its start:
+        the depth range, the face region (``mask``) and the robust scale (``photo_scale``:
+        robust_scale x the median per-pixel linear-RGB error over the face region, at least
+        MIN_ROBUST_SCALE; None without robust_scale)."""
+        self.scene.set_depth_range(values["translation"])
+        out = self.scene.render(values, stage.sigma, stage.gamma)
+        self.mask = self._region(out.alpha[0])
+        self._mask_stage = stage.name
+        if self.robust_scale is not None:
+            errors = np.linalg.norm(out.rgb[0] - self.image, axis=-1)[self.mask]
+            median = float(np.median(errors)) if errors.size else 0.0
+            self.photo_scale = max(self.robust_scale * median, MIN_ROBUST_SCALE)
+
     def face_region(self, values: dict, sigma: float, gamma: float) -> np.ndarray:
         """(H, W) bool: where the face is rendered (alpha > 0.5) and the photo's landmarks
         outline the face (jaw line and brows raised by ``forehead``), eroded by mask_erosion pixels, less the eyes and
         the inside of the mouth (grown by as much). The landmark outline keeps hair, hats and
         background out even when the rendered face grows over them, and open mouths, teeth
         and eyes are not skin: a skin model would bend the shape trying to explain them."""
+        return self._region(self.scene.render(values, sigma, gamma).alpha[0])
+
+    def _region(self, alpha: np.ndarray) -> np.ndarray:
+        """face_region from the render's alpha (H, W)."""
         from scipy.ndimage import binary_dilation, binary_erosion
 
-        region = (self.scene.render(values, sigma, gamma).alpha[0] > 0.5) & self._outlined(
-            [FACE_OUTLINE], self._forehead_points())
+        region = (alpha > 0.5) & self._outlined([FACE_OUTLINE], self._forehead_points())
         holes = self._outlined(EXCLUDED_OUTLINES, self.target)
         if self.mask_erosion > 0:
             region = binary_erosion(region, iterations=self.mask_erosion)
@@ -587,13 +617,19 @@ class FaceObjective:
         return inside
 
     def photo_term(self, values: dict, world: np.ndarray, sigma: float, gamma: float) -> tuple[float, dict]:
-        """Sum of squared linear-RGB errors over the face region; gradients wrt the world
-        vertices ("world"), albedo, sh and focal."""
+        """Sum over the face region of each pixel's squared linear-RGB error (summed over the
+        channels), or of its Geman-McClure kernel at ``photo_scale`` (losses.image_geman_mcclure)
+        when that is set; gradients wrt the world vertices ("world"), albedo, sh and focal."""
         # only the face region's tiles are rasterised: the loss and its gradient are the same
         out = self.scene.render(values, sigma, gamma, grads=("vertices", "albedo", "light", "camera"),
                                 world=world, roi=self.mask)
-        value, g = losses.image_l2(out.rgb[0], self.image, self.mask)
-        count = 3.0 * max(int(self.mask.sum()), 1)
+        pixels = max(int(self.mask.sum()), 1)
+        if self.photo_scale is None:
+            value, g = losses.image_l2(out.rgb[0], self.image, self.mask)
+            count = 3.0 * pixels
+        else:
+            value, g = losses.image_geman_mcclure(out.rgb[0], self.image, self.photo_scale, self.mask)
+            count = float(pixels)
         g_img = self.scene.renderer.backward(out, grad_rgb=g["pred"][None] * count)
         albedo_ctx = self.scene.model.albedo(values["albedo"])[1]
         return value * count, dict(world=g_img["vertices"],
@@ -670,7 +706,7 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
     scene = FaceScene(model, image.shape[:2], config.dtype, depth_range=depth_range(translation),
                       principal=principal)
     objective = FaceObjective(scene, image, target, config.mask_erosion, focal0=focal,
-                              forehead=config.forehead)
+                              forehead=config.forehead, robust_scale=config.robust_scale)
     values = dict(zero, rotation=rotation, translation=translation, focal=np.array([focal]))
     sh = initial_light(scene, values, image)
     params = face_params(model, focal, rotation, translation, sh)

@@ -335,3 +335,72 @@ def test_weighted_sum():
     with pytest.raises(ValueError, match="vertices"):
         losses.weighted_sum({"a": (1.0, {"vertices": np.ones((2, 3))}),
                              "b": (1.0, {"vertices": np.ones((3, 3))})}, {"a": 1, "b": 1})
+
+
+# ---------------------------------------------------------------- robust image term
+
+@pytest.mark.parametrize("shape", [(5, 4), (4, 5, 3)])
+@pytest.mark.parametrize("masked", [False, True])
+def test_geman_mcclure_grads_on_both_sides_of_the_scale(rng, shape, masked):
+    pred, target = rng.random(shape), rng.random(shape)
+    r = np.abs(pred - target) if len(shape) == 2 else np.linalg.norm(pred - target, axis=-1)
+    scale = float(np.median(r))                              # half the pixels beyond the scale
+    mask = rng.random(shape[:2]) * (rng.random(shape[:2]) > 0.3) if masked else None
+    check_grad(losses.image_geman_mcclure, pred, "pred", target=target, scale=scale, mask=mask)
+
+
+def _gm_exact(r, s):
+    """Exact rational mean of r2 s^2 / (s^2 + r2) over the pixels of r (N, C), and its
+    gradient wrt the first pixel's first channel: 2 r s^4 / (s^2 + r2)^2 / N."""
+    from fractions import Fraction as F
+
+    s2 = F(s) ** 2
+    r2 = [sum(F(x) ** 2 for x in px) for px in r]
+    value = sum(q * s2 / (s2 + q) for q in r2) / len(r)
+    grad = 2 * F(r[0][0]) * s2 * s2 / (s2 + r2[0]) ** 2 / len(r)
+    return float(value), float(grad)
+
+
+def test_geman_mcclure_values_match_exact_arithmetic():
+    r = np.array([[[0.1, -0.2, 0.05], [1.0, 0.0, 0.0]], [[0.0, 0.0, 0.0], [3.0, -4.0, 12.0]]])
+    for s in (0.01, 0.3, 1.0, 100.0):
+        value, g = losses.image_geman_mcclure(r, np.zeros_like(r), s)
+        exact, g00 = _gm_exact(r.reshape(-1, 3).tolist(), s)
+        assert value == pytest.approx(exact, rel=1e-14)
+        assert g["pred"][0, 0, 0] == pytest.approx(g00, rel=1e-14)
+    # far below the scale it is the per-pixel sum of squares, far above it s^2 per pixel
+    small = losses.image_geman_mcclure(r, np.zeros_like(r), 1e6)[0]
+    assert small == pytest.approx(3 * losses.image_l2(r, np.zeros_like(r))[0], rel=1e-9)
+    big = np.full((2, 2, 3), 1e3)
+    assert losses.image_geman_mcclure(big, np.zeros_like(big), 1e-3)[0] == pytest.approx(1e-6, rel=1e-9)
+    mask = np.array([[1.0, 0.0], [0.0, 0.0]])          # only pixel (0, 0) counts
+    assert losses.image_geman_mcclure(r, np.zeros_like(r), 0.3, mask)[0] == pytest.approx(
+        _gm_exact([r[0, 0].tolist()], 0.3)[0], rel=1e-14)
+    assert losses.image_geman_mcclure(r, np.zeros_like(r), 0.3, np.zeros((2, 2))) == (0.0, {"pred": pytest.approx(0 * r)})
+
+
+@pytest.mark.parametrize("scale", [1e-300, 1e-150, 1e-8, 1.0, 1e8, 1e150])
+@pytest.mark.parametrize("residual", [0.0, 1e-300, 1e-150, 1e-8, 1.0, 1e8, 1e150])
+def test_geman_mcclure_is_finite_and_exact_at_extreme_residuals_and_scales(residual, scale):
+    r = np.array([[[residual, -residual, 0.5 * residual]]])
+    value, g = losses.image_geman_mcclure(r, np.zeros_like(r), scale)
+    assert np.isfinite(value) and np.isfinite(g["pred"]).all()
+    exact, g00 = _gm_exact(r.reshape(-1, 3).tolist(), scale)
+    tiny = 1e-290                          # below this float64 keeps few digits (subnormals)
+    assert value == pytest.approx(exact, rel=1e-12, abs=tiny)
+    assert g["pred"][0, 0, 0] == pytest.approx(g00, rel=1e-12, abs=tiny)
+
+
+@pytest.mark.parametrize("call, says", [
+    (lambda: losses.image_geman_mcclure(np.zeros((2, 2)), np.zeros((2, 2)), 0.0), "scale must be > 0"),
+    (lambda: losses.image_geman_mcclure(np.zeros((2, 2)), np.zeros((2, 2)), -1.0), "scale must be > 0"),
+    (lambda: losses.image_geman_mcclure(np.zeros((2, 2)), np.zeros((2, 2)), np.nan), "scale contains NaN"),
+    (lambda: losses.image_geman_mcclure(np.zeros((2, 2)), np.zeros((2, 2)), np.ones(2)), "scale: expected a scalar"),
+    (lambda: losses.image_geman_mcclure(np.zeros((2, 2, 3)), np.zeros((2, 3, 3)), 1.0), "target"),
+    (lambda: losses.image_geman_mcclure(np.zeros((2, 2, 3)), np.zeros((2, 2, 3)), 1.0, np.ones((3, 3))), "mask"),
+    (lambda: losses.image_geman_mcclure(np.zeros((2, 2, 3)), np.zeros((2, 2, 3)), 1.0, -np.ones((2, 2))), "mask"),
+])
+def test_geman_mcclure_rejects_bad_input(call, says):
+    with pytest.raises(ValueError) as info:
+        call()
+    assert str(info.value).startswith(says)
