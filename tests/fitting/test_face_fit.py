@@ -242,6 +242,8 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     (dict(photo_stages=((0.0, 1e-3, 10),)), "photo_stages[0] sigma must be > 0"),
     (dict(weights=dict(photo=float("nan"))), "weights['photo'] must be a finite number"),
     (dict(dtype="float16"), "dtype must be 'float32' or 'float64'"),
+    (dict(robust_scale=0.0), "robust_scale must be > 0, got 0.0"),
+    (dict(robust_scale=float("nan")), "robust_scale must be a finite number"),
 ])
 def test_face_config_names_a_bad_field(changes, says):
     from softras_cl.errors import InputError
@@ -268,12 +270,13 @@ def test_prepare_photo_names_a_nan_landmark():
         face.prepare_photo(np.zeros((100, 100, 3)), lmk, 64)
 
 
-def test_coarse_stage_gradient_matches_central_differences_and_sums_like_full_resolution(toy):
+@pytest.mark.parametrize("robust_scale", [None, 1.0])
+def test_coarse_stage_gradient_matches_central_differences_and_sums_like_full_resolution(toy, robust_scale):
     rng = np.random.default_rng(3)
     scene = face.FaceScene(toy, (64, 64))
     values = toy_values(toy, rng)
     image = rng.random((64, 64, 3)) * 0.5
-    objective = face.FaceObjective(scene, image, _spread_landmarks(64), mask_erosion=0)
+    objective = face.FaceObjective(scene, image, _spread_landmarks(64), mask_erosion=0, robust_scale=robust_scale)
     stage = Stage("photo-1", ("id",), dict(photo=1.0), sigma=1e-3, gamma=1e-2)
     level = objective.photo_level(stage.sigma)
     assert level is not objective and level.image.shape == (32, 32, 3)
@@ -281,6 +284,7 @@ def test_coarse_stage_gradient_matches_central_differences_and_sums_like_full_re
     assert face.FaceObjective(scene, image, level.target, coarse_sigma=None).photo_level(1.0) is not level
     loss, grads, _ = objective(values, stage)
     assert level.mask.sum() > 100 and objective.mask is None
+    assert (level.photo_scale is None) == (robust_scale is None)
     for name in ("focal", "translation", "albedo"):
         v = values[name]
         fd = np.zeros_like(v)
@@ -294,6 +298,67 @@ def test_coarse_stage_gradient_matches_central_differences_and_sums_like_full_re
     # a half-size pixel counts for four: on a smooth photo the sum is near the full-resolution one
     y, x = np.mgrid[0:64, 0:64] / 64.0
     smooth = np.stack([0.2 + 0.3 * x, 0.4 - 0.2 * y, 0.3 + 0.1 * x * y], -1)
-    coarse = face.FaceObjective(scene, smooth, objective.target, mask_erosion=0)(values, stage)[0]
-    full = face.FaceObjective(scene, smooth, objective.target, mask_erosion=0, coarse_sigma=None)(values, stage)[0]
+    coarse = face.FaceObjective(scene, smooth, objective.target, mask_erosion=0,
+                                robust_scale=robust_scale)(values, stage)[0]
+    full = face.FaceObjective(scene, smooth, objective.target, mask_erosion=0, coarse_sigma=None,
+                              robust_scale=robust_scale)(values, stage)[0]
     assert 0.8 < coarse / full < 1.25
+
+
+def test_photometric_stages_fit_focal_with_its_prior_unless_focal_is_given():
+    config = face.FaceFitConfig()
+    for stage in face.default_stages(config, fit_focal=True):
+        assert "focal" in stage.free and stage.weights["focal_prior"] == config.weights["focal_prior"]
+    for stage in face.default_stages(config, fit_focal=False):
+        assert "focal" not in stage.free and "focal_prior" not in stage.weights
+
+
+def test_robust_scale_is_a_multiple_of_the_median_error_fixed_within_a_stage(toy):
+    rng = np.random.default_rng(4)
+    scene = face.FaceScene(toy, (40, 40))
+    values = toy_values(toy, rng)
+    image = rng.random((40, 40, 3)) * 0.5
+    objective = face.FaceObjective(scene, image, _spread_landmarks(40), robust_scale=1.5)
+    stage = Stage("photo-1", ("id",), dict(photo=1.0), sigma=1e-4, gamma=1e-3)
+    objective(values, stage)
+    error = np.linalg.norm(scene.render(values, 1e-4, 1e-3).rgb[0] - image, axis=-1)[objective.mask]
+    assert objective.photo_scale == pytest.approx(1.5 * np.median(error), rel=1e-12)
+    objective(dict(values, albedo=values["albedo"] + 1.0), stage)
+    assert objective.photo_scale == pytest.approx(1.5 * np.median(error), rel=1e-12)
+    rendered = scene.render(values, 1e-4, 1e-3).rgb[0]
+    exact = face.FaceObjective(scene, rendered, _spread_landmarks(40), robust_scale=1.5)
+    exact(values, Stage("photo-2", ("id",), dict(photo=1.0), sigma=1e-4, gamma=1e-3))
+    assert exact.photo_scale == face.MIN_ROBUST_SCALE           # a perfect fit: the floor
+    squares = face.FaceObjective(scene, image, _spread_landmarks(40), robust_scale=None)
+    squares(values, stage)
+    assert squares.photo_scale is None
+
+
+def test_robust_photo_term_ignores_an_occluder_that_biases_squares(toy):
+    """A dark band over a fifth of the face (a shadow, a glasses frame): the light fitted with
+    the plain squared error darkens to explain it; the robust term leaves it out."""
+    from softras_cl.fitting.solver import fit
+
+    rng = np.random.default_rng(6)
+    scene = face.FaceScene(toy, (40, 40))
+    truth = toy_values(toy, rng)
+    truth["sh"] = sh_ambient(0.8)
+    clean = scene.render(truth, 1e-4, 1e-3).rgb[0]
+    photo = clean.copy()
+    band = np.zeros((40, 40), bool)
+    band[14:20] = True
+    photo[band] = 0.02
+    start = dict(truth, sh=truth["sh"] * 1.1)
+    errors = {}
+    for robust_scale in (None, 2.0):
+        objective = face.FaceObjective(scene, photo, _spread_landmarks(40), robust_scale=robust_scale)
+        assert 0.1 < band[objective.face_region(start, 1e-4, 1e-3)].mean() < 0.3
+        params = face.face_params(toy, truth["focal"][0], truth["rotation"], truth["translation"], start["sh"])
+        params.set({name: truth[name] for name in ("id", "exp", "albedo")})
+        stages = [Stage(f"photo-{k}", ("sh",), dict(photo=1.0), sigma=1e-4, gamma=1e-3, max_iters=40)
+                  for k in (1, 2)]
+        values = fit(params, objective, stages, progress=False).values
+        region = objective.face_region(truth, 1e-4, 1e-3)    # the light is judged by what it draws
+        errors[robust_scale] = np.abs(scene.render(values, 1e-4, 1e-3).rgb[0] - clean)[region].mean()
+    assert errors[None] > 0.03                      # measured 0.07 (colours ~0.3)
+    assert errors[2.0] < 0.003                      # measured 0.0002
