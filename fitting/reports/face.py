@@ -92,15 +92,16 @@ def opening_mask(scene: FaceScene, values: dict, growth: float = OPENING_GROWTH)
 
 
 def draw(scene: FaceScene, values: dict, k: int, texture: FaceTexture | None = None,
-         openings: bool = True, **overrides) -> tuple[np.ndarray, np.ndarray]:
+         openings: bool = True, sharp: tuple = SHARP, **overrides) -> tuple[np.ndarray, np.ndarray]:
     """The face drawn at k x k samples per pixel and averaged: (rgb premultiplied by alpha
     (h, w, 3), alpha (h, w)), h, w = the scene's size / k. texture: draw the detail texture
     (else the model albedo, or ``overrides`` albedo= / light= of FaceScene.render); openings:
-    leave the eye and mouth openings empty, for the photo to show through."""
+    leave the eye and mouth openings empty, for the photo to show through; sharp: (sigma,
+    gamma) of the render (:func:`window_scene` gives those of a window)."""
     if texture is not None:
-        rgb, alpha = render_textured(scene, values, texture, *SHARP)
+        rgb, alpha = render_textured(scene, values, texture, *sharp)
     else:
-        out = scene.render(values, *SHARP, **overrides)
+        out = scene.render(values, *sharp, **overrides)
         rgb, alpha = out.rgb[0], out.alpha[0]
     if openings:
         alpha = alpha * ~opening_mask(scene, values)
@@ -124,8 +125,35 @@ def render_over(fit: FaceFit, photo: np.ndarray, max_side: int = OVERLAY_MAX,
     scale = min(1.0, max_side / max(h, w))
     scene, values = _sampled(fit, (h, w), scale)
     size = (scene.image_size[0] // SUPERSAMPLE, scene.image_size[1] // SUPERSAMPLE)
-    image = resize(photo, size, order=1, anti_aliasing=True) if scale < 1.0 else photo
-    return composite(draw(scene, values, SUPERSAMPLE, texture), image)
+    image = np.array(resize(photo, size, order=1, anti_aliasing=True) if scale < 1.0 else photo, np.float64)
+    rows, cols = face_window(scene, values, SUPERSAMPLE)
+    window, sharp = window_scene(scene, rows, cols, SUPERSAMPLE)
+    image[rows, cols] = composite(draw(window, values, SUPERSAMPLE, texture, sharp=sharp), image[rows, cols])
+    return image
+
+
+def face_window(scene: FaceScene, values: dict, k: int, margin: int = 2) -> tuple[slice, slice]:
+    """(rows, cols) slices of the image the scene draws at k x k samples per pixel (its size
+    / k) holding every projected vertex, grown by ``margin`` pixels and clipped to the image."""
+    world, _ = scene.geometry(values)
+    xy, _ = scene.camera(values["focal"][0]).project_pixels(world)
+    h, w = (n // k for n in scene.image_size)
+    (c0, r0), (c1, r1) = (np.floor(xy.min(0) / k) - margin).tolist(), (np.ceil(xy.max(0) / k) + margin).tolist()
+    clip = lambda v, n: int(min(max(v, 0), n))                                # noqa: E731
+    return slice(clip(r0, h), clip(r1, h)), slice(clip(c0, w), clip(c1, w))
+
+
+def window_scene(scene: FaceScene, rows: slice, cols: slice, k: int) -> tuple[FaceScene, tuple]:
+    """The scene cut to the window (rows, cols) of its image at k samples per pixel (see
+    :func:`face_window`), and the (sigma, gamma) that draw there what SHARP draws in the whole
+    image: sigma acts on squared distances in units of half the image's shorter side."""
+    cx, cy = scene.principal
+    size = ((rows.stop - rows.start) * k, (cols.stop - cols.start) * k)
+    s = scene.settings
+    window = FaceScene(scene.model, size, s.dtype, alpha_agg=s.alpha_agg, depth_range=(s.near, s.far),
+                       principal=(cx - cols.start * k, cy - rows.start * k))
+    ratio = min(scene.image_size) / min(size)
+    return window, (SHARP[0] * ratio * ratio, SHARP[1])
 
 
 def textured_metrics(fit: FaceFit, texture: FaceTexture) -> dict:

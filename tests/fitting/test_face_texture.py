@@ -272,3 +272,24 @@ def test_textured_obj_round_trips_and_renders_the_same(demo, layout, tmp_path):
     theirs = ft.render_textured(scene, values, SimpleNamespace(albedo=mesh.texture, layout=SimpleNamespace(uvs=mesh.uvs)),
                                 1e-7, 1e-4)[0]
     np.testing.assert_allclose(theirs, ours, atol=0.02)
+
+
+@pytest.mark.parametrize("textured", [False, True])
+def test_overlay_drawn_in_the_face_window_equals_the_whole_image_drawn(demo, layout, textured):
+    """render_over draws only the window around the face (sigma rescaled to the window's NDC
+    units): the same picture as drawing the whole photo, and the photo itself outside."""
+    values = truth(demo, 2, 15.0)
+    fit = synthetic_fit(demo, values)
+    rng = np.random.default_rng(0)
+    photo = rng.uniform(0.1, 0.9, (200, 260, 3))
+    texture = ft.estimate_texture(fit, photo, layout=layout) if textured else None
+    scene, sampled = report._sampled(fit, photo.shape[:2])
+    rows, cols = report.face_window(scene, sampled, report.SUPERSAMPLE)
+    assert 0 < rows.stop - rows.start < 200 and 0 < cols.stop - cols.start < 260
+    whole = report.composite(report.draw(scene, sampled, report.SUPERSAMPLE, texture), photo)
+    over = report.render_over(fit, photo, texture=texture)
+    assert np.abs(over - whole).max() < 1e-9
+    assert (whole != photo).sum() > 1000
+    outside = np.ones(photo.shape[:2], bool)
+    outside[rows, cols] = False
+    assert (over[outside] == photo[outside]).all()
