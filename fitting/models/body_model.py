@@ -24,12 +24,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse
 
 from softras_cl.checks import check_shape, real_array
 from softras_cl.scene.rotation import RodriguesContext, _rodrigues_coeffs, hat, rodrigues
+
+if TYPE_CHECKING:
+    import scipy.sparse
 
 FORMAT = "softras-cl-body-1"
 
@@ -73,6 +76,8 @@ def _ints(name: str, value, shape: tuple) -> np.ndarray:
 
 def _regressor(value, n_joints: int, n_verts: int) -> scipy.sparse.csr_matrix:
     """J_regressor (J, V), dense or scipy.sparse -> CSR float64; ValueError on a wrong shape."""
+    import scipy.sparse     # here, not at the top: every CLI command imports this module
+
     if scipy.sparse.issparse(value):
         m = scipy.sparse.csr_matrix(value, dtype=np.float64)
     else:

@@ -300,12 +300,16 @@ def save_textured_obj(path, vertices, faces, uvs, texture) -> None:
     write_image(path.with_suffix(".png"), np.clip(texture, 0.0, 1.0))
     write_text(path.with_suffix(".mtl"), f"newmtl face\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\n"
                                          f"map_Kd {stem}.png\n")
-    lines = [f"# softras-cl face fit with its detail texture\nmtllib {stem}.mtl\n"]
-    lines += [f"v {x:.8f} {y:.8f} {z:.8f}\n" for x, y, z in np.asarray(vertices, np.float64)]
-    lines += [f"vt {u:.6f} {v:.6f}\n" for u, v in np.asarray(uvs, np.float64)]
-    lines.append("usemtl face\n")
-    lines += ["f {0}/{0} {1}/{1} {2}/{2}\n".format(*(np.asarray(f) + 1)) for f in faces]
-    write_text(path, "".join(lines))
+    vertices, uvs = np.asarray(vertices, np.float64), np.asarray(uvs, np.float64)
+    corners = np.repeat(np.asarray(faces, np.int64) + 1, 2, axis=1)        # a/a b/b c/c
+    write_text(path, "".join([f"# softras-cl face fit with its detail texture\nmtllib {stem}.mtl\n",
+                              _rows("v %.8f %.8f %.8f\n", vertices), _rows("vt %.6f %.6f\n", uvs),
+                              "usemtl face\n", _rows("f %d/%d %d/%d %d/%d\n", corners)]))
+
+
+def _rows(line: str, table: np.ndarray) -> str:
+    """``line`` (a %-format of one row) applied to every row of table (N, C), in one format."""
+    return (line * len(table)) % tuple(table.ravel().tolist())
 
 
 def texture_preview(texture: FaceTexture) -> np.ndarray:
