@@ -134,7 +134,8 @@ def prepare_view(photo, landmarks, model, config: FaceFitConfig) -> View:
     rotation, translation = initial_pose(mean_landmarks, target, focal, principal)
     scene = FaceScene(model, image.shape[:2], config.dtype, depth_range=depth_range(translation),
                       principal=principal)
-    objective = FaceObjective(scene, image, target, config.mask_erosion, focal0=focal, forehead=config.forehead)
+    objective = FaceObjective(scene, image, target, config.mask_erosion, focal0=focal, forehead=config.forehead,
+                              robust_scale=config.robust_scale)
     values = dict(zero, rotation=rotation, translation=translation, focal=np.array([focal]))
     sh = initial_light(scene, values, image)
     return View(objective, crop, face_params(model, focal, rotation, translation, sh))

@@ -2,7 +2,8 @@
 
 Each synthetic subject has one identity and albedo drawn from the model's prior; it is
 photographed 3 times (--views) by the generator of `softras-cl bench face`, each photo with its
-own random pose, expression, SH light, field of view, background and landmark noise. Every
+own random pose, expression, SH light, field of view, background and landmark noise; the yaws
+fall in 3 bands (left, front, right: -30 to -10, -10 to 10, 10 to 30 degrees for 3 photos). Every
 photo is fitted alone (fit-face), then all of them jointly (fit-face --same-person).
 
 Reported per subject: the identity's shape error, i.e. the vertex RMSE of the fitted neutral
@@ -30,13 +31,38 @@ from softras_cl.provenance import provenance
 TARGET_REDUCTION = 0.30   # the joint fit's ratio at least 30% below the best single photo's (median)
 
 
+YAW_RANGE = 30.0          # bench face's yaws: uniform in +-30 degrees
+
+
+def yaw_deg(rotation) -> float:
+    """The yaw (about y) of a bench face rotation Ry(yaw) Rx(pitch) Rz(roll), degrees."""
+    from softras_cl.scene.rotation import axis_angle_to_matrix
+
+    R = axis_angle_to_matrix(rotation)
+    return float(np.degrees(np.arctan2(R[0, 2], R[2, 2])))
+
+
+def posed_truth(model, rng: np.random.Generator, size: int, low: float, high: float) -> dict:
+    """bench face's random_truth, drawn again until its yaw falls in [low, high) degrees."""
+    from softras_cl.bench.face import random_truth
+
+    while True:
+        truth = random_truth(model, rng, size)
+        if low <= yaw_deg(truth["rotation"]) < high:
+            return truth
+
+
 def subject(model, rng: np.random.Generator, size: int, views: int) -> list[dict]:
-    """``views`` synthetic photos (bench face's samples) of one random identity and albedo."""
+    """``views`` synthetic photos (bench face's samples: own pose, expression, light, field of
+    view, background, landmark noise) of one random identity and albedo, photo k's yaw in the
+    k-th of ``views`` equal bands of +-YAW_RANGE degrees, so that the photos see the face from
+    different sides as a person's photo collection would."""
     from softras_cl.bench.face import photograph, random_truth
 
     person = random_truth(model, rng, size)
-    return [photograph(model, dict(random_truth(model, rng, size), id=person["id"], albedo=person["albedo"]),
-                       rng, size) for _ in range(views)]
+    edges = np.linspace(-YAW_RANGE, YAW_RANGE, views + 1)
+    return [photograph(model, dict(posed_truth(model, rng, size, lo, hi), id=person["id"], albedo=person["albedo"]),
+                       rng, size) for lo, hi in zip(edges[:-1], edges[1:])]
 
 
 def identity_ratio(model, id_coeffs, true_id) -> float:
@@ -76,7 +102,7 @@ def run_subject(model, photos: list[dict], config) -> dict:
                 joint_ratio=ratio, reduction=1.0 - ratio / best,
                 single_seconds=single_wall, single_cpu_seconds=single_cpu, joint_seconds=wall,
                 joint_cpu_seconds=cpu, joint_psnr_face_db=joint.metrics()["psnr_face_db"],
-                yaw_deg=[float(np.degrees(p["truth"]["rotation"][1])) for p in photos])
+                yaw_deg=[yaw_deg(p["truth"]["rotation"]) for p in photos])
 
 
 def summarise(rows: list[dict]) -> dict:

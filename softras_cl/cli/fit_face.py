@@ -1,5 +1,7 @@
-"""`softras-cl fit-face PHOTO [--landmarks FILE] [--model FILE] --out DIR`, and many photos:
-`softras-cl fit-face PHOTO|FOLDER|GLOB ... [--manifest CSV] --out DIR` (softras_cl.cli.batch)."""
+"""`softras-cl fit-face PHOTO [--landmarks FILE] [--model FILE] --out DIR`, many photos:
+`softras-cl fit-face PHOTO|FOLDER|GLOB ... [--manifest CSV] --out DIR` (softras_cl.cli.batch), and
+several photos of one person: `softras-cl fit-face A B C --same-person [--landmarks A.pts B.pts C.pts]
+--out DIR` (fitting.recipes.face_views)."""
 from __future__ import annotations
 
 import argparse
@@ -27,7 +29,17 @@ far (exit 130; --resume continues it).
 Landmarks: --landmarks FILE, else a file beside the photo (PHOTO.pts/.txt/.npy, i.e. the photo's
 name with that suffix), else the landmark detector (the "landmarks" extra), largest face first.
 
-""" + BATCH_EPILOG
+""" + BATCH_EPILOG + """
+
+One person in several photos: --same-person fits one identity (shape) and one albedo to all the
+photos given (files, folders or glob patterns, at least two), each photo with its own pose,
+focal length, expression and light: `fit-face A.jpg B.jpg C.jpg --same-person --landmarks A.pts
+B.pts C.pts --out DIR` (one landmark file per photo in the same order, or none: each photo's file
+beside it, else the detector). Writes into --out: face.ply (the shared identity, neutral
+expression), photos/NAME/ (per photo, what a single-photo fit writes), figure.png (every photo
+with its fit), params.json/.npz (all blocks, each photo's inputs with their SHA-256, cameras and
+metrics), the solver's files, run.json and, last, complete.json; --resume continues it.
+Without --same-person several photos are independent fits (above)."""
 
 
 def register(sub) -> None:
@@ -39,10 +51,14 @@ def register(sub) -> None:
     p.add_argument("photos", nargs="*", metavar="PHOTO",
                    help="the photo (PNG/JPEG/...; sRGB, decoded to linear RGB for fitting); several "
                         "photos, folders or glob patterns fit each into its own folder under --out")
-    p.add_argument("--landmarks", default=None,
+    p.add_argument("--landmarks", default=None, nargs="+", metavar="FILE",
                    help="68 landmarks of the photo in the iBUG 300-W order: .pts (iBUG, 1-based), "
                         ".txt (68 rows 'x y', 0-based pixel centres) or .npy (68, 2) (default: "
-                        "PHOTO.pts/.txt/.npy beside the photo, else detected)")
+                        "PHOTO.pts/.txt/.npy beside the photo, else detected); with --same-person "
+                        "one file per photo, in the photos' order")
+    p.add_argument("--same-person", action="store_true",
+                   help="the photos show one person: fit one identity and albedo to all of them "
+                        "(each with its own pose, focal length, expression and light) into --out")
     p.add_argument("--all-faces", action="store_true",
                    help="fit every face the detector finds, each into its own folder under --out "
                         "(NAME-face0 for the largest, NAME-face1, ...); without it, the largest")
@@ -86,17 +102,19 @@ def _load_inputs(args):
     """(photo (H, W, 3) linear RGB, landmarks (68, 2), model); ValueError/OSError on bad input."""
     from softras_cl.io.images import read_image
     from softras_cl.fitting.landmark_detect import resolve_landmarks
-    from softras_cl.fitting.models.face_loaders import load_demo_face_model, load_face_model
 
     photo = read_image(args.photo)[..., :3]
     landmarks = resolve_landmarks(args.photo, args.landmarks)[0].points
-    if args.model is None:
-        if args.model_landmarks is not None:
-            raise ValueError("--model-landmarks needs --model (the demo model has its landmarks)")
-        model = load_demo_face_model()
-    else:
-        model = load_face_model(args.model, landmarks=args.model_landmarks)
-    return photo, landmarks, model
+    return photo, landmarks, _load_model(args)
+
+
+def _load_model(args):
+    """The face model of --model (and --model-landmarks), else the demo model."""
+    from softras_cl.fitting.batch import load_model
+
+    if args.model is None and args.model_landmarks is not None:
+        raise ValueError("--model-landmarks needs --model (the demo model has its landmarks)")
+    return load_model("face", args.model, args.model_landmarks)
 
 
 def _run_record(args: argparse.Namespace) -> dict:
@@ -110,12 +128,24 @@ def _run_record(args: argparse.Namespace) -> dict:
 def run(args: argparse.Namespace) -> int:
     """One photo into --out itself, or a batch (several photos, folders, globs, a manifest)."""
     if not args.photos and not args.manifest:
-        raise InputError("give a photo (or several, folders, glob patterns, or --manifest CSV)")
+        raise InputError("give a photo (or several, folders, glob patterns, or --manifest CSV)"
+                         + (" before --landmarks, which takes the files after it" if args.landmarks else ""))
     _config(args)                       # options checked before any photo is read
+    if args.same_person:
+        return run_same_person(args)
+    args.landmarks = _single_landmarks(args.landmarks)
     if is_batch(args, args.photos):
         return run_batch(args, "face", args.photos, _options(args), args.landmarks)
     args.photo = args.photos[0]
     return run_one(args)
+
+
+def _single_landmarks(files: list[str] | None) -> str | None:
+    """The one --landmarks file of a fit that is not --same-person (None: none given)."""
+    if files is not None and len(files) > 1:
+        raise InputError(f"--landmarks takes one file, got {len(files)}: several landmark files, one per "
+                         "photo, go with --same-person (several photos of one person)")
+    return None if files is None else files[0]
 
 
 CONFIG_OPTIONS = {"size": "--size", "focal": "--focal", "photo_weight": "--photo-weight",
@@ -152,4 +182,71 @@ def run_one(args: argparse.Namespace) -> int:
           f"{metrics['landmark_error_px_full']:.2f} px, face-region PSNR {metrics['psnr_face_db']:.1f} dB "
           f"(model), {metrics['psnr_face_db_textured']:.1f} dB (with the detail texture; sRGB); "
           f"outputs in {run.folder}/")
+    return EXIT_INTERRUPTED if run.interrupted else EXIT_OK
+
+
+def _check_same_person(args: argparse.Namespace) -> list:
+    """The photos of a --same-person run (files, folders, globs expanded, in order); InputError
+    naming the options that do not go with it, before any photo is read."""
+    from softras_cl.fitting.batch import expand_paths
+
+    clashes = [option for option, given in (
+        ("--all-faces", args.all_faces), ("--manifest", args.manifest is not None),
+        ("--workers", args.workers is not None), ("--threads-per-worker", args.threads_per_worker is not None),
+        ("--scheduler", args.scheduler is not None)) if given]
+    if clashes:
+        raise InputError(f"--same-person fits the photos together in this process, as one person with "
+                         f"one face each; it does not go with {', '.join(clashes)}")
+    photos = expand_paths(args.photos, "face")
+    if len(photos) < 2:
+        raise InputError(f"--same-person needs at least two photos of the person, got {len(photos)} "
+                         f"({', '.join(map(str, photos))}); for one photo leave --same-person out")
+    if args.landmarks is not None and len(args.landmarks) != len(photos):
+        raise InputError(f"--landmarks gives {len(args.landmarks)} files for {len(photos)} photos: with "
+                         "--same-person give one per photo, in the photos' order (or none: each photo's "
+                         "file beside it, else the detector)")
+    return photos
+
+
+def _same_person_inputs(args: argparse.Namespace, photos: list) -> tuple[list, list, list]:
+    """(photos (H, W, 3) linear RGB, landmarks (68, 2) each, input records for params.json)."""
+    from softras_cl.fitting.batch import face_landmarks_source
+    from softras_cl.fitting.landmark_detect import resolve_landmarks
+    from softras_cl.io.images import read_image
+    from softras_cl.io.outputs import file_sha256
+
+    files = args.landmarks or [None] * len(photos)
+    images = [read_image(p)[..., :3] for p in photos]
+    points = [resolve_landmarks(p, f)[0].points for p, f in zip(photos, files)]
+    inputs = [dict(photo=str(p), photo_sha256=file_sha256(p), landmarks=None if f is None else str(f),
+                   landmarks_source=face_landmarks_source(p, f)) for p, f in zip(photos, files)]
+    return images, points, inputs
+
+
+def run_same_person(args: argparse.Namespace) -> int:
+    """Several photos of one person into --out (fitting.recipes.face_views)."""
+    from softras_cl.fitting.batch import face_record, stable_names
+    from softras_cl.fitting.recipes.face_views import fit_face_views
+    from softras_cl.fitting.reports.face_views import write_views_outputs
+
+    paths = _check_same_person(args)
+    config = _config(args)
+    images, points, inputs = _same_person_inputs(args, paths)
+    model = _load_model(args)
+    records = [face_record(p, i["landmarks_source"], _options(args)) for p, i in zip(paths, inputs)]
+    record = dict(command="fit-face --same-person", inputs=[r["inputs"] for r in records], options=records[0]["options"])
+
+    def fit(folder):
+        return fit_face_views(images, points, model, config, out_dir=folder, progress=not args.no_progress,
+                              resume=args.resume)
+
+    def write(fit, folder, metrics, seconds):
+        return write_views_outputs(fit, images, stable_names(paths), inputs, folder, metrics,
+                                   run_config=dict(fit=config, options=args),
+                                   extra=dict(seconds=seconds, budget=args.budget))
+
+    run = run_fit(args, "fit-face", record, fit, ("landmark_error_px_full", "psnr_face_db"), write)
+    print(f"fit-face --same-person {run_state(run.interrupted)} in {run.seconds:.1f} s: {len(paths)} photos, "
+          f"mean landmark error {run.metrics['landmark_error_px_full']:.2f} px, mean face-region PSNR "
+          f"{run.metrics['psnr_face_db']:.1f} dB (model, sRGB); outputs in {run.folder}/")
     return EXIT_INTERRUPTED if run.interrupted else EXIT_OK
