@@ -35,6 +35,9 @@ from softras_cl.provenance import provenance
 
 DEFAULT_BUDGETS = ("fast", "default", "thorough")
 LANDMARKS_ONLY = "landmarks-only"    # the baseline row: the default budget without photometric stages
+RENDERERS = ("softras", "mitsuba")
+DEFAULT_SPP = 128        # Mitsuba rays per pixel: noise ~0.007 RMS linear RGB on the face
+NOISE_FACES = 3          # faces whose Mitsuba noise is measured (two extra renders each)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -87,12 +90,52 @@ def photograph(model, truth: dict, rng: np.random.Generator, size: int = 256) ->
     scene = FaceScene(model, (size, size), alpha_agg="hard", depth_range=depth_range(truth["translation"]))
     out = scene.render(truth, 1e-6, 1e-4)
     alpha = out.alpha[0][..., None]
-    photo = alpha * out.rgb[0] + (1.0 - alpha) * smooth_background(rng, size)
+    background = smooth_background(rng, size)
+    photo = alpha * out.rgb[0] + (1.0 - alpha) * background
     world, _ = scene.geometry(truth)
     clean, _ = scene.camera(truth["focal"][0]).project_pixels(model.landmarks(world)[0])
     noise = rng.uniform(1.0, 2.0)
     return dict(truth=truth, photo=np.clip(photo, 0, 1), landmarks=clean + rng.normal(0, noise, clean.shape),
-                clean_landmarks=clean, noise_px=noise)
+                clean_landmarks=clean, noise_px=noise, background=background, alpha=out.alpha[0])
+
+
+def mitsuba_render(model, truth: dict, size: int, spp: int, seed: int) -> dict:
+    """Mitsuba 3's path-traced render of ``truth`` (validate.mitsuba_face.render_face_mitsuba:
+    environment + sun light, shadows, bounces) by the camera of the softras-cl photo."""
+    from softras_cl.fitting.recipes.face import FaceScene
+    from softras_cl.validate.mitsuba_face import render_face_mitsuba
+
+    scene = FaceScene(model, (size, size))
+    world, _ = scene.geometry(truth)
+    return render_face_mitsuba(world, model.faces, model.albedo(truth["albedo"])[0],
+                               scene.camera(truth["focal"][0]), truth["sh"], spp, seed)
+
+
+def mitsuba_sample(model, sample: dict, spp: int, seed: int = 0) -> dict:
+    """``sample`` (from :func:`photograph`) with its photo replaced by Mitsuba's render of the same
+    truth over the same background, the same landmarks; "render_check" says how the two photos
+    compare: silhouette IoU (coverage > 0.5), RMS difference (linear RGB) and PSNR between them
+    where both show the face, and the render's seconds."""
+    from softras_cl.validate.mitsuba_face import composite, silhouette_iou
+
+    start = time.perf_counter()
+    render = mitsuba_render(model, sample["truth"], sample["photo"].shape[0], spp, seed)
+    seconds = time.perf_counter() - start
+    photo = composite(render, sample["background"])
+    both = (render["alpha"] > 0.5) & (sample["alpha"] > 0.5)
+    rms = float(np.sqrt(np.mean((photo[both] - sample["photo"][both]) ** 2)))
+    check = dict(silhouette_iou=silhouette_iou(render["alpha"], sample["alpha"]), rms_vs_softras=rms,
+                 psnr_vs_softras_db=-20.0 * float(np.log10(rms)), render_seconds=seconds)
+    return dict(sample, photo=photo, alpha=render["alpha"], render_check=check)
+
+
+def mitsuba_noise(model, sample: dict, spp: int) -> float:
+    """RMS Monte Carlo noise (linear RGB) of a Mitsuba photo of ``sample`` where the face covers
+    the pixel: the RMS difference of two renders of different seeds over sqrt 2."""
+    size = sample["photo"].shape[0]
+    a, b = (mitsuba_render(model, sample["truth"], size, spp, seed) for seed in (10**6, 10**6 + 1))
+    face = (a["alpha"] > 0.5) & (b["alpha"] > 0.5)
+    return float(np.sqrt(np.mean((a["rgb"][face] - b["rgb"][face]) ** 2) / 2.0))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -124,6 +167,8 @@ def evaluate(fit, sample: dict, model, seconds: float) -> dict:
     metrics = fit.metrics()
     landmarks = fit.crop.to_full(fit.fitted_landmarks())
     focal = fit.values["focal"][0] / fit.crop.scale      # working-image pixels -> the photo's
+    region = fit.objective.face_region(fit.values, 1e-6, 1e-4)
+    residual = fit.scene.render(fit.values, 1e-6, 1e-4).rgb[0][region] - fit.image[region]
     return dict(rmse_mm=1e3 * aligned_rmse(shape, true_shape),
                 mean_face_rmse_mm=1e3 * aligned_rmse(model.mean_shape, true_shape),
                 rigid_rmse_mm=1e3 * aligned_rmse(shape, true_shape, scale=False),
@@ -131,6 +176,8 @@ def evaluate(fit, sample: dict, model, seconds: float) -> dict:
                 landmark_error_px=float(np.linalg.norm(landmarks - sample["clean_landmarks"],
                                                        axis=1).mean()),
                 psnr_face_db=metrics["psnr_face_db"],
+                # linear RGB, working image: what Mitsuba's noise is compared with
+                residual_rms=float(np.sqrt(np.mean(residual ** 2))),
                 focal_px=float(focal), true_focal_px=float(truth["focal"][0]),
                 focal_error=focal_error(focal, truth["focal"][0]),
                 seconds=seconds,
@@ -147,6 +194,7 @@ def summarise(rows: list[dict]) -> dict:
                 rigid_rmse_mm=mean("rigid_rmse_mm"), rigid_mean_face_rmse_mm=mean("rigid_mean_face_rmse_mm"),
                 rigid_ratio=mean("rigid_rmse_mm") / mean("rigid_mean_face_rmse_mm"),
                 landmark_error_px=mean("landmark_error_px"), psnr_face_db=mean("psnr_face_db"),
+                residual_rms_median=float(statistics.median(r["residual_rms"] for r in rows)),
                 psnr_face_db_min=float(min(r["psnr_face_db"] for r in rows)),
                 focal_error_median=float(statistics.median(r["focal_error"] for r in rows)),
                 focal_error_max=float(max(r["focal_error"] for r in rows)),
@@ -168,24 +216,37 @@ def budget_config(budget: str, size: int, photo_weight: float | None = None):
     return FaceFitConfig.from_budget(budget, photo_weight=photo_weight, size=size)
 
 
-def run_budget(model, samples: list[dict], budget: str, size: int, progress: bool,
-               photo_weight: float | None = None) -> list[dict]:
-    """Fit every sample at one budget (or LANDMARKS_ONLY); one evaluate() row per sample, with
-    its CPU seconds and the fit itself under "fit"."""
-    from tqdm import tqdm
-
+def fit_one(model, sample: dict, config) -> dict:
+    """Fit one sample: its evaluate() row, with its CPU seconds and the fit itself under "fit"."""
     from softras_cl.fitting.recipes.face import fit_face
 
+    start, cpu = time.perf_counter(), time.process_time()
+    fit = fit_face(sample["photo"], sample["landmarks"], model, config, progress=False)
+    row = evaluate(fit, sample, model, time.perf_counter() - start)
+    # CPU time of the whole process (host and the OpenCL CPU device's threads): on a shared
+    # machine it moves less with other users' load than the wall time does
+    return dict(row, cpu_seconds=time.process_time() - cpu, fit=fit)
+
+
+def run_budget(model, samples: list[dict], budget: str, size: int, progress: bool,
+               photo_weight: float | None = None) -> list[dict]:
+    """Fit every sample at one budget (or LANDMARKS_ONLY); one fit_one() row per sample."""
+    return run_interleaved(model, {"softras": samples}, budget, size, progress, photo_weight)["softras"]
+
+
+def run_interleaved(model, photos: dict, budget: str, size: int, progress: bool,
+                    photo_weight: float | None = None) -> dict:
+    """photos: renderer -> samples of the same faces. Fits face 0 of every renderer, then face
+    1, ... (A B A B: a load change on the shared machine hits every renderer alike); returns
+    renderer -> fit_one() rows."""
+    from tqdm import tqdm
+
     config = budget_config(budget, size, photo_weight)
-    rows = []
-    for sample in tqdm(samples, desc=f"bench face [{budget}]", disable=not progress):
-        start, cpu = time.perf_counter(), time.process_time()
-        fit = fit_face(sample["photo"], sample["landmarks"], model, config, progress=False)
-        rows.append(evaluate(fit, sample, model, time.perf_counter() - start))
-        # CPU time of the whole process (host and the OpenCL CPU device's threads): on a shared
-        # machine it moves less with other users' load than the wall time does
-        rows[-1]["cpu_seconds"] = time.process_time() - cpu
-        rows[-1]["fit"] = fit
+    rows = {renderer: [] for renderer in photos}
+    n = len(next(iter(photos.values())))
+    for i in tqdm(range(n), desc=f"bench face [{budget}]", disable=not progress):
+        for renderer, samples in photos.items():
+            rows[renderer].append(fit_one(model, samples[i], config))
     return rows
 
 
@@ -229,11 +290,11 @@ def save_strip(rows: list[dict], path: Path, n: int = 4) -> None:
 
 
 def format_table(summary: dict) -> str:
-    head = ("budget", "faces", "RMSE mm", "mean-face mm", "ratio", "rigid ratio", "lmk px", "focal err",
+    head = ("renderer", "budget", "faces", "RMSE mm", "mean-face mm", "ratio", "rigid ratio", "lmk px", "focal err",
             "max focal err", "PSNR dB", "min PSNR", "median s/fit", "median CPU s")
     lines = ["  ".join(f"{h:>12}" for h in head)]
     for name, s in summary.items():
-        cells = (name, s["faces"], f"{s['rmse_mm']:.3f}", f"{s['mean_face_rmse_mm']:.3f}",
+        cells = (s.get("renderer", "softras"), s.get("budget", name), s["faces"], f"{s['rmse_mm']:.3f}", f"{s['mean_face_rmse_mm']:.3f}",
                  f"{s['rmse_ratio']:.3f}", f"{s['rigid_ratio']:.3f}", f"{s['landmark_error_px']:.2f}",
                  f"{100 * s['focal_error_median']:.1f}%", f"{100 * s['focal_error_max']:.1f}%",
                  f"{s['psnr_face_db']:.1f}",
@@ -243,6 +304,20 @@ def format_table(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def parse_renderers(text: str) -> list[str]:
+    """'softras,mitsuba' -> ['softras', 'mitsuba']; InputError unless every name is in RENDERERS
+    (and, for mitsuba, unless the package is installed: before any fit runs)."""
+    from softras_cl.validate.mitsuba import mitsuba_available
+
+    names = [r.strip() for r in text.split(",") if r.strip()]
+    if not names or any(r not in RENDERERS for r in names) or len(set(names)) != len(names):
+        raise InputError(f"--renderers must name some of {', '.join(RENDERERS)} once each, got {text!r}")
+    if "mitsuba" in names and not mitsuba_available():
+        raise InputError("--renderers mitsuba needs Mitsuba 3: pip install 'softras-cl[validate]' "
+                         "(or pip install mitsuba)")
+    return names
+
+
 def run(args: argparse.Namespace) -> int:
     from softras_cl.fitting.recipes.face import BUDGETS
     from softras_cl.fitting.models.face_loaders import load_demo_face_model, load_face_model
@@ -250,6 +325,9 @@ def run(args: argparse.Namespace) -> int:
     from softras_cl.bench.tools import parse_budgets
 
     budgets = parse_budgets(args.budgets, BUDGETS)
+    renderers = parse_renderers(args.renderers)
+    if args.spp < 2:
+        raise InputError(f"--spp must be >= 2 (Mitsuba rays per pixel), got {args.spp}")
     if args.faces < 1 or args.size < 16:
         raise InputError(f"--faces must be >= 1 and --size >= 16, got {args.faces} and {args.size}")
     with OutputFolder(args.out, "bench face", "--out") as folder:
@@ -257,19 +335,54 @@ def run(args: argparse.Namespace) -> int:
         model = load_demo_face_model() if args.model is None else load_face_model(args.model)
         rng = np.random.default_rng(args.seed)
         samples = [synthetic_face(model, rng, args.size) for _ in range(args.faces)]
-        per_budget = {b: run_budget(model, samples, b, args.size, not args.json, args.photo_weight)
-                      for b in [LANDMARKS_ONLY] + budgets}
-        summary = {b: summarise(rows) for b, rows in per_budget.items()}
+        photos, checks = photos_by_renderer(model, samples, renderers, args.spp, not args.json)
+        per_run = {}
+        for b in [LANDMARKS_ONLY] + budgets:
+            for renderer, rows in run_interleaved(model, photos, b, args.size, not args.json,
+                                                  args.photo_weight).items():
+                per_run[run_name(renderer, b)] = rows
+        summary = {name: dict(summarise(rows), renderer=name.partition("/")[0] if "/" in name else "softras",
+                              budget=name.rpartition("/")[2]) for name, rows in per_run.items()}
         doc = dict(size=args.size, seed=args.seed, model=model.name, photo_weight=args.photo_weight,
-                   summary=summary,
-                   faces={b: [{k: v for k, v in r.items() if k != "fit"} for r in rows]
-                          for b, rows in per_budget.items()},
+                   renderers=renderers, summary=summary, **checks,
+                   faces={name: [{k: v for k, v in r.items() if k != "fit"} for r in rows]
+                          for name, rows in per_run.items()},
                    provenance=provenance(dict(options=args)))
         write_json(out / "face.json", doc)
         save_chart(summary, out / "face.png")
-        save_strip(per_budget[budgets[-1]], out / "face_strip.png")
+        for renderer in renderers:
+            name = run_name(renderer, budgets[-1])
+            save_strip(per_run[name], out / ("face_strip.png" if renderer == "softras"
+                                             else f"face_{renderer}_strip.png"))
         print(json.dumps(json_safe(doc), indent=2) if args.json else format_table(summary))
     return 0
+
+
+def run_name(renderer: str, budget: str) -> str:
+    """The key of a (renderer, budget) run in the JSON: the budget for softras-cl's photos (the
+    keys the bench always had), "mitsuba/<budget>" for Mitsuba's."""
+    return budget if renderer == "softras" else f"{renderer}/{budget}"
+
+
+def photos_by_renderer(model, samples: list[dict], renderers: list[str], spp: int,
+                       progress: bool) -> tuple[dict, dict]:
+    """(renderer -> samples, the JSON's "mitsuba" section or nothing). Mitsuba's photos of the
+    same faces; their render checks per face, the Monte Carlo noise of the first NOISE_FACES."""
+    from tqdm import tqdm
+
+    photos = {"softras": samples} if "softras" in renderers else {}
+    if "mitsuba" not in renderers:
+        return photos, {}
+    photos["mitsuba"] = [mitsuba_sample(model, s, spp, seed=i)
+                         for i, s in enumerate(tqdm(samples, desc="mitsuba renders", disable=not progress))]
+    per_face = [s["render_check"] for s in photos["mitsuba"]]
+    noise = [mitsuba_noise(model, s, spp) for s in samples[:NOISE_FACES]]
+    return photos, dict(mitsuba=dict(
+        spp=spp, faces=per_face, noise_rms=noise,
+        silhouette_iou_min=min(c["silhouette_iou"] for c in per_face),
+        silhouette_iou_median=statistics.median(c["silhouette_iou"] for c in per_face),
+        psnr_vs_softras_db_median=statistics.median(c["psnr_vs_softras_db"] for c in per_face),
+        render_seconds_median=statistics.median(c["render_seconds"] for c in per_face)))
 
 
 def register(which) -> None:
@@ -283,8 +396,15 @@ def register(which) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed of the synthetic faces (default 0)")
     p.add_argument("--photo-weight", type=float, default=None,
                    help="photometric weight of the fits (default: the fit's own default, 10)")
+    p.add_argument("--renderers", default="softras",
+                   help="comma-separated renderers of the synthetic photos: softras (softras-cl, sharp, "
+                        "the fit's own image formation), mitsuba (Mitsuba 3 path tracer: environment + "
+                        "sun light, cast shadows, bounces; needs the validate extra); default softras")
+    p.add_argument("--spp", type=int, default=DEFAULT_SPP,
+                   help=f"Mitsuba samples per pixel (default {DEFAULT_SPP})")
     p.add_argument("--model", default=None, help="face model file (default: the shipped demo model)")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
     p.add_argument("--out", default="out/bench",
-                   help="directory for face.json, face.png (accuracy vs time) and face_strip.png")
+                   help="directory for face.json, face.png (accuracy vs time), face_strip.png "
+                        "(and face_mitsuba_strip.png)")
     p.set_defaults(func=run)

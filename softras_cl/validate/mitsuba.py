@@ -107,8 +107,13 @@ def _rgb3(name: str, value) -> np.ndarray:
     return v.copy()
 
 
-def sensor_dict(camera: Camera, vertices: np.ndarray | None = None) -> dict:
-    """Mitsuba `perspective` sensor (with its film and sampler) equivalent to `camera`."""
+def sensor_dict(camera: Camera, vertices: np.ndarray | None = None, spp: int = 1, alpha: bool = False) -> dict:
+    """Mitsuba `perspective` sensor (with its film and sampler) equivalent to `camera`.
+
+    spp 1: one ray through each pixel centre; spp > 1: an `independent` sampler, rays through
+    uniform random points of each pixel averaged by the box filter (the pixel-area mean, as a
+    camera's pixel sees it). alpha: an RGBA film (alpha: the fraction of the pixel's rays that
+    hit something)."""
     mi = _mitsuba()
     if camera.projection != "perspective":
         raise ValueError(f"the Mitsuba reference supports perspective cameras only, got {camera.projection!r}")
@@ -134,9 +139,10 @@ def sensor_dict(camera: Camera, vertices: np.ndarray | None = None) -> dict:
         "principal_point_offset_y": -((camera.cy + 0.5) - 0.5 * h) / h,
         "near_clip": near,
         "far_clip": far,
-        "sampler": {"type": "stratified", "sample_count": 1, "jitter": False},
+        "sampler": ({"type": "stratified", "sample_count": 1, "jitter": False} if spp == 1
+                    else {"type": "independent", "sample_count": int(spp)}),
         "film": {"type": "hdrfilm", "width": w, "height": h, "rfilter": {"type": "box"},
-                 "pixel_format": "rgb", "component_format": "float32"},
+                 "pixel_format": "rgba" if alpha else "rgb", "component_format": "float32"},
     }
 
 

@@ -17,7 +17,8 @@ def test_focal_error_is_relative_to_the_truth():
 
 def test_summary_gives_median_and_max_focal_error():
     rows = [dict(rmse_mm=1.0, mean_face_rmse_mm=2.0, rigid_rmse_mm=1.0, rigid_mean_face_rmse_mm=2.0,
-                 landmark_error_px=0.5, psnr_face_db=30.0, seconds=1.0, cpu_seconds=1.0, focal_error=e)
+                 landmark_error_px=0.5, psnr_face_db=30.0, seconds=1.0, cpu_seconds=1.0, focal_error=e,
+                 residual_rms=0.01)
             for e in (0.02, 0.30, 0.05)]
     s = bench.summarise(rows)
     assert s["focal_error_median"] == pytest.approx(0.05) and s["focal_error_max"] == pytest.approx(0.30)
@@ -57,3 +58,10 @@ def test_bench_face_reports_focal_error_and_baseline(demo_face_model, tmp_path, 
             abs(face["focal_px"] - truth["focal"][0]) / truth["focal"][0])
     # the photometric stages moved the fit: the baseline is a different fit, not a copy
     assert doc["faces"]["fast"][0]["psnr_face_db"] != doc["faces"]["landmarks-only"][0]["psnr_face_db"]
+
+
+def test_renderers_are_checked_before_any_fit(run_cli):
+    result = run_cli("bench", "face", "--renderers", "softras,blender")
+    assert result.code == 2 and "--renderers must name some of softras, mitsuba" in result.err
+    result = run_cli("bench", "face", "--renderers", "softras,softras")
+    assert result.code == 2 and "--renderers" in result.err
