@@ -36,7 +36,7 @@ from softras_cl.provenance import provenance
 DEFAULT_BUDGETS = ("fast", "default", "thorough")
 LANDMARKS_ONLY = "landmarks-only"    # the baseline row: the default budget without photometric stages
 RENDERERS = ("softras", "mitsuba")
-DEFAULT_SPP = 128        # Mitsuba rays per pixel: noise ~0.007 RMS linear RGB on the face
+DEFAULT_SPP = 256        # Mitsuba rays per pixel: noise ~0.005 RMS linear RGB on the face (0.007 at 128)
 NOISE_FACES = 3          # faces whose Mitsuba noise is measured (two extra renders each)
 
 
