@@ -32,9 +32,11 @@ PY
 }
 
 if [ -x "$ENV_DIR/bin/python" ] && check 2>/dev/null; then
+  echo '*' > "$ENV_DIR/.gitignore"
   exit 0
 fi
 [ -x "$ENV_DIR/bin/python" ] || "$PYTHON" -m venv "$ENV_DIR"
+echo '*' > "$ENV_DIR/.gitignore"   # keeps the environment out of `git status`
 # PIP_FIND_LINKS may point at a local CPU torch wheel; the peer needs PyPI's CUDA build.
 PIP_FIND_LINKS= "$ENV_DIR/bin/python" -m pip install --quiet --upgrade pip
 PIP_FIND_LINKS= "$ENV_DIR/bin/python" -m pip install --quiet \
