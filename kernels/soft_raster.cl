@@ -847,3 +847,31 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
 #endif
     }
 }
+
+/* ---- softmax backward: per-pixel sum over the rgb and depth channels of cotangent * output ---- */
+__kernel void soft_raster_g_dot(const int H, const int ntx, const int Hp, const int Wp,
+                                __global const real *grad_rgb, __global const real *grad_depth,
+                                __global const real *out_rgb, __global const real *out_depth,
+                                __global real *g_dot_img)
+{
+    /* no fused multiply-adds: the same roundings as the sums this replaced (numpy's, on the host) */
+#pragma OPENCL FP_CONTRACT OFF
+    const int cb = get_global_id(0), row = get_global_id(1), batch = get_global_id(2);
+    if (cb >= ntx)
+        return;
+    const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
+    const size_t pix = ((size_t)batch * Hp + row) * Wp + cb * SR_VEC;
+    realv total = (realv)R(0);
+    if (row < H) {                /* the forward leaves the padding rows unwritten */
+#if SR_OUT_RGB
+        realv rgb = VLOAD(0, grad_rgb + pix) * VLOAD(0, out_rgb + pix);
+        for (int c = 1; c < 3; ++c)
+            rgb = rgb + VLOAD(0, grad_rgb + c * npix + pix) * VLOAD(0, out_rgb + c * npix + pix);
+        total = total + rgb;
+#endif
+#if SR_OUT_DEPTH
+        total = total + VLOAD(0, grad_depth + pix) * VLOAD(0, out_depth + pix);
+#endif
+    }
+    VSTORE(total, 0, g_dot_img + pix);
+}

@@ -98,14 +98,21 @@ STAGES = ("setup", "binning", "upload", "forward", "backward_prep", "backward", 
 
 
 def time_raster(raster, scene: Scene, repeats: int) -> dict:
-    """Median forward and forward+backward ms of `repeats` runs after one warm-up (which compiles),
-    then the median ms of each stage (SoftRasterizer.stage_ms) over `repeats` more runs; those
-    wait for the device at every stage boundary, so the stages add up to a little more.
+    """Median forward, forward+backward and forward+backward CPU ms of `repeats` runs after one
+    warm-up (which compiles), then the median ms of each stage (SoftRasterizer.stage_ms) over
+    `repeats` more runs; those wait for the device at every stage boundary, so the stages add up
+    to a little more. Each run's output is dropped before the next starts, as a fitting loop
+    does (keeping them all alive made every run pay fresh allocations and page faults).
 
-    Returns dict(fwd_ms, fwdbwd_ms, stage_ms, out, grads) with the last run's output and gradients.
+    Returns dict(fwd_ms, fwdbwd_ms, fwdbwd_cpu_ms, stage_ms, out, grads) with the last run's
+    output and gradients.
     """
     run_once(raster, scene)
-    runs = [run_once(raster, scene) for _ in range(max(repeats, 1))]
+    times = []
+    for _ in range(max(repeats, 1)):
+        cpu = time.process_time()
+        fwd, fwdbwd, out, grads = run_once(raster, scene)
+        times.append((fwd, fwdbwd, time.process_time() - cpu))
     stages = []
     for _ in range(max(repeats, 1)):
         raster.stage_ms = {}
@@ -113,9 +120,8 @@ def time_raster(raster, scene: Scene, repeats: int) -> dict:
         stages.append(raster.stage_ms)
     raster.stage_ms = None
     stage_ms = {k: statistics.median(st.get(k, 0.0) for st in stages) for k in STAGES}
-    return dict(fwd_ms=1e3 * statistics.median(r[0] for r in runs),
-                fwdbwd_ms=1e3 * statistics.median(r[1] for r in runs), stage_ms=stage_ms,
-                out=runs[-1][2], grads=runs[-1][3])
+    fwd, fwdbwd, cpu = (1e3 * statistics.median(t[i] for t in times) for i in range(3))
+    return dict(fwd_ms=fwd, fwdbwd_ms=fwdbwd, fwdbwd_cpu_ms=cpu, stage_ms=stage_ms, out=out, grads=grads)
 
 
 def footprint_pixel_boxes(tri: np.ndarray, settings) -> np.ndarray:
@@ -255,6 +261,7 @@ def raster_row(scene: Scene, repeats: int) -> tuple[dict, dict]:
     timing = time_raster(SoftRasterizer(settings), scene, repeats)
     pairs = count_pairs(scene, settings)
     row = dict(faces=scene.n_faces, size=scene.size, fwd_ms=timing["fwd_ms"], fwdbwd_ms=timing["fwdbwd_ms"],
+               fwdbwd_cpu_ms=timing["fwdbwd_cpu_ms"], load_avg=os.getloadavg()[0],
                stage_ms=timing["stage_ms"], **{f"{k}_ms": v for k, v in timing["stage_ms"].items()},
                pairs=pairs, ns_per_pair=1e6 * timing["fwdbwd_ms"] / pairs if pairs else None,
                pairs_frac=pairs / (scene.size * scene.size * scene.n_faces),
@@ -308,7 +315,8 @@ def accuracy_rows(scene: Scene, variants: list[tuple], repeats: int, progress) -
 
 # ---- output --------------------------------------------------------------------------------
 RASTER_COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("fwd ms", "fwd_ms", ".2f"),
-                  ("fwd+bwd ms", "fwdbwd_ms", ".2f"), ("pairs", "pairs", ",d"), ("ns/pair", "ns_per_pair", ".2f"),
+                  ("fwd+bwd ms", "fwdbwd_ms", ".2f"), ("fwd+bwd CPU ms", "fwdbwd_cpu_ms", ".2f"),
+                  ("load", "load_avg", ".1f"), ("pairs", "pairs", ",d"), ("ns/pair", "ns_per_pair", ".2f"),
                   ("pairs/(HWF)", "pairs_frac", ".2e"), ("bin entries", "bin_entries", ",d"),
                   ("saved MiB", "saved_mib", ".1f"), ("peak RSS MiB", "peak_rss_mib", ".0f"),
                   ("ref ms", "ref_ms", ".0f"), ("ref/fwd", "ref_ratio", ",.0f"), ("ref err", "ref_max_err", ".1e")]

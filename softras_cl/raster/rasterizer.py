@@ -20,6 +20,7 @@ from softras_cl.raster.binning import Bins, bin_faces, face_setup, roi_tiles, ti
 from softras_cl.raster.corners import scatter_corners
 from softras_cl.raster.inputs import MeshInputs, check_cotangent, check_inputs
 from softras_cl.raster.memory import check_forward_memory
+from softras_cl.raster.pool import BufferPool, ScratchArrays
 from softras_cl.raster.settings import RasterSettings
 
 GRAD_NAMES = ("vertices", "colors")
@@ -69,23 +70,27 @@ class RasterContext:
 
     mesh: the checked inputs. grads: the gradient names forward was asked for (non-empty).
     bins: the (tile, face) lists (host). buffers: the device inputs. images: the forward's
-    outputs as (planes, B, Hp, Wp) real host arrays, keyed "rgb" (3 planes), "alpha", "depth"
-    (1 plane each), requested outputs only. state: the per-pixel device state.
+    outputs as device buffers of (planes, B, Hp, Wp) reals, keyed "rgb" (3 planes), "alpha",
+    "depth" (1 plane each), requested outputs only. state: the per-pixel device state.
+    The device buffers go back to the rasteriser's pool when the context is garbage collected.
     """
     mesh: MeshInputs
     grads: tuple[str, ...]
     bins: Bins
     buffers: FaceBuffers
-    images: dict[str, np.ndarray]
+    images: dict[str, cl.Buffer]
     state: PixelState
 
     def nbytes(self) -> int:
         """Bytes kept: bin arrays (host) and device buffers, each buffer counted once."""
         host = sum(a.nbytes for a in (self.bins.tile_start, self.bins.tile_faces,
                                       self.bins.tile_slots, self.bins.face_start))
-        device = {b.int_ptr: b.size for obj in (self.buffers, self.state)
-                  for b in (getattr(obj, f.name) for f in fields(obj)) if b is not None}
-        return host + sum(device.values())
+        return host + sum(b.size for b in self.device_buffers())
+
+    def device_buffers(self) -> list:
+        """Every device buffer the context holds, each once."""
+        found = [getattr(obj, f.name) for obj in (self.buffers, self.state) for f in fields(obj)]
+        return list({b.int_ptr: b for b in found + list(self.images.values()) if b is not None}.values())
 
 
 @dataclass
@@ -123,6 +128,9 @@ class SoftRasterizer:
             raise ValueError(f"settings.dtype='float64' but device {self.device.name!r} has no "
                              "cl_khr_fp64; use dtype='float32' or another device")
         self.real = np.dtype(settings.dtype)
+        # device buffers and host staging reused from call to call (softras_cl.raster.pool)
+        self.pool = BufferPool(self.ctx)
+        self.scratch = ScratchArrays()
         # stage_ms: None (default), or a dict that forward/backward add their stages' wall times
         # to, in ms: "setup" (input checks, face set-up), "binning", "upload", "forward" (kernel
         # and image download), "backward_prep" (cotangent planes and buffers), "backward"
@@ -171,10 +179,14 @@ class SoftRasterizer:
         state = self._state_buffers(mesh.batch) if grads else None
         t = self._stage("upload", t, finish=True)
         images = self._run_forward(mesh, buffers, state)
+        crops = [self._fetch(images.get(n), 3 if n == "rgb" else 1, mesh.batch) for n in ("rgb", "alpha", "depth")]
         saved = RasterContext(mesh, grads, bins, buffers, images, state) if grads else None
-        out = RasterOutput(*(self._crop(images.get(n)) for n in ("rgb", "alpha", "depth")), saved)
+        if saved is not None:
+            self.pool.give_when_dead(saved, [b for b in saved.device_buffers() if b is not self._dummy()])
+        else:
+            self.pool.give(self._pooled(list(images.values()) + [getattr(buffers, f.name) for f in fields(buffers)]))
         self._stage("forward", t, finish=True)
-        return out
+        return RasterOutput(*crops, saved)
 
     def backward(self, output: RasterOutput, grad_rgb=None, grad_alpha=None, grad_depth=None) -> dict:
         """Gradients of a scalar loss given its cotangents dL/d(rgb, alpha, depth).
@@ -233,21 +245,20 @@ class SoftRasterizer:
         npix = mesh.batch * g.hp * g.wp
         planes = dict(rgb=3 if "rgb" in s.outputs else 0, alpha=int("alpha" in s.outputs),
                       depth=int("depth" in s.outputs))
-        out = {n: cl.Buffer(self.ctx, cl.mem_flags.WRITE_ONLY, npix * k * real.itemsize)
-               for n, k in planes.items() if k}
+        out = {n: self.pool.take(npix * k * real.itemsize) for n, k in planes.items() if k}
         dummy = self._dummy()
         knl = self._kernel("soft_raster_fwd", (), state is not None)
         knl(self.queue, (_round_up(g.ntx), g.hp, mesh.batch), GROUP, *self._geometry_args(mesh, bufs),
             *(real.type(c) for c in s.background),
             *(out.get(n, dummy) for n in ("rgb", "alpha", "depth")), *self._state_args(state))
-        return {n: self._download(b, planes[n], mesh.batch) for n, b in out.items()}
+        return out
 
     def _state_buffers(self, batch: int) -> PixelState:
         """Per-pixel state the backward reads: softmax log-normaliser or hard face ids, and the
         occupancy sums (two planes) or the sum of D."""
         s, g, itemsize = self.settings, tile_grid(self.settings), self.real.itemsize
         npix = batch * g.hp * g.wp
-        new = lambda nbytes: cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, nbytes)
+        new = self.pool.take
         soft_color = {"rgb", "depth"} & set(s.outputs) and s.color_agg == "softmax"
         alpha_planes = ("alpha" in s.outputs) * {"occupancy": 2, "sum": 1, "hard": 0}[s.alpha_agg]
         return PixelState(color=new(npix * itemsize) if soft_color else None,
@@ -260,52 +271,54 @@ class SoftRasterizer:
         return [b if b is not None else self._dummy() for b in bufs]
 
     def _run_backward(self, saved: RasterContext, cot: dict, t: float) -> dict:
-        """Run the backward kernel: per-(tile, face) slot sums and uv texel sums (host arrays).
-        t: perf_counter at the start of backward (stage timing)."""
+        """Run the backward kernel: {"pos", "attr", "light": per-(tile, face) slot sums, "tex":
+        uv texel sums, None where not computed; "scale": the uv fixed-point scale}. The arrays
+        are host staging that the next backward overwrites. t: perf_counter at the start of
+        backward (stage timing)."""
         s, real, mesh, bins = self.settings, self.real, saved.mesh, saved.bins
         g = tile_grid(s)
-        images, grads = saved.images, saved.grads
-        # an output without a cotangent contributes zero; the kernel variant still reads its plane
-        planes = {n: self._pad_planes(c if c is not None else np.zeros(_cot_shape(n, mesh.batch, s)), mesh.batch)
-                  for n, c in cot.items() if n[len("grad_"):] in s.outputs}
-        g_dot = self._g_dot_image(images, planes, mesh.batch)
-        ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
-        dummy = self._dummy()
-        cot_bufs = [cl.Buffer(self.ctx, ro, hostbuf=planes[n]) if n in planes else dummy
-                    for n in ("grad_rgb", "grad_alpha", "grad_depth")]
-        g_dot_buf = cl.Buffer(self.ctx, ro, hostbuf=g_dot) if g_dot is not None else dummy
-        n = max(bins.n_entries, 1)
-        slot_pos = np.zeros((n, 9), real) if "vertices" in grads else None
-        slot_attr, tex_fixed, scale = self._color_grad_buffers(mesh, grads, n, cot["grad_rgb"])
-        slot_light = np.zeros((n, LIGHT_PARAMS), real) if slot_attr is not None and s.lighting != "none" else None
-        rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
-        hosts = (slot_pos, slot_attr, slot_light, tex_fixed)
-        out_bufs = [cl.Buffer(self.ctx, rw, hostbuf=a) if a is not None else dummy for a in hosts]
-        kernel_grads = tuple(g for g in grads if g != "colors" or slot_attr is not None or tex_fixed is not None)
+        shapes, scale = self._slot_shapes(mesh, saved.grads, max(bins.n_entries, 1), cot["grad_rgb"])
+        kernel_grads = tuple(x for x in saved.grads if x != "colors" or {"attr", "tex"} & set(shapes))
         if not kernel_grads:    # colour gradients only, and no rgb cotangent: all zero
-            return dict(pos=slot_pos, attr=slot_attr, light=slot_light, tex=tex_fixed, scale=scale)
+            return dict(pos=None, attr=None, light=None, tex=None, scale=scale)
+        # an output without a cotangent contributes zero; the kernel variant still reads its plane
+        cot_bufs = {n: self._upload_planes(n, c, mesh.batch) for n, c in cot.items() if n[len("grad_"):] in s.outputs}
+        g_dot = self._g_dot_image(saved, cot_bufs, kernel_grads)
+        hosts = {k: self.scratch.get("slot_" + k, shape, dtype) for k, (shape, dtype) in shapes.items()}
+        out_bufs = {k: self.pool.take(a.nbytes) for k, a in hosts.items()}
+        partial = len(bins.tile_faces) < bins.n_entries      # a region of interest leaves slots unwritten
+        for k, buf in out_bufs.items():
+            if partial or k == "tex" or s.texture == "face":  # texels are added into
+                cl.enqueue_fill_buffer(self.queue, buf, np.zeros(1, np.uint32), 0, hosts[k].nbytes)
         knl = self._kernel("soft_raster_bwd", kernel_grads, True)
         t = self._stage("backward_prep", t, finish=True)
+        dummy = self._dummy()
         knl(self.queue, (_round_up(g.ntx), g.nty, mesh.batch), GROUP, *self._geometry_args(mesh, saved.buffers),
-            saved.buffers.tile_slots, *cot_bufs, g_dot_buf, *self._state_args(saved.state),
-            real.type(scale), *out_bufs)
-        for host, dev in zip(hosts, out_bufs):
-            if host is not None:
-                cl.enqueue_copy(self.queue, host, dev)
+            saved.buffers.tile_slots, *(cot_bufs.get(n, dummy) for n in ("grad_rgb", "grad_alpha", "grad_depth")),
+            dummy if g_dot is None else g_dot, *self._state_args(saved.state), real.type(scale),
+            *(out_bufs.get(k, dummy) for k in ("pos", "attr", "light", "tex")))
+        for k, host in hosts.items():
+            cl.enqueue_copy(self.queue, host, out_bufs[k])
+        self.pool.give([*cot_bufs.values(), *out_bufs.values(), *([g_dot] if g_dot is not None else [])])
         self._stage("backward", t, finish=True)
-        return dict(pos=slot_pos, attr=slot_attr, light=slot_light, tex=tex_fixed, scale=scale)
+        return {**dict(pos=None, attr=None, light=None, tex=None), **hosts, "scale": scale}
 
-    def _color_grad_buffers(self, mesh: MeshInputs, grads: tuple, n_entries: int, grad_rgb):
-        """Host arrays the backward writes colour gradients into, and the uv fixed-point scale."""
-        s = self.settings
+    def _slot_shapes(self, mesh: MeshInputs, grads: tuple, n_entries: int, grad_rgb) -> tuple[dict, float]:
+        """{name: (shape, dtype)} of what the backward kernel writes, and the uv fixed-point scale:
+        "pos" (n_entries, 9) and "attr" (n_entries, K) colour and normal slots, "light"
+        (n_entries, LIGHT_PARAMS) slots, "tex" (B, Ht, Wt, 3) int64 uv texel sums."""
+        s, real = self.settings, self.real
+        shapes = {"pos": ((n_entries, 9), real)} if "vertices" in grads else {}
         if "colors" not in grads or "rgb" not in s.outputs or grad_rgb is None:
-            return None, None, 1.0
-        if s.texture == "vertex":
-            return np.zeros((n_entries, vertex_attr_width(s.lighting != "none")), self.real), None, 1.0
-        if s.texture == "face":
-            return np.zeros((n_entries, mesh.tex_res ** 2 * 3), self.real), None, 1.0
-        scale = _fixed_point_scale(grad_rgb, self.real)
-        return None, np.zeros((mesh.batch, *mesh.tex_shape, 3), np.int64), scale
+            return shapes, 1.0
+        if s.texture == "uv":
+            shapes["tex"] = ((mesh.batch, *mesh.tex_shape, 3), np.int64)
+            return shapes, _fixed_point_scale(grad_rgb, real)
+        width = vertex_attr_width(s.lighting != "none") if s.texture == "vertex" else mesh.tex_res ** 2 * 3
+        shapes["attr"] = ((n_entries, width), real)
+        if s.lighting != "none":
+            shapes["light"] = ((n_entries, LIGHT_PARAMS), real)
+        return shapes, 1.0
 
     def _gather_grads(self, saved: RasterContext, slots: dict) -> dict:
         """Sum the (tile, face) slots per face in a fixed order, then faces onto vertices."""
@@ -344,15 +357,25 @@ class SoftRasterizer:
 
     # ---- buffers ---------------------------------------------------------------------------
     def _upload(self, mesh: MeshInputs, geom: np.ndarray, bins: Bins) -> FaceBuffers:
-        """Device copies of the face records, colour inputs and bins, in the kernel dtype."""
-        ro = cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR
+        """Device copies (pooled buffers) of the face records, colour inputs and bins, in the kernel dtype."""
         arrays = dict(geom=geom.astype(self.real, order="C"), attr=mesh.face_attributes().astype(self.real),
                       tex_image=mesh.texture_image_array().astype(self.real),
                       light=(mesh.light if mesh.light is not None else np.zeros(0)).astype(self.real),
                       tile_start=bins.tile_start, tile_faces=bins.tile_faces,
                       tile_slots=bins.tile_slots)
-        return FaceBuffers(**{name: cl.Buffer(self.ctx, ro, hostbuf=np.ascontiguousarray(a)) if a.size
-                              else self._dummy() for name, a in arrays.items()})
+        return FaceBuffers(**{name: self._to_device(np.ascontiguousarray(a)) for name, a in arrays.items()})
+
+    def _to_device(self, array: np.ndarray) -> cl.Buffer:
+        """A pooled device copy of `array` (the dummy buffer when it is empty)."""
+        if not array.size:
+            return self._dummy()
+        buf = self.pool.take(array.nbytes)
+        cl.enqueue_copy(self.queue, buf, array)
+        return buf
+
+    def _pooled(self, buffers) -> list:
+        """The buffers that came from the pool (all but the dummy)."""
+        return [b for b in buffers if b is not self._dummy()]
 
     def _dummy(self) -> cl.Buffer:
         """A small buffer standing in for arguments the kernel variant never reads."""
@@ -360,40 +383,47 @@ class SoftRasterizer:
             self._dummy_buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, 64)
         return self._dummy_buf
 
-    def _download(self, buf: cl.Buffer, n_planes: int, batch: int) -> np.ndarray:
-        """(planes, B, Hp, Wp) host copy of a per-pixel device buffer."""
-        g = tile_grid(self.settings)
-        host = np.empty((n_planes, batch, g.hp, g.wp), self.real)
-        cl.enqueue_copy(self.queue, host, buf)
-        return host
-
-    def _crop(self, planes: np.ndarray | None) -> np.ndarray | None:
-        """(planes, B, Hp, Wp) -> (B, H, W) for one plane, (B, H, W, planes) otherwise."""
-        if planes is None:
+    def _fetch(self, buf: cl.Buffer | None, n_planes: int, batch: int) -> np.ndarray | None:
+        """Host copy of a (planes, B, Hp, Wp) device image, cropped to (B, H, W) for one plane
+        and (B, H, W, planes) otherwise; None for None."""
+        if buf is None:
             return None
-        h, w = self.settings.height, self.settings.width
-        img = planes[:, :, :h, :w]
-        return img[0].copy() if img.shape[0] == 1 else np.ascontiguousarray(np.moveaxis(img, 0, -1))
+        s, g = self.settings, tile_grid(self.settings)
+        shape = (n_planes, batch, g.hp, g.wp)
+        if n_planes == 1 and (g.hp, g.wp) == (s.height, s.width):     # nothing to crop
+            host = np.empty(shape[1:], self.real)
+            cl.enqueue_copy(self.queue, host, buf)
+            return host
+        host = self.scratch.get(f"image{n_planes}", shape, self.real)
+        cl.enqueue_copy(self.queue, host, buf)
+        img = host[:, :, :s.height, :s.width]
+        return img[0].copy() if n_planes == 1 else np.ascontiguousarray(np.moveaxis(img, 0, -1))
 
-    def _pad_planes(self, image: np.ndarray, batch: int) -> np.ndarray:
-        """(B, H, W[, C]) -> (C, B, Hp, Wp) zero-padded, in the kernel dtype."""
-        g = tile_grid(self.settings)
-        planes = image[None] if image.ndim == 3 else np.moveaxis(image, -1, 0)
-        out = np.zeros((planes.shape[0], batch, g.hp, g.wp), self.real)
-        out[:, :, :image.shape[1], :image.shape[2]] = planes
-        return out
+    def _upload_planes(self, name: str, image: np.ndarray | None, batch: int) -> cl.Buffer:
+        """Cotangent `name` (B, H, W[, 3]; None = zeros) -> pooled device buffer of its
+        (planes, B, Hp, Wp) planes in the kernel dtype, zero-padded."""
+        s, g = self.settings, tile_grid(self.settings)
+        host = self.scratch.get(name, (3 if name == "grad_rgb" else 1, batch, g.hp, g.wp), self.real, zeros=True)
+        region = host[:, :, :s.height, :s.width]
+        if image is None:
+            region[...] = 0
+        else:
+            np.copyto(region, image[None] if image.ndim == 3 else np.moveaxis(image, -1, 0), casting="unsafe")
+        return self._to_device(host)
 
-    def _g_dot_image(self, images: dict, planes: dict, batch: int) -> np.ndarray | None:
-        """Per-pixel sum over rgb and depth channels of cotangent * output (softmax backward)."""
-        s = self.settings
+    def _g_dot_image(self, saved: RasterContext, cot_bufs: dict, kernel_grads: tuple) -> cl.Buffer | None:
+        """Pooled device buffer of the per-pixel sum over rgb and depth channels of cotangent *
+        output (softmax backward), or None when the settings need none."""
+        s, g, batch = self.settings, tile_grid(self.settings), saved.mesh.batch
         if s.color_agg != "softmax" or not {"rgb", "depth"} & set(s.outputs):
             return None
-        total = np.zeros(images.get("rgb", images.get("depth")).shape[1:], self.real)
-        h = s.height   # the forward never writes the padding rows below the image
-        for cot_name, img_name in (("grad_rgb", "rgb"), ("grad_depth", "depth")):
-            if cot_name in planes:
-                total[:, :h] += (planes[cot_name][:, :, :h] * images[img_name][:, :, :h]).sum(0)
-        return total
+        out = self.pool.take(batch * g.hp * g.wp * self.real.itemsize)
+        dummy, i32 = self._dummy(), np.int32
+        knl = self._kernel("soft_raster_g_dot", kernel_grads, True)
+        knl(self.queue, (_round_up(g.ntx), g.hp, batch), GROUP, i32(s.height), i32(g.ntx), i32(g.hp), i32(g.wp),
+            cot_bufs.get("grad_rgb", dummy), cot_bufs.get("grad_depth", dummy),
+            saved.images.get("rgb", dummy), saved.images.get("depth", dummy), out)
+        return out
 
 
 def _round_up(n: int) -> int:

@@ -1,0 +1,99 @@
+"""Buffers and host staging reused across calls (softras_cl.raster.pool): sizes, reuse, limits,
+and that a forward's context never shares buffers with a later call while it lives."""
+import gc
+
+import numpy as np
+import pytest
+
+from softras_cl import RasterSettings, SoftRasterizer
+from softras_cl.raster.pool import MIN_FREE_BYTES, BufferPool, ScratchArrays, size_class
+
+
+@pytest.fixture
+def context():
+    return SoftRasterizer(RasterSettings()).ctx
+
+
+@pytest.mark.parametrize("n", [1, 63, 64, 65, 1000, 4096, 4097, 123457, 10 ** 8 + 7])
+def test_size_class_rounds_up_by_at_most_an_eighth(n):
+    c = size_class(n)
+    assert c >= max(n, 64)
+    assert c <= max(64, n * 1.125)
+    assert size_class(c) == c
+
+
+def test_pool_reuses_returned_buffers_and_keeps_at_most_the_peak(context):
+    pool = BufferPool(context)
+    a = pool.take(1000)
+    pool.give([a])
+    assert pool.take(990).int_ptr == a.int_ptr          # same size class: the same buffer
+    big = [pool.take(MIN_FREE_BYTES) for _ in range(3)]
+    pool.give(big)
+    assert pool.free_bytes <= 3 * size_class(MIN_FREE_BYTES) + size_class(1000)
+    one = pool.take(2 * MIN_FREE_BYTES)                 # a new class; the peak does not grow past it
+    pool.give([one])
+    assert pool.free_bytes <= pool._peak
+
+
+def test_give_when_dead_returns_buffers_after_the_owner_is_collected(context):
+    class Owner:
+        pass
+    pool, owner = BufferPool(context), Owner()
+    buf = pool.take(4096)
+    pool.give_when_dead(owner, [buf])
+    assert pool.free_bytes == 0
+    del owner
+    gc.collect()
+    assert pool.free_bytes == buf.size
+
+
+def test_scratch_arrays_are_kept_per_shape():
+    scratch = ScratchArrays()
+    a = scratch.get("x", (2, 3), np.float32, zeros=True)
+    assert not a.any()
+    a[0, 0] = 5
+    assert scratch.get("x", (2, 3), np.float32, zeros=True) is a
+    b = scratch.get("x", (3, 3), np.float32, zeros=True)
+    assert b is not a and not b.any()
+
+
+def _scene(seed):
+    rng = np.random.default_rng(seed)
+    v = np.concatenate([rng.uniform(-1, 1, (1, 30, 2)), rng.uniform(2, 4, (1, 30, 1))], -1)
+    f = rng.integers(0, 30, (40, 3))
+    f = f[np.array([len(set(x)) == 3 for x in f])]
+    return v, f, rng.uniform(0, 1, (1, 30, 3))
+
+
+@pytest.mark.parametrize("roi", [False, True])
+def test_interleaved_calls_match_fresh_rasterisers(roi):
+    """Two forwards alive at once, backwards in the other order, on one rasteriser: the same
+    bits as separate rasterisers, and repeated calls do not grow the pool."""
+    s = RasterSettings(image_size=(24, 40), sigma=1e-3, gamma=1e-2, dist_eps=1e-4, dtype="float32",
+                       outputs=("rgb", "alpha", "depth"))
+    mask = np.zeros((24, 40), bool)
+    mask[3:12, 5:30] = True
+    kw = dict(grads=("vertices", "colors"), roi=mask if roi else None)
+    scenes = [_scene(1), _scene(2)]
+    rng = np.random.default_rng(0)
+    cots = [dict(grad_rgb=rng.standard_normal((1, 24, 40, 3)), grad_alpha=rng.standard_normal((1, 24, 40)),
+                 grad_depth=rng.standard_normal((1, 24, 40))) for _ in scenes]
+    want = []
+    for (v, f, c), cot in zip(scenes, cots):
+        r = SoftRasterizer(s)
+        out = r.forward(v, f, colors=c, **kw)
+        want.append((out, r.backward(out, **cot)))
+    shared = SoftRasterizer(s)
+    for _ in range(3):
+        outs = [shared.forward(v, f, colors=c, **kw) for v, f, c in scenes]
+        grads = [shared.backward(outs[i], **cots[i]) for i in (1, 0)][::-1]
+        for (w_out, w_grads), out, g in zip(want, outs, grads):
+            for name in ("rgb", "alpha", "depth"):
+                np.testing.assert_array_equal(getattr(out, name), getattr(w_out, name))
+            for name in w_grads:
+                np.testing.assert_array_equal(g[name], w_grads[name])
+        del outs, out
+        gc.collect()
+        if _ == 0:
+            free = shared.pool.free_bytes
+    assert shared.pool.free_bytes == free
