@@ -65,3 +65,15 @@ def test_renderers_are_checked_before_any_fit(run_cli):
     assert result.code == 2 and "--renderers must name some of softras, mitsuba" in result.err
     result = run_cli("bench", "face", "--renderers", "softras,softras")
     assert result.code == 2 and "--renderers" in result.err
+
+
+def test_mitsuba_lines_only_with_mitsuba():
+    assert bench.format_mitsuba(dict(summary={})) == ""
+    doc = dict(mitsuba=dict(spp=8, silhouette_iou_min=0.98, silhouette_iou_median=0.99, psnr_vs_softras_db_median=21.0,
+                            render_seconds_median=1.5, noise_rms=[0.01, 0.02]),
+               summary={"mitsuba/fast": dict(renderer="mitsuba", budget="fast", residual_rms_median=0.03),
+                        "mitsuba/landmarks-only": dict(renderer="mitsuba", budget="landmarks-only",
+                                                       residual_rms_median=0.09)})
+    text = bench.format_mitsuba(doc)
+    assert "(8 spp)" in text and "min 0.9800" in text and "0.0100, 0.0200" in text
+    assert "residual RMS on mitsuba photos 0.0300" in text       # the baseline's is not the fit's

@@ -106,3 +106,23 @@ def test_face_photo_differs_in_shading_not_in_geometry(demo_face_model):
     assert m["landmarks"] is sample["landmarks"]
     noise = mitsuba_noise(demo_face_model, sample, spp=16)
     assert 0.002 < noise < check["rms_vs_softras"]
+
+
+def test_bench_face_on_mitsuba_photos(tmp_path, capsys):
+    """A one-face bench on Mitsuba's photo: its rows, its render checks and its strip."""
+    import json
+
+    from softras_cl.cli import main
+
+    out = tmp_path / "bench"
+    assert main(["bench", "face", "--faces", "1", "--size", "64", "--budgets", "fast", "--renderers", "mitsuba",
+                 "--spp", "4", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "mitsuba photos (4 spp)" in text and "Monte Carlo noise" in text
+    doc = json.loads((out / "face.json").read_text())
+    assert list(doc["summary"]) == ["mitsuba/landmarks-only", "mitsuba/fast"]
+    assert {(s["renderer"], s["budget"]) for s in doc["summary"].values()} == {
+        ("mitsuba", "landmarks-only"), ("mitsuba", "fast")}
+    check, = doc["mitsuba"]["faces"]
+    assert check["silhouette_iou"] > 0.95 and doc["mitsuba"]["noise_rms"][0] > 0
+    assert (out / "face_mitsuba_strip.png").stat().st_size > 0 and not (out / "face_strip.png").exists()
