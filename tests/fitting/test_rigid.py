@@ -118,3 +118,33 @@ def test_failure_basins_names_symmetric_poses():
     basins = failure_basins([target] * 4, [np.array([0.01, 0, 0]), quarter_z, half_x, np.array([0, 0.7, 0])])
     assert basins == {"converged": 0.25, "90 deg about view axis": 0.25, "180 deg": 0.25,
                       "no symmetric pose": 0.25}
+
+
+def test_pool2_is_the_block_mean_and_unpool2_its_adjoint():
+    from softras_cl.fitting.recipes.rigid import pool2, unpool2
+    rng = np.random.default_rng(4)
+    for shape in ((8, 6, 3), (4, 10)):
+        x = rng.normal(size=shape)
+        h, w = shape[:2]
+        blocks = x.reshape(h // 2, 2, w // 2, 2, *shape[2:])
+        np.testing.assert_allclose(pool2(x), blocks.mean(axis=(1, 3)), rtol=1e-15, atol=1e-15)
+        y = rng.normal(size=pool2(x).shape)
+        assert np.isclose((pool2(x) * y).sum(), (x * unpool2(y)).sum(), rtol=1e-14)
+
+
+def test_pose_objective_renders_a_repeated_point_once():
+    """fit_rotation's first-step probe and the solver's first evaluation are the same point:
+    the second call returns the first's answer without rendering; any other point renders."""
+    scene = PoseScene(size=32)
+    _, out = scene.render(np.array([0.3, 0.2, -0.1]), 1e-5, 1e-4)
+    objective = pose_objective(scene, out.rgb[0], out.alpha[0], np.eye(3))
+    stage, other = (Stage(n, ("delta",), dict(image=1.0, silhouette=0.1), sigma=1e-2, gamma=1e-1)
+                    for n in ("a", "b"))
+    renders = []
+    original = scene.render
+    scene.render = lambda *a, **k: (renders.append(a), original(*a, **k))[1]
+    first = objective({"delta": np.zeros(3)}, stage)
+    assert objective({"delta": np.zeros(3)}, stage) is first and len(renders) == 1
+    objective({"delta": np.array([0.0, 0.0, 1e-9])}, stage)
+    objective({"delta": np.array([0.0, 0.0, 1e-9])}, other)
+    assert len(renders) == 3
