@@ -18,6 +18,14 @@ region (sRGB); the relative error of the fitted focal length |f - f*| / f* (medi
 over the faces); the time per fit. A landmarks-only row (the default budget's landmark stage
 alone, no photometric stage) is the baseline the photo has to beat: what the photo adds to the
 shape, the pose and the focal length is the difference.
+
+--renderers softras,mitsuba also fits Mitsuba 3's path-traced photo of each face
+(softras_cl.validate.mitsuba_face: the same truth, camera, background and landmarks, lit by the
+SH light as an environment map plus a sun, with cast shadows and bounces): an image the fit's
+own renderer did not make. Both photos of a face are fitted one after the other (A B A B), and
+the JSON keeps softras-cl's runs under the budget's name, Mitsuba's under "mitsuba/<budget>",
+with the Mitsuba photos' checks (silhouette IoU against softras-cl's render of the truth, PSNR
+between the two photos, Monte Carlo noise) under "mitsuba".
 """
 from __future__ import annotations
 
