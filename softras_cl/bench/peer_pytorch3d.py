@@ -60,6 +60,12 @@ def check_scene(scene) -> None:
                          f"got {float(scene['dist_eps'])}")
 
 
+def blur_radius(sigma: float, dist_eps: float) -> float:
+    """PyTorch3D's blur_radius (a squared NDC distance) for our cut-off: outside a face,
+    D = sigmoid(-d2 / sigma) >= dist_eps exactly when d2 <= sigma * log(1 / dist_eps - 1)."""
+    return sigma * math.log(1.0 / dist_eps - 1.0)
+
+
 class Peer:
     """PyTorch3D set up for one scene: tensors, the mapped settings and the renderer."""
 
@@ -76,8 +82,8 @@ class Peer:
         self.grad_rgb = torch.tensor(scene["grad_rgb"], dtype=torch.float32).reshape(1, *scene["grad_rgb"].shape[-3:])
         self.grad_alpha = torch.tensor(scene["grad_alpha"], dtype=torch.float32).reshape(1, *scene["grad_alpha"].shape[-2:])
         self.flip = torch.tensor([-1.0, 1.0, 1.0])
-        sigma, dist_eps = float(scene["sigma"]), float(scene["dist_eps"])
-        self.blur_radius = sigma * math.log(1.0 / dist_eps - 1.0)
+        sigma = float(scene["sigma"])
+        self.blur_radius = blur_radius(sigma, float(scene["dist_eps"]))
         self.blend = BlendParams(sigma=sigma, gamma=float(scene["gamma"]),
                                  background_color=tuple(float(c) for c in scene["background"]))
         self.k = int(scene["faces_per_pixel"]) or self.enough_k()
