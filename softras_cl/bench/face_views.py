@@ -11,6 +11,8 @@ face (identity, expression 0) against the true one after a similarity alignment 
 does: one photo does not tell a face's size), divided by the mean face's RMSE: "ratio". For the
 single-photo fits, the best of the photos (the lowest ratio: an oracle choice) and their mean;
 the joint fit's ratio; their reduction 1 - joint / best; the seconds (wall and CPU) per fit.
+Beside it, bench face's own shape ratio per photo (identity + expression, against that photo's
+true shape), of the single fits and of the joint fit's shape for each photo.
 Target: the median reduction over the subjects is at least 30%.
 """
 from __future__ import annotations
@@ -75,6 +77,15 @@ def identity_ratio(model, id_coeffs, true_id) -> float:
     return aligned_rmse(model.shape(id_coeffs, zero)[0], truth) / aligned_rmse(model.mean_shape, truth)
 
 
+def shape_ratio(model, values: dict, truth: dict) -> float:
+    """bench face's shape ratio of one photo: identity + expression against the truth's."""
+    from softras_cl.bench.face import aligned_rmse
+
+    true_shape = model.shape(truth["id"], truth["exp"])[0]
+    return aligned_rmse(model.shape(values["id"], values["exp"])[0], true_shape) / aligned_rmse(
+        model.mean_shape, true_shape)
+
+
 def _timed(fn):
     """(fn(), wall seconds, CPU seconds of the process: host and the OpenCL CPU device's threads)."""
     start, cpu = time.perf_counter(), time.process_time()
@@ -88,10 +99,11 @@ def run_subject(model, photos: list[dict], config) -> dict:
     from softras_cl.fitting.recipes.face_views import fit_face_views
 
     true_id = photos[0]["truth"]["id"]
-    single, single_wall, single_cpu = [], [], []
+    single, single_shape, single_wall, single_cpu = [], [], [], []
     for p in photos:
         fit, wall, cpu = _timed(lambda: fit_face(p["photo"], p["landmarks"], model, config, progress=False))
         single.append(identity_ratio(model, fit.values["id"], true_id))
+        single_shape.append(shape_ratio(model, fit.values, p["truth"]))
         single_wall.append(wall)
         single_cpu.append(cpu)
     joint, wall, cpu = _timed(lambda: fit_face_views([p["photo"] for p in photos], [p["landmarks"] for p in photos],
@@ -99,7 +111,8 @@ def run_subject(model, photos: list[dict], config) -> dict:
     ratio = identity_ratio(model, joint.values["id"], true_id)
     best = min(single)
     return dict(single_ratios=single, best_single_ratio=best, mean_single_ratio=float(np.mean(single)),
-                joint_ratio=ratio, reduction=1.0 - ratio / best,
+                joint_ratio=ratio, reduction=1.0 - ratio / best, single_shape_ratios=single_shape,
+                joint_shape_ratios=[shape_ratio(model, v.values, p["truth"]) for v, p in zip(joint.views, photos)],
                 single_seconds=single_wall, single_cpu_seconds=single_cpu, joint_seconds=wall,
                 joint_cpu_seconds=cpu, joint_psnr_face_db=joint.metrics()["psnr_face_db"],
                 yaw_deg=[yaw_deg(p["truth"]["rotation"]) for p in photos])
@@ -114,6 +127,8 @@ def summarise(rows: list[dict]) -> dict:
     return dict(subjects=len(rows), median_best_single_ratio=median("best_single_ratio"),
                 median_mean_single_ratio=median("mean_single_ratio"), median_joint_ratio=median("joint_ratio"),
                 median_reduction=reduction, target_reduction=TARGET_REDUCTION,
+                median_single_shape_ratio=float(statistics.median(x for r in rows for x in r["single_shape_ratios"])),
+                median_joint_shape_ratio=float(statistics.median(x for r in rows for x in r["joint_shape_ratios"])),
                 target_reached=reduction >= TARGET_REDUCTION,
                 median_single_seconds=float(statistics.median(s for r in rows for s in r["single_seconds"])),
                 median_single_cpu_seconds=float(statistics.median(s for r in rows for s in r["single_cpu_seconds"])),
@@ -133,7 +148,8 @@ def format_table(rows: list[dict], summary: dict) -> str:
     lines.append(f"median: best single {s['median_best_single_ratio']:.3f}, mean single "
                  f"{s['median_mean_single_ratio']:.3f}, joint {s['median_joint_ratio']:.3f}, reduction "
                  f"{100 * s['median_reduction']:.0f}% (target >= {100 * TARGET_REDUCTION:.0f}%: "
-                 f"{'reached' if s['target_reached'] else 'NOT reached'}); s/fit single "
+                 f"{'reached' if s['target_reached'] else 'NOT reached'}); per-photo shape ratio (id + exp) "
+                 f"single {s['median_single_shape_ratio']:.3f}, joint {s['median_joint_shape_ratio']:.3f}; s/fit single "
                  f"{s['median_single_seconds']:.1f} (CPU {s['median_single_cpu_seconds']:.1f}), joint "
                  f"{s['median_joint_seconds']:.1f} (CPU {s['median_joint_cpu_seconds']:.1f})")
     return "\n".join(lines)

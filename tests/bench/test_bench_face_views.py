@@ -35,7 +35,8 @@ def test_identity_ratio_is_0_for_the_truth_and_1_for_the_mean_face(demo_face_mod
 
 def _row(reduction, best=0.4):
     return dict(reduction=reduction, best_single_ratio=best, mean_single_ratio=best, joint_ratio=best * (1 - reduction),
-                single_seconds=[1.0, 2.0], single_cpu_seconds=[1.0, 1.0], joint_seconds=3.0, joint_cpu_seconds=3.0)
+                single_seconds=[1.0, 2.0], single_cpu_seconds=[1.0, 1.0], joint_seconds=3.0, joint_cpu_seconds=3.0,
+                single_shape_ratios=[0.5, 0.7], joint_shape_ratios=[0.4, 0.4])
 
 
 @pytest.mark.parametrize("reductions, reached", [([0.5, 0.31, 0.1], True), ([0.5, 0.29, 0.1], False)])
@@ -56,7 +57,7 @@ def test_tiny_run_writes_json_and_chart(tmp_path, run_cli, monkeypatch):
     doc = json.loads((out / "face_views.json").read_text())
     row = doc["subjects"][0]
     assert len(row["single_ratios"]) == 2 and row["best_single_ratio"] == min(row["single_ratios"])
-    assert np.isfinite(row["joint_ratio"]) and doc["provenance"]["cpu"] is not None and len(doc["load_average"]) == 2
+    assert len(row["joint_shape_ratios"]) == 2 and np.isfinite(row["joint_ratio"]) and doc["provenance"]["cpu"] is not None and len(doc["load_average"]) == 2
 
 
 def test_bad_counts_are_refused(tmp_path, run_cli):
