@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from softras_cl.scene.rotation import axis_angle_to_matrix
-from softras_cl.io.images import to_srgb, write_image
+from softras_cl.io.images import PNG_OPTIONS, to_srgb, write_image
 from softras_cl.io.meshes import save_mesh
 from softras_cl.io.outputs import atomic_path, write_figure, write_json
 from softras_cl.scene.shading import SHLight
@@ -92,12 +92,24 @@ def opening_mask(scene: FaceScene, values: dict, growth: float = OPENING_GROWTH)
 
 
 def draw(scene: FaceScene, values: dict, k: int, texture: FaceTexture | None = None,
-         openings: bool = True, sharp: tuple = SHARP, **overrides) -> tuple[np.ndarray, np.ndarray]:
+         openings: bool = True, **overrides) -> tuple[np.ndarray, np.ndarray]:
     """The face drawn at k x k samples per pixel and averaged: (rgb premultiplied by alpha
     (h, w, 3), alpha (h, w)), h, w = the scene's size / k. texture: draw the detail texture
     (else the model albedo, or ``overrides`` albedo= / light= of FaceScene.render); openings:
-    leave the eye and mouth openings empty, for the photo to show through; sharp: (sigma,
-    gamma) of the render (:func:`window_scene` gives those of a window)."""
+    leave the eye and mouth openings empty, for the photo to show through. Only the window
+    around the face (:func:`face_window`) is rendered: the same picture, zeros elsewhere."""
+    h, w = (n // k for n in scene.image_size)
+    rgb, alpha = np.zeros((h, w, 3)), np.zeros((h, w))
+    rows, cols = face_window(scene, values, k)
+    if rows.stop > rows.start and cols.stop > cols.start:
+        window, sharp = window_scene(scene, rows, cols, k)
+        rgb[rows, cols], alpha[rows, cols] = _draw_all(window, values, k, texture, openings, sharp, **overrides)
+    return rgb, alpha
+
+
+def _draw_all(scene: FaceScene, values: dict, k: int, texture: FaceTexture | None, openings: bool,
+              sharp: tuple, **overrides) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`draw` over the scene's whole image, rendered with (sigma, gamma) = sharp."""
     if texture is not None:
         rgb, alpha = render_textured(scene, values, texture, *sharp)
     else:
@@ -108,33 +120,10 @@ def draw(scene: FaceScene, values: dict, k: int, texture: FaceTexture | None = N
     return _downsample(rgb * alpha[..., None], k), _downsample(alpha, k)
 
 
-def composite(drawn: tuple[np.ndarray, np.ndarray], image: np.ndarray) -> np.ndarray:
-    """A drawn face (see :func:`draw`) over image (h, w, 3) linear RGB."""
-    rgb, alpha = drawn
-    return rgb + (1.0 - alpha[..., None]) * image
-
-
-def render_over(fit: FaceFit, photo: np.ndarray, max_side: int = OVERLAY_MAX,
-                texture: FaceTexture | None = None) -> np.ndarray:
-    """The fitted face (with its detail texture if given) rendered over ``photo`` (H, W, 3)
-    linear RGB, downscaled to at most ``max_side`` pixels, the photo showing through the eye
-    and mouth openings: (h, w, 3) linear RGB."""
-    from skimage.transform import resize
-
-    h, w = photo.shape[:2]
-    scale = min(1.0, max_side / max(h, w))
-    scene, values = _sampled(fit, (h, w), scale)
-    size = (scene.image_size[0] // SUPERSAMPLE, scene.image_size[1] // SUPERSAMPLE)
-    image = np.array(resize(photo, size, order=1, anti_aliasing=True) if scale < 1.0 else photo, np.float64)
-    rows, cols = face_window(scene, values, SUPERSAMPLE)
-    window, sharp = window_scene(scene, rows, cols, SUPERSAMPLE)
-    image[rows, cols] = composite(draw(window, values, SUPERSAMPLE, texture, sharp=sharp), image[rows, cols])
-    return image
-
-
 def face_window(scene: FaceScene, values: dict, k: int, margin: int = 2) -> tuple[slice, slice]:
     """(rows, cols) slices of the image the scene draws at k x k samples per pixel (its size
-    / k) holding every projected vertex, grown by ``margin`` pixels and clipped to the image."""
+    / k) holding every projected vertex, grown by ``margin`` pixels and clipped to the image
+    (hard alpha: nothing of the face is drawn outside its triangles)."""
     world, _ = scene.geometry(values)
     xy, _ = scene.camera(values["focal"][0]).project_pixels(world)
     h, w = (n // k for n in scene.image_size)
@@ -154,6 +143,27 @@ def window_scene(scene: FaceScene, rows: slice, cols: slice, k: int) -> tuple[Fa
                        principal=(cx - cols.start * k, cy - rows.start * k))
     ratio = min(scene.image_size) / min(size)
     return window, (SHARP[0] * ratio * ratio, SHARP[1])
+
+
+def composite(drawn: tuple[np.ndarray, np.ndarray], image: np.ndarray) -> np.ndarray:
+    """A drawn face (see :func:`draw`) over image (h, w, 3) linear RGB."""
+    rgb, alpha = drawn
+    return rgb + (1.0 - alpha[..., None]) * image
+
+
+def render_over(fit: FaceFit, photo: np.ndarray, max_side: int = OVERLAY_MAX,
+                texture: FaceTexture | None = None) -> np.ndarray:
+    """The fitted face (with its detail texture if given) rendered over ``photo`` (H, W, 3)
+    linear RGB, downscaled to at most ``max_side`` pixels, the photo showing through the eye
+    and mouth openings: (h, w, 3) linear RGB."""
+    from skimage.transform import resize
+
+    h, w = photo.shape[:2]
+    scale = min(1.0, max_side / max(h, w))
+    scene, values = _sampled(fit, (h, w), scale)
+    size = (scene.image_size[0] // SUPERSAMPLE, scene.image_size[1] // SUPERSAMPLE)
+    image = resize(photo, size, order=1, anti_aliasing=True) if scale < 1.0 else photo
+    return composite(draw(scene, values, SUPERSAMPLE, texture), image)
 
 
 def textured_metrics(fit: FaceFit, texture: FaceTexture) -> dict:
@@ -183,9 +193,8 @@ def _panels(fit: FaceFit, texture: FaceTexture | None) -> dict:
     panels["|error| model (face region, sRGB)"] = _error(fit.scene.render(fit.values, 1e-6, 1e-4).rgb[0], fit)
     panels["model albedo"] = srgb(draw(scene, values, k, openings=False, light=SHLight.ambient(1.0))[0])
     if texture is not None:
-        white = SHLight.ambient(1.0)
-        panels["detail albedo"] = srgb(_downsample(render_textured(
-            scene, dict(values, sh=white.coefficients), texture, *SHARP)[0], k))
+        white = dict(values, sh=SHLight.ambient(1.0).coefficients)
+        panels["detail albedo"] = srgb(draw(scene, white, k, texture, openings=False)[0])
     panels["shading (grey albedo)"] = srgb(draw(scene, values, k, openings=False, albedo=np.full((n, 3), 0.5))[0])
     if texture is not None:
         panels["|error| with the detail texture"] = _error(
@@ -219,7 +228,7 @@ def save_figure(fit: FaceFit, path: Path, metrics: dict, texture: FaceTexture | 
         title += f", with the detail texture {metrics['psnr_face_db_textured']:.1f} dB"
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    write_figure(fig, path, dpi=110)
+    write_figure(fig, path, dpi=110, **PNG_OPTIONS)
 
 
 def camera_matrices(fit: FaceFit, photo_size) -> dict:

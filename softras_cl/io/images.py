@@ -27,6 +27,10 @@ from softras_cl.io.outputs import atomic_path
 __all__ = ["read_image", "write_image", "to_srgb", "to_linear"]
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+# zlib level of the 8-bit PNGs written (Pillow's default is 6): the same pixels, 3-4x faster to
+# write, files about 10% larger; figures use it too (PNG_OPTIONS, matplotlib's savefig)
+PNG_COMPRESSION = 1
+PNG_OPTIONS = dict(pil_kwargs={"compress_level": PNG_COMPRESSION})
 
 
 def _signed_power(x: np.ndarray, p: float) -> np.ndarray:
@@ -209,6 +213,7 @@ def write_image(path, image, bits: int = 8) -> None:
         raise ValueError(f"cannot write image {path}: unknown extension {path.suffix!r}")
     try:
         with atomic_path(path) as tmp:
-            Image.fromarray(q).save(tmp, format=fmt)
+            options = {"compress_level": PNG_COMPRESSION} if fmt == "PNG" else {}
+            Image.fromarray(q).save(tmp, format=fmt, **options)
     except (KeyError, ValueError) as e:   # Pillow: mode not writable in this format
         raise ValueError(f"cannot write image {path}: {e}") from e

@@ -275,21 +275,26 @@ def test_textured_obj_round_trips_and_renders_the_same(demo, layout, tmp_path):
 
 
 @pytest.mark.parametrize("textured", [False, True])
-def test_overlay_drawn_in_the_face_window_equals_the_whole_image_drawn(demo, layout, textured):
-    """render_over draws only the window around the face (sigma rescaled to the window's NDC
-    units): the same picture as drawing the whole photo, and the photo itself outside."""
+def test_face_drawn_in_its_window_equals_the_whole_image_drawn(demo, layout, textured):
+    """draw renders only the window around the face (sigma rescaled to the window's NDC
+    units): the same picture as rendering the whole image, zeros outside; render_over is the
+    photo outside the window."""
     values = truth(demo, 2, 15.0)
     fit = synthetic_fit(demo, values)
     rng = np.random.default_rng(0)
     photo = rng.uniform(0.1, 0.9, (200, 260, 3))
     texture = ft.estimate_texture(fit, photo, layout=layout) if textured else None
     scene, sampled = report._sampled(fit, photo.shape[:2])
-    rows, cols = report.face_window(scene, sampled, report.SUPERSAMPLE)
+    k = report.SUPERSAMPLE
+    rows, cols = report.face_window(scene, sampled, k)
     assert 0 < rows.stop - rows.start < 200 and 0 < cols.stop - cols.start < 260
-    whole = report.composite(report.draw(scene, sampled, report.SUPERSAMPLE, texture), photo)
+    whole = report._draw_all(scene, sampled, k, texture, True, report.SHARP)
+    drawn = report.draw(scene, sampled, k, texture)
+    assert whole[1].sum() > 1000
+    for a, b in zip(drawn, whole):
+        assert np.abs(a - b).max() < 1e-9
     over = report.render_over(fit, photo, texture=texture)
-    assert np.abs(over - whole).max() < 1e-9
-    assert (whole != photo).sum() > 1000
+    assert np.abs(over - report.composite(whole, photo)).max() < 1e-9
     outside = np.ones(photo.shape[:2], bool)
     outside[rows, cols] = False
     assert (over[outside] == photo[outside]).all()

@@ -141,3 +141,28 @@ def test_write_errors(tmp_path):
         write_image(tmp_path / "x.jpg", img)
     with pytest.raises(ValueError, match="x.unknownext"):
         write_image(tmp_path / "x.unknownext", img)
+
+
+def _zlib_level_field(path) -> int:
+    """FLEVEL (0 fastest .. 3 best) of the zlib stream in a PNG's first IDAT chunk."""
+    data = path.read_bytes()
+    start = data.index(b"IDAT") + 4
+    return data[start + 1] >> 6
+
+
+def test_png_written_with_fast_compression(tmp_path):
+    """8-bit PNGs (images and the report's figures) use zlib level PNG_COMPRESSION = 1 (the
+    header's FLEVEL 0: 'fastest'); Pillow's default 6 would be FLEVEL 2."""
+    from matplotlib.figure import Figure
+
+    from softras_cl.io.images import PNG_OPTIONS
+    from softras_cl.io.outputs import write_figure
+
+    image = np.random.default_rng(0).uniform(size=(64, 80, 3))
+    write_image(tmp_path / "a.png", image)
+    Image.fromarray(np.zeros((8, 8), np.uint8)).save(tmp_path / "default.png")
+    fig = Figure(figsize=(2, 2))
+    fig.subplots().imshow(image)
+    write_figure(fig, tmp_path / "fig.png", **PNG_OPTIONS)
+    assert _zlib_level_field(tmp_path / "default.png") == 2
+    assert _zlib_level_field(tmp_path / "a.png") == 0 and _zlib_level_field(tmp_path / "fig.png") == 0
