@@ -256,6 +256,28 @@ def test_save_round_trip(tmp_path, ext):
     assert load_mesh(tmp_path / f"y{ext}").colors is None
 
 
+@pytest.mark.parametrize("colored", [True, False])
+def test_ply_written_without_trimesh_has_trimesh_layout(tmp_path, colored):
+    """save_mesh writes binary PLY itself: the same header lines (but trimesh's comment) and
+    the same data bytes as trimesh's exporter."""
+    import trimesh
+    from trimesh.exchange.ply import export_ply
+
+    rng = np.random.default_rng(6)
+    vertices, colors = rng.normal(size=(30, 3)), rng.random((30, 3)) if colored else None
+    faces = rng.integers(0, 30, size=(40, 3))
+    save_mesh(tmp_path / "m.ply", vertices, faces, colors)
+    ours = (tmp_path / "m.ply").read_bytes()
+    rgba = None if colors is None else np.concatenate(
+        [np.round(to_srgb(colors) * 255).astype(np.uint8), np.full((30, 1), 255, np.uint8)], 1)
+    theirs = export_ply(trimesh.Trimesh(vertices, faces, vertex_colors=rgba, process=False),
+                        encoding="binary", vertex_normal=False)
+    split = lambda b: b.split(b"end_header\n", 1)                             # noqa: E731
+    (our_head, our_data), (their_head, their_data) = split(ours), split(theirs)
+    assert our_data == their_data
+    assert our_head.splitlines() == [line for line in their_head.splitlines() if not line.startswith(b"comment")]
+
+
 def test_save_clips_and_errors(tmp_path):
     save_mesh(tmp_path / "c.ply", TETRA_V, TETRA_F, np.array([[-1, 2, 0.5]] * 4))
     np.testing.assert_allclose(to_srgb(load_mesh(tmp_path / "c.ply").colors[0]),
