@@ -196,6 +196,7 @@ def measure(scene: Scene, python: Path, script: Path, p: dict, workdir: Path) ->
                          result))
     row["speedup_fwd"] = row["peer_fwd_ms"] / row["ours_fwd_ms"]
     row["speedup_fwdbwd"] = row["peer_fwdbwd_ms"] / row["ours_fwdbwd_ms"]
+    row["speedup_fwdbwd_cpu"] = row["peer_fwdbwd_cpu_ms"] / row["ours_fwdbwd_cpu_ms"]
     row["agree"] = row["agree"] and row["saturated_pixels"] == 0
     images = dict(ours=last["out"].rgb[0], peer=result["rgb"], alpha_ours=last["out"].alpha[0], alpha_peer=result["alpha"])
     return dict(row=row, peer_info=result["info"], images=images)
@@ -206,7 +207,8 @@ COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("ours fwd ms", "ours
            ("peer fwd ms", "peer_fwd_ms", ",.0f"), ("x fwd", "speedup_fwd", ",.0f"),
            ("ours f+b ms", "ours_fwdbwd_ms", ".1f"), ("peer f+b ms", "peer_fwdbwd_ms", ",.0f"),
            ("x f+b", "speedup_fwdbwd", ",.0f"), ("ours f+b CPU ms", "ours_fwdbwd_cpu_ms", ".1f"),
-           ("peer f+b CPU ms", "peer_fwdbwd_cpu_ms", ",.0f"), ("load", "load_before", ".2f")]
+           ("peer f+b CPU ms", "peer_fwdbwd_cpu_ms", ",.0f"), ("x f+b CPU", "speedup_fwdbwd_cpu", ",.0f"),
+           ("load", "load_before", ".2f")]
 AGREEMENT_COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("K", "faces_per_pixel", "d"),
                      ("pairs ours", "pairs_ours", ",d"), ("pairs peer", "pairs_peer", ",d"),
                      ("rgb max", "rgb_max", ".1e"), ("clip px", "rgb_pixels_differ", ",d"),
@@ -222,7 +224,7 @@ def report_text(result: dict) -> str:
         f"ours: softras-cl on {result['device']['name']} (float32); peer: {peer.get('renderer')} "
         f"{peer.get('pytorch3d')} on torch {peer.get('torch')} ({peer.get('threads')} threads), CPU: "
         f"{result['cpu']}; medians of {result['repeats']} alternating runs after one warm-up each; "
-        "x = peer time / ours; load = 1-min load average before the row",
+        "x = peer time / ours (CPU: process CPU time, all threads); load = 1-min load average before the row",
         format_table(result["rows"], COLUMNS), "",
         f"agreement: rgb max = max |difference| outside the 'clip px' pixels (where a kept pair has a "
         f"barycentric > 1 and the two clippings differ), within {RGB_TOL:g}; alpha within {ALPHA_TOL:g} "
@@ -250,12 +252,14 @@ def save_chart(result: dict, images: dict, path: Path) -> None:
     axes[0].set(xscale="log", yscale="log", xlabel="faces", ylabel="ms (median)", title="time")
     axes[0].legend(fontsize=7)
     diff = np.abs(images["ours"] - images["peer"]).max(-1)
-    for ax, img, title in ((axes[1], images["ours"], "softras-cl rgb"), (axes[2], images["peer"], "PyTorch3D rgb")):
+    scene = f"{result['rows'][-1]['faces']} faces at {result['rows'][-1]['size']}^2"
+    for ax, img, title in ((axes[1], images["ours"], f"softras-cl rgb, {scene}"),
+                           (axes[2], images["peer"], f"{result['peer'].get('renderer', 'peer')} rgb")):
         ax.imshow(to_srgb(np.clip(img, 0, 1)))
         ax.set_title(title, fontsize=9)
         ax.axis("off")
     shown = axes[3].imshow(diff, cmap="magma")
-    axes[3].set_title(f"|difference| (max {diff.max():.1e})", fontsize=9)
+    axes[3].set_title(f"max |rgb difference| (max {diff.max():.1e})", fontsize=9)
     axes[3].axis("off")
     fig.colorbar(shown, ax=axes[3], fraction=0.046)
     fig.tight_layout()
