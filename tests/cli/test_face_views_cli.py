@@ -85,3 +85,24 @@ def test_several_landmark_files_need_same_person(person, tmp_path, run_cli):
     assert result.code == 2 and "--landmarks takes one file, got 2" in result.err and "--same-person" in result.err
     result = run_cli("fit-face", "--landmarks", a_lmk, a, "--out", tmp_path / "f", *SMALL)
     assert result.code == 2 and "before --landmarks" in result.err
+
+
+@pytest.mark.slow
+def test_interrupted_same_person_fit_keeps_the_best_and_resumes(person, tmp_path, run_cli, monkeypatch):
+    from support.interrupt import sigint_once_written
+    from softras_cl.fitting.solver import load_checkpoint
+
+    (a, a_lmk), (b, b_lmk) = person
+    out = tmp_path / "fit"
+    argv = ["fit-face", a, b, "--same-person", "--landmarks", a_lmk, b_lmk, "--budget", "fast", "--out", out, *SMALL]
+    with sigint_once_written(out / "checkpoint.npz"):
+        result = run_cli(*argv)
+    assert result.code == 130, result.err
+    assert json.loads((out / "params.json").read_text())["interrupted"] is True
+    assert not (out / "complete.json").exists() and (out / "photos" / "B" / "overlay.png").exists()
+    values, _ = load_checkpoint(out / "checkpoint.npz")
+    assert np.isfinite(values["exp.1"]).all()
+    monkeypatch.setitem(face.BUDGETS, "fast", TINY)          # the rest of the fit, in seconds
+    result = run_cli(*argv, "--resume")
+    assert result.code == 0, result.err
+    assert json.loads((out / "complete.json").read_text())["status"] == "done"
