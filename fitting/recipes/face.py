@@ -20,16 +20,22 @@ The fit, as the paper and its anchors do it, in stages given as data (:func:`def
    (:func:`initial_pose`).
 2. The SH light, frozen until then, starts from a linear least-squares fit to the visible
    vertices at the initial pose (:func:`initial_light`).
-3. ``photo-k``: identity, expression, albedo, SH light and pose from the photometric L2 loss in
-   linear RGB over the face region + landmarks + priors + an SH term keeping the light near
-   white, under a decreasing sigma/gamma schedule. The face region is the rendered alpha
+3. ``photo-k``: identity, expression, albedo, SH light, pose and focal (unless given, with its
+   prior: the photo's perspective corrects what the landmarks left open) from the photometric
+   term in linear RGB over the face region + landmarks + priors + an SH term keeping the light
+   near white, under a decreasing sigma/gamma schedule. The face region is the rendered alpha
    (> 0.5, eroded by ``mask_erosion`` pixels) at the start of each stage, held fixed within
    the stage so that every stage minimises one fixed function: hair and background outside
    the rendered face never pull the fit. Likewise near/far are fitted to the face's distance
-   at each stage start (:func:`depth_range`), so that gamma means the same at any distance.
+   (:func:`depth_range`), so that gamma means the same at any distance, and the robust
+   term's scale is set from the residuals (:meth:`FaceObjective.start_stage`), at each stage
+   start.
 
 Every term is a sum, not a mean (nlopt's L-BFGS sizes its first step from the gradient; see
-fitting/rigid.py): ``photo`` = sum over face-region pixels and channels of squared error,
+fitting/rigid.py): ``photo`` = sum over face-region pixels of the pixel's squared colour error
+e (summed over channels), or with ``robust_scale`` of its Geman-McClure kernel
+``e / (1 + e / s^2)`` (losses.image_geman_mcclure): the same for errors well below s, at most
+s^2 for what the model cannot explain (cast shadows, highlights, hair strands, glasses),
 ``landmarks`` = sum over points of weighted squared pixel distances, priors = sum of squared
 coefficients. Read as negative log-likelihoods, ``w_landmarks = 1 / noise_px^2`` (2 px) and
 ``w_photo = 1 / noise_rgb^2``; the priors have weight 1. The default photo weight 10 (noise
