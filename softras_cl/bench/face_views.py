@@ -182,7 +182,7 @@ def run(args: argparse.Namespace) -> int:
                          f"{args.views} and {args.size}")
     if args.budget not in BUDGETS:
         raise InputError(f"--budget must be one of {sorted(BUDGETS)}, got {args.budget!r}")
-    config = FaceFitConfig.from_budget(args.budget, size=args.size)
+    config = FaceFitConfig.from_budget(args.budget, photo_weight=args.photo_weight, size=args.size)
     with OutputFolder(args.out, "bench face-views", "--out") as folder:
         model = load_demo_face_model() if args.model is None else load_face_model(args.model)
         rng = np.random.default_rng(args.seed)
@@ -195,6 +195,7 @@ def run(args: argparse.Namespace) -> int:
                       f"{rows[-1]['joint_ratio']:.3f}", flush=True)
         summary = summarise(rows)
         doc = dict(size=args.size, seed=args.seed, views=args.views, budget=args.budget, model=model.name,
+                   photo_weight=args.photo_weight,
                    summary=summary, subjects=rows, load_average=load, provenance=provenance(dict(options=args)))
         write_json(folder.path / "face_views.json", doc)
         save_chart(rows, folder.path / "face_views.png")
@@ -211,6 +212,8 @@ def register(which) -> None:
     p.add_argument("--size", type=int, default=256, help="square photo size in pixels (default 256)")
     p.add_argument("--budget", default="default", help="schedule budget of every fit (default: default)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the subjects (default 0)")
+    p.add_argument("--photo-weight", type=float, default=None,
+                   help="photometric weight of every fit (default: the fit's own default, 10)")
     p.add_argument("--model", default=None, help="face model file (default: the shipped demo model)")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
     p.add_argument("--out", default="out/bench",
