@@ -250,6 +250,9 @@ def save_chart(result: dict, images: dict, path: Path) -> None:
                 axes[0].plot([r["faces"] for r in rows], [r[f"{side}_{key}_ms"] for r in rows], style,
                              alpha=1.0 if key == "fwdbwd" else 0.5, label=f"{side} {label} {size}^2")
     axes[0].set(xscale="log", yscale="log", xlabel="faces", ylabel="ms (median)", title="time")
+    faces = sorted({r["faces"] for r in result["rows"]})
+    axes[0].set_xticks(faces, [str(n) for n in faces], minor=False)
+    axes[0].set_xticks([], minor=True)
     axes[0].legend(fontsize=7)
     diff = np.abs(images["ours"] - images["peer"]).max(-1)
     scene = f"{result['rows'][-1]['faces']} faces at {result['rows'][-1]['size']}^2"
