@@ -306,7 +306,9 @@ def run_peers(args: argparse.Namespace) -> int:
                 m = measure(make_scene(n, size), python, script, p, Path(tmp))
                 rows.append(m["row"])
                 peer, images = m["peer_info"], m["images"]
-        result = dict(device=device_info(), cpu=cpu_model(), repeats=p["repeats"], peer=peer, rows=rows,
+        ours = dict(cpus_available=len(os.sched_getaffinity(0)),
+                    pocl_max_pthread_count=os.environ.get("POCL_MAX_PTHREAD_COUNT"))
+        result = dict(device=device_info(), cpu=cpu_model(), ours=ours, repeats=p["repeats"], peer=peer, rows=rows,
                       settings={k: v for k, v in asdict(settings_for(1)).items() if k != "image_size"},
                       tolerances=dict(rgb=RGB_TOL, alpha=ALPHA_TOL, grad_silhouette=GRAD_TOL),
                       gradients_of=GRADS[0], agree=all(r["agree"] for r in rows))
