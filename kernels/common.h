@@ -2,7 +2,8 @@
  *
  * Build-time flags (set by softras_cl/raster/rasterizer.py via softras_cl/cl/program.py):
  *   SR_DOUBLE      1: real = double (needs cl_khr_fp64), 0: real = float
- * Every kernel works on SR_VEC adjacent pixels (8 floats or 4 doubles) of one image row at a time,
+ *   SR_LANES       floats per vector: 8 or 16 (doubles are always 4)
+ * Every kernel works on SR_VEC adjacent pixels (8 or 16 floats, 4 doubles) of one image row at a time,
  * as realv vectors,
  * so CPU drivers use their SIMD lanes and GPU drivers simply see wider work-items.
  */
@@ -20,6 +21,19 @@ typedef long4 maskv;    /* result type of comparisons between double4 */
 #define TO_MASK convert_long4
 #define LAST_LANE(v) ((v).s3)
 #define LANE_OFFSETS ((realv)(R(0.5), R(1.5), R(2.5), R(3.5)))
+#elif SR_LANES == 16
+/* 16 floats (512 bits) where the device prefers them (softras_cl.cl.device.vector_lanes) */
+typedef float real;
+typedef float16 realv;
+typedef int16 maskv;    /* result type of comparisons between float16 */
+#define SR_VEC 16
+#define VLOAD vload16
+#define VSTORE vstore16
+#define TO_INT
+#define TO_MASK
+#define LAST_LANE(v) ((v).sf)
+#define LANE_OFFSETS ((realv)(R(0.5), R(1.5), R(2.5), R(3.5), R(4.5), R(5.5), R(6.5), R(7.5), \
+                              R(8.5), R(9.5), R(10.5), R(11.5), R(12.5), R(13.5), R(14.5), R(15.5)))
 #else
 typedef float real;
 typedef float8 realv;
@@ -59,6 +73,24 @@ inline real lane_sum(realv v)
     for (int l = 0; l < SR_VEC; ++l)
         s += lanes[l];
     return s;
+}
+
+/* out[i] = lane_sum(v[i]) for i < n <= LANE_SUMS_MAX: the same sums, each in the same lane order,
+ * but advanced side by side. One sum after another is a chain of dependent adds (the latency of
+ * each add, times lanes, times sums), which measured as a third of the backward kernel. */
+#define LANE_SUMS_MAX 27
+inline void lane_sums(const realv *v, const int n, __global real *out)
+{
+    real lanes[LANE_SUMS_MAX][SR_VEC], s[LANE_SUMS_MAX];
+    for (int i = 0; i < n; ++i) {
+        VSTORE(v[i], 0, lanes[i]);
+        s[i] = R(0);
+    }
+    for (int l = 0; l < SR_VEC; ++l)
+        for (int i = 0; i < n; ++i)
+            s[i] += lanes[i][l];
+    for (int i = 0; i < n; ++i)
+        out[i] = s[i];
 }
 
 /* Lanes where mask is true keep value, others become 0 (never multiplies: 0 * inf would be NaN). */

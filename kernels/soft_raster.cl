@@ -16,8 +16,9 @@
  * host bins each face into the tiles its cut-off footprint touches, in increasing face order.
  * Forward: one work-item = SR_VEC adjacent pixels of one row (a realv), looping over its tile's faces.
  * Backward: one work-item = one tile, looping over its faces; each (tile, face) pair writes its
- * summed gradient to its own slot, and the host adds the slots of each face in a fixed order, so
- * results are bit-identical run to run (no float atomics).
+ * summed gradient to its own slot (its index in the tile lists, so the writes go in order), and
+ * the host adds the slots of each face in a fixed order, so results are bit-identical run to run
+ * (no float atomics).
  * Per-pixel images are stored as planes (channel-major) of Wp x Hp pixels per batch item.
  */
 
@@ -772,7 +773,6 @@ inline void add_uv_texel_grads(const Frag *r, const realv gC[3], __global const 
 #endif
 
 __kernel void soft_raster_bwd(GEOMETRY_ARGS,
-                              __global const int *tile_slots,
                               __global const real *grad_rgb, __global const real *grad_alpha,
                               __global const real *grad_depth, __global const real *g_dot_img,
                               __global const real *color_state, __global const real *alpha_state,
@@ -792,7 +792,7 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
     __global const real *image = tex_image + (size_t)batch * tex_h * tex_w * 3;
 
     for (int k = tile_start[tile]; k < tile_start[tile + 1]; ++k) {
-        const int face = tile_faces[k], slot = tile_slots[k];
+        const int face = tile_faces[k], slot = k;
         const Face f = load_face(geom, face);
         Accum acc;
         for (int i = 0; i < 3; ++i)
@@ -829,21 +829,16 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
 #endif
         }
 #if SR_GRAD_POS
-        for (int i = 0; i < 3; ++i) {
-            slot_pos[slot * 9 + 3 * i] = lane_sum(acc.gx[i]);
-            slot_pos[slot * 9 + 3 * i + 1] = lane_sum(acc.gy[i]);
-            slot_pos[slot * 9 + 3 * i + 2] = lane_sum(acc.gz[i]);
-        }
+        const realv pos[9] = {acc.gx[0], acc.gy[0], acc.gz[0], acc.gx[1], acc.gy[1], acc.gz[1],
+                              acc.gx[2], acc.gy[2], acc.gz[2]};
+        lane_sums(pos, 9, slot_pos + slot * 9);
 #endif
 #if SR_GRAD_COLOR && SR_TEXTURE == 0
-        for (int i = 0; i < CORNER_COLORS; ++i)
-            slot_attr[slot * VERTEX_ATTR + i] = lane_sum(acc.gcol[i]);
+        lane_sums(acc.gcol, CORNER_COLORS, slot_attr + slot * VERTEX_ATTR);
 #endif
 #if SR_GRAD_COLOR && SR_LIGHTING
-        for (int i = 0; i < CORNER_COLORS; ++i)
-            slot_attr[slot * VERTEX_ATTR + CORNER_COLORS + i] = lane_sum(acc.gnrm[i]);
-        for (int i = 0; i < LIGHT_PARAMS; ++i)
-            slot_light[slot * LIGHT_PARAMS + i] = lane_sum(acc.glight[i]);
+        lane_sums(acc.gnrm, CORNER_COLORS, slot_attr + slot * VERTEX_ATTR + CORNER_COLORS);
+        lane_sums(acc.glight, LIGHT_PARAMS, slot_light + slot * LIGHT_PARAMS);
 #endif
     }
 }

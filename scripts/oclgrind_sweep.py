@@ -34,7 +34,7 @@ from softras_cl.scene.meshes import icosphere
 from softras_cl.scene.renderer import Renderer
 from softras_cl.scene.shading import LambertLight, PhongLight, SHLight
 
-H, W = 13, 11   # odd, non-square, neither side a multiple of a tile (8 x 8, 4 x 8 in float64)
+H, W = 13, 11   # odd, non-square, neither side a multiple of a tile (8 or 16 x 8, 4 x 8 in float64)
 
 
 def pixel_centre(col: int, row: int) -> tuple[float, float]:
@@ -179,7 +179,7 @@ def roi_mask(batch: int, per_item: bool) -> np.ndarray:
 
 
 def run_raster(batch: int, grads: tuple, tex_res: int = 2, skip_cot: tuple = (),
-               faces_per_item: bool = False, roi: str | None = None, **kw) -> None:
+               faces_per_item: bool = False, roi: str | None = None, lanes: int | None = None, **kw) -> None:
     s = raster_settings(**kw)
     vertices, faces, colors = raster_scene(batch, s.texture, tex_res)
     if "rgb" not in s.outputs:
@@ -193,7 +193,7 @@ def run_raster(batch: int, grads: tuple, tex_res: int = 2, skip_cot: tuple = (),
         faces = np.repeat(faces[None], batch, 0)
     if roi is not None:
         colors = dict(colors, roi=roi_mask(batch, roi == "per item"))
-    raster = SoftRasterizer(s)
+    raster = SoftRasterizer(s, lanes=lanes)
     plain = raster.forward(vertices, faces, **colors)
     _finite("forward", [plain.rgb, plain.alpha, plain.depth])
     _drawn(plain, s)
@@ -256,6 +256,14 @@ def variants() -> list[tuple[str, callable]]:
         name = f"raster {dtype} {metric} {texture} {color_agg}/{alpha_agg} B={batch}" + \
                ("" if kw["perspective_correct"] else " linear")
         out.append((name, lambda b=batch, kw=kw: run_raster(b, both, **kw)))
+    # 16 floats per vector (AVX-512 CPUs pick them; Oclgrind's device would pick 8)
+    for label, batch, kw in [("default", 2, {}), ("face texture", 1, dict(texture="face")),
+                             ("uv texture", 2, dict(texture="uv")),
+                             ("hard/sum barycentric", 1, dict(color_agg="hard", alpha_agg="sum", metric="barycentric")),
+                             ("sh per-pixel", 2, dict(lighting="sh")),
+                             ("region of interest per item", 2, dict(roi="per item"))]:
+        out.append((f"raster float32 16 lanes {label} B={batch}",
+                    lambda b=batch, kw=kw: run_raster(b, both, dtype="float32", lanes=16, **kw)))
     for dtype in ("float32", "float64"):
         extra = [
             ("lambert per-pixel", 2, both, dict(lighting="lambert")),

@@ -17,6 +17,7 @@ import re
 
 import pyopencl as cl
 
+from softras_cl.cl.layout import LANES
 from softras_cl.errors import DeviceError, InputError
 
 logger = logging.getLogger(__name__)
@@ -135,6 +136,16 @@ def select_device() -> cl.Device:
 def has_fp64(device: cl.Device) -> bool:
     """True if the device supports double precision (cl_khr_fp64)."""
     return "cl_khr_fp64" in device.extensions.split()
+
+
+def vector_lanes(device: cl.Device, dtype: str) -> int:
+    """Pixels per kernel vector (and tile width) for `dtype` on `device`: 16 floats where the
+    device prefers 16-wide float vectors (AVX-512 CPUs: PoCL then uses the full 512-bit
+    registers), else 8; always 4 doubles (wider double vectors break pip's PoCL 3.0 on CPUs
+    without AVX-512, see kernels/common.h)."""
+    choices = LANES[dtype]
+    preferred = device.preferred_vector_width_float if dtype == "float32" else 0
+    return max([n for n in choices if n <= preferred] or [choices[0]])
 
 
 def has_int64_atomics(device: cl.Device) -> bool:

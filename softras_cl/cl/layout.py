@@ -5,7 +5,8 @@ kernels refuse to compile without them (they never #define these themselves), so
 that fills the buffers and the kernels that read them cannot drift apart.
 
 Tiles: the padded image is cut into tiles of (vector width) x TILE_H pixels; the vector width
-is the kernel's SR_VEC (8 floats or 4 doubles).
+is the kernel's SR_VEC, one of LANES[dtype] (4 doubles; 8 or 16 floats, by device:
+softras_cl.cl.device.vector_lanes).
 
 Per-face record: geometry buffer row of FACE_STRIDE reals per face (kernel dtype), written by
 softras_cl.raster.binning.face_setup and read by load_face / outside_footprint in the kernel:
@@ -27,6 +28,7 @@ Lighting parameters: LIGHT_PARAMS reals (docs/conventions.md).
 from __future__ import annotations
 
 TILE_H = 8
+LANES = {"float64": (4,), "float32": (8, 16)}     # pixels per kernel vector, narrowest first
 FACE_STRIDE = 28
 FACE_XY = 0
 FACE_M = 6

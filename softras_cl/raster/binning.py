@@ -56,10 +56,10 @@ class Grid:
         return self.nty * TILE_H
 
 
-def tile_grid(s: RasterSettings) -> Grid:
-    """The tiling for the settings: one tile row is one kernel vector (8 floats or 4 doubles)."""
-    tile_w = 4 if s.dtype == "float64" else 8
-    return Grid(tile_w, -(-s.width // tile_w), -(-s.height // TILE_H))
+def tile_grid(s: RasterSettings, lanes: int) -> Grid:
+    """The tiling for the settings: one tile row is one kernel vector of `lanes` pixels
+    (SoftRasterizer.lanes)."""
+    return Grid(lanes, -(-s.width // lanes), -(-s.height // TILE_H))
 
 
 def face_setup(mesh: MeshInputs, s: RasterSettings) -> tuple[np.ndarray, np.ndarray]:
@@ -78,7 +78,8 @@ def face_setup(mesh: MeshInputs, s: RasterSettings) -> tuple[np.ndarray, np.ndar
     m1 = ((y[2] - y[0]) * inv_area, -(x[2] - x[0]) * inv_area)
     m2 = (-(y[1] - y[0]) * inv_area, (x[1] - x[0]) * inv_area)
     edge_len2 = [(x[(k + 1) % 3] - x[k]) ** 2 + (y[(k + 1) % 3] - y[k]) ** 2 for k in range(3)]
-    rows = np.zeros((FACE_STRIDE, len(area)))
+    rows = np.empty((FACE_STRIDE, len(area)))      # not zeros: calloc'd pages fault on every call
+    rows[FACE_INV_LEN2 + 3:FACE_BOX] = 0.0         # unused in the layout
     rows[FACE_XY:FACE_XY + 6:2], rows[FACE_XY + 1:FACE_XY + 6:2] = x, y
     rows[FACE_M:FACE_M + 6] = [-(m1[0] + m2[0]), -(m1[1] + m2[1]), *m1, *m2]
     rows[FACE_Z:FACE_Z + 3] = z
@@ -135,8 +136,8 @@ def _pixel_ranges(boxes: np.ndarray, s: RasterSettings):
     return clip(c0, w), clip(c1, w), clip(r0, h), clip(r1, h)
 
 
-def roi_tiles(roi, batch: int, s: RasterSettings) -> np.ndarray | None:
-    """(B * nty * ntx,) bool: the tiles holding at least one pixel of the region of interest.
+def roi_tiles(roi, batch: int, g: Grid, s: RasterSettings) -> np.ndarray | None:
+    """(B * nty * ntx,) bool: the tiles of grid g holding at least one pixel of the region of interest.
 
     roi: None (every tile: returns None), an (H, W) bool mask shared by the batch or (B, H, W).
     """
@@ -146,21 +147,19 @@ def roi_tiles(roi, batch: int, s: RasterSettings) -> np.ndarray | None:
     if mask.dtype != bool or mask.shape not in ((s.height, s.width), (batch, s.height, s.width)):
         raise ValueError(f"roi must be a bool mask of shape ({s.height}, {s.width}) or "
                          f"({batch}, {s.height}, {s.width}), got {mask.dtype} {mask.shape}")
-    g = tile_grid(s)
     padded = np.zeros((batch, g.hp, g.wp), bool)
     padded[:, :s.height, :s.width] = mask
     return padded.reshape(batch, g.nty, TILE_H, g.ntx, g.tile_w).any(axis=(2, 4)).reshape(-1)
 
 
 def bin_faces(geom: np.ndarray, drawable: np.ndarray, batch: int, n_faces: int,
-              s: RasterSettings, tiles: np.ndarray | None = None) -> Bins:
-    """Bin every drawable face into the tiles its footprint touches.
+              s: RasterSettings, g: Grid, tiles: np.ndarray | None = None) -> Bins:
+    """Bin every drawable face into the tiles of grid g its footprint touches.
 
     geom: (B*F, FACE_STRIDE) from face_setup, drawable: (B*F,) bool; tiles: None (all tiles) or
     (B * nty * ntx,) bool from roi_tiles: only these tiles get faces, the others render as
     background and pass no gradient. ValueError when the (tile, face) pairs would overflow int32.
     """
-    g = tile_grid(s)
     c0, c1, r0, r1 = _pixel_ranges(geom[:, FACE_BOX:FACE_BOX + 4], s)
     c0, r0 = np.maximum(c0, 0), np.maximum(r0, 0)
     c1, r1 = np.minimum(c1, s.width - 1), np.minimum(r1, s.height - 1)

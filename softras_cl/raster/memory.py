@@ -24,7 +24,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-from softras_cl.cl.layout import FACE_STRIDE, LIGHT_PARAMS, UV_ATTRS, vertex_attr_width
+from softras_cl.cl.layout import FACE_STRIDE, LANES, LIGHT_PARAMS, UV_ATTRS, vertex_attr_width
 from softras_cl.errors import ResourceError
 from softras_cl.raster.settings import RasterSettings
 
@@ -73,7 +73,7 @@ def memory_estimate(settings: RasterSettings, batch: int = 1, n_faces: int = 0, 
 
     s, grads = settings, tuple(grads)
     real = 8 if s.dtype == "float64" else 4
-    g = tile_grid(s)
+    g = tile_grid(s, max(LANES[s.dtype]))        # the widest padding any device uses
     npix = batch * g.hp * g.wp                       # padded planes
     image = batch * s.height * s.width
     n_tiles = batch * g.ntx * g.nty

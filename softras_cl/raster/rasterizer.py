@@ -13,8 +13,8 @@ from dataclasses import dataclass, fields
 import numpy as np
 import pyopencl as cl
 
-from softras_cl.cl.device import has_fp64, has_int64_atomics, resolve_context
-from softras_cl.cl.layout import LIGHT_PARAMS, vertex_attr_width
+from softras_cl.cl.device import has_fp64, has_int64_atomics, resolve_context, vector_lanes
+from softras_cl.cl.layout import LANES, LIGHT_PARAMS, vertex_attr_width
 from softras_cl.cl.program import build_kernel
 from softras_cl.raster.binning import Bins, bin_faces, face_setup, roi_tiles, tile_grid
 from softras_cl.raster.corners import scatter_corners
@@ -38,7 +38,7 @@ class FaceBuffers:
     attr: (B*F, K) real, MeshInputs.face_attributes() (corner colours [+ normals], texels or uvs)
     tex_image: (B, Ht, Wt, 3) real uv texture map
     light: (LIGHT_PARAMS,) real lighting parameters
-    tile_start, tile_faces, tile_slots: int32, the arrays of the same names in Bins
+    tile_start, tile_faces: int32, the arrays of the same names in Bins
     """
     geom: cl.Buffer
     attr: cl.Buffer
@@ -46,7 +46,6 @@ class FaceBuffers:
     light: cl.Buffer
     tile_start: cl.Buffer
     tile_faces: cl.Buffer
-    tile_slots: cl.Buffer
 
 
 @dataclass
@@ -115,11 +114,15 @@ class SoftRasterizer:
 
     settings: RasterSettings. device, context, queue: optional pyopencl Device, Context and
     in-order CommandQueue to run on (see softras_cl.cl.device.resolve_context); by default the
-    cached context of softras_cl.cl.device.select_device().
+    cached context of softras_cl.cl.device.select_device(). lanes: pixels per kernel vector
+    (and tile width), one of softras_cl.cl.layout.LANES[settings.dtype]; None picks the device's
+    (softras_cl.cl.device.vector_lanes). Images are the same at any width; gradient sums are
+    grouped by tile, so their last bits depend on it.
     """
 
     def __init__(self, settings: RasterSettings, device: cl.Device | None = None,
-                 context: cl.Context | None = None, queue: cl.CommandQueue | None = None):
+                 context: cl.Context | None = None, queue: cl.CommandQueue | None = None,
+                 lanes: int | None = None):
         if not isinstance(settings, RasterSettings):
             raise TypeError(f"settings must be a RasterSettings, got {type(settings).__name__}")
         self.settings = settings
@@ -128,6 +131,10 @@ class SoftRasterizer:
             raise ValueError(f"settings.dtype='float64' but device {self.device.name!r} has no "
                              "cl_khr_fp64; use dtype='float32' or another device")
         self.real = np.dtype(settings.dtype)
+        if lanes is not None and lanes not in LANES[settings.dtype]:
+            raise ValueError(f"lanes must be one of {LANES[settings.dtype]} for dtype={settings.dtype!r}, got {lanes!r}")
+        self.lanes = lanes or vector_lanes(self.device, settings.dtype)
+        self.grid = tile_grid(settings, self.lanes)
         # device buffers and host staging reused from call to call (softras_cl.raster.pool)
         self.pool = BufferPool(self.ctx)
         self.scratch = ScratchArrays()
@@ -173,7 +180,8 @@ class SoftRasterizer:
         check_forward_memory(s, self.device, mesh.batch, mesh.n_faces, grads, mesh.tex_res, mesh.tex_shape)
         geom, drawable = face_setup(mesh, s)
         t = self._stage("setup", t)
-        bins = bin_faces(geom, drawable, mesh.batch, mesh.n_faces, s, roi_tiles(roi, mesh.batch, s))
+        bins = bin_faces(geom, drawable, mesh.batch, mesh.n_faces, s, self.grid,
+                         roi_tiles(roi, mesh.batch, self.grid, s))
         t = self._stage("binning", t)
         buffers = self._upload(mesh, geom, bins)
         state = self._state_buffers(mesh.batch) if grads else None
@@ -212,7 +220,7 @@ class SoftRasterizer:
     def _kernel(self, name: str, grads: tuple, save_state: bool) -> cl.Kernel:
         s = self.settings
         defines = dict(
-            SR_DOUBLE=s.dtype == "float64",
+            SR_DOUBLE=s.dtype == "float64", SR_LANES=self.lanes,
             SR_OUT_RGB="rgb" in s.outputs, SR_OUT_ALPHA="alpha" in s.outputs,
             SR_OUT_DEPTH="depth" in s.outputs,
             SR_METRIC_BARY=s.metric == "barycentric",
@@ -229,7 +237,7 @@ class SoftRasterizer:
     def _geometry_args(self, mesh: MeshInputs, bufs: FaceBuffers) -> list:
         """The GEOMETRY_ARGS shared by both kernels (kernels/soft_raster.cl)."""
         s, real = self.settings, self.real.type
-        g = tile_grid(s)
+        g = self.grid
         x_cut = -np.finfo(self.real).max if s.dist_eps == 0 else math.log(s.dist_eps / (1 - s.dist_eps))
         i32 = np.int32
         return [i32(s.width), i32(s.height), i32(g.wp), i32(g.hp), i32(g.ntx), i32(g.nty),
@@ -241,7 +249,7 @@ class SoftRasterizer:
     def _run_forward(self, mesh: MeshInputs, bufs: FaceBuffers, state: PixelState | None) -> dict:
         """Run the forward kernel (writing `state` too, if given): {output name: (planes, B, Hp, Wp)}."""
         s, real = self.settings, self.real
-        g = tile_grid(s)
+        g = self.grid
         npix = mesh.batch * g.hp * g.wp
         planes = dict(rgb=3 if "rgb" in s.outputs else 0, alpha=int("alpha" in s.outputs),
                       depth=int("depth" in s.outputs))
@@ -256,7 +264,7 @@ class SoftRasterizer:
     def _state_buffers(self, batch: int) -> PixelState:
         """Per-pixel state the backward reads: softmax log-normaliser or hard face ids, and the
         occupancy sums (two planes) or the sum of D."""
-        s, g, itemsize = self.settings, tile_grid(self.settings), self.real.itemsize
+        s, g, itemsize = self.settings, self.grid, self.real.itemsize
         npix = batch * g.hp * g.wp
         new = self.pool.take
         soft_color = {"rgb", "depth"} & set(s.outputs) and s.color_agg == "softmax"
@@ -276,8 +284,8 @@ class SoftRasterizer:
         are host staging that the next backward overwrites. t: perf_counter at the start of
         backward (stage timing)."""
         s, real, mesh, bins = self.settings, self.real, saved.mesh, saved.bins
-        g = tile_grid(s)
-        shapes, scale = self._slot_shapes(mesh, saved.grads, max(bins.n_entries, 1), cot["grad_rgb"])
+        g = self.grid
+        shapes, scale = self._slot_shapes(mesh, saved.grads, max(len(bins.tile_faces), 1), cot["grad_rgb"])
         kernel_grads = tuple(x for x in saved.grads if x != "colors" or {"attr", "tex"} & set(shapes))
         if not kernel_grads:    # colour gradients only, and no rgb cotangent: all zero
             return dict(pos=None, attr=None, light=None, tex=None, scale=scale)
@@ -286,15 +294,14 @@ class SoftRasterizer:
         g_dot = self._g_dot_image(saved, cot_bufs, kernel_grads)
         hosts = {k: self.scratch.get("slot_" + k, shape, dtype) for k, (shape, dtype) in shapes.items()}
         out_bufs = {k: self.pool.take(a.nbytes) for k, a in hosts.items()}
-        partial = len(bins.tile_faces) < bins.n_entries      # a region of interest leaves slots unwritten
         for k, buf in out_bufs.items():
-            if partial or k == "tex" or s.texture == "face":  # texels are added into
+            if k == "tex" or s.texture == "face":             # texels are added into
                 cl.enqueue_fill_buffer(self.queue, buf, np.zeros(1, np.uint32), 0, hosts[k].nbytes)
         knl = self._kernel("soft_raster_bwd", kernel_grads, True)
         t = self._stage("backward_prep", t, finish=True)
         dummy = self._dummy()
         knl(self.queue, (_round_up(g.ntx), g.nty, mesh.batch), GROUP, *self._geometry_args(mesh, saved.buffers),
-            saved.buffers.tile_slots, *(cot_bufs.get(n, dummy) for n in ("grad_rgb", "grad_alpha", "grad_depth")),
+            *(cot_bufs.get(n, dummy) for n in ("grad_rgb", "grad_alpha", "grad_depth")),
             dummy if g_dot is None else g_dot, *self._state_args(saved.state), real.type(scale),
             *(out_bufs.get(k, dummy) for k in ("pos", "attr", "light", "tex")))
         for k, host in hosts.items():
@@ -306,7 +313,8 @@ class SoftRasterizer:
     def _slot_shapes(self, mesh: MeshInputs, grads: tuple, n_entries: int, grad_rgb) -> tuple[dict, float]:
         """{name: (shape, dtype)} of what the backward kernel writes, and the uv fixed-point scale:
         "pos" (n_entries, 9) and "attr" (n_entries, K) colour and normal slots, "light"
-        (n_entries, LIGHT_PARAMS) slots, "tex" (B, Ht, Wt, 3) int64 uv texel sums."""
+        (n_entries, LIGHT_PARAMS) slots, in tile-list order; "tex" (B, Ht, Wt, 3) int64 uv
+        texel sums."""
         s, real = self.settings, self.real
         shapes = {"pos": ((n_entries, 9), real)} if "vertices" in grads else {}
         if "colors" not in grads or "rgb" not in s.outputs or grad_rgb is None:
@@ -325,7 +333,7 @@ class SoftRasterizer:
         mesh, bins, grads = saved.mesh, saved.bins, saved.grads
         out = {}
         if "vertices" in grads:
-            per_face = _sum_slots(slots["pos"], bins).reshape(mesh.batch, mesh.n_faces, 3, 3)
+            per_face = _sum_slots(slots["pos"], bins, self.scratch).reshape(mesh.batch, mesh.n_faces, 3, 3)
             out["vertices"] = mesh.unbatch_vertices(scatter_corners(per_face, mesh.faces, mesh.n_vertices))
         if "colors" in grads:
             out.update(self._color_grads(mesh, bins, slots))
@@ -341,10 +349,11 @@ class SoftRasterizer:
             return dict(colors=mesh.unbatch_colors(g))
         if s.texture == "face":
             r = mesh.tex_res
-            g = (np.zeros((mesh.batch * mesh.n_faces, r * r * 3)) if attr is None else _sum_slots(attr, bins))
+            g = (np.zeros((mesh.batch * mesh.n_faces, r * r * 3)) if attr is None else _sum_slots(attr, bins, self.scratch))
             return dict(colors=mesh.unbatch_colors(g.reshape(mesh.batch, mesh.n_faces, r, r, 3)))
         width = vertex_attr_width(s.lighting != "none")
-        per_face = (np.zeros((mesh.batch * mesh.n_faces, width)) if attr is None else _sum_slots(attr, bins))
+        per_face = (np.zeros((mesh.batch * mesh.n_faces, width)) if attr is None
+                    else _sum_slots(attr, bins, self.scratch))
         per_face = per_face.reshape(mesh.batch, mesh.n_faces, width // 3, 3)
         out = dict(colors=mesh.unbatch_colors(
             scatter_corners(per_face[:, :, :3], mesh.faces, mesh.n_vertices)))
@@ -352,7 +361,7 @@ class SoftRasterizer:
             out["normals"] = scatter_corners(per_face[:, :, 3:], mesh.faces, mesh.n_vertices)
             light = slots["light"]
             out["light"] = (np.zeros(LIGHT_PARAMS) if light is None
-                            else light[:bins.n_entries].astype(np.float64).sum(0))
+                            else _face_major(light, bins, self.scratch).sum(0))
         return out
 
     # ---- buffers ---------------------------------------------------------------------------
@@ -361,8 +370,7 @@ class SoftRasterizer:
         arrays = dict(geom=geom.astype(self.real, order="C"), attr=mesh.face_attributes().astype(self.real),
                       tex_image=mesh.texture_image_array().astype(self.real),
                       light=(mesh.light if mesh.light is not None else np.zeros(0)).astype(self.real),
-                      tile_start=bins.tile_start, tile_faces=bins.tile_faces,
-                      tile_slots=bins.tile_slots)
+                      tile_start=bins.tile_start, tile_faces=bins.tile_faces)
         return FaceBuffers(**{name: self._to_device(np.ascontiguousarray(a)) for name, a in arrays.items()})
 
     def _to_device(self, array: np.ndarray) -> cl.Buffer:
@@ -388,7 +396,7 @@ class SoftRasterizer:
         and (B, H, W, planes) otherwise; None for None."""
         if buf is None:
             return None
-        s, g = self.settings, tile_grid(self.settings)
+        s, g = self.settings, self.grid
         shape = (n_planes, batch, g.hp, g.wp)
         if n_planes == 1 and (g.hp, g.wp) == (s.height, s.width):     # nothing to crop
             host = np.empty(shape[1:], self.real)
@@ -402,7 +410,7 @@ class SoftRasterizer:
     def _upload_planes(self, name: str, image: np.ndarray | None, batch: int) -> cl.Buffer:
         """Cotangent `name` (B, H, W[, 3]; None = zeros) -> pooled device buffer of its
         (planes, B, Hp, Wp) planes in the kernel dtype, zero-padded."""
-        s, g = self.settings, tile_grid(self.settings)
+        s, g = self.settings, self.grid
         host = self.scratch.get(name, (3 if name == "grad_rgb" else 1, batch, g.hp, g.wp), self.real, zeros=True)
         region = host[:, :, :s.height, :s.width]
         if image is None:
@@ -414,7 +422,7 @@ class SoftRasterizer:
     def _g_dot_image(self, saved: RasterContext, cot_bufs: dict, kernel_grads: tuple) -> cl.Buffer | None:
         """Pooled device buffer of the per-pixel sum over rgb and depth channels of cotangent *
         output (softmax backward), or None when the settings need none."""
-        s, g, batch = self.settings, tile_grid(self.settings), saved.mesh.batch
+        s, g, batch = self.settings, self.grid, saved.mesh.batch
         if s.color_agg != "softmax" or not {"rgb", "depth"} & set(s.outputs):
             return None
         out = self.pool.take(batch * g.hp * g.wp * self.real.itemsize)
@@ -432,14 +440,25 @@ def _round_up(n: int) -> int:
 
 
 # ---- gradient reduction ---------------------------------------------------------------------
-def _sum_slots(slots: np.ndarray, bins: Bins) -> np.ndarray:
-    """(n_entries, K) per-(tile, face) sums -> (B*F, K) float64 per-face sums, always in the same order."""
+def _face_major(slots: np.ndarray, bins: Bins, scratch: ScratchArrays) -> np.ndarray:
+    """(tile-list entries, K) slots as written by the backward kernel -> (n_entries, K) float64 in
+    face-major order (Bins.tile_slots), zero for the entries outside a region of interest; a
+    staging array of `scratch`, valid until the next call."""
+    out = scratch.get(f"face_major{slots.shape[1]}", (bins.n_entries, slots.shape[1]), np.float64)
+    if len(bins.tile_slots) < bins.n_entries:
+        out[...] = 0.0
+    out[bins.tile_slots] = slots[:len(bins.tile_slots)]
+    return out
+
+
+def _sum_slots(slots: np.ndarray, bins: Bins, scratch: ScratchArrays) -> np.ndarray:
+    """(tile-list entries, K) per-(tile, face) sums -> (B*F, K) float64 per-face sums, always in the same order."""
     counts = np.diff(bins.face_start)
-    out = np.zeros((len(counts), slots.shape[1]))
+    out = np.empty((len(counts), slots.shape[1]))
     has = counts > 0
+    out[~has] = 0.0
     if has.any():
-        out[has] = np.add.reduceat(slots[:bins.n_entries].astype(np.float64, copy=False),
-                                   bins.face_start[:-1][has], axis=0)
+        out[has] = np.add.reduceat(_face_major(slots, bins, scratch), bins.face_start[:-1][has], axis=0)
     return out
 
 

@@ -99,3 +99,12 @@ def test_capabilities_and_context_cache():
     ctx, queue = device.get_context()
     assert device.get_context(d) == (ctx, queue)
     assert queue.device == d
+
+
+@pytest.mark.parametrize("preferred, dtype, lanes", [(16, "float32", 16), (8, "float32", 8), (1, "float32", 8),
+                                                     (4, "float32", 8), (32, "float32", 16),
+                                                     (16, "float64", 4), (1, "float64", 4)])
+def test_vector_lanes_follow_the_preferred_float_width(preferred, dtype, lanes):
+    class Dev:
+        preferred_vector_width_float = preferred
+    assert device.vector_lanes(Dev(), dtype) == lanes

@@ -280,17 +280,17 @@ def test_flat_face_colors_fast_path():
 def test_region_of_interest_renders_its_tiles_bit_identically(dtype):
     """roi: pixels in the tiles holding the region are bit-identical to a full render, the rest
     is background; with cotangents zero outside those tiles the gradients are bit-identical too."""
-    from softras_cl.raster.binning import roi_tiles, tile_grid
+    from softras_cl.raster.binning import roi_tiles
 
     s = settings(dtype=dtype, dist_eps=1e-4, sigma=1e-3, image_size=(40, 45))
     vertices, faces, colors = random_scene(11, n_vertices=30, n_faces=60)
     h, w = s.image_size
     roi = np.zeros((h, w), bool)
     roi[9:23, 5:19] = True
-    g = tile_grid(s)
-    in_tiles = np.repeat(np.repeat(roi_tiles(roi, 1, s).reshape(g.nty, g.ntx), 8, 0), g.tile_w, 1)[:h, :w]
-    assert in_tiles.sum() > roi.sum() and not in_tiles.all()
     raster = SoftRasterizer(s)
+    g = raster.grid
+    in_tiles = np.repeat(np.repeat(roi_tiles(roi, 1, g, s).reshape(g.nty, g.ntx), 8, 0), g.tile_w, 1)[:h, :w]
+    assert in_tiles.sum() > roi.sum() and not in_tiles.all()
     full = raster.forward(vertices, faces, grads=("vertices", "colors"), **colors)
     part = raster.forward(vertices, faces, grads=("vertices", "colors"), roi=roi, **colors)
     for a, b, bg in ((full.rgb, part.rgb, s.background), (full.alpha, part.alpha, 0.0), (full.depth, part.depth, s.far)):
@@ -304,3 +304,34 @@ def test_region_of_interest_renders_its_tiles_bit_identically(dtype):
         assert np.array_equal(g_full[k], g_part[k]), k
     with pytest.raises(ValueError, match="roi"):
         raster.forward(vertices, faces, roi=np.ones((h, w + 1), bool), **colors)
+
+
+LANE_VARIANTS = [dict(), dict(texture="face"), dict(texture="uv"), dict(color_agg="hard", alpha_agg="sum", sigma=1e-4)]
+
+
+@pytest.mark.parametrize("variant", LANE_VARIANTS, ids=_ids(LANE_VARIANTS))
+def test_float32_lane_widths_render_the_same_images(variant):
+    """8 and 16 floats per kernel vector: bit-identical images (the same arithmetic per pixel),
+    gradients equal up to float32 rounding (their per-tile sums group the pixels differently)."""
+    s = settings(dtype="float32", dist_eps=1e-4, **variant)
+    vertices, faces, colors = random_scene(4, texture=s.texture)
+    rng = np.random.default_rng(1)
+    results = []
+    for lanes in (8, 16):
+        raster = SoftRasterizer(s, lanes=lanes)
+        assert raster.grid.tile_w == lanes
+        out = raster.forward(vertices, faces, grads=("vertices", "colors"), **colors)
+        cot = {f"grad_{n}": np.random.default_rng(2).standard_normal(getattr(out, n).shape) for n in s.outputs}
+        results.append((out, raster.backward(out, **cot)))
+    (out8, g8), (out16, g16) = results
+    for name in s.outputs:
+        np.testing.assert_array_equal(getattr(out8, name), getattr(out16, name))
+    for name in g8:
+        np.testing.assert_allclose(g16[name], g8[name], rtol=1e-5, atol=1e-5 * np.abs(g8[name]).max())
+
+
+def test_lanes_must_suit_the_dtype():
+    with pytest.raises(ValueError, match=r"lanes must be one of \(4,\) for dtype='float64', got 8"):
+        SoftRasterizer(settings(), lanes=8)
+    with pytest.raises(ValueError, match=r"lanes must be one of \(8, 16\) for dtype='float32', got 4"):
+        SoftRasterizer(settings(dtype="float32"), lanes=4)
