@@ -259,7 +259,7 @@ def variants() -> list[tuple[str, callable]]:
     # 16 floats per vector (AVX-512 CPUs pick them; Oclgrind's device would pick 8)
     for label, batch, kw in [("default", 2, {}), ("face texture", 1, dict(texture="face")),
                              ("uv texture", 2, dict(texture="uv")),
-                             ("hard/sum barycentric", 1, dict(color_agg="hard", alpha_agg="sum", metric="barycentric")),
+                             ("hard colours, summed alpha, barycentric", 1, dict(color_agg="hard", alpha_agg="sum", metric="barycentric")),
                              ("sh per-pixel", 2, dict(lighting="sh")),
                              ("region of interest per item", 2, dict(roi="per item"))]:
         out.append((f"raster float32 16 lanes {label} B={batch}",

@@ -138,6 +138,9 @@ class SoftRasterizer:
         # device buffers and host staging reused from call to call (softras_cl.raster.pool)
         self.pool = BufferPool(self.ctx)
         self.scratch = ScratchArrays()
+        # events of transfers in flight: pyopencl's transfer events wait for their transfer when
+        # freed, so they are kept until _sync waits for all of them at once
+        self._transfers: list = []
         # stage_ms: None (default), or a dict that forward/backward add their stages' wall times
         # to, in ms: "setup" (input checks, face set-up), "binning", "upload", "forward" (kernel
         # and image download), "backward_prep" (cotangent planes and buffers), "backward"
@@ -187,7 +190,9 @@ class SoftRasterizer:
         state = self._state_buffers(mesh.batch) if grads else None
         t = self._stage("upload", t, finish=True)
         images = self._run_forward(mesh, buffers, state)
-        crops = [self._fetch(images.get(n), 3 if n == "rgb" else 1, mesh.batch) for n in ("rgb", "alpha", "depth")]
+        hosts = {n: self._download(n, b, mesh.batch) for n, b in images.items()}
+        self._sync()
+        crops = [self._crop(hosts.get(n)) for n in ("rgb", "alpha", "depth")]
         saved = RasterContext(mesh, grads, bins, buffers, images, state) if grads else None
         if saved is not None:
             self.pool.give_when_dead(saved, [b for b in saved.device_buffers() if b is not self._dummy()])
@@ -305,7 +310,8 @@ class SoftRasterizer:
             dummy if g_dot is None else g_dot, *self._state_args(saved.state), real.type(scale),
             *(out_bufs.get(k, dummy) for k in ("pos", "attr", "light", "tex")))
         for k, host in hosts.items():
-            cl.enqueue_copy(self.queue, host, out_bufs[k])
+            self._transfers.append(cl.enqueue_copy(self.queue, host, out_bufs[k], is_blocking=False))
+        self._sync()
         self.pool.give([*cot_bufs.values(), *out_bufs.values(), *([g_dot] if g_dot is not None else [])])
         self._stage("backward", t, finish=True)
         return {**dict(pos=None, attr=None, light=None, tex=None), **hosts, "scale": scale}
@@ -378,7 +384,7 @@ class SoftRasterizer:
         if not array.size:
             return self._dummy()
         buf = self.pool.take(array.nbytes)
-        cl.enqueue_copy(self.queue, buf, array)
+        self._transfers.append(cl.enqueue_copy(self.queue, buf, array, is_blocking=False))
         return buf
 
     def _pooled(self, buffers) -> list:
@@ -391,21 +397,30 @@ class SoftRasterizer:
             self._dummy_buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, 64)
         return self._dummy_buf
 
-    def _fetch(self, buf: cl.Buffer | None, n_planes: int, batch: int) -> np.ndarray | None:
-        """Host copy of a (planes, B, Hp, Wp) device image, cropped to (B, H, W) for one plane
-        and (B, H, W, planes) otherwise; None for None."""
-        if buf is None:
-            return None
+    def _download(self, name: str, buf: cl.Buffer, batch: int) -> np.ndarray:
+        """Start reading output `name`'s (planes, B, Hp, Wp) device image into a host array: a
+        fresh (B, H, W) one for an unpadded single plane, host staging otherwise. Valid after
+        _sync() (one wait for all the downloads instead of one each)."""
         s, g = self.settings, self.grid
-        shape = (n_planes, batch, g.hp, g.wp)
+        n_planes = 3 if name == "rgb" else 1
         if n_planes == 1 and (g.hp, g.wp) == (s.height, s.width):     # nothing to crop
-            host = np.empty(shape[1:], self.real)
-            cl.enqueue_copy(self.queue, host, buf)
+            host = np.empty((batch, g.hp, g.wp), self.real)
+        else:
+            host = self.scratch.get("image_" + name, (n_planes, batch, g.hp, g.wp), self.real)
+        self._transfers.append(cl.enqueue_copy(self.queue, host, buf, is_blocking=False))
+        return host
+
+    def _sync(self) -> None:
+        """Wait for everything queued, then let go of the finished transfers."""
+        self.queue.finish()
+        self._transfers.clear()
+
+    def _crop(self, host: np.ndarray | None) -> np.ndarray | None:
+        """A downloaded image (_download) as (B, H, W) for one plane, (B, H, W, planes) for more."""
+        if host is None or host.ndim == 3:
             return host
-        host = self.scratch.get(f"image{n_planes}", shape, self.real)
-        cl.enqueue_copy(self.queue, host, buf)
-        img = host[:, :, :s.height, :s.width]
-        return img[0].copy() if n_planes == 1 else np.ascontiguousarray(np.moveaxis(img, 0, -1))
+        img = host[:, :, :self.settings.height, :self.settings.width]
+        return img[0].copy() if len(img) == 1 else np.ascontiguousarray(np.moveaxis(img, 0, -1))
 
     def _upload_planes(self, name: str, image: np.ndarray | None, batch: int) -> cl.Buffer:
         """Cotangent `name` (B, H, W[, 3]; None = zeros) -> pooled device buffer of its

@@ -154,7 +154,8 @@ def test_sweep_covers_every_variant():
                  "single-sided", "fast maths", "face texture R=1", "colours only uv",
                  "render float32 pixel sh", "render float64 pixel lambert",
                  "render float64 unlit uv texture", "render float32 face sh",
-                 "region of interest per item uv", "render float64 pixel lambert region of interest"):
+                 "region of interest per item uv", "render float64 pixel lambert region of interest",
+                 "float32 16 lanes uv texture", "float32 16 lanes sh per-pixel"):
         assert any(word in n for n in names), word
 
 
