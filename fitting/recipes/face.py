@@ -38,12 +38,15 @@ e (summed over channels), or with ``robust_scale`` of its Geman-McClure kernel
 s^2 for what the model cannot explain (cast shadows, highlights, hair strands, glasses),
 ``landmarks`` = sum over points of weighted squared pixel distances, priors = sum of squared
 coefficients. Read as negative log-likelihoods, ``w_landmarks = 1 / noise_px^2`` (2 px) and
-``w_photo = 1 / noise_rgb^2``; the priors have weight 1. The default photo weight 10 (noise
-~0.3) is far below what a synthetic photo would allow: on real photos the residuals (hair,
-glasses, wrinkles, what the model cannot represent) are large and correlated over many pixels,
-and a higher weight let them bend the shape (astronaut: landmark error 8.7 px at weight 100,
-3.3 px at 10), while synthetic faces still reach a third of the mean face's error. The SH
-term (weight 1000) keeps the light grey so that colour goes into the albedo.
+``w_photo = 1 / noise_rgb^2``; the priors have weight 1. The defaults, chosen by measurement
+on synthetic faces and the shipped photos (docs/face_fitting.md): photo weight 100 (noise
+0.1) with the robust term (scale 2x the median error, at least 0.1) and the landmarks 10x
+heavier in the photometric stages than in the landmark stage. With squared errors a weight of
+100 let what the model cannot represent (hair, glasses, wrinkles: large errors, correlated
+over many pixels) bend the shape (Grace Hopper: landmark error 7.0 px at 10, 9.8 px at 100);
+the robust term and the heavier landmarks keep the photo's pull to what the model explains,
+while the higher weight lets the photo, not the priors, set the shape. The SH term (weight
+1000) keeps the light grey so that colour goes into the albedo.
 """
 from __future__ import annotations
 
@@ -91,8 +94,8 @@ COARSE_SIGMA = 1e-4
 # Robust photometric term (FaceObjective.start_stage): Geman-McClure scale = ROBUST_SCALE x the
 # median per-pixel linear-RGB error at a stage's start, never below MIN_ROBUST_SCALE (an error
 # that small is noise, not something the model cannot explain).
-ROBUST_SCALE: float | None = None    # chosen by measurement: see docs/face_fitting.md
-MIN_ROBUST_SCALE = 0.02
+ROBUST_SCALE = 2.0
+MIN_ROBUST_SCALE = 0.1
 
 # Schedules: (sigma, gamma, evaluations) per photometric stage, and the landmark stage's budget.
 BUDGETS = {
@@ -129,9 +132,9 @@ class FaceFitConfig:
     landmark_iters: int = BUDGETS["default"]["landmark_iters"]
     photo_stages: tuple = BUDGETS["default"]["photo_stages"]
     weights: dict = field(default_factory=lambda: dict(
-        landmarks=1.0 / 4.0, photo=10.0, id_prior=1.0, exp_prior=1.0,
+        landmarks=1.0 / 4.0, photo=100.0, id_prior=1.0, exp_prior=1.0,
         albedo_prior=1.0, sh_white=1000.0, focal_prior=1.0))
-    landmark_weight_photo: float = 1.0    # landmark weight in the photometric stages, relative
+    landmark_weight_photo: float = 10.0   # landmark weight in the photometric stages, relative
     robust_scale: float | None = ROBUST_SCALE
     mask_erosion: int = 2
     forehead: float = 0.15

@@ -75,9 +75,9 @@ def register(sub) -> None:
     p.add_argument("--size", type=int, default=256,
                    help="longest side in pixels of the working image the fit runs at (default 256)")
     p.add_argument("--photo-weight", type=float, default=None,
-                   help="weight of the photometric term (default 10, i.e. pixel noise ~0.3; higher "
-                        "trusts the photo more: better on clean images, worse with hair, glasses "
-                        "or expressions the model lacks; see `softras-cl bench face`)")
+                   help="weight of the photometric term (default 100, i.e. pixel noise ~0.1, with a "
+                        "robust kernel that caps what hair, glasses or shadows can pull; higher "
+                        "trusts the photo more; see docs/face_fitting.md and `softras-cl bench face`)")
     p.add_argument("--focal", type=float, default=None,
                    help="focal length in pixels of the photo, if known (default: fitted)")
     p.add_argument("--n-id", type=int, default=None, help="identity components to use (default: all)")

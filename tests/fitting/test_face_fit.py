@@ -191,10 +191,12 @@ def test_budgets_and_photo_weight_are_validated_and_applied():
         face.FaceFitConfig.from_budget("quick")
     with pytest.raises(ValueError, match="photo_weight must be > 0"):
         face.FaceFitConfig.from_budget("fast", photo_weight=0.0)
-    config = face.FaceFitConfig.from_budget("fast", photo_weight=100.0, size=64)
-    assert config.weights["photo"] == 100.0 and config.size == 64
+    config = face.FaceFitConfig.from_budget("fast", photo_weight=30.0, size=64)
+    assert config.weights["photo"] == 30.0 and config.size == 64
     assert config.photo_stages == face.BUDGETS["fast"]["photo_stages"]
-    assert face.FaceFitConfig().weights["photo"] == 10.0
+    default = face.FaceFitConfig()
+    assert default.weights["photo"] == 100.0 and default.robust_scale == face.ROBUST_SCALE == 2.0
+    assert default.landmark_weight_photo == 10.0
 
 
 @pytest.fixture(scope="module")
