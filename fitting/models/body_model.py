@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from softras_cl.checks import check_shape, real_array
-from softras_cl.scene.rotation import RodriguesContext, _rodrigues_coeffs, hat, rodrigues
+from softras_cl.scene.rotation import RodriguesContext, _rodrigues_coeffs, hat, rodrigues_rows
 
 if TYPE_CHECKING:
     import scipy.sparse
@@ -175,8 +175,7 @@ class BodyModel:
         pose = np.vstack([_floats("global_rotation", global_rotation, (3,)),
                           self._body_pose(body_pose)])
         trans = _floats("translation", translation, (3,))
-        rot_local, rot_ctx = zip(*(rodrigues(w) for w in pose))
-        rot_local = np.stack(rot_local)
+        rot_local, rot_ctx = rodrigues_rows(pose)
         v_posed = v_shaped
         if self.posedirs is not None:
             v_posed = v_shaped + self.posedirs @ (rot_local[1:] - np.eye(3)).ravel()

@@ -76,6 +76,19 @@ def rodrigues(omega) -> tuple[np.ndarray, RodriguesContext]:
     return np.eye(3) + a * k + b * (k @ k), RodriguesContext(w, k)
 
 
+def rodrigues_rows(omegas) -> tuple[np.ndarray, tuple[RodriguesContext, ...]]:
+    """rodrigues of N axis-angles (N, 3) at once: (R (N, 3, 3) float64, N RodriguesContexts).
+    The same products and sums as N calls of rodrigues (bit-identical, tested); for the 24
+    joints of a body, one stacked matmul instead of 24 small ones."""
+    w = real_array("omegas", omegas, (None, 3), "(N, 3)").copy()
+    k = np.zeros((len(w), 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
+    k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
+    a, b = np.array([_rodrigues_coeffs(float(np.linalg.norm(x)))[:2] for x in w]).reshape(-1, 2).T
+    R = np.eye(3) + a[:, None, None] * k + b[:, None, None] * (k @ k)
+    return R, tuple(RodriguesContext(x, kx) for x, kx in zip(w, k))
+
+
 def rodrigues_vjp(ctx: RodriguesContext, grad_R) -> dict:
     """dL/dR (3, 3) -> {"omega": dL/domega (3,) float64}; exact, finite at omega = 0.
 

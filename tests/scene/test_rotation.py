@@ -68,3 +68,18 @@ def test_rodrigues_series_meets_closed_form():
     above = _rodrigues_coeffs(_SMALL_ANGLE * (1 + 1e-12))
     np.testing.assert_allclose(below, above, rtol=1e-11)
     np.testing.assert_allclose(_rodrigues_coeffs(0.0), [1, 0.5, -1 / 3, -1 / 12], rtol=1e-15)
+
+
+def test_rodrigues_rows_equals_rodrigues_row_by_row():
+    """Bit for bit, from zero through the Taylor-series range to large angles; errors name the
+    argument."""
+    from softras_cl.scene.rotation import rodrigues, rodrigues_rows
+
+    rng = np.random.default_rng(3)
+    omegas = np.concatenate([np.zeros((1, 3))] + [rng.normal(size=(50, 3)) * s for s in (1e-9, 1e-3, 0.05, 1.0, 3.0)])
+    R, ctxs = rodrigues_rows(omegas)
+    for w, r, ctx in zip(omegas, R, ctxs):
+        one, one_ctx = rodrigues(w)
+        assert np.array_equal(r, one) and np.array_equal(ctx.k, one_ctx.k) and np.array_equal(ctx.omega, one_ctx.omega)
+    with pytest.raises(ValueError, match="omegas"):
+        rodrigues_rows(np.zeros((4, 2)))
