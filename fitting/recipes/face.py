@@ -71,7 +71,7 @@ from softras_cl.fitting.solver import FitResult, Stage, fit
 
 __all__ = ["FaceFitConfig", "Crop", "FaceScene", "FaceFit", "BUDGETS", "landmark_weights", "default_stages",
            "depth_range", "half_resolution", "initial_pose", "initial_light", "prepare_photo", "face_params", "FaceObjective",
-           "fit_face", "psnr"]
+           "prepare_fit", "fit_face", "psnr"]
 
 N_LANDMARKS = 68
 # Smallest working image (pixels a side). Measured on astronaut with the fast budget: the face
@@ -702,6 +702,17 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
         raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
                          f"{N_LANDMARKS} iBUG points (pass a landmark mapping file with the model)")
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
+    objective, crop, params = prepare_fit(photo, landmarks, model, config)
+    stages = default_stages(config, fit_focal=config.focal is None)
+    result = fit(params, objective, stages, out_dir=out_dir, progress=progress, resume=resume)
+    mask = objective.mask if objective.mask is not None else objective.face_region(result.values, 1e-6, 1e-4)
+    return FaceFit(result.values, objective.scene, objective.image, objective.target, crop, mask, result, objective)
+
+
+def prepare_fit(photo, landmarks, model, config: FaceFitConfig) -> tuple[FaceObjective, Crop, ParamSet]:
+    """Where :func:`fit_face` starts: photo (H, W, 3) linear RGB and its landmarks (68, 2)
+    pixels -> (the FaceObjective of the working image, the Crop from the photo, the ParamSet at
+    the initial pose, focal and light). ``model`` is used as given (not truncated)."""
     image, target, crop = prepare_photo(photo, landmarks, config.size)
     h, w = np.shape(photo)[:2]
     principal = crop.to_work([[w / 2.0 - 0.5, h / 2.0 - 0.5]])[0]
@@ -718,9 +729,5 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
                               forehead=config.forehead, robust_scale=config.robust_scale)
     values = dict(zero, rotation=rotation, translation=translation, focal=np.array([focal]))
     sh = initial_light(scene, values, image)
-    params = face_params(model, focal, rotation, translation, sh)
-    stages = default_stages(config, fit_focal=config.focal is None)
-    result = fit(params, objective, stages, out_dir=out_dir, progress=progress, resume=resume)
-    mask = objective.mask if objective.mask is not None else objective.face_region(result.values, 1e-6, 1e-4)
-    return FaceFit(result.values, scene, image, target, crop, mask, result, objective)
+    return objective, crop, face_params(model, focal, rotation, translation, sh)
 

@@ -364,3 +364,20 @@ def test_robust_photo_term_ignores_an_occluder_that_biases_squares(toy):
         errors[robust_scale] = np.abs(scene.render(values, 1e-4, 1e-3).rgb[0] - clean)[region].mean()
     assert errors[None] > 0.03                      # measured 0.07 (colours ~0.3)
     assert errors[2.0] < 0.003                      # measured 0.0002
+
+
+def test_prepare_fit_starts_from_the_cropped_photo_and_the_field_of_view_focal(toy):
+    rng = np.random.default_rng(7)
+    photo = rng.random((120, 100, 3))
+    lmk = np.column_stack([rng.uniform(30, 70, 68), rng.uniform(40, 80, 68)])
+    config = face.FaceFitConfig(size=48, fov_deg=40.0)
+    objective, crop, params = face.prepare_fit(photo, lmk, toy, config)
+    image, target, same_crop = face.prepare_photo(photo, lmk, 48)
+    assert crop == same_crop
+    np.testing.assert_array_equal(objective.image, image)
+    np.testing.assert_array_equal(objective.target, target)
+    focal = 0.5 * 120 / np.tan(np.radians(20.0)) * crop.scale
+    start = params.values()
+    assert start["focal"][0] == pytest.approx(focal) and objective.focal0 == pytest.approx(focal)
+    assert objective.robust_scale == config.robust_scale
+    assert np.all(start["id"] == 0) and start["sh"].shape == (3, 9)
