@@ -31,13 +31,15 @@ import pickle
 import zipfile
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import h5py
 import numpy as np
-import scipy.io
 
 from softras_cl.fitting.models.face_model import FORMAT, FaceModel
 from softras_cl.fitting.models.legacy_pickle import load_legacy_pickle
+
+if TYPE_CHECKING:        # h5py and scipy.io are imported by the readers that use them (start-up)
+    import h5py
 
 SUPPORTED_LAYOUTS = ("project .npz (FaceModel.save, key 'format' = 'softras-cl-face-1')",
                      "BFM 2009 .mat (01_MorphableModel.mat: shapeMU, shapePC, shapeEV, texMU, "
@@ -95,7 +97,7 @@ def load_face_model(path, landmarks=None) -> FaceModel:
         raise _unknown(path, ["a file that is none of .npz, HDF5, MATLAB or pickle"])
     try:
         model = readers[kind](path)
-    except (OSError, EOFError, KeyError, zipfile.BadZipFile, scipy.io.matlab.MatReadError) as e:
+    except (OSError, EOFError, KeyError, zipfile.BadZipFile, _mat_read_error()) as e:
         raise ValueError(f"{path}: damaged or truncated face model file ({type(e).__name__}: {e})") from e
     if landmarks is not None:
         faces_idx, bary = read_landmark_mapping(landmarks, model.faces, model.n_vertices)
@@ -161,7 +163,17 @@ def _bfm2009_model(v: dict, path: Path, name: str) -> FaceModel:
                                  "of Basel; used under its licence")
 
 
+def _mat_read_error() -> type:
+    """scipy's MatReadError; the except clause evaluating this runs only when a reader failed,
+    so loading the demo model does not import scipy.io (slow)."""
+    from scipy.io.matlab import MatReadError
+
+    return MatReadError
+
+
 def _read_bfm2009_mat5(path: Path) -> FaceModel:
+    import scipy.io
+
     try:
         data = scipy.io.loadmat(path)
     except (ValueError, TypeError) as e:
@@ -174,6 +186,8 @@ def _read_bfm2009_mat5(path: Path) -> FaceModel:
 
 # -- HDF5: BFM 2017 and BFM 2009 saved as MATLAB v7.3 -----------------------------------------
 def _read_hdf5(path: Path) -> FaceModel:
+    import h5py
+
     with h5py.File(path, "r") as f:
         if all(k in f for k in _BFM2017_KEYS):
             return _read_bfm2017(f, path)
