@@ -84,18 +84,23 @@ class BufferPool:
 
 
 class ScratchArrays:
-    """Host arrays kept by (name, shape, dtype); a new shape replaces the old array of that name.
+    """Host arrays kept by name, returned as `shape` views of a buffer that grows by size classes
+    (sizes that change from call to call, like bin entries in a fit, reuse one buffer).
 
-    zeros=True arrays are zero when created: callers that only write a fixed region (padded
-    planes) rely on the rest staying zero."""
+    zeros=True arrays are kept per exact shape and zero when created: callers that only write a
+    fixed region (padded planes) rely on the rest staying zero."""
 
     def __init__(self):
         self._arrays: dict = {}
 
     def get(self, name: str, shape: tuple, dtype, zeros: bool = False) -> np.ndarray:
-        key = (tuple(int(n) for n in shape), np.dtype(dtype), zeros)
+        shape, dtype = tuple(int(n) for n in shape), np.dtype(dtype)
+        size = int(np.prod(shape))
         held = self._arrays.get(name)
-        if held is None or held[0] != key:
-            array = (np.zeros if zeros else np.empty)(key[0], key[1])
-            self._arrays[name] = held = (key, array)
-        return held[1]
+        if zeros:
+            if held is None or held.shape != shape or held.dtype != dtype:
+                self._arrays[name] = held = np.zeros(shape, dtype)
+            return held
+        if held is None or held.dtype != dtype or held.size < size:
+            self._arrays[name] = held = np.empty(size_class(size * dtype.itemsize) // dtype.itemsize, dtype)
+        return held[:size].reshape(shape)
