@@ -140,6 +140,8 @@ def image_geman_mcclure(pred, target, scale, mask=None) -> tuple[float, dict]:
     An all-zero mask gives 0. Returns ``(value, {"pred": gradient of pred's shape})``.
     """
     p, t = _image_pair(pred, target)
+    if p.ndim not in (2, 3):
+        raise ValueError(f"pred: expected an (H, W) or (H, W, C) image, got shape {p.shape}")
     s = real_array("scale", scale)
     if s.ndim != 0:
         raise ValueError(f"scale: expected a scalar, got shape {s.shape}")

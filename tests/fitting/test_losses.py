@@ -392,6 +392,7 @@ def test_geman_mcclure_is_finite_and_exact_at_extreme_residuals_and_scales(resid
 
 
 @pytest.mark.parametrize("call, says", [
+    (lambda: losses.image_geman_mcclure(np.zeros(4), np.zeros(4), 1.0), "pred: expected an (H, W) or (H, W, C)"),
     (lambda: losses.image_geman_mcclure(np.zeros((2, 2)), np.zeros((2, 2)), 0.0), "scale must be > 0"),
     (lambda: losses.image_geman_mcclure(np.zeros((2, 2)), np.zeros((2, 2)), -1.0), "scale must be > 0"),
     (lambda: losses.image_geman_mcclure(np.zeros((2, 2)), np.zeros((2, 2)), np.nan), "scale contains NaN"),
