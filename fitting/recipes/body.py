@@ -6,7 +6,7 @@ The scene (float64 throughout)::
     camera : Camera.look_at(eye=(0, height, distance), target=(0, height, 0), fov_deg) with the
              field of view across the shorter image side: one frontal camera, the body standing
              near the origin
-    colour : unlit per-vertex part colours (:func:`part_colours`; the right hand red), drawn on
+    colour : unlit per-vertex part colours (:func:`part_colors`; the right hand red), drawn on
              the background colour; near/far clip at distance -+ DEPTH_RANGE / 2
 
 Targets: a part-coloured image (H, W, 3) on the background colour, the same with an alpha
@@ -59,7 +59,7 @@ from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
 __all__ = ["BUDGETS", "POSE_SIGMA", "HINGE_LIMITS", "BodyFitConfig", "BodyTarget", "BodyScene",
-           "BodyObjective", "BodyFit", "part_colours", "hinge_frames", "joint_limits",
+           "BodyObjective", "BodyFit", "part_colors", "hinge_frames", "joint_limits",
            "pose_sigmas", "prepare_target", "body_params", "rest_values", "default_stages", "fit_body",
            "initial_translation"]
 

@@ -19,16 +19,14 @@ run jointly over all photos: a block free in the single fit's stage is free here
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from softras_cl.errors import InputError
 from softras_cl.fitting.params import Block, ParamSet
-from softras_cl.fitting.recipes.face import (N_LANDMARKS, FaceFit, FaceFitConfig, FaceObjective, FaceScene,
-                                             default_stages, depth_range, face_params, initial_light,
-                                             initial_pose, prepare_photo)
+from softras_cl.fitting.recipes.face import (N_LANDMARKS, FaceFit, FaceFitConfig, FaceObjective,
+                                             default_stages, prepare_fit)
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
 __all__ = ["SHARED", "PRIORS_ONCE", "view_block", "FaceViewsObjective", "FaceViewsFit", "joint_params",
@@ -122,23 +120,7 @@ class View:
 def prepare_view(photo, landmarks, model, config: FaceFitConfig) -> View:
     """Photo (H, W, 3) linear RGB and its landmarks (68, 2) pixels -> the View fit_face would
     start from (working image, camera, initial pose and light)."""
-    image, target, crop = prepare_photo(photo, landmarks, config.size)
-    h, w = np.shape(photo)[:2]
-    principal = crop.to_work([[w / 2.0 - 0.5, h / 2.0 - 0.5]])[0]
-    if config.focal is None:
-        focal = 0.5 * max(h, w) / math.tan(math.radians(config.fov_deg) / 2.0) * crop.scale
-    else:
-        focal = float(config.focal) * crop.scale
-    zero = dict(id=np.zeros(model.n_id), exp=np.zeros(model.n_exp), albedo=np.zeros(model.n_albedo))
-    mean_landmarks, _ = model.landmarks(model.shape(zero["id"], zero["exp"])[0])
-    rotation, translation = initial_pose(mean_landmarks, target, focal, principal)
-    scene = FaceScene(model, image.shape[:2], config.dtype, depth_range=depth_range(translation),
-                      principal=principal)
-    objective = FaceObjective(scene, image, target, config.mask_erosion, focal0=focal, forehead=config.forehead,
-                              robust_scale=config.robust_scale)
-    values = dict(zero, rotation=rotation, translation=translation, focal=np.array([focal]))
-    sh = initial_light(scene, values, image)
-    return View(objective, crop, face_params(model, focal, rotation, translation, sh))
+    return View(*prepare_fit(photo, landmarks, model, config))
 
 
 @dataclass

@@ -7,8 +7,6 @@ fits against Dask workers and threads).
 """
 from __future__ import annotations
 
-import argparse
-
 from importlib import import_module
 
 # benchmark name -> module whose register(which) adds it; each module imports its heavy

@@ -428,7 +428,7 @@ def register(which) -> None:
                    help=f"comma-separated schedule budgets to compare (default {','.join(DEFAULT_BUDGETS)})")
     p.add_argument("--seed", type=int, default=0, help="random seed of the synthetic faces (default 0)")
     p.add_argument("--photo-weight", type=float, default=None,
-                   help="photometric weight of the fits (default: the fit's own default, 10)")
+                   help="photometric weight of the fits (default: the fit's own, as in fit-face --help)")
     p.add_argument("--renderers", default="softras",
                    help="comma-separated renderers of the synthetic photos: softras (softras-cl, sharp, "
                         "the fit's own image formation), mitsuba (Mitsuba 3 path tracer: environment + "

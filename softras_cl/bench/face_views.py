@@ -213,7 +213,7 @@ def register(which) -> None:
     p.add_argument("--budget", default="default", help="schedule budget of every fit (default: default)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the subjects (default 0)")
     p.add_argument("--photo-weight", type=float, default=None,
-                   help="photometric weight of every fit (default: the fit's own default, 10)")
+                   help="photometric weight of every fit (default: the fit's own, as in fit-face --help)")
     p.add_argument("--model", default=None, help="face model file (default: the shipped demo model)")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
     p.add_argument("--out", default="out/bench",

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.bench.raster import BASE_SETTINGS, REPEATS, settings_for
+from softras_cl.bench.raster import REPEATS, settings_for
 from softras_cl.bench.tools import device_info, format_table, relative_inf_error
 from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
 from softras_cl.provenance import provenance

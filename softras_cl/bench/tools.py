@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 
 from softras_cl.io.outputs import write_figure
-from softras_cl.provenance import opencl_device as device_info  # the device the benchmarks run on
+from softras_cl.provenance import opencl_device as device_info  # noqa: F401  (re-exported: the device the benchmarks run on)
 
 
 def save_image_strip(columns, path: Path, cell=(2.4, 2.6)) -> None:
