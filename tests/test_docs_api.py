@@ -1,4 +1,5 @@
-"""docs/api.md matches the code, and the product text speaks of itself (no issue numbers).
+"""docs/api.md and every module's ``__all__`` match the code, and the product text speaks of
+itself (no issue numbers).
 
 Every dotted ``softras_cl.*`` name in docs/api.md must resolve to a module or an attribute, and
 every ``from softras_cl... import ...`` line of its examples must run. The checkers are shown to
@@ -7,8 +8,12 @@ fail on text naming things that do not exist.
 from __future__ import annotations
 
 import importlib
+import pkgutil
 import re
+import types
 from pathlib import Path
+
+import softras_cl
 
 REPO = Path(__file__).resolve().parents[1]
 API_DOC = REPO / "docs" / "api.md"
@@ -45,6 +50,12 @@ def failing_imports(text: str) -> list[str]:
     return failing
 
 
+def missing_exports(modules) -> list[str]:
+    """`module.name` for every name a module's ``__all__`` lists but does not define."""
+    return [f"{m.__name__}.{name}" for m in modules for name in getattr(m, "__all__", ())
+            if not hasattr(m, name)]
+
+
 def issue_citations(root: Path) -> list[str]:
     """`path:line` of every "issue N" / "issue #N" in the product's text files below `root`."""
     hits = []
@@ -67,6 +78,12 @@ def test_api_doc_imports_run():
     assert failing_imports(API_DOC.read_text()) == []
 
 
+def test_every_exported_name_exists():
+    names = [m.name for m in pkgutil.walk_packages(softras_cl.__path__, "softras_cl.")
+             if not m.name.endswith((".torch", ".jax"))]           # optional frameworks
+    assert missing_exports([importlib.import_module(n) for n in names]) == []
+
+
 def test_product_cites_no_issue_numbers():
     assert issue_citations(REPO) == []
 
@@ -76,6 +93,10 @@ def test_checkers_catch_stale_text(tmp_path):
              "from softras_cl.raster.settings import RasterSettings, Missing\n")
     assert unresolved_names(stale) == ["softras_cl.nosuchmodule", "softras_cl.raster.settings.NoSuchThing"]
     assert failing_imports(stale) == ["from softras_cl.raster.settings import RasterSettings, Missing"]
+    stale_module = types.ModuleType("stale")
+    stale_module.__all__ = ["present", "renamed"]
+    stale_module.present = 1
+    assert missing_exports([stale_module]) == ["stale.renamed"]
     (tmp_path / "docs").mkdir()
     (tmp_path / "docs" / "x.md").write_text("fine\nas asked in issue 12\n")
     assert issue_citations(tmp_path) == ["docs/x.md:2"]
