@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.bench.raster import GRADS, Scene, _int_list, make_scene, run_once, settings_for, subdivisions_for
-from softras_cl.bench.tools import format_table, relative_inf_error
+from softras_cl.bench.raster import GRADS, Scene, make_scene, run_once, settings_for, subdivisions_for
+from softras_cl.bench.tools import format_table, int_list, relative_inf_error
 from softras_cl.errors import InputError, ResultError
 from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json, write_text
 
@@ -335,9 +335,9 @@ def register(which) -> None:
                         "made by scripts/setup_peers.sh)")
     p.add_argument("--peer-script", default=None,
                    help="peer worker speaking the protocol of softras_cl/bench/peer_pytorch3d.py (default: that file)")
-    p.add_argument("--sizes", type=_int_list, default=None,
+    p.add_argument("--sizes", type=int_list, default=None,
                    help=f"square image sizes in pixels, comma-separated (default {','.join(map(str, SIZES))})")
-    p.add_argument("--faces", type=_int_list, default=None,
+    p.add_argument("--faces", type=int_list, default=None,
                    help=f"icosphere face counts 20*4**s, comma-separated (default {','.join(map(str, FACES))})")
     p.add_argument("--repeats", type=int, default=None,
                    help=f"timed runs per side and configuration after one warm-up; medians are reported (default {REPEATS})")

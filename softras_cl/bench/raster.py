@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.bench.tools import device_info, format_table, relative_inf_error
+from softras_cl.bench.tools import device_info, format_table, int_list, relative_inf_error
 from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
 from softras_cl.provenance import provenance
 
@@ -471,21 +471,13 @@ def run_raster(args: argparse.Namespace) -> int:
     return 0
 
 
-def _int_list(text: str) -> tuple[int, ...]:
-    """'256,1024' -> (256, 1024), for argparse."""
-    try:
-        return tuple(int(t) for t in text.split(",") if t.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-
-
 def register(which) -> None:
     """Add `raster` to the `bench` subparsers `which`."""
     p = which.add_parser("raster", help="soft rasteriser speed, memory and accuracy",
                          description="\n\n".join(__doc__.split("\n\n")[:2]))
-    p.add_argument("--sizes", type=_int_list, default=None,
+    p.add_argument("--sizes", type=int_list, default=None,
                    help=f"square image sizes in pixels, comma-separated (default {','.join(map(str, SIZES))})")
-    p.add_argument("--faces", type=_int_list, default=None,
+    p.add_argument("--faces", type=int_list, default=None,
                    help="icosphere face counts 20*4**s, comma-separated "
                         f"(default {','.join(map(str, FACES))})")
     p.add_argument("--repeats", type=int, default=None,

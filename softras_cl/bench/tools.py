@@ -1,6 +1,7 @@
 """Pieces shared by the benchmarks: device description, text tables, error measures, image strips."""
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 import numpy as np
@@ -49,3 +50,11 @@ def relative_inf_error(a: np.ndarray, b: np.ndarray) -> float:
     scale = float(np.abs(b).max())
     diff = float(np.abs(a - b).max())
     return diff / scale if scale else diff
+
+
+def int_list(text: str) -> tuple[int, ...]:
+    """'256,1024' -> (256, 1024), for argparse."""
+    try:
+        return tuple(int(t) for t in text.split(",") if t.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None

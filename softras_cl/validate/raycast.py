@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from softras_cl.errors import InputError
 from softras_cl.scene.camera import Camera
 
 
@@ -47,11 +48,12 @@ def pixel_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
 def raycast(vertices: np.ndarray, faces: np.ndarray, camera: Camera) -> RayCastImage:
     """Nearest hit of each pixel's ray with the mesh (vertices (V, 3) world, faces (F, 3)).
 
-    RuntimeError saying what to install when embreex (the optional extra `validate`) is missing.
+    InputError (exit 2 on the command line) saying what to install when embreex (the optional
+    extra `validate`) is missing.
     """
     if not trimesh.ray.has_embree:
-        raise RuntimeError('the ray-cast reference needs embreex, in the optional extra: '
-                           'pip install "softras-cl[validate]"')
+        raise InputError('the ray-cast reference needs embreex, in the optional extra: '
+                         'pip install "softras-cl[validate]"')
     mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces), process=False)
     origins, directions = pixel_rays(camera)
     locations, ray_index, face_index = mesh.ray.intersects_location(origins, directions, multiple_hits=False)

@@ -58,3 +58,13 @@ def test_render_command_reports_bad_mesh(tmp_path, run_cli):
     result = run_cli("render", str(bad), "--out", str(tmp_path / "x.png"))
     assert result.code == 2                              # an input file problem (softras_cl.errors)
     assert "no faces" in result.err and "Traceback" not in result.err
+
+
+def test_compare_without_embreex_names_the_extra(tmp_path, run_cli, monkeypatch):
+    path = tmp_path / "torus.ply"
+    mesh = torus()
+    save_mesh(path, mesh.vertices, mesh.faces)
+    monkeypatch.setattr(trimesh.ray, "has_embree", False)
+    result = run_cli("compare", str(path), "--size", "32", "--out", str(tmp_path / "c.png"))
+    assert result.code == 2 and "Traceback" not in result.err
+    assert 'pip install "softras-cl[validate]"' in result.err
