@@ -121,10 +121,11 @@ def test_ray_cast_reference_without_embreex_says_what_to_install():
             "sys.modules['embreex'] = None\n"
             "import numpy as np\n"
             "from softras_cl.scene.camera import Camera\n"
+            "from softras_cl.errors import InputError\n"
             "from softras_cl.validate.raycast import raycast\n"
             "camera = Camera.look_at((0, 0, 3), (0, 0, 0), image_size=(8, 8))\n"
             "try:\n"
             "    raycast(np.eye(3), np.array([[0, 1, 2]]), camera)\n"
-            "except RuntimeError as e:\n"
+            "except InputError as e:\n"
             "    print(e)\n")
     assert 'pip install "softras-cl[validate]"' in run_python(code).stdout
