@@ -24,6 +24,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import sys
 import tempfile
 import time
@@ -39,6 +40,9 @@ __all__ = ["atomic_path", "write_bytes", "write_text", "write_json", "write_figu
 LOCK_NAME = ".softras-cl.lock"
 RUN_RECORD = "run.json"
 COMPLETE_RECORD = "complete.json"
+# atomic_path's temporary files: ".STEM.XXXXXXXX.tmp.SUFFIX" (8 characters from mkstemp)
+TEMP_MARK = ".tmp"
+_TEMPORARY = re.compile(r"^\..+\.[A-Za-z0-9_]{8}" + re.escape(TEMP_MARK) + r"(\.[^.]+)?$")
 
 
 def _describe(err: OSError) -> str:
@@ -56,7 +60,7 @@ def atomic_path(path) -> Iterator[Path]:
     """
     path = Path(path)
     try:
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}")
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=f"{TEMP_MARK}{path.suffix}")
     except OSError as e:
         raise OutputError(f"cannot write {path}: {_describe(e)}") from e
     tmp = Path(tmp)
@@ -220,7 +224,16 @@ class OutputFolder:
                                  f"{self.option}")
         with contextlib.suppress(FileNotFoundError):
             (self.path / COMPLETE_RECORD).unlink()
+        self._remove_stale_temporaries()
         write_json(self.path / RUN_RECORD, record)
+
+    def _remove_stale_temporaries(self) -> None:
+        """Remove the temporary files of writes that a killed run (kill -9, power loss) left
+        half done. Safe under the lock: no other softras-cl run writes here."""
+        for path in self.path.rglob(".*" + TEMP_MARK + "*"):
+            if path.is_file() and _TEMPORARY.match(path.name):
+                with contextlib.suppress(OSError):
+                    path.unlink()
 
     def finish(self, summary: dict) -> None:
         """Mark the run complete: complete.json = run.json's record plus ``summary``. Call it

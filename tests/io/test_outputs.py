@@ -148,3 +148,29 @@ def test_the_lock_is_exclusive_within_one_process_too(tmp_path):
         with pytest.raises(OutputError, match="first"):
             with OutputFolder(tmp_path, "second"):
                 pass
+
+
+UNFINISHED = []     # atomic_path blocks never exited (a collected one would clean up after itself)
+
+
+def killed_mid_write(path: Path) -> Path:
+    """The temporary file a writer of ``path`` leaves when it is killed inside atomic_path."""
+    manager = atomic_path(path)
+    tmp = manager.__enter__()                  # never exited: as if the process died here
+    UNFINISHED.append(manager)
+    tmp.write_bytes(b"half")
+    return tmp
+
+
+def test_a_new_run_removes_what_a_killed_run_left_half_written(tmp_path):
+    (tmp_path / "photos" / "a").mkdir(parents=True)
+    stale = [killed_mid_write(tmp_path / "checkpoint.npz"),
+             killed_mid_write(tmp_path / "photos" / "a" / "params.json")]
+    users = [tmp_path / ".notes.tmp", tmp_path / "draft.tmp.txt", tmp_path / "checkpoint.npz"]
+    for path in users:
+        path.write_text("keep")
+    assert all(p.exists() for p in stale)
+    with OutputFolder(tmp_path, "fit-face") as out:
+        out.begin({"command": "fit-face"})
+    assert not [p for p in stale if p.exists()]
+    assert all(p.read_text() == "keep" for p in users)
