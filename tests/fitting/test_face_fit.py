@@ -10,6 +10,7 @@ from softras_cl.fitting.recipes import face
 from softras_cl.bench.face import aligned_rmse, synthetic_face
 from softras_cl.fitting.solver import Stage
 from softras_cl.scene.shading import sh_ambient
+from support.gradients import central_differences
 from support.toy_face import toy_face_model
 
 ALL_TERMS = dict(landmarks=0.3, photo=1.0, id_prior=1.0, exp_prior=1.0, albedo_prior=1.0, sh_white=2.0)
@@ -48,15 +49,9 @@ def test_objective_gradient_matches_central_differences(toy, weights, robust_sca
         error = np.linalg.norm(scene.render(values, 1e-3, 1e-2).rgb[0] - objective.image, axis=-1)[objective.mask]
         assert 0.2 < (error > objective.photo_scale).mean() < 0.8
     for name, v in values.items():
-        fd = np.zeros_like(v)
-        for i in np.ndindex(v.shape):
-            # a step small enough not to cross the rasteriser's cut-off of a face's reach
-            # (D < dist_eps is skipped: a jump of ~1e-10 in the loss; at 1e-6 it showed)
-            h = 1e-7 * max(1.0, abs(v[i]))
-            plus, minus = {**values, name: v.copy()}, {**values, name: v.copy()}
-            plus[name][i] += h
-            minus[name][i] -= h
-            fd[i] = (objective(plus, stage)[0] - objective(minus, stage)[0]) / (2 * h)
+        # a step small enough not to cross the rasteriser's cut-off of a face's reach
+        # (D < dist_eps is skipped: a jump of ~1e-10 in the loss; at 1e-6 it showed)
+        fd = central_differences(objective, values, stage, name, step=1e-7)
         g = grads.get(name, np.zeros_like(v))
         np.testing.assert_allclose(g, fd, rtol=2e-5, atol=2e-5 * np.abs(fd).max() + 1e-9, err_msg=name)
 
@@ -288,14 +283,7 @@ def test_coarse_stage_gradient_matches_central_differences_and_sums_like_full_re
     assert level.mask.sum() > 100 and objective.mask is None
     assert (level.photo_scale is None) == (robust_scale is None)
     for name in ("focal", "translation", "albedo"):
-        v = values[name]
-        fd = np.zeros_like(v)
-        for i in np.ndindex(v.shape):
-            h = 1e-6 * max(1.0, abs(v[i]))
-            plus, minus = {**values, name: v.copy()}, {**values, name: v.copy()}
-            plus[name][i] += h
-            minus[name][i] -= h
-            fd[i] = (objective(plus, stage)[0] - objective(minus, stage)[0]) / (2 * h)
+        fd = central_differences(objective, values, stage, name)
         np.testing.assert_allclose(grads[name], fd, rtol=2e-5, atol=2e-5 * np.abs(fd).max() + 1e-9, err_msg=name)
     # a half-size pixel counts for four: on a smooth photo the sum is near the full-resolution one
     y, x = np.mgrid[0:64, 0:64] / 64.0
