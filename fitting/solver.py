@@ -27,6 +27,7 @@ whatever nlopt returns, and what the next stage starts from.
 
 - normal returns: ``SUCCESS``, ``STOPVAL_REACHED``, ``FTOL_REACHED``, ``XTOL_REACHED``,
   ``MAXEVAL_REACHED``, ``MAXTIME_REACHED``;
+- ``STALLED``: the stage's own convergence stop (``Stage.stall_window``) ended it;
 - ``ROUNDOFF_LIMITED`` (``nlopt.RoundoffLimited``): the best point is kept and the fit goes on;
 - ``FORCED_STOP`` (``nlopt.ForcedStop``, e.g. raised by the objective to end a stage early);
 - generic failures (``FAILURE``, ``INVALID_ARGS``, ``OUT_OF_MEMORY``; nlopt's LD_LBFGS reports
@@ -114,6 +115,13 @@ class Stage:
               hard cap (nlopt's L-BFGS can overshoot maxeval inside a line search; the solver
               stops it at the cap and reports MAXEVAL_REACHED).
     ftol_rel, xtol_rel: nlopt relative tolerances (x in scaled units, see params.py).
+    stall_window, stall_rel: the solver's own convergence stop (0 disables it, the default):
+              the stage ends (outcome ``STALLED``) at the first evaluation k > stall_window
+              where the best loss improved by at most ``stall_rel * |best|`` over the last
+              stall_window evaluations: ``best(k - stall_window) - best(k) <= stall_rel *
+              |best(k)|`` (best(j): the lowest loss of the stage's first j evaluations). Unlike nlopt's ftol_rel, which compares two successive iterates,
+              the window sees through L-BFGS's line searches and its slow, noisy tails. The
+              budget (max_iters) stays the cap.
     """
     name: str
     free: tuple[str, ...]
@@ -123,6 +131,8 @@ class Stage:
     max_iters: int = 100
     ftol_rel: float = 1e-7
     xtol_rel: float = 1e-9
+    stall_window: int = 0
+    stall_rel: float = 0.0
 
     def __post_init__(self):
         if isinstance(self.free, str):
@@ -307,6 +317,8 @@ class _Fit:
         abort: list[BaseException] = []
         k = [0]
         budget, over_budget = int(stage.max_iters), [False]
+        bests: list[float] = [math.inf]      # bests[j]: lowest loss of the first j evaluations
+        stalled = [False]
         self.boundaries.append((len(self.history) + 1, stage.name))
         opt = _new_opt(x0.size)
         self.state.opt = opt
@@ -317,7 +329,7 @@ class _Fit:
             try:
                 if k[0] >= budget:          # nlopt may overshoot maxeval inside a line search
                     over_budget[0] = True
-                if abort or self.state.interrupt or over_budget[0]:
+                if abort or self.state.interrupt or over_budget[0] or stalled[0]:
                     opt.force_stop()
                     if grad.size:
                         grad[:] = 0.0
@@ -348,6 +360,10 @@ class _Fit:
                     best["values"] = {n: values[n].copy() for n in free}
                     if time.monotonic() - self.last_write >= CHECKPOINT_INTERVAL:
                         self.write_checkpoint({**base, **best["values"]}, stage.name, k[0], loss)
+                bests.append(best["loss"])
+                if _stalled(stage, bests):
+                    stalled[0] = True
+                    opt.force_stop()
                 if self.bar is not None:
                     self.bar.set_description(stage.name, refresh=False)
                     self.bar.set_postfix(iter=k[0], loss=f"{loss:.6g}",
@@ -395,8 +411,8 @@ class _Fit:
 
         if self.state.interrupt:
             outcome = "INTERRUPTED"
-        elif over_budget[0] and outcome == "FORCED_STOP" and not abort:
-            outcome = "MAXEVAL_REACHED"
+        elif outcome == "FORCED_STOP" and not abort and (over_budget[0] or stalled[0]):
+            outcome = "STALLED" if stalled[0] else "MAXEVAL_REACHED"
         self.outcomes[stage.name] = outcome
         # Carry the stage's best point on, whatever happened.
         if best["values"] is not None:
@@ -487,6 +503,14 @@ class _Fit:
                          interrupted=self.state.interrupt)
 
 
+def _stalled(stage: Stage, bests: list) -> bool:
+    """Stage.stall_window's test on bests[j], the best loss after j evaluations."""
+    w = int(stage.stall_window)
+    if w < 1 or len(bests) <= w:
+        return False
+    return bests[-1 - w] - bests[-1] <= stage.stall_rel * abs(bests[-1])
+
+
 class _ForcedStopRequest(Exception):
     """The objective raised nlopt.ForcedStop: end the stage, keep the best, go on."""
 
@@ -512,8 +536,11 @@ def _check_stages(params: ParamSet, stages) -> list[Stage]:
             raise ValueError(f"stage {s.name!r}: {exc}") from None
         if int(s.max_iters) < 1:
             raise ValueError(f"stage {s.name!r}: max_iters must be >= 1")
-        if not (s.ftol_rel >= 0 and s.xtol_rel >= 0):
-            raise ValueError(f"stage {s.name!r}: ftol_rel and xtol_rel must be >= 0")
+        if not (s.ftol_rel >= 0 and s.xtol_rel >= 0 and s.stall_rel >= 0):
+            raise ValueError(f"stage {s.name!r}: ftol_rel, xtol_rel and stall_rel must be >= 0")
+        if isinstance(s.stall_window, bool) or not isinstance(s.stall_window, int) or s.stall_window < 0:
+            raise ValueError(f"stage {s.name!r}: stall_window must be an integer >= 0 (evaluations; "
+                             f"0: no convergence stop), got {s.stall_window!r}")
     return stages
 
 

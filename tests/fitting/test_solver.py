@@ -1,6 +1,7 @@
 """fitting/solver.py (docs/fitting.md): staged nlopt L-BFGS on smooth problems with known
 answers, the stage schedule as the objective sees it, best-point tracking, every nlopt outcome,
 non-finite losses/gradients, Ctrl-C and the files written to out_dir."""
+import dataclasses
 import json
 import os
 import signal
@@ -444,3 +445,84 @@ def test_progress_bar(capsys):
 def test_bad_stages(stages, pattern):
     with pytest.raises(ValueError, match=pattern):
         fit(quad_params(), Quadratic(), stages, progress=False)
+
+
+CURVATURES = np.logspace(0, 4, 40)
+
+
+def offset_quadratic(values, stage):
+    """1 + sum_i c_i (a_i - 1)^2, curvatures 1..1e4: L-BFGS needs over a hundred evaluations,
+    and near the minimum the relative improvement of its tail falls below any stall_rel."""
+    d = values["a"] - 1.0
+    return 1.0 + float(np.sum(CURVATURES * d * d)), {"a": 2 * CURVATURES * d}, {}
+
+
+def slow_params():
+    return ParamSet([Block("a", np.zeros(CURVATURES.size))])
+
+
+SLOW = Stage("slow", "a", max_iters=1000, ftol_rel=0, xtol_rel=0)
+
+
+def test_stall_window_stops_a_stage_before_its_cap_and_says_why():
+    """Without the window (and without tolerances) nlopt runs this stage until its own test;
+    the window stops it earlier, once 10 evaluations improved the best by <= 1e-5 relative."""
+    plain = fit(slow_params(), offset_quadratic, [SLOW], progress=False)
+    res = fit(slow_params(), offset_quadratic,
+              [dataclasses.replace(SLOW, stall_window=10, stall_rel=1e-5), Stage("next", "a", max_iters=2)],
+              progress=False)
+    assert plain.outcomes["slow"] != "STALLED"
+    assert res.outcomes["slow"] == "STALLED" and "next" in res.outcomes
+    n = sum(h["stage"] == "slow" for h in res.history)
+    assert 10 < n < len(plain.history) < SLOW.max_iters
+    best = np.minimum.accumulate([h["loss"] for h in res.history[:n]])
+    assert best[-11] - best[-1] <= 1e-5 * best[-1]                  # the rule held at the stop
+    assert all(best[k - 10] - best[k] > 1e-5 * best[k] for k in range(10, n - 1))   # not before
+    assert res.loss == pytest.approx(1.0, abs=1e-4)
+
+
+def test_stall_window_on_scripted_losses_stops_at_the_first_flat_window(monkeypatch):
+    """best after each evaluation 10, 9, 8, 8, 8, 8, ...: with a window of 3 and stall_rel 0
+    the stage ends at evaluation 6 (best(3) - best(6) = 0), not at the first flat step."""
+    losses = iter([10.0, 9.0, 8.0, 8.5, 8.0, 9.0, 7.0, 7.0])
+    fake_first_stage(monkeypatch, [[0.0]] * 8, nlopt.ForcedStop("as nlopt ends a forced stop"))
+    calls = []
+
+    def obj(values, stage):
+        calls.append(stage.name)
+        return next(losses), {"a": np.zeros(1)}, {}
+
+    res = fit(ParamSet([Block("a", np.zeros(1))]), obj,
+              [Stage("s1", "a", stall_window=3), Stage("s2", "a", max_iters=1)], progress=False)
+    assert calls.count("s1") == 6 and res.outcomes["s1"] == "STALLED"
+
+
+def test_a_stalled_stage_is_finished_for_resume(tmp_path):
+    stages = [dataclasses.replace(SLOW, stall_window=10, stall_rel=1e-5), Stage("next", "a", max_iters=50)]
+    calls = []
+
+    def interrupted(values, stage):
+        calls.append(stage.name)
+        if stage.name == "next" and calls.count("next") == 2:
+            raise KeyboardInterrupt
+        return offset_quadratic(values, stage)
+
+    first = fit(slow_params(), interrupted, stages, out_dir=tmp_path, progress=False)
+    assert first.interrupted and first.outcomes["slow"] == "STALLED"
+    seen = []
+    resumed = fit(slow_params(), lambda v, s: seen.append(s.name) or offset_quadratic(v, s), stages,
+                  out_dir=tmp_path, progress=False, resume=True)
+    assert set(seen) == {"next"}                       # the stalled stage is not run again
+    assert resumed.outcomes["slow"] == "STALLED"
+    assert [h["stage"] for h in resumed.history].count("slow") == calls.count("slow")
+    assert resumed.loss <= first.loss
+
+
+@pytest.mark.parametrize("changes,pattern", [
+    (dict(stall_window=-1), r"stage 's': stall_window must be an integer >= 0"),
+    (dict(stall_window=2.5), r"stall_window must be an integer"),
+    (dict(stall_rel=-1e-3), r"stall_rel must be >= 0"),
+])
+def test_bad_stall_settings(changes, pattern):
+    with pytest.raises(ValueError, match=pattern):
+        fit(quad_params(), Quadratic(), [Stage("s", ("a",), **changes)], progress=False)
