@@ -37,6 +37,8 @@ SHARP = (1e-6, 1e-4)     # sigma, gamma of the report renders: the fitted surfac
 # triangles, dark under a light from above) as dotted lines; averaged samples draw them as the
 # faint continuous shadows they are, and anti-alias the outline.
 SUPERSAMPLE = 3
+PANEL_INCHES = (3.4, 3.2)   # figure.png: width and height of one panel's cell
+TITLE_INCHES = 0.3         # the band above the panels for the figure's title
 # iBUG outlines of the openings the face models close with a cap (eyes) or a slit (mouth): the
 # pictures show the photo through them, as a skin model does not draw eyes or teeth
 OPENINGS = (tuple(range(36, 42)), tuple(range(42, 48)), tuple(range(60, 68)))
@@ -210,12 +212,14 @@ def save_figure(fit: FaceFit, path: Path, metrics: dict, texture: FaceTexture | 
     panels = _panels(fit, texture)
     cols = 4 if texture is not None else len(panels)
     rows = -(-len(panels) // cols)
-    fig = Figure(figsize=(3.2 * cols, 3.4 * rows + 0.3))
-    axes = np.atleast_1d(fig.subplots(rows, cols)).ravel()
-    for ax, (title, img) in zip(axes, panels.items()):
+    fig = Figure(figsize=(PANEL_INCHES[0] * cols + 0.2, PANEL_INCHES[1] * rows + TITLE_INCHES))
+    axes = []
+    for (place, bar), (title, img) in zip(_panel_grid(fig, rows, cols), panels.items()):
+        ax = fig.add_axes(place)
+        axes.append(ax)
         if img.ndim == 2:
             shown = ax.imshow(img, cmap="magma", vmin=0, vmax=0.2)
-            fig.colorbar(shown, ax=ax, fraction=0.046, pad=0.02)
+            fig.colorbar(shown, cax=fig.add_axes(bar))
         else:
             ax.imshow(img)
         ax.set_title(title, fontsize=9)
@@ -227,8 +231,26 @@ def save_figure(fit: FaceFit, path: Path, metrics: dict, texture: FaceTexture | 
     if "psnr_face_db_textured" in metrics:
         title += f", with the detail texture {metrics['psnr_face_db_textured']:.1f} dB"
     fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
     write_figure(fig, path, dpi=110, **PNG_OPTIONS)
+
+
+def _panel_grid(fig, rows: int, cols: int) -> list:
+    """rows x cols (image axes, colour-bar axes) at fixed places, row-major: a PANEL_INCHES cell
+    each below the figure's TITLE_INCHES title band (and 0.2 inches of right margin for the last
+    colour bar's labels), the image square at the cell's lower left, room for a panel title
+    above it and a colour bar beside it. Fixed places, not
+    tight_layout: the layout pass measured every axis' ticks, which cost more than drawing."""
+    width, height = fig.get_size_inches()
+    cell_w, cell_h = PANEL_INCHES
+    side = cell_h - 0.55                     # the image square, inches
+    places = []
+    for i in range(rows * cols):
+        r, c = divmod(i, cols)
+        left, bottom = c * cell_w + 0.1, height - TITLE_INCHES - (r + 1) * cell_h + 0.2
+        image = (left / width, bottom / height, side / width, side / height)
+        bar = ((left + side + 0.08) / width, bottom / height, 0.12 / width, side / height)
+        places.append((image, bar))
+    return places
 
 
 def camera_matrices(fit: FaceFit, photo_size) -> dict:
