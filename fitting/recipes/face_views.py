@@ -5,11 +5,14 @@ landmarks, camera, FaceScene and FaceObjective. What is shared and what is not:
 
 - shared by all photos: identity ``id`` (K_id,) and albedo ``albedo`` (K_alb,);
 - per photo k: expression ``exp.k``, SH light ``sh.k`` (3, 9), ``rotation.k`` (3,),
-  ``translation.k`` (3,) and ``focal.k`` (1,) in that photo's working pixels.
+  ``translation.k`` (3,) and ``focal.k`` (1,) in that photo's working pixels;
+- with ``same_camera`` (photos of one size taken with one camera and zoom), one ``focal`` (1,)
+  instead of ``focal.k``: the focal length in the first photo's working pixels, photo k's
+  being ``focal * focal_scales[k]`` (the ratio of the photos' working-image scales).
 
 The objective is the sum of the photos' single-photo objectives at their own values, with the
-identity and albedo priors counted once (in the first photo's objective only; the expression,
-focal and light terms stay per photo). The gradient of a shared block is the sum of the photos'
+identity and albedo priors (and with a shared focal its prior) counted once (in the first
+photo's objective only; the expression and light terms stay per photo). The gradient of a shared block is the sum of the photos'
 gradients of it. With one photo the objective, the parameter layout and so the whole fit are
 those of :func:`~softras_cl.fitting.recipes.face.fit_face`.
 
@@ -29,22 +32,26 @@ from softras_cl.fitting.recipes.face import (N_LANDMARKS, FaceFit, FaceFitConfig
                                              default_stages, prepare_fit)
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
-__all__ = ["SHARED", "PRIORS_ONCE", "view_block", "FaceViewsObjective", "FaceViewsFit", "joint_params",
+__all__ = ["SHARED", "PRIORS_ONCE", "view_block", "focal_scales", "FaceViewsObjective", "FaceViewsFit", "joint_params",
            "joint_stages", "prepare_view", "fit_face_views"]
 
 SHARED = ("id", "albedo")                  # blocks common to every photo of the person
 PRIORS_ONCE = ("id_prior", "albedo_prior")  # their priors: counted in the first photo's objective only
+CAMERA = ("focal",)                         # shared too with same_camera, its prior counted once
+CAMERA_PRIORS = ("focal_prior",)
 
 
-def view_block(name: str, k: int) -> str:
+def view_block(name: str, k: int, shared=SHARED) -> str:
     """The joint fit's name of photo k's block ``name`` ("exp" -> "exp.0"; shared blocks keep
     their name)."""
-    return name if name in SHARED else f"{name}.{k}"
+    return name if name in shared else f"{name}.{k}"
 
 
-def view_values(values: dict, names, k: int) -> dict:
-    """Photo k's single-photo values (block names as in fit_face) out of the joint values."""
-    return {name: values[view_block(name, k)] for name in names}
+def focal_scales(views: list[FaceObjective]) -> np.ndarray:
+    """(N,) photo k's focal length in working pixels per unit of the first photo's: the ratio of
+    the focal lengths each photo's fit starts from (the same full-photo focal at every photo's
+    working-image scale)."""
+    return np.array([v.focal0 / views[0].focal0 for v in views])
 
 
 class FaceViewsObjective:
@@ -52,29 +59,42 @@ class FaceViewsObjective:
     photos of their FaceObjective (``views``, one per photo) at their own values.
 
     terms: each weighted term summed over the photos (``photo`` is the photometric term of all
-    photos together)."""
+    photos together). same_camera: one focal block for all photos (see the module docstring).
+    """
 
     BLOCKS = ("id", "exp", "albedo", "sh", "rotation", "translation", "focal")
 
-    def __init__(self, views: list[FaceObjective]):
+    def __init__(self, views: list[FaceObjective], same_camera: bool = False):
         if not views:
             raise InputError("views must hold at least one FaceObjective, got none")
         self.views = list(views)
+        self.shared = SHARED + (CAMERA if same_camera else ())
+        self.priors_once = PRIORS_ONCE + (CAMERA_PRIORS if same_camera else ())
+        self.focal_scales = focal_scales(self.views) if same_camera else None
+
+    def view_values(self, values: dict, k: int) -> dict:
+        """Photo k's single-photo values (block names as in fit_face) out of the joint values."""
+        view = {name: values[view_block(name, k, self.shared)] for name in self.BLOCKS}
+        if self.focal_scales is not None:
+            view["focal"] = view["focal"] * self.focal_scales[k]
+        return view
 
     def view_stage(self, stage: Stage, k: int) -> Stage:
         """The stage photo k's objective sees: the shared priors weigh 0 after the first photo."""
         if k == 0:
             return stage
-        return dataclasses.replace(stage, weights={n: (0.0 if n in PRIORS_ONCE else w)
+        return dataclasses.replace(stage, weights={n: (0.0 if n in self.priors_once else w)
                                                    for n, w in stage.weights.items()})
 
     def __call__(self, values: dict, stage: Stage):
         loss, grads, terms = 0.0, {}, {}
         for k, objective in enumerate(self.views):
-            value, g, t = objective(view_values(values, self.BLOCKS, k), self.view_stage(stage, k))
+            value, g, t = objective(self.view_values(values, k), self.view_stage(stage, k))
             loss += value
             for name, grad in g.items():
-                key = view_block(name, k)
+                key = view_block(name, k, self.shared)
+                if name == "focal" and self.focal_scales is not None:
+                    grad = grad * self.focal_scales[k]
                 grads[key] = grads[key] + grad if key in grads else grad
             for name, v in t.items():
                 terms[name] = terms.get(name, 0.0) + v
@@ -89,23 +109,23 @@ def _block(params: ParamSet, name: str, new_name: str) -> Block:
     return Block(new_name, value, lower, upper, scale)
 
 
-def joint_params(views: list[ParamSet]) -> ParamSet:
-    """The joint blocks from each photo's single-photo ParamSet (face_params): the shared blocks
-    (bounds, scale and start) of the first photo, every other block once per photo, in the
-    single fit's block order (so one photo gives its layout exactly)."""
+def joint_params(views: list[ParamSet], shared=SHARED) -> ParamSet:
+    """The joint blocks from each photo's single-photo ParamSet (face_params): the ``shared``
+    blocks (bounds, scale and start) of the first photo, every other block once per photo, in
+    the single fit's block order (so one photo gives its layout exactly)."""
     blocks = []
     for name in views[0].names:
-        if name in SHARED:
+        if name in shared:
             blocks.append(_block(views[0], name, name))
         else:
             blocks += [_block(v, name, view_block(name, k)) for k, v in enumerate(views)]
     return ParamSet(blocks)
 
 
-def joint_stages(stages: list[Stage], n_views: int) -> list[Stage]:
+def joint_stages(stages: list[Stage], n_views: int, shared=SHARED) -> list[Stage]:
     """The single fit's stages run over all photos: each free per-photo block in every photo."""
     return [dataclasses.replace(s, free=tuple(dict.fromkeys(
-        view_block(name, k) for name in s.free for k in range(n_views)))) for s in stages]
+        view_block(name, k, shared) for name in s.free for k in range(n_views)))) for s in stages]
 
 
 @dataclass
@@ -144,35 +164,46 @@ class FaceViewsFit:
         return dict(means, views=per_view)
 
 
-def _check_views(photos, landmarks) -> None:
+def _check_views(photos, landmarks, config: FaceFitConfig, same_camera: bool) -> None:
     if len(photos) < 1:
         raise InputError("photos must hold at least one photo, got none")
     if len(landmarks) != len(photos):
         raise InputError(f"landmarks must hold one (68, 2) array per photo: {len(photos)} photos, "
                          f"got {len(landmarks)} landmark arrays")
+    if not same_camera:
+        return
+    if config.focal is not None:
+        raise InputError(f"same_camera fits one focal length for all photos; config.focal gives it "
+                         f"({config.focal}) for every photo already: use one or the other")
+    sizes = {tuple(sorted(np.shape(p)[:2])) for p in photos}
+    if len(sizes) > 1:
+        raise InputError(f"same_camera needs photos of one size (one camera, uncropped: portrait or "
+                         f"landscape), got sizes {sorted(sizes)}")
 
 
 def fit_face_views(photos, landmarks, model, config: FaceFitConfig = FaceFitConfig(), out_dir=None,
-                   progress: bool = True, resume: bool = False) -> FaceViewsFit:
+                   progress: bool = True, resume: bool = False, same_camera: bool = False) -> FaceViewsFit:
     """Fit one identity and albedo of ``model`` to several photos of a person, each with its
-    own pose, focal length, expression and light.
+    own pose, expression, light and (unless ``same_camera``) focal length.
 
     photos: sequence of (H_k, W_k, 3) linear RGB; landmarks: one (68, 2) pixel array per photo;
-    config, out_dir, progress, resume: as for fit_face (one checkpoint.npz of the joint blocks).
+    config, out_dir, progress, resume: as for fit_face (one checkpoint.npz of the joint blocks);
+    same_camera: the photos (all of one size, portrait or landscape) share one focal length,
+    fitted (config.focal must be None).
     """
-    _check_views(photos, landmarks)
+    _check_views(photos, landmarks, config, same_camera)
     if model.n_landmarks != N_LANDMARKS:
         raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
                          f"{N_LANDMARKS} iBUG points (pass a landmark mapping file with the model)")
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
     views = [prepare_view(p, lm, model, config) for p, lm in zip(photos, landmarks)]
-    objective = FaceViewsObjective([v.objective for v in views])
-    stages = joint_stages(default_stages(config, fit_focal=config.focal is None), len(views))
-    result = fit(joint_params([v.params for v in views]), objective, stages, out_dir=out_dir,
+    objective = FaceViewsObjective([v.objective for v in views], same_camera)
+    stages = joint_stages(default_stages(config, fit_focal=config.focal is None), len(views), objective.shared)
+    result = fit(joint_params([v.params for v in views], objective.shared), objective, stages, out_dir=out_dir,
                  progress=progress, resume=resume)
     fits = []
     for k, view in enumerate(views):
-        obj, values = view.objective, view_values(result.values, FaceViewsObjective.BLOCKS, k)
+        obj, values = view.objective, objective.view_values(result.values, k)
         mask = obj.mask if obj.mask is not None else obj.face_region(values, 1e-6, 1e-4)
         fits.append(FaceFit(values, obj.scene, obj.image, obj.target, view.crop, mask, result, obj))
     return FaceViewsFit(result.values, fits, result)

@@ -23,13 +23,13 @@ def toy():
     return toy_face_model()
 
 
-def _objective(model, rng, size):
+def _objective(model, rng, size, focal0=80.0):
     scene = face.FaceScene(model, (size, size))
     return face.FaceObjective(scene, rng.random((size, size, 3)) * 0.5, rng.random((68, 2)) * (size - 8) + 4,
-                              focal0=80.0)
+                              focal0=focal0)
 
 
-def _joint_values(model, rng, n_views):
+def _joint_values(model, rng, n_views, same_camera=False):
     values = dict(id=rng.normal(size=model.n_id) * 0.5, albedo=rng.normal(size=model.n_albedo) * 0.5)
     for k in range(n_views):
         values.update({f"exp.{k}": rng.normal(size=model.n_exp) * 0.5,
@@ -37,14 +37,20 @@ def _joint_values(model, rng, n_views):
                        f"rotation.{k}": np.radians([10.0, -20.0 + 25 * k, 5.0]),
                        f"translation.{k}": np.array([0.01, -0.005 + 0.01 * k, -0.6]),
                        f"focal.{k}": np.array([90.0 + 5 * k])})
+    if same_camera:
+        values = {name: v for name, v in values.items() if not name.startswith("focal.")}
+        values["focal"] = np.array([93.0])
     return values
 
 
-def test_joint_gradient_matches_central_differences(toy):
-    """Two photos of different sizes, every term on: the shared blocks' gradients add up."""
+@pytest.mark.parametrize("same_camera", [False, True])
+def test_joint_gradient_matches_central_differences(toy, same_camera):
+    """Two photos of different sizes, every term on: the shared blocks' gradients add up (with
+    same_camera the shared focal's too, photo 1 at 0.7 of photo 0's focal)."""
     rng = np.random.default_rng(3)
-    objective = face_views.FaceViewsObjective([_objective(toy, rng, 36), _objective(toy, rng, 28)])
-    values = _joint_values(toy, rng, 2)
+    objective = face_views.FaceViewsObjective([_objective(toy, rng, 36), _objective(toy, rng, 28, 56.0)],
+                                              same_camera)
+    values = _joint_values(toy, rng, 2, same_camera)
     stage = Stage("photo-1", ("id",), ALL_TERMS, sigma=1e-3, gamma=1e-2)
     loss, grads, terms = objective(values, stage)
     assert set(terms) == set(ALL_TERMS) and np.isclose(sum(terms.values()), loss)
@@ -74,6 +80,23 @@ def test_shared_priors_count_once_and_the_rest_adds_up(toy):
     np.testing.assert_allclose(g_two["sh.1"], g_one["sh.0"], rtol=1e-12)
 
 
+def test_shared_focal_scales_per_photo_and_its_prior_counts_once(toy):
+    """same_camera: photo k sees the shared focal times its focal0 ratio; one focal prior."""
+    rng = np.random.default_rng(6)
+    views = [_objective(toy, rng, 32), _objective(toy, rng, 32, 40.0)]
+    values = _joint_values(toy, rng, 2, same_camera=True)
+    objective = face_views.FaceViewsObjective(views, same_camera=True)
+    np.testing.assert_array_equal(objective.focal_scales, [1.0, 0.5])
+    np.testing.assert_array_equal(objective.view_values(values, 1)["focal"], values["focal"] * 0.5)
+    stage = Stage("photo-1", ("id",), ALL_TERMS, sigma=1e-3, gamma=1e-2)
+    separate = dict(values, **{"focal.0": values["focal"], "focal.1": values["focal"] * 0.5})
+    shared_loss, _, shared_terms = objective(values, stage)
+    loss, _, terms = face_views.FaceViewsObjective(views)(separate, stage)
+    assert terms["focal_prior"] > 0
+    assert shared_terms["focal_prior"] == pytest.approx(terms["focal_prior"] / 2, rel=1e-12)
+    assert shared_loss == pytest.approx(loss - terms["focal_prior"] / 2, rel=1e-12)
+
+
 def test_one_photo_objective_is_the_single_photo_objective(toy):
     rng = np.random.default_rng(5)
     single = _objective(toy, rng, 32)
@@ -97,13 +120,15 @@ def demo():
 TINY = dict(landmark_iters=15, photo_stages=((1e-4, 3e-3, 6), (1e-5, 1e-3, 6)))
 
 
-def test_one_photo_fit_is_the_single_photo_fit(demo):
+@pytest.mark.parametrize("same_camera", [False, True])
+def test_one_photo_fit_is_the_single_photo_fit(demo, same_camera):
     """Same parameter layout, stages and objective: the fitted values and every evaluation's
-    loss are those of fit_face."""
+    loss are those of fit_face (one photo's camera is its own with same_camera too)."""
     sample = synthetic_face(demo, np.random.default_rng(7), size=64)
     config = face.FaceFitConfig(size=64, **TINY)
     single = face.fit_face(sample["photo"], sample["landmarks"], demo, config, progress=False)
-    joint = face_views.fit_face_views([sample["photo"]], [sample["landmarks"]], demo, config, progress=False)
+    joint = face_views.fit_face_views([sample["photo"]], [sample["landmarks"]], demo, config, progress=False,
+                                      same_camera=same_camera)
     assert [h["loss"] for h in joint.result.history] == [h["loss"] for h in single.result.history]
     for b, v in single.values.items():
         np.testing.assert_array_equal(joint.views[0].values[b], v, err_msg=b)
@@ -140,3 +165,13 @@ def test_one_landmark_array_per_photo_is_required(demo):
         face_views.fit_face_views([sample["photo"]] * 2, [sample["landmarks"]], demo, progress=False)
     with pytest.raises(InputError, match="at least one photo"):
         face_views.fit_face_views([], [], demo, progress=False)
+
+
+def test_same_camera_needs_one_photo_size_and_a_fitted_focal(demo):
+    sample = synthetic_face(demo, np.random.default_rng(9), size=64)
+    photos, landmarks = [sample["photo"], sample["photo"][:, :60]], [sample["landmarks"]] * 2
+    with pytest.raises(InputError, match=r"same_camera needs photos of one size .* got sizes \[\(60, 64\), \(64, 64\)\]"):
+        face_views.fit_face_views(photos, landmarks, demo, progress=False, same_camera=True)
+    with pytest.raises(InputError, match="same_camera fits one focal length .* config.focal gives it"):
+        face_views.fit_face_views(photos[:1] * 2, landmarks, demo, face.FaceFitConfig(focal=100.0), progress=False,
+                                  same_camera=True)
