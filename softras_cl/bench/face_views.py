@@ -4,7 +4,10 @@ Each synthetic subject has one identity and albedo drawn from the model's prior;
 photographed 3 times (--views) by the generator of `softras-cl bench face`, each photo with its
 own random pose, expression, SH light, field of view, background and landmark noise; the yaws
 fall in 3 bands (left, front, right: -30 to -10, -10 to 10, 10 to 30 degrees for 3 photos). Every
-photo is fitted alone (fit-face), then all of them jointly (fit-face --same-person).
+photo is fitted alone (fit-face), then all of them jointly (fit-face --same-person). With
+--same-camera the photos of a subject share one camera (the first photo's focal length; every
+other photo's face moved along its line of sight so that it fills the frame as drawn) and the
+joint fit is told so (fit-face --same-person --same-camera).
 
 Reported per subject: the identity's shape error, i.e. the vertex RMSE of the fitted neutral
 face (identity, expression 0) against the true one after a similarity alignment (as bench face
@@ -54,17 +57,26 @@ def posed_truth(model, rng: np.random.Generator, size: int, low: float, high: fl
             return truth
 
 
-def subject(model, rng: np.random.Generator, size: int, views: int) -> list[dict]:
+def same_camera(truths: list[dict]) -> list[dict]:
+    """The truths with the first one's focal length, each face moved along its line of sight
+    (translation scaled by the focal ratio) so that it fills the frame as before."""
+    focal = truths[0]["focal"]
+    return [dict(t, focal=focal, translation=t["translation"] * (focal[0] / t["focal"][0])) for t in truths]
+
+
+def subject(model, rng: np.random.Generator, size: int, views: int, one_camera: bool = False) -> list[dict]:
     """``views`` synthetic photos (bench face's samples: own pose, expression, light, field of
     view, background, landmark noise) of one random identity and albedo, photo k's yaw in the
     k-th of ``views`` equal bands of +-YAW_RANGE degrees, so that the photos see the face from
-    different sides as a person's photo collection would."""
+    different sides as a person's photo collection would; one_camera: all with the first
+    photo's focal length (:func:`same_camera`; the same draws otherwise)."""
     from softras_cl.bench.face import photograph, random_truth
 
     person = random_truth(model, rng, size)
     edges = np.linspace(-YAW_RANGE, YAW_RANGE, views + 1)
-    return [photograph(model, dict(posed_truth(model, rng, size, lo, hi), id=person["id"], albedo=person["albedo"]),
-                       rng, size) for lo, hi in zip(edges[:-1], edges[1:])]
+    truths = [dict(posed_truth(model, rng, size, lo, hi), id=person["id"], albedo=person["albedo"])
+              for lo, hi in zip(edges[:-1], edges[1:])]
+    return [photograph(model, t, rng, size) for t in (same_camera(truths) if one_camera else truths)]
 
 
 def identity_ratio(model, id_coeffs, true_id) -> float:
@@ -93,8 +105,9 @@ def _timed(fn):
     return result, time.perf_counter() - start, time.process_time() - cpu
 
 
-def run_subject(model, photos: list[dict], config) -> dict:
-    """Fit each photo alone, then all jointly; the subject's row."""
+def run_subject(model, photos: list[dict], config, one_camera: bool = False) -> dict:
+    """Fit each photo alone, then all jointly (one_camera: with one shared focal length); the
+    subject's row."""
     from softras_cl.fitting.recipes.face import fit_face
     from softras_cl.fitting.recipes.face_views import fit_face_views
 
@@ -107,7 +120,7 @@ def run_subject(model, photos: list[dict], config) -> dict:
         single_wall.append(wall)
         single_cpu.append(cpu)
     joint, wall, cpu = _timed(lambda: fit_face_views([p["photo"] for p in photos], [p["landmarks"] for p in photos],
-                                                     model, config, progress=False))
+                                                     model, config, progress=False, same_camera=one_camera))
     ratio = identity_ratio(model, joint.values["id"], true_id)
     best = min(single)
     return dict(single_ratios=single, best_single_ratio=best, mean_single_ratio=float(np.mean(single)),
@@ -188,14 +201,15 @@ def run(args: argparse.Namespace) -> int:
         rng = np.random.default_rng(args.seed)
         rows, load = [], [os.getloadavg()]
         for i in range(args.subjects):
-            rows.append(run_subject(model, subject(model, rng, args.size, args.views), config))
+            photos = subject(model, rng, args.size, args.views, args.same_camera)
+            rows.append(run_subject(model, photos, config, args.same_camera))
             load.append(os.getloadavg())
             if not args.json:
                 print(f"subject {i}: best single {rows[-1]['best_single_ratio']:.3f}, joint "
                       f"{rows[-1]['joint_ratio']:.3f}", flush=True)
         summary = summarise(rows)
         doc = dict(size=args.size, seed=args.seed, views=args.views, budget=args.budget, model=model.name,
-                   photo_weight=args.photo_weight,
+                   photo_weight=args.photo_weight, same_camera=args.same_camera,
                    summary=summary, subjects=rows, load_average=load, provenance=provenance(dict(options=args)))
         write_json(folder.path / "face_views.json", doc)
         save_chart(rows, folder.path / "face_views.png")
@@ -212,6 +226,9 @@ def register(which) -> None:
     p.add_argument("--size", type=int, default=256, help="square photo size in pixels (default 256)")
     p.add_argument("--budget", default="default", help="schedule budget of every fit (default: default)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the subjects (default 0)")
+    p.add_argument("--same-camera", action="store_true",
+                   help="a subject's photos share one focal length and the joint fit shares it too "
+                        "(default: each photo its own field of view, fitted per photo)")
     p.add_argument("--photo-weight", type=float, default=None,
                    help="photometric weight of every fit (default: the fit's own, as in fit-face --help)")
     p.add_argument("--model", default=None, help="face model file (default: the shipped demo model)")

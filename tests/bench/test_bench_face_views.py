@@ -22,6 +22,18 @@ def test_subject_is_one_person_seen_from_different_sides(demo_face_model):
     assert all(p["photo"].shape == (64, 64, 3) for p in photos)
 
 
+def test_same_camera_subject_shares_the_focal_and_keeps_the_framing(demo_face_model):
+    own = face_views.subject(demo_face_model, np.random.default_rng(0), 64, 3)
+    shared = face_views.subject(demo_face_model, np.random.default_rng(0), 64, 3, one_camera=True)
+    focals = [p["truth"]["focal"][0] for p in shared]
+    assert focals == [own[0]["truth"]["focal"][0]] * 3 and len({p["truth"]["focal"][0] for p in own}) == 3
+    for a, b in zip(own, shared):
+        np.testing.assert_array_equal(a["truth"]["exp"], b["truth"]["exp"])
+        extent = np.ptp(a["clean_landmarks"], axis=0)
+        np.testing.assert_allclose(np.ptp(b["clean_landmarks"], axis=0), extent, rtol=0.05)
+        np.testing.assert_allclose(b["clean_landmarks"].mean(0), a["clean_landmarks"].mean(0), atol=0.03 * 64)
+
+
 def test_yaw_of_a_yaw_pitch_roll_rotation():
     R = axis_angle_to_matrix([0, np.radians(-23.0), 0]) @ axis_angle_to_matrix([0.2, 0, 0]) @ axis_angle_to_matrix([0, 0, 0.15])
     assert face_views.yaw_deg(matrix_to_axis_angle(R)) == pytest.approx(-23.0, abs=1e-9)
@@ -51,11 +63,12 @@ def test_tiny_run_writes_json_and_chart(tmp_path, run_cli, monkeypatch):
     monkeypatch.setitem(face.BUDGETS, "fast", dict(landmark_iters=5, photo_stages=((1e-4, 3e-3, 3),)))
     out = tmp_path / "bench"
     result = run_cli("bench", "face-views", "--subjects", "1", "--views", "2", "--size", "64", "--budget", "fast",
-                     "--out", out)
+                     "--same-camera", "--out", out)
     assert result.code == 0, result.err
     assert "target >= 30%" in result.out and (out / "face_views.png").stat().st_size > 0
     doc = json.loads((out / "face_views.json").read_text())
     row = doc["subjects"][0]
+    assert doc["same_camera"] is True
     assert len(row["single_ratios"]) == 2 and row["best_single_ratio"] == min(row["single_ratios"])
     assert len(row["joint_shape_ratios"]) == 2 and np.isfinite(row["joint_ratio"]) and doc["provenance"]["cpu"] is not None and len(doc["load_average"]) == 2
 
