@@ -39,6 +39,7 @@ beside it, else the detector). Writes into --out: face.ply (the shared identity,
 expression), photos/NAME/ (per photo, what a single-photo fit writes), figure.png (every photo
 with its fit), params.json/.npz (all blocks, each photo's inputs with their SHA-256, cameras and
 metrics), the solver's files, run.json and, last, complete.json; --resume continues it.
+--same-camera (photos of one size, one camera and zoom) fits one focal length for all of them.
 Without --same-person several photos are independent fits (above)."""
 
 
@@ -59,6 +60,9 @@ def register(sub) -> None:
     p.add_argument("--same-person", action="store_true",
                    help="the photos show one person: fit one identity and albedo to all of them "
                         "(each with its own pose, focal length, expression and light) into --out")
+    p.add_argument("--same-camera", action="store_true",
+                   help="with --same-person: the photos (all of one size) were taken with one camera "
+                        "and zoom, so they share one fitted focal length (default: one per photo)")
     p.add_argument("--all-faces", action="store_true",
                    help="fit every face the detector finds, each into its own folder under --out "
                         "(NAME-face0 for the largest, NAME-face1, ...); without it, the largest")
@@ -133,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
     _config(args)                       # options checked before any photo is read
     if args.same_person:
         return run_same_person(args)
+    if args.same_camera:
+        raise InputError("--same-camera goes with --same-person (one person's photos fitted together)")
     args.landmarks = _single_landmarks(args.landmarks)
     if is_batch(args, args.photos):
         return run_batch(args, "face", args.photos, _options(args), args.landmarks)
@@ -190,6 +196,9 @@ def _check_same_person(args: argparse.Namespace) -> list:
     naming the options that do not go with it, before any photo is read."""
     from softras_cl.fitting.batch import expand_paths
 
+    if args.same_camera and args.focal is not None:
+        raise InputError("--same-camera fits one focal length for all the photos; --focal gives it already: "
+                         "use one or the other")
     clashes = [option for option, given in (
         ("--all-faces", args.all_faces), ("--manifest", args.manifest is not None),
         ("--workers", args.workers is not None), ("--threads-per-worker", args.threads_per_worker is not None),
@@ -234,11 +243,12 @@ def run_same_person(args: argparse.Namespace) -> int:
     images, points, inputs = _same_person_inputs(args, paths)
     model = _load_model(args)
     records = [face_record(p, i["landmarks_source"], _options(args)) for p, i in zip(paths, inputs)]
-    record = dict(command="fit-face --same-person", inputs=[r["inputs"] for r in records], options=records[0]["options"])
+    record = dict(command="fit-face --same-person", inputs=[r["inputs"] for r in records],
+                  options=dict(records[0]["options"], same_camera=args.same_camera))
 
     def fit(folder):
         return fit_face_views(images, points, model, config, out_dir=folder, progress=not args.no_progress,
-                              resume=args.resume)
+                              resume=args.resume, same_camera=args.same_camera)
 
     def write(fit, folder, metrics, seconds):
         return write_views_outputs(fit, images, stable_names(paths), inputs, folder, metrics,

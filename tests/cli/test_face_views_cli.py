@@ -73,6 +73,30 @@ def test_same_person_refuses_clashing_options_before_fitting(person, tmp_path, r
     assert not out.exists()
 
 
+@pytest.mark.parametrize("extra, says", [
+    ([], "--same-camera goes with --same-person"),
+    (["--same-person", "--focal", "100"], "--same-camera fits one focal length for all the photos; --focal gives it"),
+])
+def test_same_camera_clashes_are_refused(person, tmp_path, run_cli, extra, says):
+    (a, a_lmk), (b, b_lmk) = person
+    out = tmp_path / "fit"
+    result = run_cli("fit-face", a, b, "--same-camera", *extra, "--landmarks", a_lmk, b_lmk, "--out", out, *SMALL)
+    assert result.code == 2 and says in result.err, result.err
+    assert not out.exists()
+
+
+def test_same_camera_fits_one_focal(person, tmp_path, run_cli, monkeypatch):
+    monkeypatch.setitem(face.BUDGETS, "fast", dict(landmark_iters=3, photo_stages=((1e-4, 3e-3, 2),)))
+    (a, a_lmk), (b, b_lmk) = person
+    out = tmp_path / "fit"
+    result = run_cli("fit-face", a, b, "--same-person", "--same-camera", "--landmarks", a_lmk, b_lmk,
+                     "--budget", "fast", "--out", out, *SMALL)
+    assert result.code == 0, result.err
+    joint = np.load(out / "params.npz")
+    assert "focal" in joint and "focal.0" not in joint
+    assert json.loads((out / "run.json").read_text())["options"]["same_camera"] is True
+
+
 def test_same_person_needs_two_photos(person, tmp_path, run_cli):
     (a, a_lmk), _ = person
     result = run_cli("fit-face", a, "--same-person", "--landmarks", a_lmk, "--out", tmp_path / "f", *SMALL)
