@@ -29,6 +29,7 @@ import pyopencl as cl
 from softras_cl import RasterSettings, SoftRasterizer
 from softras_cl.cl.device import ENV_VAR, select_device
 from softras_cl.errors import InputError
+from softras_cl.raster.reduce import GradSums
 from softras_cl.scene.camera import Camera
 from softras_cl.scene.meshes import icosphere
 from softras_cl.scene.renderer import Renderer
@@ -179,7 +180,10 @@ def roi_mask(batch: int, per_item: bool) -> np.ndarray:
 
 
 def run_raster(batch: int, grads: tuple, tex_res: int = 2, skip_cot: tuple = (),
-               faces_per_item: bool = False, roi: str | None = None, lanes: int | None = None, **kw) -> None:
+               faces_per_item: bool = False, roi: str | None = None, lanes: int | None = None,
+               float_sums: bool = False, **kw) -> None:
+    """One SoftRasterizer forward (and backward when grads); float_sums: the gradient reductions
+    accumulate in the kernel dtype, as on a device without cl_khr_fp64."""
     s = raster_settings(**kw)
     vertices, faces, colors = raster_scene(batch, s.texture, tex_res)
     if "rgb" not in s.outputs:
@@ -194,6 +198,8 @@ def run_raster(batch: int, grads: tuple, tex_res: int = 2, skip_cot: tuple = (),
     if roi is not None:
         colors = dict(colors, roi=roi_mask(batch, roi == "per item"))
     raster = SoftRasterizer(s, lanes=lanes)
+    if float_sums:
+        raster.sums = GradSums(raster.ctx, raster.queue, raster.pool, raster.real, raster.lanes, False)
     plain = raster.forward(vertices, faces, **colors)
     _finite("forward", [plain.rgb, plain.alpha, plain.depth])
     _drawn(plain, s)
@@ -292,6 +298,8 @@ def variants() -> list[tuple[str, callable]]:
             ("region of interest", 1, both, dict(roi="shared")),
             ("region of interest per item uv", 2, both, dict(roi="per item", texture="uv")),
             ("region of interest per item sh per-pixel", 2, both, dict(roi="per item", lighting="sh")),
+            ("gradient sums in the kernel dtype sh per-pixel", 2, both, dict(lighting="sh", float_sums=True)),
+            ("gradient sums in the kernel dtype face texture", 1, both, dict(texture="face", float_sums=True)),
         ]
         for label, batch, grads, kw in extra:
             out.append((f"raster {dtype} {label} B={batch}",

@@ -22,17 +22,18 @@ class Bins:
     """Faces binned into tiles. Entries are (tile, face) pairs.
 
     tile_start: (n_tiles + 1,) int32, entries of tile t are tile_start[t]:tile_start[t+1]
-    tile_faces: (n_entries,) int32 global face index (batch * F + f), increasing within a tile
-    tile_slots: (n_entries,) int32 position of the entry in face-major order
-    face_start: (B*F + 1,) int64, face-major entries of face g are face_start[g]:face_start[g+1]
+    tile_faces: (n_list,) int32 global face index (batch * F + f), increasing within a tile
+    face_start: (B*F + 1,) int32, face-major entries of face g are face_start[g]:face_start[g+1]
+    face_slots: (n_entries,) int32, for each face-major entry its index in the tile lists (the
+        backward kernel's slot), -1 for an entry outside the region of interest
 
     With a region of interest (bin_faces' tiles) the tile lists hold only the entries in its
-    tiles, while face_start and the slot positions still count every entry (n_entries).
+    tiles (n_list <= n_entries), while face_start still counts every entry.
     """
     tile_start: np.ndarray
     tile_faces: np.ndarray
-    tile_slots: np.ndarray
     face_start: np.ndarray
+    face_slots: np.ndarray
 
     @property
     def n_entries(self) -> int:
@@ -187,5 +188,7 @@ def bin_faces(geom: np.ndarray, drawable: np.ndarray, batch: int, n_faces: int,
         face, tile = face[slots], tile[slots]
     order = np.argsort(tile, kind="stable")
     tile_start = np.concatenate([[0], np.cumsum(np.bincount(tile, minlength=batch * g.ntx * g.nty))])
+    face_slots = np.full(total, -1, np.int32)
+    face_slots[order if slots is None else slots[order]] = np.arange(len(order), dtype=np.int32)
     return Bins(tile_start.astype(np.int32), face[order].astype(np.int32),
-                (order if slots is None else slots[order]).astype(np.int32), face_start)
+                face_start.astype(np.int32), face_slots)

@@ -14,13 +14,13 @@ import numpy as np
 import pyopencl as cl
 
 from softras_cl.cl.device import has_fp64, has_int64_atomics, resolve_context, vector_lanes
-from softras_cl.cl.layout import LANES, LIGHT_PARAMS, vertex_attr_width
+from softras_cl.cl.layout import CORNER_COLORS, LANES, LIGHT_PARAMS, vertex_attr_width
 from softras_cl.cl.program import build_kernel
 from softras_cl.raster.binning import Bins, bin_faces, face_setup, roi_tiles, tile_grid
-from softras_cl.raster.corners import scatter_corners
 from softras_cl.raster.inputs import MeshInputs, check_cotangent, check_inputs
 from softras_cl.raster.memory import check_forward_memory
 from softras_cl.raster.pool import BufferPool, ScratchArrays
+from softras_cl.raster.reduce import GradSums, bins_buffers
 from softras_cl.raster.settings import RasterSettings
 
 GRAD_NAMES = ("vertices", "colors")
@@ -83,7 +83,7 @@ class RasterContext:
     def nbytes(self) -> int:
         """Bytes kept: bin arrays (host) and device buffers, each buffer counted once."""
         host = sum(a.nbytes for a in (self.bins.tile_start, self.bins.tile_faces,
-                                      self.bins.tile_slots, self.bins.face_start))
+                                      self.bins.face_start, self.bins.face_slots))
         return host + sum(b.size for b in self.device_buffers())
 
     def device_buffers(self) -> list:
@@ -138,13 +138,14 @@ class SoftRasterizer:
         # device buffers and host staging reused from call to call (softras_cl.raster.pool)
         self.pool = BufferPool(self.ctx)
         self.scratch = ScratchArrays()
+        self.sums = GradSums(self.ctx, self.queue, self.pool, self.real, self.lanes, has_fp64(self.device))
         # events of transfers in flight: pyopencl's transfer events wait for their transfer when
         # freed, so they are kept until _sync waits for all of them at once
         self._transfers: list = []
         # stage_ms: None (default), or a dict that forward/backward add their stages' wall times
         # to, in ms: "setup" (input checks, face set-up), "binning", "upload", "forward" (kernel
         # and image download), "backward_prep" (cotangent planes and buffers), "backward"
-        # (kernel and slot download), "reductions" (per-face sums and scatter onto vertices).
+        # (kernel), "reductions" (per-face sums and sums onto vertices, their download).
         # Kernel stages then end with a queue.finish(); for profiling (softras-cl bench raster).
         self.stage_ms: dict | None = None
 
@@ -218,6 +219,7 @@ class SoftRasterizer:
         slots = self._run_backward(saved, cot, t)
         t = time.perf_counter()
         grads = self._gather_grads(saved, slots)
+        self.pool.give(b for b in slots.values() if isinstance(b, cl.Buffer))
         self._stage("reductions", t)
         return grads
 
@@ -284,10 +286,10 @@ class SoftRasterizer:
         return [b if b is not None else self._dummy() for b in bufs]
 
     def _run_backward(self, saved: RasterContext, cot: dict, t: float) -> dict:
-        """Run the backward kernel: {"pos", "attr", "light": per-(tile, face) slot sums, "tex":
-        uv texel sums, None where not computed; "scale": the uv fixed-point scale}. The arrays
-        are host staging that the next backward overwrites. t: perf_counter at the start of
-        backward (stage timing)."""
+        """Run the backward kernel: {"pos", "attr", "light": pooled device buffers of the
+        per-(tile, face) slot sums (the caller gives them back), "tex": uv texel sums (host
+        staging that the next backward overwrites), None where not computed; "scale": the uv
+        fixed-point scale}. t: perf_counter at the start of backward (stage timing)."""
         s, real, mesh, bins = self.settings, self.real, saved.mesh, saved.bins
         g = self.grid
         shapes, scale = self._slot_shapes(mesh, saved.grads, max(len(bins.tile_faces), 1), cot["grad_rgb"])
@@ -297,13 +299,13 @@ class SoftRasterizer:
         # an output without a cotangent contributes zero; the kernel variant still reads its plane
         cot_bufs = {n: self._upload_planes(n, c, mesh.batch) for n, c in cot.items() if n[len("grad_"):] in s.outputs}
         g_dot = self._g_dot_image(saved, cot_bufs, kernel_grads)
-        hosts = {k: self.scratch.get("slot_" + k, shape, dtype) for k, (shape, dtype) in shapes.items()}
-        out_bufs = {k: self.pool.take(a.nbytes) for k, a in hosts.items()}
+        nbytes = {k: math.prod(shape) * np.dtype(dtype).itemsize for k, (shape, dtype) in shapes.items()}
+        out_bufs = {k: self.pool.take(n) for k, n in nbytes.items()}
         for k, buf in out_bufs.items():
             if k == "tex" or s.texture == "face":             # texels are added into
                 # zeros copied from the host: Oclgrind does not count clEnqueueFillBuffer as
                 # initialising memory (and the copy is cheap: calloc's pages are not touched)
-                cl.enqueue_copy(self.queue, buf, np.zeros(hosts[k].nbytes, np.uint8))
+                cl.enqueue_copy(self.queue, buf, np.zeros(nbytes[k], np.uint8))
         knl = self._kernel("soft_raster_bwd", kernel_grads, True)
         t = self._stage("backward_prep", t, finish=True)
         dummy = self._dummy()
@@ -311,12 +313,15 @@ class SoftRasterizer:
             *(cot_bufs.get(n, dummy) for n in ("grad_rgb", "grad_alpha", "grad_depth")),
             dummy if g_dot is None else g_dot, *self._state_args(saved.state), real.type(scale),
             *(out_bufs.get(k, dummy) for k in ("pos", "attr", "light", "tex")))
-        for k, host in hosts.items():
-            self._transfers.append(cl.enqueue_copy(self.queue, host, out_bufs[k], is_blocking=False))
+        tex = None
+        if "tex" in shapes:
+            tex = self.scratch.get("slot_tex", *shapes["tex"])
+            self._transfers.append(cl.enqueue_copy(self.queue, tex, out_bufs["tex"], is_blocking=False))
         self._sync()
-        self.pool.give([*cot_bufs.values(), *out_bufs.values(), *([g_dot] if g_dot is not None else [])])
+        self.pool.give([*cot_bufs.values(), *([g_dot] if g_dot is not None else []),
+                        *([out_bufs.pop("tex")] if tex is not None else [])])
         self._stage("backward", t, finish=True)
-        return {**dict(pos=None, attr=None, light=None, tex=None), **hosts, "scale": scale}
+        return {**dict(pos=None, attr=None, light=None), **out_bufs, "tex": tex, "scale": scale}
 
     def _slot_shapes(self, mesh: MeshInputs, grads: tuple, n_entries: int, grad_rgb) -> tuple[dict, float]:
         """{name: (shape, dtype)} of what the backward kernel writes, and the uv fixed-point scale:
@@ -324,52 +329,72 @@ class SoftRasterizer:
         (n_entries, LIGHT_PARAMS) slots, in tile-list order; "tex" (B, Ht, Wt, 3) int64 uv
         texel sums."""
         s, real = self.settings, self.real
-        shapes = {"pos": ((n_entries, 9), real)} if "vertices" in grads else {}
+        widths = self._slot_widths(mesh)
+        shapes = {"pos": ((n_entries, widths["pos"]), real)} if "vertices" in grads else {}
         if "colors" not in grads or "rgb" not in s.outputs or grad_rgb is None:
             return shapes, 1.0
         if s.texture == "uv":
             shapes["tex"] = ((mesh.batch, *mesh.tex_shape, 3), np.int64)
             return shapes, _fixed_point_scale(grad_rgb, real)
-        width = vertex_attr_width(s.lighting != "none") if s.texture == "vertex" else mesh.tex_res ** 2 * 3
-        shapes["attr"] = ((n_entries, width), real)
+        shapes["attr"] = ((n_entries, widths["attr"]), real)
         if s.lighting != "none":
-            shapes["light"] = ((n_entries, LIGHT_PARAMS), real)
+            shapes["light"] = ((n_entries, widths["light"]), real)
         return shapes, 1.0
 
     def _gather_grads(self, saved: RasterContext, slots: dict) -> dict:
-        """Sum the (tile, face) slots per face in a fixed order, then faces onto vertices."""
-        mesh, bins, grads = saved.mesh, saved.bins, saved.grads
+        """Sum the (tile, face) slots per face in a fixed order, then faces onto vertices (on the
+        device: softras_cl.raster.reduce)."""
+        mesh, grads = saved.mesh, saved.grads
+        bins = bins_buffers(self.sums, saved.bins) if any(slots[k] is not None for k in ("pos", "attr", "light")) else None
+        sums = {k: self.sums.face_sums(slots[k], width, *bins, mesh.batch * mesh.n_faces)
+                for k, width in self._slot_widths(mesh).items() if slots.get(k) is not None}
         out = {}
         if "vertices" in grads:
-            per_face = _sum_slots(slots["pos"], bins, self.scratch).reshape(mesh.batch, mesh.n_faces, 3, 3)
-            out["vertices"] = mesh.unbatch_vertices(scatter_corners(per_face, mesh.faces, mesh.n_vertices))
+            out["vertices"] = mesh.unbatch_vertices(self._vertex_sums(mesh, sums.get("pos"), 9, 0))
         if "colors" in grads:
-            out.update(self._color_grads(mesh, bins, slots))
+            out.update(self._color_grads(mesh, sums, slots))
+        self.pool.give([*sums.values(), *(bins or ())])
         return out
 
-    def _color_grads(self, mesh: MeshInputs, bins: Bins, slots: dict) -> dict:
+    def _slot_widths(self, mesh: MeshInputs) -> dict:
+        """Reals per slot row of "pos", "attr" and "light" (_slot_shapes)."""
+        s = self.settings
+        attr = vertex_attr_width(s.lighting != "none") if s.texture == "vertex" else mesh.tex_res ** 2 * 3
+        return dict(pos=9, attr=attr, light=LIGHT_PARAMS)
+
+    def _vertex_sums(self, mesh: MeshInputs, face_sums: cl.Buffer | None, width: int, offset: int) -> np.ndarray:
+        """(B, V, 3) float64: corner k of face g holds face_sums[g, offset + 3k : offset + 3k + 3]
+        of the (B*F, width) device per-face sums, summed onto the vertices (zero when None)."""
+        shape = (mesh.batch, mesh.n_vertices, 3)
+        if face_sums is None:
+            return np.zeros(shape)
+        buf = self.sums.vertex_sums(face_sums, width, offset, mesh.faces, mesh.n_vertices)
+        host = self.sums.download(buf, shape)
+        self.pool.give([buf])
+        return host.astype(np.float64, copy=False)
+
+    def _color_grads(self, mesh: MeshInputs, sums: dict, slots: dict) -> dict:
         """{"colors": gradient shaped like the colour input} (+ "normals", "light" when lit)."""
-        s, attr = self.settings, slots["attr"]
+        s = self.settings
         if s.texture == "uv":
             tex = slots["tex"]
             g = (np.zeros((mesh.batch, *mesh.tex_shape, 3)) if tex is None
                  else tex.astype(np.float64) / slots["scale"])
             return dict(colors=mesh.unbatch_colors(g))
+        n_faces = mesh.batch * mesh.n_faces
         if s.texture == "face":
             r = mesh.tex_res
-            g = (np.zeros((mesh.batch * mesh.n_faces, r * r * 3)) if attr is None else _sum_slots(attr, bins, self.scratch))
+            g = (np.zeros((n_faces, r * r * 3)) if "attr" not in sums
+                 else self.sums.download(sums["attr"], (n_faces, r * r * 3)).astype(np.float64, copy=False))
             return dict(colors=mesh.unbatch_colors(g.reshape(mesh.batch, mesh.n_faces, r, r, 3)))
         width = vertex_attr_width(s.lighting != "none")
-        per_face = (np.zeros((mesh.batch * mesh.n_faces, width)) if attr is None
-                    else _sum_slots(attr, bins, self.scratch))
-        per_face = per_face.reshape(mesh.batch, mesh.n_faces, width // 3, 3)
-        out = dict(colors=mesh.unbatch_colors(
-            scatter_corners(per_face[:, :, :3], mesh.faces, mesh.n_vertices)))
+        out = dict(colors=mesh.unbatch_colors(self._vertex_sums(mesh, sums.get("attr"), width, 0)))
         if s.lighting != "none":
-            out["normals"] = scatter_corners(per_face[:, :, 3:], mesh.faces, mesh.n_vertices)
-            light = slots["light"]
+            out["normals"] = self._vertex_sums(mesh, sums.get("attr"), width, CORNER_COLORS)
+            light = sums.get("light")
+            # the per-face sums added in face order
             out["light"] = (np.zeros(LIGHT_PARAMS) if light is None
-                            else _face_major(light, bins, self.scratch).sum(0))
+                            else self.sums.download(light, (n_faces, LIGHT_PARAMS)).sum(0, dtype=np.float64))
         return out
 
     # ---- buffers ---------------------------------------------------------------------------
@@ -454,35 +479,6 @@ class SoftRasterizer:
 def _round_up(n: int) -> int:
     """n rounded up to a whole number of work-groups along x (the kernels skip the extra items)."""
     return -(-n // GROUP[0]) * GROUP[0]
-
-
-# ---- gradient reduction ---------------------------------------------------------------------
-def _face_major(slots: np.ndarray, bins: Bins, scratch: ScratchArrays) -> np.ndarray:
-    """(tile-list entries, K) slots as written by the backward kernel -> (n_entries, K) float64 in
-    face-major order (Bins.tile_slots), zero for the entries outside a region of interest; a
-    staging array of `scratch`, valid until the next call."""
-    n_list, k = len(bins.tile_slots), slots.shape[1]
-    rows = scratch.get(f"slots{k}", (n_list + 1, k), np.float64)    # the last row: zeros
-    rows[:n_list] = slots[:n_list]
-    rows[n_list] = 0.0
-    source = scratch.get("face_major_source", (bins.n_entries,), np.intp)
-    if n_list < bins.n_entries:
-        source[...] = n_list
-    source[bins.tile_slots] = np.arange(n_list)
-    # a row gather (np.take) is several times faster than scattering rows with fancy indexing
-    return np.take(rows, source, axis=0, mode="clip",        # "raise" would buffer `out`
-                   out=scratch.get(f"face_major{k}", (bins.n_entries, k), np.float64))
-
-
-def _sum_slots(slots: np.ndarray, bins: Bins, scratch: ScratchArrays) -> np.ndarray:
-    """(tile-list entries, K) per-(tile, face) sums -> (B*F, K) float64 per-face sums, always in the same order."""
-    counts = np.diff(bins.face_start)
-    out = np.empty((len(counts), slots.shape[1]))
-    has = counts > 0
-    out[~has] = 0.0
-    if has.any():
-        out[has] = np.add.reduceat(_face_major(slots, bins, scratch), bins.face_start[:-1][has], axis=0)
-    return out
 
 
 def _fixed_point_scale(grad_rgb: np.ndarray, real: np.dtype) -> float:
