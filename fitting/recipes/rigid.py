@@ -68,10 +68,13 @@ class PoseScene:
 
     def render(self, rotation: np.ndarray, sigma: float, gamma: float, grads: tuple = ()):
         """(renderer, RenderOutput) of the cube rotated by axis-angle `rotation` (3,)."""
+        return self.render_rotated(axis_angle_to_matrix(rotation), sigma, gamma, grads)
+
+    def render_rotated(self, matrix: np.ndarray, sigma: float, gamma: float, grads: tuple = ()):
+        """(renderer, RenderOutput) of the cube rotated by the rotation matrix (3, 3)."""
         renderer = self.renderer(sigma, gamma)
-        vertices = self.vertices @ axis_angle_to_matrix(rotation).T
-        return renderer, renderer.forward(vertices, self.faces, self.camera, face_textures=self.textures,
-                                          grads=grads)
+        return renderer, renderer.forward(self.vertices @ matrix.T, self.faces, self.camera,
+                                          face_textures=self.textures, grads=grads)
 
 
 def composite(rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
@@ -149,28 +152,32 @@ def pose_objective(scene: PoseScene, target_rgb: np.ndarray, target_alpha: np.nd
         return last[1]
 
     def _pose_loss(delta: np.ndarray, stage: Stage):
-        renderer, out = scene.render(_compose(delta, base), stage.sigma, stage.gamma, grads=("vertices",))
+        rotation, rot_ctx = rodrigues(delta)
+        renderer, out = scene.render_rotated(rotation @ base, stage.sigma, stage.gamma, grads=("vertices",))
         rgb, alpha = out.rgb[0], out.alpha[0]
-        if pyramid > 1:
-            n_img, n_sil = target.size, target_alpha.size
-            v_img, g_img = pyramid_l2(composite(rgb, alpha), target_levels, pyramid)
-            v_sil, g_sil = pyramid_l2(alpha, alpha_levels, pyramid)
-            terms = dict(image=(v_img / n_img, {"pred": g_img / n_img}),
-                         silhouette=(v_sil / n_sil, {"pred": g_sil / n_sil}))
-        else:
-            terms = dict(image=losses.image_l2(composite(rgb, alpha), target),
-                         silhouette=losses.silhouette_l2(alpha, target_alpha))
         # sums over pixels, not means: nlopt's L-BFGS sizes its first step from the gradient,
         # and sums give first steps of a useful size in radians (means stall in local minima)
-        weights = {name: stage.weights.get(name, 0.0) * terms[name][1]["pred"].size for name in terms}
-        g_img = weights["image"] * terms["image"][1]["pred"]          # d loss / d(rgb * alpha)
-        g_alpha = (g_img * rgb).sum(-1) + weights["silhouette"] * terms["silhouette"][1]["pred"]
+        w_img, w_sil = stage.weights.get("image", 0.0), stage.weights.get("silhouette", 0.0)
+        if pyramid > 1:
+            v_img, g_img = pyramid_l2(composite(rgb, alpha), target_levels, pyramid)
+            v_sil, g_sil = pyramid_l2(alpha, alpha_levels, pyramid)
+        else:
+            (v_img, g_img), (v_sil, g_sil) = (_summed(losses.image_l2(composite(rgb, alpha), target)),
+                                              _summed(losses.silhouette_l2(alpha, target_alpha)))
+        g_img = w_img * g_img                                         # d loss / d(rgb * alpha)
+        g_alpha = (g_img * rgb).sum(-1) + w_sil * g_sil
         g_v = renderer.backward(out, grad_rgb=(g_img * alpha[..., None])[None], grad_alpha=g_alpha[None])
-        g_delta = rodrigues_vjp(rodrigues(delta)[1], g_v["vertices"].T @ base_vertices)["omega"]   # v = R(delta) base v0
-        weighted = {name: weights[name] * value for name, (value, _) in terms.items()}
-        return sum(weighted.values()), {"delta": g_delta}, weighted
+        g_delta = rodrigues_vjp(rot_ctx, g_v["vertices"].T @ base_vertices)["omega"]   # v = R(delta) base v0
+        weighted = dict(image=w_img * v_img, silhouette=w_sil * v_sil)
+        return weighted["image"] + weighted["silhouette"], {"delta": g_delta}, weighted
 
     return objective
+
+
+def _summed(term: tuple) -> tuple:
+    """A loss term (mean, {"pred": gradient}) as (sum, gradient of the sum)."""
+    value, g = term
+    return value * g["pred"].size, g["pred"] * g["pred"].size
 
 
 def _compose(delta: np.ndarray, base: np.ndarray) -> np.ndarray:

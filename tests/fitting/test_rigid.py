@@ -141,8 +141,8 @@ def test_pose_objective_renders_a_repeated_point_once():
     stage, other = (Stage(n, ("delta",), dict(image=1.0, silhouette=0.1), sigma=1e-2, gamma=1e-1)
                     for n in ("a", "b"))
     renders = []
-    original = scene.render
-    scene.render = lambda *a, **k: (renders.append(a), original(*a, **k))[1]
+    original = scene.render_rotated
+    scene.render_rotated = lambda *a, **k: (renders.append(a), original(*a, **k))[1]
     first = objective({"delta": np.zeros(3)}, stage)
     assert objective({"delta": np.zeros(3)}, stage) is first and len(renders) == 1
     objective({"delta": np.array([0.0, 0.0, 1e-9])}, stage)
