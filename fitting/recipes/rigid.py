@@ -26,6 +26,12 @@ CUBE_COLOURS = np.array([[0.9, 0.1, 0.1], [0.1, 0.8, 0.1], [0.1, 0.2, 0.9],
 
 PYRAMID = 4        # L2 on the composite and on 3 levels of 2x2 average pooling (64 -> 8 px)
 FIRST_STEP = 1.0   # radians, L-BFGS's first step in each stage (chosen on seed 1, not 0)
+# The solver's convergence stop (Stage.stall_window, stall_rel) of every stage after the first:
+# the stage ends once its best loss improved by at most 0.1% over its last 10 evaluations.
+# Chosen on seed 1 (5 x 100, 20 trials: the same end points within 1.4 deg, 23% fewer
+# evaluations). The first stage (the widest blur) has none: its line searches still find
+# large improvements after long plateaus (with a window of 30 there, a converging trial was lost).
+STALL = (10, 1e-3)
 
 
 def color_cube(half_size: float = 0.5):
@@ -188,12 +194,15 @@ def _compose(delta: np.ndarray, base: np.ndarray) -> np.ndarray:
 def schedule(steps: int, sigma=(0.1, 1e-5), gamma=(1.0, 1e-4), iters: int = 100,
              weights=None) -> list[Stage]:
     """`steps` stages with sigma and gamma decaying geometrically between the given ends (one
-    step: the end values). The silhouette weighs little: a cube's outline hardly depends on
-    the rotation, and a strong silhouette term added local minima in our trials."""
+    step: the end values), every stage after the first with the convergence stop STALL. The
+    silhouette weighs little: a cube's outline hardly depends on the rotation, and a strong
+    silhouette term added local minima in our trials."""
     weights = weights or dict(image=1.0, silhouette=0.1)
     sigmas = np.geomspace(*sigma, steps) if steps > 1 else [sigma[1]]
     gammas = np.geomspace(*gamma, steps) if steps > 1 else [gamma[1]]
-    return [Stage(f"s{i + 1}", ("delta",), dict(weights), sigma=float(s), gamma=float(g), max_iters=iters)
+    window, rel = STALL
+    return [Stage(f"s{i + 1}", ("delta",), dict(weights), sigma=float(s), gamma=float(g), max_iters=iters,
+                  stall_window=window if i else 0, stall_rel=rel if i else 0.0)
             for i, (s, g) in enumerate(zip(sigmas, gammas))]
 
 

@@ -1,10 +1,11 @@
 """Rigid pose fitting of the colour cube (paper sec. 5.3)."""
+import dataclasses
 import json
 
 import numpy as np
 
 from softras_cl.cli import main
-from softras_cl.fitting.recipes.rigid import (PoseScene, color_cube, fit_rotation, pose_objective,
+from softras_cl.fitting.recipes.rigid import (STALL, PoseScene, color_cube, fit_rotation, pose_objective,
                                       random_rotations, rotation_error_deg, schedule)
 from softras_cl.fitting.solver import Stage
 from softras_cl.scene.rotation import axis_angle_to_matrix
@@ -51,6 +52,22 @@ def test_fit_recovers_a_rotation_from_30_degrees_away():
     assert rotation_error_deg(start, target) > 25
     assert rotation_error_deg(result.values["rotation"], target) < 2.0
     assert len(result.outcomes) == 3 and not result.interrupted
+
+
+def test_later_stages_stop_once_converged():
+    """The schedule's stages after the first carry the convergence stop: with nlopt's own
+    tolerances off, the second ends STALLED before its budget (the first runs to its budget),
+    and the fit still lands on the target."""
+    scene = PoseScene(size=32)
+    target = np.array([0.4, -0.9, 0.3])
+    start = target + np.radians(10) * np.array([0.6, 0.0, 0.8])
+    _, out = scene.render(target, 1e-5, 1e-4)
+    stages = [dataclasses.replace(s, ftol_rel=0.0, xtol_rel=0.0)
+              for s in schedule(3, sigma=(1e-3, 1e-5), gamma=(1e-2, 1e-4), iters=60)]
+    assert [(s.stall_window, s.stall_rel) for s in stages] == [(0, 0.0), STALL, STALL]
+    result = fit_rotation(scene, out.rgb[0], out.alpha[0], start, stages)
+    assert result.outcomes["s1"] == "MAXEVAL_REACHED" and result.outcomes["s2"] == "STALLED", result.outcomes
+    assert sum(h["stage"] == "s2" for h in result.history) < 40 and rotation_error_deg(result.values["rotation"], target) < 1.0
 
 
 def test_bench_pose_quick(tmp_path, capsys):
