@@ -36,9 +36,7 @@ see fitting/rigid.py), weighted by the stage:
 Stages (:func:`default_stages`, as data): an optional ``joints`` stage (pose and translation from
 the 2D joints and the priors, no rendering), then ``image-k`` stages over all blocks with a
 decreasing sigma/gamma schedule (BUDGETS). A large gamma first lets faces hidden behind others
-(figure 13's hand) take part in the softmax colour and receive gradients. The first
-``half_size_stages`` image stages render at half the working size (coarse to fine, see
-:func:`half_size_target`), the rest at the working size.
+(figure 13's hand) take part in the softmax colour and receive gradients.
 """
 from __future__ import annotations
 
@@ -62,8 +60,8 @@ from softras_cl.fitting.solver import FitResult, Stage, fit
 
 __all__ = ["BUDGETS", "POSE_SIGMA", "HINGE_LIMITS", "BodyFitConfig", "BodyTarget", "BodyScene",
            "BodyObjective", "BodyFit", "part_colors", "hinge_frames", "joint_limits",
-           "pose_sigmas", "prepare_target", "half_size_target", "body_params", "rest_values",
-           "default_stages", "half_size_stage_names", "fit_body", "initial_translation"]
+           "pose_sigmas", "prepare_target", "body_params", "rest_values", "default_stages", "fit_body",
+           "initial_translation"]
 
 # Schedules: evaluations of the joint stage (run when 2D joints are given), and (sigma, gamma,
 # evaluations) per image stage. sigma is in squared NDC units (a pixel of a 96 px image is 2/96
@@ -76,13 +74,12 @@ __all__ = ["BUDGETS", "POSE_SIGMA", "HINGE_LIMITS", "BodyFitConfig", "BodyTarget
 # larger gamma mixes every layer of the body and raises the loss between a hidden and a seen
 # hand (see docs/body_fitting.md), a smaller one gives the hidden faces no gradient.
 BUDGETS = {
-    "fast": dict(joint_iters=60, image_stages=((1e-4, 1e-2, 60), (1e-5, 1e-3, 60)), half_size_stages=0),
+    "fast": dict(joint_iters=60, image_stages=((1e-4, 1e-2, 60), (1e-5, 1e-3, 60))),
     "default": dict(joint_iters=100,
-                    image_stages=((1e-4, 1e-2, 100), (3e-5, 3e-3, 100), (1e-5, 1e-3, 100)),
-                    half_size_stages=0),
+                    image_stages=((1e-4, 1e-2, 100), (3e-5, 3e-3, 100), (1e-5, 1e-3, 100))),
     "thorough": dict(joint_iters=150,
                      image_stages=((1e-4, 3e-2, 150), (1e-4, 1e-2, 150), (3e-5, 3e-3, 150),
-                                   (1e-5, 1e-3, 150)), half_size_stages=0),
+                                   (1e-5, 1e-3, 150))),
 }
 
 # Pose prior: standard deviation (rad) of each joint's axis-angle, by SMPL joint name; joints of
@@ -191,9 +188,6 @@ class BodyFitConfig:
     distance / height / fov_deg: the camera (metres, metres, degrees across the shorter side).
     background: RGB (linear) the part colours are drawn on in colour targets.
     joint_iters / image_stages: the schedule (BUDGETS).
-    half_size_stages: how many of the first image stages render at half the working size
-    (:func:`half_size_target`; none when the working image is under 2 * MIN_SIZE pixels high
-    or wide).
     weights: loss-term weights by name (module docstring); terms without data are dropped.
     robust_px: Geman-McClure scale in pixels of the joint term (None: plain squares).
     dtype: rasteriser precision; float64 keeps line searches clean.
@@ -205,7 +199,6 @@ class BodyFitConfig:
     background: tuple = (0.0, 0.0, 0.0)
     joint_iters: int = BUDGETS["default"]["joint_iters"]
     image_stages: tuple = BUDGETS["default"]["image_stages"]
-    half_size_stages: int = BUDGETS["default"]["half_size_stages"]
     weights: dict = field(default_factory=lambda: dict(
         image=1.0 / 0.1 ** 2, silhouette=10.0, joints=1.0 / 2.0 ** 2, pose_prior=1.0,
         shape_prior=1.0, translation_prior=1.0, limits=100.0))
@@ -248,10 +241,8 @@ def _check_body_config(c: BodyFitConfig) -> None:
         raise InputError(f"background must be 3 numbers (linear RGB), got {c.background!r}")
     for i, v in enumerate(c.background):
         _number(f"background[{i}]", v)
-    for name in ("joint_iters", "half_size_stages"):
-        n = getattr(c, name)
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
-            raise InputError(f"{name} must be an integer >= 0, got {n!r}")
+    if isinstance(c.joint_iters, bool) or not isinstance(c.joint_iters, (int, np.integer)) or c.joint_iters < 0:
+        raise InputError(f"joint_iters must be an integer >= 0, got {c.joint_iters!r}")
     for name, w in c.weights.items():
         if _number(f"weights[{name!r}]", w) < 0:
             raise InputError(f"weights[{name!r}] must be >= 0, got {w!r}")
@@ -329,6 +320,8 @@ def prepare_target(target, size: int, background=(0.0, 0.0, 0.0), joints=None,
     """Check the target (see :func:`_split_target`) and its joints (J, 2) pixels, and shrink
     them to the working resolution (longer side <= size). ValueError on a bad shape, a side
     under 16 px, an empty or full silhouette, or joints of the wrong count or outside."""
+    from skimage.transform import resize
+
     rgb, alpha = _split_target(target, background)
     if not (np.isfinite(alpha).all() and (rgb is None or np.isfinite(rgb).all())):
         raise ValueError("target contains NaN or Inf")
@@ -340,31 +333,14 @@ def prepare_target(target, size: int, background=(0.0, 0.0, 0.0), joints=None,
                          "colour right (--background), or is it a silhouette of the body?")
     if joints is not None:
         joints, joint_weights = _check_joints(joints, joint_weights, n_joints, (h, w))
-    data = BodyTarget(rgb, alpha, joints, joint_weights, 1.0, (h, w))
-    scale = size / max(h, w)
-    return _resized(data, (max(16, round(h * scale)), max(16, round(w * scale)))) if scale < 1.0 else data
-
-
-def _resized(target: BodyTarget, shape: tuple) -> BodyTarget:
-    """``target`` shrunk to ``shape`` (h, w): images by linear interpolation with anti-aliasing,
-    joints mapped pixel centre to pixel centre, ``scale`` updated."""
-    from skimage.transform import resize
-
-    ratio = shape[0] / target.alpha.shape[0]
-    shrink = lambda image: None if image is None else resize(image, shape, order=1, anti_aliasing=True)
-    joints = None if target.joints is None else (target.joints + 0.5) * ratio - 0.5
-    return BodyTarget(shrink(target.rgb), shrink(target.alpha), joints, target.joint_weights,
-                      target.scale * ratio, target.full_size)
-
-
-def half_size_target(target: BodyTarget) -> BodyTarget:
-    """The working target at half its size (each side halved, rounded), for the coarse stages:
-    a render at half size sees the same view (the camera's field of view spans the shorter
-    side at any size), its blur at a given sigma is twice as wide in pixels, and it costs about
-    half as much as a render at the working size. Its pixels are weighted by the area ratio in
-    :meth:`BodyObjective.image_terms`, so the image terms keep their weight against the priors."""
-    h, w = target.alpha.shape
-    return _resized(target, (round(h / 2), round(w / 2)))
+    scale = min(1.0, size / max(h, w))
+    if scale < 1.0:
+        shape = (max(16, round(h * scale)), max(16, round(w * scale)))
+        alpha = resize(alpha, shape, order=1, anti_aliasing=True)
+        rgb = None if rgb is None else resize(rgb, shape, order=1, anti_aliasing=True)
+        scale = shape[0] / h
+        joints = None if joints is None else (joints + 0.5) * scale - 0.5
+    return BodyTarget(rgb, alpha, joints, joint_weights, scale, (h, w))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -421,29 +397,14 @@ class BodyObjective:
     images ("rgb", "alpha"), the joint term wrt the 3D joints ("joints"), the priors wrt the
     blocks; :func:`losses.weighted_sum` adds them by key, the renderer's backward and the
     model's vjp take them to the blocks. ``observer(values, stage)``, if given, is called at
-    every evaluation (e.g. to record intermediate renders). Stages named in ``half_size`` render
-    at half the working size (:func:`half_size_target`) when the working image is at least
-    2 * MIN_SIZE pixels on each side; the joint term always uses the working camera.
+    every evaluation (e.g. to record intermediate renders).
     """
 
     def __init__(self, scene: BodyScene, target: BodyTarget, robust_px: float | None = None,
-                 observer: Callable | None = None, half_size=()):
+                 observer: Callable | None = None):
         self.scene, self.target, self.robust_px, self.observer = scene, target, robust_px, observer
         self.sigmas = pose_sigmas(scene.model)
         self.hinges = hinge_frames(scene.model)
-        self.half_size = frozenset(half_size) if min(target.alpha.shape) >= 2 * MIN_SIZE else frozenset()
-        self._levels = {False: (scene, target)}
-
-    def level(self, stage: Stage) -> tuple[BodyScene, BodyTarget]:
-        """(scene, target) the stage renders and compares at: the working ones, or their half-size
-        copies (made once)."""
-        half = stage.name in self.half_size
-        if half not in self._levels:
-            coarse = half_size_target(self.target)
-            scene = BodyScene(self.scene.model, coarse.alpha.shape, self.scene.config)
-            scene.settings = self.scene.settings.replace(image_size=scene.image_size)
-            self._levels[half] = (scene, coarse)
-        return self._levels[half]
 
     def __call__(self, values: dict, stage: Stage):
         if self.observer is not None:
@@ -452,16 +413,15 @@ class BodyObjective:
         state, body_ctx = self.scene.pose(values)
         terms, out = self.prior_terms(values, w), None
         if w.get("image") or w.get("silhouette"):
-            scene, target = self.level(stage)
-            out = scene.render(state.vertices, stage.sigma, stage.gamma, grads=("vertices",))
-            terms.update(self.image_terms(out, scene, target))
+            out = self.scene.render(state.vertices, stage.sigma, stage.gamma, grads=("vertices",))
+            terms.update(self.image_terms(out))
         if w.get("joints"):
             terms["joints"] = self.joint_term(state.joints)
         total, g, weighted = losses.weighted_sum(terms, w)
         g_vertices = None
         if out is not None:
             g_rgb, g_alpha = g.pop("rgb", None), g.pop("alpha", None)
-            g_vertices = scene.renderer.backward(
+            g_vertices = self.scene.renderer.backward(
                 out, grad_rgb=None if g_rgb is None else g_rgb[None],
                 grad_alpha=None if g_alpha is None else g_alpha[None])["vertices"]
         grads = self.scene.model.forward_vjp(body_ctx, g_vertices, g.pop("joints", None))
@@ -469,22 +429,18 @@ class BodyObjective:
             grads[name] = grads[name] + value
         return total, grads, weighted
 
-    def image_terms(self, out, scene: BodyScene, target: BodyTarget) -> dict:
-        """``image`` (colour targets) and ``silhouette`` terms with gradients wrt rgb (h, w, 3)
-        and alpha (h, w) of the render ``out`` of ``scene`` against ``target`` (the working
-        ones or their half-size copies). Both are means over the render's pixels times the
-        working image's pixel count: sums at the working size, and at half size sums scaled by
-        the area ratio."""
+    def image_terms(self, out) -> dict:
+        """``image`` (colour targets) and ``silhouette`` terms with gradients wrt rgb (H, W, 3)
+        and alpha (H, W) of the render ``out``."""
         rgb, alpha = out.rgb[0], out.alpha[0]
-        n = self.target.alpha.size
-        value, g = losses.silhouette_iou(alpha, target.alpha)
-        terms = {"silhouette": (value * n, {"alpha": g["pred"] * n})}
-        if target.rgb is not None:
-            comp = scene.composite(out)
-            value, g = losses.image_l2(comp, target.rgb)
-            g_comp = g["pred"] * (3 * n)
-            bg = np.asarray(scene.config.background)
-            terms["image"] = (value * (3 * n), {"rgb": g_comp * alpha[..., None],
+        value, g = losses.silhouette_iou(alpha, self.target.alpha)
+        terms = {"silhouette": (value * alpha.size, {"alpha": g["pred"] * alpha.size})}
+        if self.target.rgb is not None:
+            comp = self.scene.composite(out)
+            value, g = losses.image_l2(comp, self.target.rgb)
+            g_comp = g["pred"] * comp.size
+            bg = np.asarray(self.scene.config.background)
+            terms["image"] = (value * comp.size, {"rgb": g_comp * alpha[..., None],
                                                   "alpha": (g_comp * (rgb - bg)).sum(-1)})
         return terms
 
@@ -549,18 +505,9 @@ def default_stages(config: BodyFitConfig, target: BodyTarget) -> list[Stage]:
         stages.append(Stage("joints", ("betas", "body_pose", "global_rotation", "translation"),
                             dict(joints=w["joints"], **priors), max_iters=config.joint_iters))
     for k, (sigma, gamma, iters) in enumerate(config.image_stages):
-        stages.append(Stage(_image_stage_name(k), ("betas", "body_pose", "global_rotation", "translation"),
+        stages.append(Stage(f"image-{k + 1}", ("betas", "body_pose", "global_rotation", "translation"),
                             dict(w), sigma=sigma, gamma=gamma, max_iters=iters))
     return stages
-
-
-def _image_stage_name(k: int) -> str:
-    return f"image-{k + 1}"
-
-
-def half_size_stage_names(config: BodyFitConfig) -> frozenset:
-    """Names of the image stages of :func:`default_stages` that render at half size."""
-    return frozenset(_image_stage_name(k) for k in range(min(config.half_size_stages, len(config.image_stages))))
 
 
 def initial_translation(scene: BodyScene, values: dict, alpha: np.ndarray) -> np.ndarray:
@@ -630,7 +577,7 @@ def fit_body(target, model, config: BodyFitConfig = BodyFitConfig(), joints=None
         init = rest_values(model)
         init["translation"] = initial_translation(scene, init, data.alpha)
     params = body_params(model, {k: np.asarray(v, np.float64) for k, v in init.items()})
-    objective = BodyObjective(scene, data, config.robust_px, observer, half_size_stage_names(config))
+    objective = BodyObjective(scene, data, config.robust_px, observer)
     result = fit(params, objective, default_stages(config, data), out_dir=out_dir, progress=progress,
                  resume=resume)
     return BodyFit(result.values, scene, data, result)

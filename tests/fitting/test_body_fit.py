@@ -39,11 +39,10 @@ def synthetic_target(model, values, size):
     return image, scene.camera.project_pixels(state.joints)[0]
 
 
-@pytest.mark.parametrize("weights, robust, half_size", [(ALL_TERMS, 3.0, ()), (ALL_TERMS, None, ()),
-                                                        (dict(joints=0.25, pose_prior=1.0, limits=100.0), None, ()),
-                                                        (ALL_TERMS, 3.0, ("s",))],
-                         ids=["image stage, robust joints", "image stage", "joint stage", "half-size image stage"])
-def test_objective_gradient_matches_central_differences(model, weights, robust, half_size):
+@pytest.mark.parametrize("weights, robust", [(ALL_TERMS, 3.0), (ALL_TERMS, None),
+                                             (dict(joints=0.25, pose_prior=1.0, limits=100.0), None)],
+                         ids=["image stage, robust joints", "image stage", "joint stage"])
+def test_objective_gradient_matches_central_differences(model, weights, robust):
     rng = np.random.default_rng(3)
     size = 32
     image, joints = synthetic_target(model, body.rest_values(model), size)
@@ -51,12 +50,11 @@ def test_objective_gradient_matches_central_differences(model, weights, robust, 
     scene.settings = scene.settings.replace(dist_eps=1e-9)    # a tiny cut-off: smooth for differences
     target = body.prepare_target(image, size, joints=np.clip(joints + rng.normal(0, 2, joints.shape), 0, size - 1),
                                  joint_weights=rng.uniform(0.5, 1.5, model.n_joints), n_joints=model.n_joints)
-    objective = body.BodyObjective(scene, target, robust_px=robust, half_size=half_size)
+    objective = body.BodyObjective(scene, target, robust_px=robust)
     stage = Stage("s", ("betas",), weights, sigma=1e-4, gamma=1e-2)
     values = random_values(model, rng)
     _, grads, terms = objective(values, stage)
     assert set(terms) == set(weights)
-    assert objective.level(stage)[0].image_size == ((16, 16) if half_size else (32, 32))
     picks = [("betas", (0,)), ("betas", (7,)), ("global_rotation", (0,)), ("global_rotation", (1,)),
              ("translation", (0,)), ("translation", (2,)), ("body_pose", (_index(model, "left_elbow"), 1)),
              ("body_pose", (_index(model, "right_knee"), 0)), ("body_pose", (_index(model, "spine2"), 2)),
@@ -123,51 +121,20 @@ def test_the_schedule_is_followed(model, monkeypatch):
     render = body.BodyScene.render
 
     def recording(self, vertices, sigma, gamma, *args, **kwargs):
-        seen.append((sigma, gamma, self.image_size))
+        seen.append((sigma, gamma))
         return render(self, vertices, sigma, gamma, *args, **kwargs)
 
     monkeypatch.setattr(body.BodyScene, "render", recording)
     stages_seen = []
     image, joints = synthetic_target(model, body.rest_values(model), 32)
-    config = body.BodyFitConfig(size=32, joint_iters=3, image_stages=((1e-4, 1e-2, 3), (3e-5, 3e-3, 3), (1e-5, 1e-3, 3)),
-                                half_size_stages=2)
+    config = body.BodyFitConfig(size=32, joint_iters=3, image_stages=((1e-4, 1e-2, 3), (3e-5, 3e-3, 3), (1e-5, 1e-3, 3)))
     fit = body.fit_body(image, model, config, joints=joints, progress=False,
                         observer=lambda values, stage: stages_seen.append(stage.name))
     assert list(dict.fromkeys(stages_seen)) == ["joints", "image-1", "image-2", "image-3"]
-    fitting_renders = [s for s in seen if s[:2] != (1e-6, 1e-4)]        # not the sharp initial render
-    assert list(dict.fromkeys(fitting_renders)) == [(1e-4, 1e-2, (16, 16)), (3e-5, 3e-3, (16, 16)),
-                                                    (1e-5, 1e-3, (32, 32))]
+    fitting_renders = [s for s in seen if s != (1e-6, 1e-4)]        # not the sharp initial render
+    assert list(dict.fromkeys(fitting_renders)) == [(1e-4, 1e-2), (3e-5, 3e-3), (1e-5, 1e-3)]
     assert len(fitting_renders) == len(stages_seen) - stages_seen.count("joints")
     assert set(fit.result.outcomes) == {"joints", "image-1", "image-2", "image-3"}
-
-
-def test_a_half_size_stage_weighs_its_pixels_by_the_area_ratio(model):
-    """The half-size image terms estimate the working-size sums (a missing area ratio would
-    make them 4x smaller; the half-size target and render are smoother, so the image term comes
-    out somewhat smaller); the joint term and the priors do not change with the size."""
-    rng = np.random.default_rng(5)
-    values = random_values(model, rng)
-    image, joints = synthetic_target(model, body.rest_values(model), 64)
-    target = body.prepare_target(image, 64, joints=joints, n_joints=model.n_joints)
-    scene = body.BodyScene(model, (64, 64), body.BodyFitConfig(size=64))
-    objective = body.BodyObjective(scene, target, half_size=("coarse",))
-    full, half = (Stage(name, ("betas",), ALL_TERMS, sigma=1e-4, gamma=1e-2) for name in ("fine", "coarse"))
-    _, _, fine_terms = objective(values, full)
-    _, _, coarse_terms = objective(values, half)
-    assert objective.level(half)[0].image_size == (32, 32) and objective.level(half)[1].alpha.shape == (32, 32)
-    for name in ("image", "silhouette"):
-        assert 0.6 < coarse_terms[name] / fine_terms[name] < 1.4, name
-    for name in ("joints", "pose_prior", "shape_prior", "translation_prior", "limits"):
-        assert coarse_terms[name] == fine_terms[name], name
-
-
-def test_half_size_target_keeps_the_view(model):
-    image, joints = synthetic_target(model, body.rest_values(model), 64)
-    target = body.prepare_target(image, 64, joints=joints, n_joints=model.n_joints)
-    coarse = body.half_size_target(target)
-    assert coarse.alpha.shape == (32, 32) and coarse.rgb.shape == (32, 32, 3) and coarse.scale == 0.5
-    np.testing.assert_allclose(coarse.joints, (target.joints + 0.5) / 2 - 0.5)
-    assert coarse.alpha.sum() * 4 == pytest.approx(target.alpha.sum(), rel=0.02)
 
 
 @pytest.mark.slow
@@ -197,8 +164,6 @@ def test_a_small_synthetic_fit_recovers_a_known_pose(model):
     (dict(robust_px=-1.0), "robust_px must be > 0, got -1.0"),
     (dict(size=4), "size must be an integer >= 16"),
     (dict(background=(0.0, 1.0)), "background must be 3 numbers"),
-    (dict(half_size_stages=-1), "half_size_stages must be an integer >= 0, got -1"),
-    (dict(half_size_stages=1.0), "half_size_stages must be an integer >= 0, got 1.0"),
 ])
 def test_body_config_names_a_bad_field(changes, says):
     from softras_cl.errors import InputError
