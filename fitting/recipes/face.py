@@ -123,6 +123,12 @@ class FaceFitConfig:
     robust_scale: the photometric term's Geman-McClure scale in multiples of the median
         per-pixel colour error at each photometric stage's start (see FaceObjective), or None
         for the plain sum of squared errors.
+    stall_window / stall_rel: the photometric stages' convergence stop (fitting.solver.Stage:
+        a stage ends once its best loss improved by at most stall_rel relative over
+        stall_window evaluations; 0: run every stage's whole budget). The landmark stage, cheap
+        and the start of everything after it, always runs to nlopt's own stop or its budget.
+    coarse_sigma: photometric stages whose sigma is at least this compare the photo at half
+        the working resolution (FaceObjective.photo_level; None: never).
     n_id / n_exp / n_albedo: use only the first components of the model (None: all).
     dtype: rasteriser precision; float64 keeps line searches clean.
     """
@@ -131,6 +137,9 @@ class FaceFitConfig:
     fov_deg: float = 30.0
     landmark_iters: int = BUDGETS["default"]["landmark_iters"]
     photo_stages: tuple = BUDGETS["default"]["photo_stages"]
+    stall_window: int = BUDGETS["default"].get("stall_window", 0)
+    stall_rel: float = BUDGETS["default"].get("stall_rel", 0.0)
+    coarse_sigma: float | None = BUDGETS["default"].get("coarse_sigma", COARSE_SIGMA)
     weights: dict = field(default_factory=lambda: dict(
         landmarks=1.0 / 4.0, photo=100.0, id_prior=1.0, exp_prior=1.0,
         albedo_prior=1.0, sh_white=1000.0, focal_prior=1.0))
@@ -195,6 +204,11 @@ def _check_face_config(c: FaceFitConfig) -> None:
     if _check(lambda: number("landmark_weight_photo", c.landmark_weight_photo)) < 0:
         raise InputError(f"landmark_weight_photo must be >= 0, got {c.landmark_weight_photo!r}")
     _int_at_least("mask_erosion", c.mask_erosion, 0)
+    _int_at_least("stall_window", c.stall_window, 0, " (evaluations; 0: no convergence stop)")
+    if _check(lambda: number("stall_rel", c.stall_rel)) < 0:
+        raise InputError(f"stall_rel must be >= 0, got {c.stall_rel!r}")
+    if c.coarse_sigma is not None:
+        _check(lambda: number("coarse_sigma", c.coarse_sigma, positive=True))
     if c.robust_scale is not None:
         _check(lambda: number("robust_scale", c.robust_scale, positive=True))
     if _check(lambda: number("forehead", c.forehead)) < 0:
@@ -465,13 +479,14 @@ def default_stages(config: FaceFitConfig, fit_focal: bool) -> list[Stage]:
     priors = dict(id_prior=w["id_prior"], exp_prior=w["exp_prior"])
     pose = ("rotation", "translation") + (("focal",) if fit_focal else ())
     focal_prior = dict(focal_prior=w["focal_prior"]) if fit_focal else {}
+    stop = dict(stall_window=config.stall_window, stall_rel=config.stall_rel)
     stages = [Stage("landmarks", pose + ("id", "exp"), dict(landmarks=w["landmarks"], **priors, **focal_prior),
                     max_iters=config.landmark_iters)]
     for k, (sigma, gamma, iters) in enumerate(config.photo_stages):
         weights = dict(landmarks=w["landmarks"] * config.landmark_weight_photo, photo=w["photo"],
                        albedo_prior=w["albedo_prior"], sh_white=w["sh_white"], **priors, **focal_prior)
         stages.append(Stage(f"photo-{k + 1}", ("id", "exp", "albedo", "sh") + pose,
-                            weights, sigma=sigma, gamma=gamma, max_iters=iters))
+                            weights, sigma=sigma, gamma=gamma, max_iters=iters, **stop))
     return stages
 
 
@@ -726,7 +741,8 @@ def prepare_fit(photo, landmarks, model, config: FaceFitConfig) -> tuple[FaceObj
     scene = FaceScene(model, image.shape[:2], config.dtype, depth_range=depth_range(translation),
                       principal=principal)
     objective = FaceObjective(scene, image, target, config.mask_erosion, focal0=focal,
-                              forehead=config.forehead, robust_scale=config.robust_scale)
+                              forehead=config.forehead, coarse_sigma=config.coarse_sigma,
+                              robust_scale=config.robust_scale)
     values = dict(zero, rotation=rotation, translation=translation, focal=np.array([focal]))
     sh = initial_light(scene, values, image)
     return objective, crop, face_params(model, focal, rotation, translation, sh)

@@ -1,5 +1,6 @@
 """Face fitting recipe (fitting/face.py): exact objective gradients, closed-form initialisers,
 input checks, and recovery of a synthetic face from its photo and noisy landmarks."""
+import dataclasses
 import re
 
 import numpy as np
@@ -241,6 +242,10 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     (dict(dtype="float16"), "dtype must be 'float32' or 'float64'"),
     (dict(robust_scale=0.0), "robust_scale must be > 0, got 0.0"),
     (dict(robust_scale=float("nan")), "robust_scale must be a finite number"),
+    (dict(stall_window=-1), "stall_window must be an integer >= 0 (evaluations; 0: no convergence stop)"),
+    (dict(stall_window=2.0), "stall_window must be an integer >= 0"),
+    (dict(stall_rel=-1e-3), "stall_rel must be >= 0, got -0.001"),
+    (dict(coarse_sigma=0.0), "coarse_sigma must be > 0, got 0.0"),
 ])
 def test_face_config_names_a_bad_field(changes, says):
     from softras_cl.errors import InputError
@@ -301,6 +306,19 @@ def test_photometric_stages_fit_focal_with_its_prior_unless_focal_is_given():
         assert "focal" in stage.free and stage.weights["focal_prior"] == config.weights["focal_prior"]
     for stage in face.default_stages(config, fit_focal=False):
         assert "focal" not in stage.free and "focal_prior" not in stage.weights
+
+
+def test_photometric_stages_carry_the_configured_convergence_stop_and_coarse_level(toy):
+    config = face.FaceFitConfig(stall_window=7, stall_rel=2e-3, coarse_sigma=3e-5)
+    landmarks, *photo = face.default_stages(config, fit_focal=True)
+    assert landmarks.stall_window == 0 and len(photo) == len(config.photo_stages)
+    assert [(s.stall_window, s.stall_rel) for s in photo] == [(7, 2e-3)] * len(photo)
+    off = face.default_stages(face.FaceFitConfig(stall_window=0), fit_focal=True)
+    assert all(s.stall_window == 0 for s in off)
+    rng = np.random.default_rng(7)
+    photo, lmk = rng.random((120, 100, 3)), np.column_stack([rng.uniform(30, 70, 68), rng.uniform(40, 80, 68)])
+    objective = face.prepare_fit(photo, lmk, toy, dataclasses.replace(config, size=64))[0]
+    assert objective.photo_level(3e-5) is not objective and objective.photo_level(1e-5) is objective
 
 
 def test_robust_scale_is_a_multiple_of_the_median_error_fixed_within_a_stage(toy):
