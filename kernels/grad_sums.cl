@@ -42,8 +42,9 @@ __kernel void face_sums(const int n_faces, const int width,
 }
 
 /* out[v][c] = 0 + the corner values of vertex v added in increasing corner order: corner
- * corners[j] for j in vertex_start[v] .. vertex_start[v + 1] - 1, where corner i = 3 g + k is
- * corner k of face g and its value is face_vals[g * face_width + offset + 3 k + c].
+ * corners[j] for j in vertex_start[v] .. vertex_start[v + 1] - 1, where corner i = 4 g + k is
+ * corner k of face g and its value is face_vals[g * face_width + offset + 3 k + c] (4 g + k, not
+ * 3 g + k: a shift and a mask, where i / 3 and i % 3 compile to an instruction Oclgrind lacks).
  * One work-item per vertex (global size >= n_vertices). */
 __kernel void vertex_sums(const int n_vertices, const int face_width, const int offset,
                           __global const int *vertex_start, __global const int *corners,
@@ -55,7 +56,7 @@ __kernel void vertex_sums(const int n_vertices, const int face_width, const int 
     sum_t s[3] = {(sum_t)0, (sum_t)0, (sum_t)0};
     for (int j = vertex_start[v]; j < vertex_start[v + 1]; ++j) {
         const int i = corners[j];
-        __global const sum_t *val = face_vals + (size_t)(i / 3) * face_width + offset + 3 * (i % 3);
+        __global const sum_t *val = face_vals + (size_t)(i >> 2) * face_width + offset + 3 * (i & 3);
         for (int c = 0; c < 3; ++c)
             s[c] += val[c];
     }

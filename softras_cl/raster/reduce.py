@@ -28,7 +28,7 @@ class CornerIndex:
     """Which face corners touch each vertex, for faces (B, F, 3) over B*V vertices.
 
     vertex_start: (B*V + 1,) int32, vertex u's corners are corners[vertex_start[u]:vertex_start[u+1]]
-    corners: (B*F*3,) int32 corner ids 3 * (b * F + f) + k, increasing within each vertex
+    corners: (B*F*3,) int32 corner ids 4 * (b * F + f) + k, increasing within each vertex
     """
     vertex_start: np.ndarray
     corners: np.ndarray
@@ -37,10 +37,13 @@ class CornerIndex:
 def corner_index(faces: np.ndarray, n_vertices: int) -> CornerIndex:
     """CornerIndex of int faces (B, F, 3) with indices below n_vertices."""
     batch = faces.shape[0]
+    if 4 * batch * faces.shape[1] >= 2 ** 31:
+        raise ValueError(f"{batch} x {faces.shape[1]} faces: corner ids 4 * face + corner exceed int32; split the batch")
     flat = (np.arange(batch)[:, None, None] * n_vertices + faces).ravel()
     counts = np.bincount(flat, minlength=batch * n_vertices)
+    order = np.argsort(flat, kind="stable")       # positions 3 g + k in (b, f, k) order
     return CornerIndex(np.concatenate([[0], np.cumsum(counts)]).astype(np.int32),
-                       np.argsort(flat, kind="stable").astype(np.int32))
+                       (order // 3 * 4 + order % 3).astype(np.int32))
 
 
 class GradSums:

@@ -102,7 +102,7 @@ def test_corner_index_lists_each_vertex_corners_in_order():
     faces = np.array([[[0, 1, 2], [2, 1, 3]]])
     index = corner_index(faces, 5)
     assert index.vertex_start.tolist() == [0, 1, 3, 5, 6, 6]
-    assert index.corners.tolist() == [0, 1, 4, 2, 3, 5]
+    assert index.corners.tolist() == [0, 1, 5, 2, 4, 6]
 
 
 def test_float32_reductions_build_without_the_double_type():
