@@ -18,6 +18,9 @@ those of :func:`~softras_cl.fitting.recipes.face.fit_face`.
 
 The stages are the single fit's (:func:`~softras_cl.fitting.recipes.face.default_stages`), each
 run jointly over all photos: a block free in the single fit's stage is free here in every photo.
+The weights too, but for one (:func:`joint_config`): the landmarks weigh in the photometric
+stages what they weigh in the landmark stage (LANDMARK_WEIGHT_PHOTO = 1, i.e. 2 px noise),
+not 10x more as in the single fit (docs/face_views.md has the measurements).
 """
 from __future__ import annotations
 
@@ -32,13 +35,23 @@ from softras_cl.fitting.recipes.face import (N_LANDMARKS, FaceFit, FaceFitConfig
                                              default_stages, prepare_fit)
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
-__all__ = ["SHARED", "PRIORS_ONCE", "view_block", "focal_scales", "FaceViewsObjective", "FaceViewsFit", "joint_params",
+__all__ = ["SHARED", "PRIORS_ONCE", "LANDMARK_WEIGHT_PHOTO", "joint_config", "view_block", "focal_scales", "FaceViewsObjective", "FaceViewsFit", "joint_params",
            "joint_stages", "prepare_view", "fit_face_views"]
 
 SHARED = ("id", "albedo")                  # blocks common to every photo of the person
 PRIORS_ONCE = ("id_prior", "albedo_prior")  # their priors: counted in the first photo's objective only
 CAMERA = ("focal",)                         # shared too with same_camera, its prior counted once
 CAMERA_PRIORS = ("focal_prior",)
+# FaceFitConfig.landmark_weight_photo of the joint fit. The single fit's 10 keeps one photo's
+# unexplained pixels from bending the shape; over several photos it made the landmarks' noise
+# the limit (bench face-views: identity ratio 0.44 -> 0.28 and 0.62 -> 0.33 at 1).
+LANDMARK_WEIGHT_PHOTO = 1.0
+
+
+def joint_config(config: FaceFitConfig) -> FaceFitConfig:
+    """``config`` with the joint fit's landmark weight in the photometric stages
+    (LANDMARK_WEIGHT_PHOTO); everything else as given."""
+    return dataclasses.replace(config, landmark_weight_photo=LANDMARK_WEIGHT_PHOTO)
 
 
 def view_block(name: str, k: int, shared=SHARED) -> str:
@@ -181,16 +194,18 @@ def _check_views(photos, landmarks, config: FaceFitConfig, same_camera: bool) ->
                          f"landscape), got sizes {sorted(sizes)}")
 
 
-def fit_face_views(photos, landmarks, model, config: FaceFitConfig = FaceFitConfig(), out_dir=None,
+def fit_face_views(photos, landmarks, model, config: FaceFitConfig | None = None, out_dir=None,
                    progress: bool = True, resume: bool = False, same_camera: bool = False) -> FaceViewsFit:
     """Fit one identity and albedo of ``model`` to several photos of a person, each with its
     own pose, expression, light and (unless ``same_camera``) focal length.
 
     photos: sequence of (H_k, W_k, 3) linear RGB; landmarks: one (68, 2) pixel array per photo;
-    config, out_dir, progress, resume: as for fit_face (one checkpoint.npz of the joint blocks);
+    config: used as given (None: ``joint_config(FaceFitConfig())``, the joint fit's defaults);
+    out_dir, progress, resume: as for fit_face (one checkpoint.npz of the joint blocks);
     same_camera: the photos (all of one size, portrait or landscape) share one focal length,
     fitted (config.focal must be None).
     """
+    config = joint_config(FaceFitConfig()) if config is None else config
     _check_views(photos, landmarks, config, same_camera)
     if model.n_landmarks != N_LANDMARKS:
         raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "

@@ -4,7 +4,8 @@ Each synthetic subject has one identity and albedo drawn from the model's prior;
 photographed 3 times (--views) by the generator of `softras-cl bench face`, each photo with its
 own random pose, expression, SH light, field of view, background and landmark noise; the yaws
 fall in 3 bands (left, front, right: -30 to -10, -10 to 10, 10 to 30 degrees for 3 photos). Every
-photo is fitted alone (fit-face), then all of them jointly (fit-face --same-person). With
+photo is fitted alone (fit-face), then all of them jointly (fit-face --same-person, with its own
+landmark weight: fitting.recipes.face_views.joint_config). With
 --same-camera the photos of a subject share one camera (the first photo's focal length; every
 other photo's face moved along its line of sight so that it fills the frame as drawn) and the
 joint fit is told so (fit-face --same-person --same-camera).
@@ -109,7 +110,7 @@ def run_subject(model, photos: list[dict], config, one_camera: bool = False) -> 
     """Fit each photo alone, then all jointly (one_camera: with one shared focal length); the
     subject's row."""
     from softras_cl.fitting.recipes.face import fit_face
-    from softras_cl.fitting.recipes.face_views import fit_face_views
+    from softras_cl.fitting.recipes.face_views import fit_face_views, joint_config
 
     true_id = photos[0]["truth"]["id"]
     single, single_shape, single_wall, single_cpu = [], [], [], []
@@ -120,7 +121,8 @@ def run_subject(model, photos: list[dict], config, one_camera: bool = False) -> 
         single_wall.append(wall)
         single_cpu.append(cpu)
     joint, wall, cpu = _timed(lambda: fit_face_views([p["photo"] for p in photos], [p["landmarks"] for p in photos],
-                                                     model, config, progress=False, same_camera=one_camera))
+                                                     model, joint_config(config), progress=False,
+                                                     same_camera=one_camera))
     ratio = identity_ratio(model, joint.values["id"], true_id)
     best = min(single)
     return dict(single_ratios=single, best_single_ratio=best, mean_single_ratio=float(np.mean(single)),
@@ -189,6 +191,7 @@ def save_chart(rows: list[dict], path: Path) -> None:
 def run(args: argparse.Namespace) -> int:
     from softras_cl.fitting.models.face_loaders import load_demo_face_model, load_face_model
     from softras_cl.fitting.recipes.face import BUDGETS, FaceFitConfig
+    from softras_cl.fitting.recipes.face_views import LANDMARK_WEIGHT_PHOTO
 
     if args.subjects < 1 or args.views < 2 or args.size < 32:
         raise InputError(f"--subjects must be >= 1, --views >= 2 and --size >= 32, got {args.subjects}, "
@@ -210,6 +213,7 @@ def run(args: argparse.Namespace) -> int:
         summary = summarise(rows)
         doc = dict(size=args.size, seed=args.seed, views=args.views, budget=args.budget, model=model.name,
                    photo_weight=args.photo_weight, same_camera=args.same_camera,
+                   joint_landmark_weight_photo=LANDMARK_WEIGHT_PHOTO,
                    summary=summary, subjects=rows, load_average=load, provenance=provenance(dict(options=args)))
         write_json(folder.path / "face_views.json", doc)
         save_chart(rows, folder.path / "face_views.png")

@@ -235,11 +235,11 @@ def _same_person_inputs(args: argparse.Namespace, photos: list) -> tuple[list, l
 def run_same_person(args: argparse.Namespace) -> int:
     """Several photos of one person into --out (fitting.recipes.face_views)."""
     from softras_cl.fitting.batch import face_record, stable_names
-    from softras_cl.fitting.recipes.face_views import fit_face_views
+    from softras_cl.fitting.recipes.face_views import fit_face_views, joint_config
     from softras_cl.fitting.reports.face_views import write_views_outputs
 
     paths = _check_same_person(args)
-    config = _config(args)
+    config = joint_config(_config(args))
     images, points, inputs = _same_person_inputs(args, paths)
     model = _load_model(args)
     records = [face_record(p, i["landmarks_source"], _options(args)) for p, i in zip(paths, inputs)]
