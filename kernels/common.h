@@ -56,26 +56,12 @@ inline realv log_sigmoid(realv x)
 }
 
 /* log(sigmoid(x)) and log(sigmoid(-x)) = log(1 - sigmoid(x)) together: both share
- * log1p(exp(-|x|)), so one exp and one log1p serve both (bit-identical to two log_sigmoid calls).
- * Returns that exp(-|x|), from which sigmoid_pair gets D and 1 - D without another exp. */
-inline realv log_sigmoid_pair(realv x, realv *pos, realv *neg)
+ * log1p(exp(-|x|)), so one exp and one log1p serve both (bit-identical to two log_sigmoid calls). */
+inline void log_sigmoid_pair(realv x, realv *pos, realv *neg)
 {
-    const realv e = exp(-fabs(x));
-    const realv tail = log1p(e);
+    const realv tail = log1p(exp(-fabs(x)));
     *pos = fmin(x, R(0)) - tail;
     *neg = fmin(-x, R(0)) - tail;
-    return e;
-}
-
-/* D = sigmoid(x) and 1 - D from e = exp(-|x|): 1 / (1 + e) and e / (1 + e) for x >= 0, the other
- * way round below. One division instead of exp(log D), exp(log(1 - D)); no less accurate (each
- * is within about 2 ulp, where exp of a logarithm carries the logarithm's error times |log|). */
-inline void sigmoid_pair(realv x, realv e, realv *D, realv *one_m_D)
-{
-    const realv inv = R(1) / (R(1) + e);
-    const maskv up = x >= R(0);
-    *D = select(e, (realv)R(1), up) * inv;
-    *one_m_D = select((realv)R(1), e, up) * inv;
 }
 
 /* Sum of the SR_VEC lanes of a vector, in a fixed order (deterministic). */

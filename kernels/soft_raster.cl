@@ -635,8 +635,8 @@ inline void pair_vjp(const Face *f, const Frag *r, const PixelIn *in, const Para
     realv g_a[3] = {(realv)R(0), (realv)R(0), (realv)R(0)};
     gC[0] = gC[1] = gC[2] = (realv)R(0);
 #if (SR_NEED_COLOR && !SR_COLOR_HARD) || (SR_OUT_ALPHA && SR_ALPHA_AGG != 2)
-    realv log_D, log_1mD, D, one_m_D;   /* log D and log(1 - D), sharing one exp and one log1p */
-    sigmoid_pair(r->x, log_sigmoid_pair(r->x, &log_D, &log_1mD), &D, &one_m_D);
+    realv log_D, log_1mD;             /* log D and log(1 - D), sharing one exp and one log1p */
+    log_sigmoid_pair(r->x, &log_D, &log_1mD);
 #endif
 #if SR_NEED_COLOR
     realv C[3] = {(realv)R(0), (realv)R(0), (realv)R(0)}, dC_du[3], dC_dv[3];
@@ -648,7 +648,7 @@ inline void pair_vjp(const Face *f, const Frag *r, const PixelIn *in, const Para
     realv w = keep(exp(t - in->lse), valid);
     realv g_t = w * (in->g[0] * C[0] + in->g[1] * C[1] + in->g[2] * C[2]
                      + in->g_depth * r->Z - in->g_dot_img);                /* eq. 11-12 */
-    g_x += g_t * one_m_D;                                                    /* dlogD/dx = 1-D */
+    g_x += g_t * exp(log_1mD);                                               /* dlogD/dx = 1-D */
     g_Z -= g_t * p->inv_gamma * p->inv_range;
 #else
     realv w = select((realv)R(0), (realv)R(1), valid & (in->best_id == (idv)face));
@@ -676,7 +676,7 @@ inline void pair_vjp(const Face *f, const Frag *r, const PixelIn *in, const Para
     realv l_excl = select(in->l_rest + in->l_min - l1m, in->l_rest, in->min_id == (idv)face);
     g_x += keep(in->g_alpha * exp(l_excl + log_D + l1m), valid);
 #elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
-    g_x += keep(in->g_alpha * D * one_m_D, valid & (in->sumD < R(1)));
+    g_x += keep(in->g_alpha * exp(log_D + log_1mD), valid & (in->sumD < R(1)));
 #endif
 
 #if SR_GRAD_POS
