@@ -27,17 +27,23 @@ from softras_cl.fitting.recipes.face import BUDGETS, FaceFitConfig
 from softras_cl.provenance import provenance
 
 OLD_DEFAULT = dict(landmark_iters=150, photo_stages=((1e-4, 3e-3, 100), (3e-5, 1e-3, 20), (1e-5, 1e-3, 100)),
-                   stall_window=0, stall_rel=0.0, coarse_sigma=1e-4)
+                   stall_window=0, coarse_sigma=1e-4)
 VARIANTS = {
     "old": OLD_DEFAULT,
     "default": {},
     "fast": BUDGETS["fast"],
-    "stall": dict(OLD_DEFAULT, stall_window=10, stall_rel=1e-3),
-    "stall5": dict(OLD_DEFAULT, stall_window=10, stall_rel=5e-4),
-    "stall3": dict(OLD_DEFAULT, stall_window=10, stall_rel=3e-4),
+    # every photometric stage stopped at 1e-3 per 10 evaluations
+    "stall": dict(OLD_DEFAULT, stall_window=10,
+                  photo_stages=((1e-4, 3e-3, 100, 1e-3), (3e-5, 1e-3, 20, 1e-3), (1e-5, 1e-3, 100, 1e-3))),
     "cut": dict(OLD_DEFAULT, photo_stages=((1e-4, 3e-3, 100), (3e-5, 1e-3, 20), (1e-5, 1e-3, 50))),
-    "half2s": dict(OLD_DEFAULT, photo_stages=((1e-4, 3e-3, 100), (3e-5, 1e-3, 60), (1e-5, 1e-3, 40)),
-                   coarse_sigma=3e-5, stall_window=10, stall_rel=1e-3),
+    "half2s": dict(OLD_DEFAULT, photo_stages=((1e-4, 3e-3, 100, 1e-3), (3e-5, 1e-3, 60, 1e-3), (1e-5, 1e-3, 40, 1e-3)),
+                   coarse_sigma=3e-5, stall_window=10),
+    # the coarse stages stopped at 1e-3, the last one at 2e-4
+    "stallf": dict(OLD_DEFAULT, stall_window=10,
+                   photo_stages=((1e-4, 3e-3, 100, 1e-3), (3e-5, 1e-3, 20, 1e-3), (1e-5, 1e-3, 100, 2e-4))),
+    # more of the work at half resolution, the same stops
+    "rebal": dict(OLD_DEFAULT, stall_window=10,
+                  photo_stages=((1e-4, 3e-3, 150, 1e-3), (3e-5, 1e-3, 20, 1e-3), (1e-5, 1e-3, 100, 2e-4))),
 }
 FIGURES = ("cpu_seconds", "seconds", "rmse_mm", "rigid_rmse_mm", "psnr_face_db", "landmark_error_px",
            "focal_error")

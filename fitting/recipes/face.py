@@ -117,16 +117,18 @@ class FaceFitConfig:
     focal: focal length in pixels of the full photo, or None to fit it (initial guess from
         ``fov_deg`` across the longer side).
     landmark_iters / photo_stages: the schedule (see BUDGETS; photo_stages holds
-        (sigma, gamma, evaluations) per stage).
+        (sigma, gamma, evaluations) or (sigma, gamma, evaluations, stall_rel) per stage: the
+        evaluations are the stage's cap, stall_rel its convergence stop, see stall_window).
     weights: loss-term weights by name (see the module docstring for their meaning).
     mask_erosion / forehead: the face region (see FaceObjective.face_region).
     robust_scale: the photometric term's Geman-McClure scale in multiples of the median
         per-pixel colour error at each photometric stage's start (see FaceObjective), or None
         for the plain sum of squared errors.
-    stall_window / stall_rel: the photometric stages' convergence stop (fitting.solver.Stage:
-        a stage ends once its best loss improved by at most stall_rel relative over
-        stall_window evaluations; 0: run every stage's whole budget). The landmark stage, cheap
-        and the start of everything after it, always runs to nlopt's own stop or its budget.
+    stall_window: the window of the photometric stages' convergence stop, in evaluations
+        (fitting.solver.Stage: a stage given a stall_rel ends once its best loss improved by at
+        most stall_rel relative over stall_window evaluations; 0: run every stage's whole
+        budget). The landmark stage, cheap and the start of everything after it, always runs
+        to nlopt's own stop or its budget.
     coarse_sigma: photometric stages whose sigma is at least this compare the photo at half
         the working resolution (FaceObjective.photo_level; None: never).
     n_id / n_exp / n_albedo: use only the first components of the model (None: all).
@@ -138,7 +140,6 @@ class FaceFitConfig:
     landmark_iters: int = BUDGETS["default"]["landmark_iters"]
     photo_stages: tuple = BUDGETS["default"]["photo_stages"]
     stall_window: int = BUDGETS["default"].get("stall_window", 0)
-    stall_rel: float = BUDGETS["default"].get("stall_rel", 0.0)
     coarse_sigma: float | None = BUDGETS["default"].get("coarse_sigma", COARSE_SIGMA)
     weights: dict = field(default_factory=lambda: dict(
         landmarks=1.0 / 4.0, photo=100.0, id_prior=1.0, exp_prior=1.0,
@@ -193,11 +194,14 @@ def _check_face_config(c: FaceFitConfig) -> None:
         raise InputError(f"fov_deg must be in (0, 180) degrees, got {c.fov_deg!r}")
     _int_at_least("landmark_iters", c.landmark_iters, 0)
     for i, stage in enumerate(c.photo_stages):
-        if len(stage) != 3:
-            raise InputError(f"photo_stages[{i}] must be (sigma, gamma, evaluations), got {stage!r}")
+        if len(stage) not in (3, 4):
+            raise InputError(f"photo_stages[{i}] must be (sigma, gamma, evaluations) or (sigma, gamma, "
+                             f"evaluations, stall_rel), got {stage!r}")
         _check(lambda: number(f"photo_stages[{i}] sigma", stage[0], positive=True))
         _check(lambda: number(f"photo_stages[{i}] gamma", stage[1], positive=True))
         _int_at_least(f"photo_stages[{i}] evaluations", stage[2], 0)
+        if len(stage) == 4 and _check(lambda: number(f"photo_stages[{i}] stall_rel", stage[3])) < 0:
+            raise InputError(f"photo_stages[{i}] stall_rel must be >= 0, got {stage[3]!r}")
     for name, w in c.weights.items():
         if _check(lambda: number(f"weights[{name!r}]", w)) < 0:
             raise InputError(f"weights[{name!r}] must be >= 0, got {w!r}")
@@ -205,8 +209,6 @@ def _check_face_config(c: FaceFitConfig) -> None:
         raise InputError(f"landmark_weight_photo must be >= 0, got {c.landmark_weight_photo!r}")
     _int_at_least("mask_erosion", c.mask_erosion, 0)
     _int_at_least("stall_window", c.stall_window, 0, " (evaluations; 0: no convergence stop)")
-    if _check(lambda: number("stall_rel", c.stall_rel)) < 0:
-        raise InputError(f"stall_rel must be >= 0, got {c.stall_rel!r}")
     if c.coarse_sigma is not None:
         _check(lambda: number("coarse_sigma", c.coarse_sigma, positive=True))
     if c.robust_scale is not None:
@@ -474,19 +476,21 @@ def face_params(model, focal: float, rotation, translation, sh) -> ParamSet:
 
 
 def default_stages(config: FaceFitConfig, fit_focal: bool) -> list[Stage]:
-    """The landmark stage, then one photometric stage per (sigma, gamma, evaluations)."""
+    """The landmark stage, then one photometric stage per photo_stages entry (sigma, gamma,
+    evaluations[, stall_rel])."""
     w = config.weights
     priors = dict(id_prior=w["id_prior"], exp_prior=w["exp_prior"])
     pose = ("rotation", "translation") + (("focal",) if fit_focal else ())
     focal_prior = dict(focal_prior=w["focal_prior"]) if fit_focal else {}
-    stop = dict(stall_window=config.stall_window, stall_rel=config.stall_rel)
     stages = [Stage("landmarks", pose + ("id", "exp"), dict(landmarks=w["landmarks"], **priors, **focal_prior),
                     max_iters=config.landmark_iters)]
-    for k, (sigma, gamma, iters) in enumerate(config.photo_stages):
+    for k, (sigma, gamma, iters, *stall_rel) in enumerate(config.photo_stages):
         weights = dict(landmarks=w["landmarks"] * config.landmark_weight_photo, photo=w["photo"],
                        albedo_prior=w["albedo_prior"], sh_white=w["sh_white"], **priors, **focal_prior)
         stages.append(Stage(f"photo-{k + 1}", ("id", "exp", "albedo", "sh") + pose,
-                            weights, sigma=sigma, gamma=gamma, max_iters=iters, **stop))
+                            weights, sigma=sigma, gamma=gamma, max_iters=iters,
+                            stall_window=config.stall_window if stall_rel else 0,
+                            stall_rel=stall_rel[0] if stall_rel else 0.0))
     return stages
 
 

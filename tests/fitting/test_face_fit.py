@@ -244,7 +244,8 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     (dict(robust_scale=float("nan")), "robust_scale must be a finite number"),
     (dict(stall_window=-1), "stall_window must be an integer >= 0 (evaluations; 0: no convergence stop)"),
     (dict(stall_window=2.0), "stall_window must be an integer >= 0"),
-    (dict(stall_rel=-1e-3), "stall_rel must be >= 0, got -0.001"),
+    (dict(photo_stages=((1e-4, 1e-3, 10, -1e-3),)), "photo_stages[0] stall_rel must be >= 0, got -0.001"),
+    (dict(photo_stages=((1e-4, 1e-3),)), "photo_stages[0] must be (sigma, gamma, evaluations) or"),
     (dict(coarse_sigma=0.0), "coarse_sigma must be > 0, got 0.0"),
 ])
 def test_face_config_names_a_bad_field(changes, says):
@@ -309,11 +310,12 @@ def test_photometric_stages_fit_focal_with_its_prior_unless_focal_is_given():
 
 
 def test_photometric_stages_carry_the_configured_convergence_stop_and_coarse_level(toy):
-    config = face.FaceFitConfig(stall_window=7, stall_rel=2e-3, coarse_sigma=3e-5)
+    config = face.FaceFitConfig(stall_window=7, coarse_sigma=3e-5,
+                                photo_stages=((1e-4, 3e-3, 50, 2e-3), (1e-5, 1e-3, 40), (3e-6, 1e-3, 30, 1e-4)))
     landmarks, *photo = face.default_stages(config, fit_focal=True)
-    assert landmarks.stall_window == 0 and len(photo) == len(config.photo_stages)
-    assert [(s.stall_window, s.stall_rel) for s in photo] == [(7, 2e-3)] * len(photo)
-    off = face.default_stages(face.FaceFitConfig(stall_window=0), fit_focal=True)
+    assert landmarks.stall_window == 0 and [s.max_iters for s in photo] == [50, 40, 30]
+    assert [(s.stall_window, s.stall_rel) for s in photo] == [(7, 2e-3), (0, 0.0), (7, 1e-4)]
+    off = face.default_stages(dataclasses.replace(config, stall_window=0), fit_focal=True)
     assert all(s.stall_window == 0 for s in off)
     rng = np.random.default_rng(7)
     photo, lmk = rng.random((120, 100, 3)), np.column_stack([rng.uniform(30, 70, 68), rng.uniform(40, 80, 68)])
