@@ -99,13 +99,10 @@ def main() -> None:
     for i, sample in enumerate(samples):
         for n in names:
             r = bench.fit_one(model, sample, configs[n])
-            fit = r.pop("fit")
-            stages = [h["stage"] for h in fit.result.history]
-            r["evals"] = {s: stages.count(s) for s in dict.fromkeys(stages)}
-            r["outcomes"] = fit.result.outcomes
+            r.pop("fit")
             rows[n].append(r)
             print(f"face {args.start + i} {n:>8}: cpu {r['cpu_seconds']:.1f} s, rmse {r['rmse_mm']:.3f} mm, "
-                  f"psnr {r['psnr_face_db']:.2f}, evals {r['evals']}", flush=True)
+                  f"psnr {r['psnr_face_db']:.2f}, evaluations {r['evaluations']}", flush=True)
         loads.append(os.getloadavg())
         if args.out:            # after every face: a partial run can be read
             Path(args.out).write_text(json.dumps(dict(variants={n: VARIANTS[n] for n in names}, rows=rows, loads=loads,

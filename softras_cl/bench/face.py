@@ -225,15 +225,19 @@ def budget_config(budget: str, size: int, photo_weight: float | None = None):
 
 
 def fit_one(model, sample: dict, config) -> dict:
-    """Fit one sample: its evaluate() row, with its CPU seconds and the fit itself under "fit"."""
+    """Fit one sample: its evaluate() row, with its CPU seconds, the objective evaluations and
+    the solver's outcome of each stage, and the fit itself under "fit"."""
     from softras_cl.fitting.recipes.face import fit_face
 
     start, cpu = time.perf_counter(), time.process_time()
     fit = fit_face(sample["photo"], sample["landmarks"], model, config, progress=False)
     row = evaluate(fit, sample, model, time.perf_counter() - start)
+    stages = [h["stage"] for h in fit.result.history]
     # CPU time of the whole process (host and the OpenCL CPU device's threads): on a shared
     # machine it moves less with other users' load than the wall time does
-    return dict(row, cpu_seconds=time.process_time() - cpu, fit=fit)
+    return dict(row, cpu_seconds=time.process_time() - cpu, fit=fit,
+                evaluations={s: stages.count(s) for s in dict.fromkeys(stages)},
+                outcomes=dict(fit.result.outcomes))
 
 
 def run_budget(model, samples: list[dict], budget: str, size: int, progress: bool,

@@ -37,6 +37,8 @@ def test_landmarks_only_fit_runs_no_photometric_stage(demo_face_model):
     sample = bench.synthetic_face(demo_face_model, np.random.default_rng(3), 96)
     row, = bench.run_budget(demo_face_model, [sample], bench.LANDMARKS_ONLY, 96, progress=False)
     assert set(row["fit"].result.outcomes) == {"landmarks"}
+    assert row["outcomes"] == row["fit"].result.outcomes
+    assert row["evaluations"] == {"landmarks": len(row["fit"].result.history)} and len(row["fit"].result.history) > 1
     assert row["true_focal_px"] == sample["truth"]["focal"][0]
     assert row["focal_error"] == pytest.approx(abs(row["focal_px"] / row["true_focal_px"] - 1))
 
