@@ -93,7 +93,7 @@ def memory_estimate(settings: RasterSettings, batch: int = 1, n_faces: int = 0, 
     face_dev = [faces * FACE_STRIDE * real, faces * attr * real, tex_image * real,
                 4 * (n_tiles + 1), 4 * entries, 4 * entries]
     setup = entries * BIN_BYTES + faces * (2 * FACE_STRIDE * 8 + attr * 8)   # host, while binning
-    state, cot_dev, slots = [0], [0], 0
+    state, cot_dev, slots, sums = [0], [0], 0, 0
     if grads:
         # per-pixel state kept for the backward (softras_cl.raster.rasterizer.PixelState)
         soft_color = bool({"rgb", "depth"} & set(s.outputs)) and s.color_agg == "softmax"
@@ -105,8 +105,12 @@ def memory_estimate(settings: RasterSettings, batch: int = 1, n_faces: int = 0, 
         slots = entries * real * (9 * ("vertices" in grads)
                                   + ("colors" in grads) * (attr + LIGHT_PARAMS * (s.lighting != "none")))
         slots += ("colors" in grads) * tex_image * 8 * (s.texture == "uv")
+        # the slots' per-face sums on the device, in double (softras_cl.raster.reduce); the host
+        # still counts the slots, which it no longer downloads: an upper bound
+        sums = 8 * faces * (9 * ("vertices" in grads) + ("colors" in grads) * (s.texture != "uv")
+                            * (attr + LIGHT_PARAMS * (s.lighting != "none")))
     kept_dev = sum(face_dev) + sum(state) + SLACK * npix
-    device = kept_dev + planes_bytes + sum(cot_dev) + slots
+    device = kept_dev + planes_bytes + sum(cot_dev) + slots + sums
     # host arrays at each step (the forward's download stays in the context when grads are kept)
     host_steps = [setup, planes_bytes, planes_bytes + crops]
     ram_steps = [kept_dev + setup, kept_dev + 2 * planes_bytes, kept_dev + planes_bytes + crops]
