@@ -6,9 +6,9 @@
  *
  * Each output value is one work-item's sum of its terms one after another in a fixed order, so
  * results are bit-identical run to run (no atomics), and with double sums they carry the same
- * bits as numpy's sequential sums over the same terms in the same order (np.add.reduceat over
- * face-major rows, np.bincount). Float32 slots are exact in double, so on a device with fp64 a
- * float32 build sums exactly as the host would; without fp64 the sums are float.
+ * bits as a sequential float64 loop over the same terms in the same order (for the vertex sums,
+ * np.bincount's; np.add.reduceat adds pairwise, so the per-face sums differ from it in the last
+ * bit). Float32 slots are exact in double; without fp64 the sums are float.
  */
 #if SR_SUM_DOUBLE
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable

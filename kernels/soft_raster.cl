@@ -17,8 +17,8 @@
  * Forward: one work-item = SR_VEC adjacent pixels of one row (a realv), looping over its tile's faces.
  * Backward: one work-item = one tile, looping over its faces; each (tile, face) pair writes its
  * summed gradient to its own slot (its index in the tile lists, so the writes go in order), and
- * the host adds the slots of each face in a fixed order, so results are bit-identical run to run
- * (no float atomics).
+ * kernels/grad_sums.cl adds the slots of each face in a fixed order, so results are bit-identical
+ * run to run (no float atomics).
  * Per-pixel images are stored as planes (channel-major) of Wp x Hp pixels per batch item.
  */
 

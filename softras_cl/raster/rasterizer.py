@@ -343,18 +343,19 @@ class SoftRasterizer:
 
     def _gather_grads(self, saved: RasterContext, slots: dict) -> dict:
         """Sum the (tile, face) slots per face in a fixed order, then faces onto vertices (on the
-        device: softras_cl.raster.reduce)."""
+        device: softras_cl.raster.reduce); every transfer is enqueued, then waited for once."""
         mesh, grads = saved.mesh, saved.grads
         bins = bins_buffers(self.sums, saved.bins) if any(slots[k] is not None for k in ("pos", "attr", "light")) else None
         sums = {k: self.sums.face_sums(slots[k], width, *bins, mesh.batch * mesh.n_faces)
                 for k, width in self._slot_widths(mesh).items() if slots.get(k) is not None}
-        out = {}
+        hosts = {}
         if "vertices" in grads:
-            out["vertices"] = mesh.unbatch_vertices(self._vertex_sums(mesh, sums.get("pos"), 9, 0))
+            hosts["vertices"] = self._vertex_sums(mesh, sums.get("pos"), 9, 0)
         if "colors" in grads:
-            out.update(self._color_grads(mesh, sums, slots))
+            hosts.update(self._color_sums(mesh, sums, slots))
+        self.sums.wait()
         self.pool.give([*sums.values(), *(bins or ())])
-        return out
+        return self._shape_grads(mesh, hosts)
 
     def _slot_widths(self, mesh: MeshInputs) -> dict:
         """Reals per slot row of "pos", "attr" and "light" (_slot_shapes)."""
@@ -363,38 +364,51 @@ class SoftRasterizer:
         return dict(pos=9, attr=attr, light=LIGHT_PARAMS)
 
     def _vertex_sums(self, mesh: MeshInputs, face_sums: cl.Buffer | None, width: int, offset: int) -> np.ndarray:
-        """(B, V, 3) float64: corner k of face g holds face_sums[g, offset + 3k : offset + 3k + 3]
-        of the (B*F, width) device per-face sums, summed onto the vertices (zero when None)."""
+        """(B, V, 3) host array (valid after self.sums.wait()): corner k of face g holds
+        face_sums[g, offset + 3k : offset + 3k + 3] of the (B*F, width) device per-face sums,
+        summed onto the vertices; zeros when face_sums is None."""
         shape = (mesh.batch, mesh.n_vertices, 3)
         if face_sums is None:
             return np.zeros(shape)
         buf = self.sums.vertex_sums(face_sums, width, offset, mesh.faces, mesh.n_vertices)
-        host = self.sums.download(buf, shape)
-        self.pool.give([buf])
-        return host.astype(np.float64, copy=False)
+        self.pool.give([buf])       # an in-order queue reads it before any later reuse
+        return self.sums.download(buf, shape)
 
-    def _color_grads(self, mesh: MeshInputs, sums: dict, slots: dict) -> dict:
-        """{"colors": gradient shaped like the colour input} (+ "normals", "light" when lit)."""
+    def _color_sums(self, mesh: MeshInputs, sums: dict, slots: dict) -> dict:
+        """Host arrays (valid after self.sums.wait()) of "colors": uv texel sums (B, Ht, Wt, 3),
+        face texel sums (B*F, R*R*3) or vertex sums (B, V, 3); when lit also "normals" (B, V, 3)
+        and "light" (B*F or 1, LIGHT_PARAMS) per-face sums."""
         s = self.settings
         if s.texture == "uv":
             tex = slots["tex"]
-            g = (np.zeros((mesh.batch, *mesh.tex_shape, 3)) if tex is None
-                 else tex.astype(np.float64) / slots["scale"])
-            return dict(colors=mesh.unbatch_colors(g))
+            return dict(colors=np.zeros((mesh.batch, *mesh.tex_shape, 3)) if tex is None
+                        else tex.astype(np.float64) / slots["scale"])
         n_faces = mesh.batch * mesh.n_faces
         if s.texture == "face":
-            r = mesh.tex_res
-            g = (np.zeros((n_faces, r * r * 3)) if "attr" not in sums
-                 else self.sums.download(sums["attr"], (n_faces, r * r * 3)).astype(np.float64, copy=False))
-            return dict(colors=mesh.unbatch_colors(g.reshape(mesh.batch, mesh.n_faces, r, r, 3)))
+            width = mesh.tex_res ** 2 * 3
+            return dict(colors=np.zeros((n_faces, width)) if "attr" not in sums
+                        else self.sums.download(sums["attr"], (n_faces, width)))
         width = vertex_attr_width(s.lighting != "none")
-        out = dict(colors=mesh.unbatch_colors(self._vertex_sums(mesh, sums.get("attr"), width, 0)))
+        out = dict(colors=self._vertex_sums(mesh, sums.get("attr"), width, 0))
         if s.lighting != "none":
             out["normals"] = self._vertex_sums(mesh, sums.get("attr"), width, CORNER_COLORS)
             light = sums.get("light")
-            # the per-face sums added in face order
-            out["light"] = (np.zeros(LIGHT_PARAMS) if light is None
-                            else self.sums.download(light, (n_faces, LIGHT_PARAMS)).sum(0, dtype=np.float64))
+            out["light"] = (np.zeros((1, LIGHT_PARAMS)) if light is None
+                            else self.sums.download(light, (n_faces, LIGHT_PARAMS)))
+        return out
+
+    def _shape_grads(self, mesh: MeshInputs, hosts: dict) -> dict:
+        """The downloaded sums (_gather_grads) as float64 gradients shaped like the inputs."""
+        out = {k: np.asarray(v, np.float64) for k, v in hosts.items()}
+        if "vertices" in out:
+            out["vertices"] = mesh.unbatch_vertices(out["vertices"])
+        if "colors" in out:
+            colors = out["colors"]
+            if self.settings.texture == "face":
+                colors = colors.reshape(mesh.batch, mesh.n_faces, mesh.tex_res, mesh.tex_res, 3)
+            out["colors"] = mesh.unbatch_colors(colors)
+        if "light" in out:
+            out["light"] = out["light"].sum(0)     # the per-face sums added in face order
         return out
 
     # ---- buffers ---------------------------------------------------------------------------

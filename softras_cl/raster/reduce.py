@@ -3,11 +3,11 @@ slots summed per face, and per-face corner sums summed onto vertices.
 
 Every sum adds its terms one after another in a fixed order (one work-item per output value, no
 atomics): reruns are bit-identical, and with double accumulation (`sum_double`, the default where
-the device has cl_khr_fp64) the results carry the same bits as numpy's sequential float64 sums of
-the same terms: np.add.reduceat over the slots in face-major order (Bins.face_start) for the
-per-face sums, np.bincount over (B, F, 3) corners (softras_cl.raster.corners.scatter_corners)
-for the vertex sums. Without fp64 a float32 build sums in float32 (relative error ~1e-6 of the
-sum of the terms' magnitudes).
+the device has cl_khr_fp64) the results carry the same bits as a sequential float64 loop over the
+same terms: the slots in face-major order (Bins.face_start) for the per-face sums (np.add.reduceat
+is not such a loop: it adds the first row to a pairwise sum of the others), the (B, F, 3) corners
+in order for the vertex sums (np.bincount's order: softras_cl.raster.corners.scatter_corners).
+Without fp64 a float32 build sums in float32: within n * 2^-24 * sum |terms| of the float64 sum.
 """
 from __future__ import annotations
 
@@ -60,15 +60,19 @@ class GradSums:
         self._defines = dict(SR_DOUBLE=np.dtype(real) == np.float64, SR_LANES=lanes, SR_SUM_DOUBLE=sum_double)
         self._index_key = None
         self._index_bufs = None
+        # transfers in flight: pyopencl's transfer events wait for their transfer when freed,
+        # so they are kept until wait()
+        self._transfers: list = []
 
     def _kernel(self, name: str) -> cl.Kernel:
         return build_kernel(self.ctx, "grad_sums.cl", name, self._defines)
 
     def upload(self, array: np.ndarray) -> cl.Buffer:
-        """A pooled device copy of the int32 `array` (blocking: the array may be freed after)."""
+        """A pooled device copy of the int32 `array`, enqueued: `array` must stay alive and
+        unchanged until wait()."""
         buf = self.pool.take(max(array.nbytes, 4))
         if array.size:
-            cl.enqueue_copy(self.queue, buf, array)
+            self._transfers.append(cl.enqueue_copy(self.queue, buf, array, is_blocking=False))
         return buf
 
     def face_sums(self, slots: cl.Buffer, width: int, face_start: cl.Buffer, face_slots: cl.Buffer,
@@ -104,12 +108,17 @@ class GradSums:
             self._index_key = (np.array(faces, copy=True), n_vertices)
         return self._index_bufs[0], self._index_bufs[1]
 
-    def download(self, buf: cl.Buffer, shape: tuple, out: np.ndarray | None = None) -> np.ndarray:
-        """Blocking read of `buf` as a `dtype` array of `shape` (into `out` if given)."""
-        host = np.empty(shape, self.dtype) if out is None else out
+    def download(self, buf: cl.Buffer, shape: tuple) -> np.ndarray:
+        """A new `dtype` array of `shape` that `buf` is read into, valid after wait()."""
+        host = np.empty(shape, self.dtype)
         if host.size:
-            cl.enqueue_copy(self.queue, host, buf)
+            self._transfers.append(cl.enqueue_copy(self.queue, host, buf, is_blocking=False))
         return host
+
+    def wait(self) -> None:
+        """Wait for everything queued (the transfers above included)."""
+        self.queue.finish()
+        self._transfers.clear()
 
 
 def _round_up(n: int) -> int:

@@ -48,7 +48,9 @@ def sequential_face_sums(slots, bins):
 def device_face_sums(sums, slots, bins):
     buf = cl.Buffer(sums.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=slots)
     out = sums.face_sums(buf, slots.shape[1], *bins_buffers(sums, bins), len(bins.face_start) - 1)
-    return sums.download(out, (len(bins.face_start) - 1, slots.shape[1]))
+    host = sums.download(out, (len(bins.face_start) - 1, slots.shape[1]))
+    sums.wait()
+    return host
 
 
 @pytest.mark.parametrize("real", ["float64", "float32"])
@@ -93,6 +95,7 @@ def test_vertex_sums_equal_numpy_bincount_bitwise():
         values = rng.normal(size=(2 * 50, width)) * 10.0 ** rng.integers(-8, 8, (100, width))
         buf = cl.Buffer(sums.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=values)
         got = sums.download(sums.vertex_sums(buf, width, offset, faces, n_vertices), (2, n_vertices, 3))
+        sums.wait()
         want = scatter_corners(values[:, offset:offset + 9].reshape(2, 50, 3, 3), faces, n_vertices)
         assert np.array_equal(got.view(np.int64), want.view(np.int64)), trial
         assert not got[:, -1].any()
