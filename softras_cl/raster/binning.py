@@ -186,8 +186,10 @@ def bin_faces(geom: np.ndarray, drawable: np.ndarray, batch: int, n_faces: int,
         # the same numbers in the same order as without a region (bit-identical gradients)
         slots = np.flatnonzero(tiles[tile])
         face, tile = face[slots], tile[slots]
-    order = np.argsort(tile, kind="stable")
-    tile_start = np.concatenate([[0], np.cumsum(np.bincount(tile, minlength=batch * g.ntx * g.nty))])
+    # numpy's stable sort of 16-bit keys is a radix sort: ~10x faster than on wider integers
+    n_tiles = batch * g.ntx * g.nty
+    order = np.argsort(tile.astype(np.uint16) if n_tiles <= 2 ** 16 else tile, kind="stable")
+    tile_start = np.concatenate([[0], np.cumsum(np.bincount(tile, minlength=n_tiles))])
     face_slots = np.full(total, -1, np.int32)
     face_slots[order if slots is None else slots[order]] = np.arange(len(order), dtype=np.int32)
     return Bins(tile_start.astype(np.int32), face[order].astype(np.int32),
