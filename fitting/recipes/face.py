@@ -89,7 +89,7 @@ FACE_OUTLINE = tuple(range(0, 17)) + tuple(range(26, 16, -1))
 EXCLUDED_OUTLINES = (range(36, 42), range(42, 48), range(60, 68))
 CAMERA_ROTATION = np.diag([1.0, -1.0, -1.0])   # world (y up, camera looks down -z) -> OpenCV
 # Photometric stages whose sigma is at least this render at half the working resolution (see
-# FaceObjective.photo_level): the first stage of every budget.
+# FaceObjective.photo_level): the first stage of every budget. FaceFitConfig.coarse_sigma's default.
 COARSE_SIGMA = 1e-4
 # Robust photometric term (FaceObjective.start_stage): Geman-McClure scale = ROBUST_SCALE x the
 # median per-pixel linear-RGB error at a stage's start, never below MIN_ROBUST_SCALE (an error
@@ -139,8 +139,8 @@ class FaceFitConfig:
     fov_deg: float = 30.0
     landmark_iters: int = BUDGETS["default"]["landmark_iters"]
     photo_stages: tuple = BUDGETS["default"]["photo_stages"]
-    stall_window: int = BUDGETS["default"].get("stall_window", 0)
-    coarse_sigma: float | None = BUDGETS["default"].get("coarse_sigma", COARSE_SIGMA)
+    stall_window: int = 0
+    coarse_sigma: float | None = COARSE_SIGMA
     weights: dict = field(default_factory=lambda: dict(
         landmarks=1.0 / 4.0, photo=100.0, id_prior=1.0, exp_prior=1.0,
         albedo_prior=1.0, sh_white=1000.0, focal_prior=1.0))
