@@ -1,13 +1,15 @@
 """Paired comparison of face-fit schedules on the synthetic faces of `softras-cl bench face`.
 
-    .venv/bin/python scripts/face_schedule_ab.py --faces 8 --variants old,new --out /tmp/ab.json
+    .venv/bin/python scripts/face_schedule_ab.py --faces 8 --variants old,stall --out /tmp/ab.json
+    .venv/bin/python scripts/face_schedule_ab.py --photos /tmp/photos --variants old,stall
 
 Every face is fitted by every variant in turn (A B A B ...: a load change on the shared machine
 hits all variants alike), with the same code; a variant is a named set of FaceFitConfig changes
 on the default budget (VARIANTS). Prints per variant the medians of CPU and wall seconds per
 fit and the bench's accuracy figures, and per variant against the first the paired mean
 difference of each figure with its standard error; the JSON keeps every row, the evaluations
-per stage and the load average.
+per stage and the load average. ``--photos DIR`` runs `softras-cl fit-face` on the shipped
+photos with each variant instead.
 """
 from __future__ import annotations
 
@@ -72,6 +74,39 @@ def report(rows: dict, names: list) -> None:
                   + f"; median CPU ratio {ratio:.3f}")
 
 
+PHOTOS = {"astronaut": ("examples/data/astronaut.png", "examples/data/astronaut.pts"),
+          "grace_hopper": ("examples/data/grace_hopper.jpg", "examples/data/grace_hopper.pts")}
+
+
+def run_photos(names: list, out_dir: str) -> list:
+    """`softras-cl fit-face` on the shipped photos with each variant in turn (the default budget
+    replaced by the variant), in this process: one row per fit with CPU and wall seconds, the
+    evaluations per stage and the command's last line (landmark error, PSNRs)."""
+    import contextlib
+    import io
+    import time
+
+    from softras_cl.cli import main as cli
+    from softras_cl.fitting.recipes import face
+
+    default, rows = dict(face.BUDGETS["default"]), []
+    for photo, (image, points) in PHOTOS.items():
+        for n in names:
+            face.BUDGETS["default"] = {**default, **VARIANTS[n]}
+            out = Path(out_dir) / f"{photo}_{n}"
+            wall, cpu, text = time.perf_counter(), time.process_time(), io.StringIO()
+            with contextlib.redirect_stdout(text):
+                code = cli(["fit-face", image, "--landmarks", points, "--out", str(out), "--no-progress"])
+            wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+            stages = [h["stage"] for h in json.loads((out / "history.json").read_text())["history"]]
+            rows.append(dict(photo=photo, variant=n, code=code, wall=wall, cpu=cpu, load=os.getloadavg()[0],
+                             evals={s: stages.count(s) for s in dict.fromkeys(stages)},
+                             summary=text.getvalue().strip().splitlines()[-1]))
+            print(json.dumps(rows[-1]), flush=True)
+    face.BUDGETS["default"] = default
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--faces", type=int, default=8)
@@ -80,7 +115,14 @@ def main() -> None:
     ap.add_argument("--variants", default="old,default")
     ap.add_argument("--out", default=None)
     ap.add_argument("--merge", nargs="+", default=None, help="JSON files of runs over other faces: report them together")
+    ap.add_argument("--photos", default=None, help="fit the shipped photos instead, outputs under this folder")
     args = ap.parse_args()
+    if args.photos:
+        rows = run_photos(args.variants.split(","), args.photos)
+        if args.out:
+            Path(args.out).write_text(json.dumps(dict(rows=rows, provenance=provenance(dict(options=vars(args)))),
+                                                 default=str, indent=1))
+        return
     if args.merge:
         docs = [json.loads(Path(f).read_text()) for f in args.merge]
         names = list(docs[0]["rows"])
