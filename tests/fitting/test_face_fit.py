@@ -192,7 +192,7 @@ def test_budgets_and_photo_weight_are_validated_and_applied():
     assert config.photo_stages == face.BUDGETS["fast"]["photo_stages"]
     default = face.FaceFitConfig()
     assert default.weights["photo"] == 100.0 and default.robust_scale == face.ROBUST_SCALE == 2.0
-    assert default.landmark_weight_photo == 10.0
+    assert default.landmark_weight_photo == 5.0
 
 
 @pytest.fixture(scope="module")
