@@ -46,6 +46,11 @@ VARIANTS = {
     # more of the work at half resolution, the same stops
     "rebal": dict(OLD_DEFAULT, stall_window=10,
                   photo_stages=((1e-4, 3e-3, 150, 1e-3), (3e-5, 1e-3, 20, 1e-3), (1e-5, 1e-3, 100, 2e-4))),
+    # the landmarks' weight in the photometric stages, relative to the landmark stage's
+    "lm10": dict(landmark_weight_photo=10.0),
+    "lm5": dict(landmark_weight_photo=5.0),
+    "lm3": dict(landmark_weight_photo=3.0),
+    "lm1": dict(landmark_weight_photo=1.0),
 }
 FIGURES = ("cpu_seconds", "seconds", "rmse_mm", "rigid_rmse_mm", "psnr_face_db", "landmark_error_px",
            "focal_error")
