@@ -58,11 +58,16 @@ def posed_truth(model, rng: np.random.Generator, size: int, low: float, high: fl
             return truth
 
 
-def same_camera(truths: list[dict]) -> list[dict]:
-    """The truths with the first one's focal length, each face moved along its line of sight
-    (translation scaled by the focal ratio) so that it fills the frame as before."""
-    focal = truths[0]["focal"]
-    return [dict(t, focal=focal, translation=t["translation"] * (focal[0] / t["focal"][0])) for t in truths]
+def same_camera(model, truth: dict, focal) -> dict:
+    """``truth`` with this focal length (1,), the face moved along its line of sight (the centre
+    of the mean face's box, in the world, scaled by the focal ratio) so that it fills the frame
+    as before."""
+    from softras_cl.scene.rotation import axis_angle_to_matrix
+
+    lo, hi = model.mean_shape.min(0), model.mean_shape.max(0)
+    centre = axis_angle_to_matrix(truth["rotation"]) @ ((lo + hi) / 2)
+    scale = focal[0] / truth["focal"][0]
+    return dict(truth, focal=focal, translation=scale * (centre + truth["translation"]) - centre)
 
 
 def subject(model, rng: np.random.Generator, size: int, views: int, one_camera: bool = False) -> list[dict]:
@@ -75,9 +80,13 @@ def subject(model, rng: np.random.Generator, size: int, views: int, one_camera: 
 
     person = random_truth(model, rng, size)
     edges = np.linspace(-YAW_RANGE, YAW_RANGE, views + 1)
-    truths = [dict(posed_truth(model, rng, size, lo, hi), id=person["id"], albedo=person["albedo"])
-              for lo, hi in zip(edges[:-1], edges[1:])]
-    return [photograph(model, t, rng, size) for t in (same_camera(truths) if one_camera else truths)]
+    photos = []
+    for lo, hi in zip(edges[:-1], edges[1:]):      # draws in this order: a seed's subjects stay the same
+        truth = dict(posed_truth(model, rng, size, lo, hi), id=person["id"], albedo=person["albedo"])
+        if one_camera and photos:
+            truth = same_camera(model, truth, photos[0]["truth"]["focal"])
+        photos.append(photograph(model, truth, rng, size))
+    return photos
 
 
 def identity_ratio(model, id_coeffs, true_id) -> float:
