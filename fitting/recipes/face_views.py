@@ -20,7 +20,7 @@ The stages are the single fit's (:func:`~softras_cl.fitting.recipes.face.default
 run jointly over all photos: a block free in the single fit's stage is free here in every photo.
 The weights too, but for one (:func:`joint_config`): the landmarks weigh in the photometric
 stages what they weigh in the landmark stage (LANDMARK_WEIGHT_PHOTO = 1, i.e. 2 px noise),
-not 10x more as in the single fit (docs/face_views.md has the measurements).
+not 5x more as in the single fit (docs/face_views.md has the measurements).
 """
 from __future__ import annotations
 
@@ -42,9 +42,9 @@ SHARED = ("id", "albedo")                  # blocks common to every photo of the
 PRIORS_ONCE = ("id_prior", "albedo_prior")  # their priors: counted in the first photo's objective only
 CAMERA = ("focal",)                         # shared too with same_camera, its prior counted once
 CAMERA_PRIORS = ("focal_prior",)
-# FaceFitConfig.landmark_weight_photo of the joint fit. The single fit's 10 keeps one photo's
-# unexplained pixels from bending the shape; over several photos it made the landmarks' noise
-# the limit (bench face-views, 6 subjects at 128 px: median identity ratio 0.524 -> 0.257).
+# FaceFitConfig.landmark_weight_photo of the joint fit. The single fit's 5 (10 before) keeps one
+# photo's unexplained pixels from bending the shape; over several photos 10 made the landmarks'
+# noise the limit (docs/face_views.md: bench face-views at 128 px, 10 against 1 and 5 against 1).
 LANDMARK_WEIGHT_PHOTO = 1.0
 
 
