@@ -125,7 +125,6 @@ class BodyModel:
             raise ValueError(f"joint_names must have {n_joints} entries, got {len(names)}")
         self.part_labels, self.part_names = self._parts(part_labels, part_names)
         self._joint_template = self.J_regressor @ self.v_template
-        self._shapedirs_flat = self.shapedirs.reshape(-1, self.n_betas)    # one BLAS gemv per use
         self._joint_dirs = np.einsum("jv,vcb->jcb", self.J_regressor.toarray(), self.shapedirs)
 
     def _parts(self, labels, names):
@@ -161,7 +160,7 @@ class BodyModel:
     def shaped_vertices(self, betas) -> np.ndarray:
         """Rest-pose vertices (V, 3) float64 of the body with shape ``betas`` (B,)."""
         betas = _floats("betas", betas, (self.n_betas,))
-        return self.v_template + (self._shapedirs_flat @ betas).reshape(-1, 3)
+        return self.v_template + self.shapedirs @ betas
 
     def forward(self, betas, body_pose, global_rotation, translation) -> tuple[BodyPose, BodyContext]:
         """Pose the body.
@@ -230,7 +229,7 @@ class BodyModel:
             g_local[1:] += g_feat.reshape(-1, 3, 3)
         g_shaped = g_vposed + self.J_regressor.T @ g_rest
         g_pose = _rodrigues_vjp_rows(ctx.rot_ctx, g_local)
-        return {"betas": self._shapedirs_flat.T @ g_shaped.ravel(),
+        return {"betas": np.einsum("vcb,vc->b", self.shapedirs, g_shaped),
                 "body_pose": g_pose[1:], "global_rotation": g_pose[0],
                 "translation": gv.sum(axis=0) + gj.sum(axis=0)}
 
