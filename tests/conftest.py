@@ -15,6 +15,7 @@ with its exit code and output) and fp64_device (the OpenCL device, or a skip if 
 from __future__ import annotations
 
 import importlib.util
+import signal
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,6 +23,17 @@ import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def deliverable_sigint() -> None:
+    """Let SIGINT reach this process (and the commands it starts) again when it started with
+    SIGINT ignored, as a shell's background job (`cmd &`, nohup) does: the interrupt tests send
+    real SIGINTs, and an ignored one would let the fit run to the end."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+deliverable_sigint()
 
 # marker -> (module that must be importable, how to get it)
 OPTIONAL = {

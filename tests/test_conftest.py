@@ -52,3 +52,14 @@ def test_examples_data(examples_data):
 
 def test_fp64_device_has_fp64(fp64_device):
     assert "cl_khr_fp64" in fp64_device.extensions.split()
+
+
+def test_an_ignored_sigint_is_made_deliverable_again():
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        conftest.deliverable_sigint()
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, previous)
