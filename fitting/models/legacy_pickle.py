@@ -12,7 +12,6 @@ import pickle
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse
 
 
 class _Stub:
@@ -55,6 +54,8 @@ def _convert(key: str, value, path: Path):
         if fmt not in ("csc", "csr") or shape is None:
             raise ValueError(f"{path}: entry {key!r} is a {value.qualname}; only CSC/CSR "
                              "sparse matrices are supported")
+        import scipy.sparse     # here, not at the top: loading a model without one stays fast
+
         cls = scipy.sparse.csc_matrix if fmt == "csc" else scipy.sparse.csr_matrix
         return cls((state["data"], state["indices"], state["indptr"]), shape=tuple(shape))
     if "x" in state:  # a chumpy leaf (Ch): its value

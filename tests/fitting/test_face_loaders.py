@@ -290,12 +290,13 @@ def test_embedding_with_mismatched_counts_or_unknown_keys(tmp_path):
         read_landmark_mapping(path, faces, N_V)
 
 
-def test_loading_the_demo_model_imports_neither_h5py_nor_scipy_io():
-    """Their imports are slow and only the BFM readers need them (fit-face's start-up)."""
+def test_loading_the_demo_model_imports_neither_h5py_nor_scipy_io_nor_sparse():
+    """Their imports are slow and only the BFM readers (and sparse regressors of legacy
+    pickles) need them (fit-face's start-up)."""
     import subprocess
     import sys
 
     code = ("import sys; from softras_cl.fitting.models.face_loaders import load_demo_face_model; "
-            "load_demo_face_model(); print(sorted(m for m in ('h5py', 'scipy.io') if m in sys.modules))")
+            "load_demo_face_model(); print(sorted(m for m in ('h5py', 'scipy.io', 'scipy.sparse') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
