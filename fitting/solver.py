@@ -88,7 +88,8 @@ import numpy as np
 from softras_cl.fitting.params import ParamSet
 from softras_cl.errors import InputError, ResultError
 from softras_cl.interrupts import first_interrupt_calls
-from softras_cl.io.outputs import atomic_path, write_bytes
+from softras_cl.io.images import PNG_OPTIONS
+from softras_cl.io.outputs import atomic_path, write_bytes, write_figure
 
 __all__ = ["Stage", "FitResult", "FitError", "Objective", "fit", "load_checkpoint",
            "CHECKPOINT_INTERVAL"]
@@ -290,9 +291,10 @@ class _Fit:
         ax.grid(True, which="both", alpha=0.3)
         if n:
             ax.legend(fontsize=8, loc="upper right")
-        fig.tight_layout()
-        with atomic_path(self.out / "loss_curve.png") as tmp:
-            fig.savefig(tmp, format="png")
+        # fixed margins, not tight_layout: its layout pass measures every tick label, which cost
+        # more than drawing the plot; these leave room for log-axis labels and the stage names
+        fig.subplots_adjust(left=0.1, right=0.98, bottom=0.11, top=0.88)
+        write_figure(fig, self.out / "loss_curve.png", **PNG_OPTIONS)
 
     def write_all(self, interrupted):
         self.write_checkpoint(self.current, *self.ckpt_meta)
