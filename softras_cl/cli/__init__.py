@@ -40,8 +40,9 @@ COMMANDS = {
 LOG_HANDLER = "softras-cl command line"   # name of the stderr handler main() installs
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The `softras-cl` parser: global options, then one subcommand of COMMANDS."""
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The `softras-cl` parser: global options, then one subcommand of COMMANDS; with `command`
+    (one of COMMANDS) only that one is registered, so a run imports only its own module."""
     parser = argparse.ArgumentParser(prog="softras-cl",
                                      description="Differentiable soft rasterizer in OpenCL.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
@@ -53,9 +54,17 @@ def build_parser() -> argparse.ArgumentParser:
                           help="log errors only, no warnings (give before the command)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True,
                                 help="one of: " + ", ".join(COMMANDS))
-    for module in COMMANDS.values():
-        import_module(module).register(sub)
+    for name, module in COMMANDS.items():
+        if command in (None, name):
+            import_module(module).register(sub)
     return parser
+
+
+def command_of(argv: list[str]) -> str | None:
+    """The command an argument list runs (its first word that is not an option: the global
+    options take no values), or None when that is not one of COMMANDS."""
+    words = [a for a in argv if not a.startswith("-")]
+    return words[0] if words and words[0] in COMMANDS else None
 
 
 def configure_logging(verbose: int = 0, quiet: bool = False) -> None:
@@ -132,7 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     command, verbose = "", 0
     with _SigtermAsInterrupt():
         try:
-            args = build_parser().parse_args(argv)
+            argv = sys.argv[1:] if argv is None else list(argv)
+            args = build_parser(command_of(argv)).parse_args(argv)
             command = " ".join(n for n in (args.command, getattr(args, "benchmark", None)) if n)
             verbose = args.verbose
             configure_logging(args.verbose, args.quiet)

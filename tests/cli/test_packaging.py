@@ -129,3 +129,18 @@ def test_ray_cast_reference_without_embreex_says_what_to_install():
             "except InputError as e:\n"
             "    print(e)\n")
     assert 'pip install "softras-cl[validate]"' in run_python(code).stdout
+
+
+def test_a_command_imports_only_its_own_module():
+    """Start-up: `softras-cl devices` registers (and imports) neither the fits nor the benches,
+    while --help and an unknown command still see every command."""
+    code = ("import sys\n"
+            "from softras_cl.cli import COMMANDS, build_parser, command_of, main\n"
+            "assert command_of(['-q', 'devices', '--json']) == 'devices'\n"
+            "assert command_of(['-v', 'no-such']) is None and command_of(['--help']) is None\n"
+            "assert main(['devices', '--json']) == 0\n"
+            "heavy = [m for m in ('softras_cl.bench', 'softras_cl.cli.fit_face', 'softras_cl.fitting') if m in sys.modules]\n"
+            "assert not heavy, heavy\n"
+            "choices = build_parser()._subparsers._group_actions[0].choices\n"
+            "assert sorted(choices) == sorted(COMMANDS)\n")
+    run_python(code)
