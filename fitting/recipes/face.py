@@ -728,6 +728,8 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
     objective, crop, params = prepare_fit(photo, landmarks, model, config)
     stages = default_stages(config, fit_focal=config.focal is None)
     result = fit(params, objective, stages, out_dir=out_dir, progress=progress, resume=resume)
+    if objective.mask is None:      # no photometric stage ran here (e.g. resuming a finished fit)
+        objective.scene.set_depth_range(result.values["translation"])
     mask = objective.mask if objective.mask is not None else objective.face_region(result.values, 1e-6, 1e-4)
     return FaceFit(result.values, objective.scene, objective.image, objective.target, crop, mask, result, objective)
 

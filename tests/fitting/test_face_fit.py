@@ -229,6 +229,13 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     x = X @ cam["K"].T
     np.testing.assert_allclose(x[:, :2] / x[:, 2:], points, atol=1e-6)
     assert [h["stage"] for h in fit.result.history][0] == "landmarks"
+    # resuming the finished fit runs no stage and gives the same fit, drawn at its own depth
+    again = face.fit_face(sample["photo"], sample["landmarks"], demo, config, out_dir=tmp_path, progress=False,
+                          resume=True)
+    assert all(np.array_equal(again.values[k], fit.values[k]) for k in fit.values)
+    settings = again.scene.settings
+    assert (settings.near, settings.far) == face.depth_range(again.values["translation"])
+    assert again.metrics()["psnr_face_db"] > 30.0
 
 
 @pytest.mark.parametrize("changes, says", [
