@@ -213,19 +213,22 @@ def save_figure(fit: FaceFit, path: Path, metrics: dict, texture: FaceTexture | 
     cols = 4 if texture is not None else len(panels)
     rows = -(-len(panels) // cols)
     fig = Figure(figsize=(PANEL_INCHES[0] * cols + 0.2, PANEL_INCHES[1] * rows + TITLE_INCHES))
-    axes = []
-    for (place, bar), (title, img) in zip(_panel_grid(fig, rows, cols), panels.items()):
-        ax = fig.add_axes(place)
-        axes.append(ax)
+    canvas = _inch_canvas(fig)
+    places = _panel_places(fig, rows, cols)
+    for (image_box, bar_box), (title, img) in zip(places, panels.items()):
+        left, bottom, side = image_box
+        extent = (left, left + side, bottom, bottom + side)
         if img.ndim == 2:
-            shown = ax.imshow(img, cmap="magma", vmin=0, vmax=0.2)
-            fig.colorbar(shown, cax=fig.add_axes(bar))
+            shown = canvas.imshow(img, cmap="magma", vmin=0, vmax=0.2, extent=extent, aspect="auto")
+            fig.colorbar(shown, cax=fig.add_axes(bar_box))
         else:
-            ax.imshow(img)
-        ax.set_title(title, fontsize=9)
-        ax.axis("off")
-    axes[0].scatter(*fit.landmarks.T, s=4, c="lime")
-    axes[1].scatter(*fit.fitted_landmarks().T, s=4, c="cyan")
+            canvas.imshow(img, extent=extent, aspect="auto")
+        canvas.text(left + side / 2, bottom + side + 0.08, title, fontsize=9, ha="center", va="bottom")
+    h, w = fit.image.shape[:2]
+    for (image_box, _), points, colour in zip(places, (fit.landmarks, fit.fitted_landmarks()), ("lime", "cyan")):
+        left, bottom, side = image_box           # pixel centres (u, v) onto the panel, v down
+        canvas.scatter(left + (points[:, 0] + 0.5) * side / w, bottom + side - (points[:, 1] + 0.5) * side / h,
+                       s=4, c=colour)
     title = (f"landmark error {metrics['landmark_error_px_full']:.2f} px (full size), "
              f"face-region PSNR (sRGB): model {metrics['psnr_face_db']:.1f} dB")
     if "psnr_face_db_textured" in metrics:
@@ -234,22 +237,34 @@ def save_figure(fit: FaceFit, path: Path, metrics: dict, texture: FaceTexture | 
     write_figure(fig, path, dpi=110, **PNG_OPTIONS)
 
 
-def _panel_grid(fig, rows: int, cols: int) -> list:
-    """rows x cols (image axes, colour-bar axes) at fixed places, row-major: a PANEL_INCHES cell
-    each below the figure's TITLE_INCHES title band (and 0.2 inches of right margin for the last
-    colour bar's labels), the image square at the cell's lower left, room for a panel title
-    above it and a colour bar beside it. Fixed places, not
-    tight_layout: the layout pass measured every axis' ticks, which cost more than drawing."""
+def _inch_canvas(fig):
+    """One axes over the whole figure, without axis lines or ticks, whose data units are the
+    figure's inches from its lower left corner: every panel of figure.png is drawn into it. One
+    axes, not one per panel: setting up an axes' ticks and placing its title cost more than
+    drawing its image."""
+    width, height = fig.get_size_inches()
+    canvas = fig.add_axes((0, 0, 1, 1))
+    canvas.set_axis_off()
+    canvas.set_xlim(0, width)
+    canvas.set_ylim(0, height)
+    return canvas
+
+
+def _panel_places(fig, rows: int, cols: int) -> list:
+    """rows x cols (image square (left, bottom, side) in inches, colour-bar axes box in figure
+    fractions) at fixed places, row-major: a PANEL_INCHES cell each below the figure's
+    TITLE_INCHES title band (and 0.2 inches of right margin for the last colour bar's labels),
+    the image square at the cell's lower left, room for a panel title above it and a colour bar
+    beside it."""
     width, height = fig.get_size_inches()
     cell_w, cell_h = PANEL_INCHES
-    side = cell_h - 0.55                     # the image square, inches
+    side = cell_h - 0.55
     places = []
     for i in range(rows * cols):
         r, c = divmod(i, cols)
         left, bottom = c * cell_w + 0.1, height - TITLE_INCHES - (r + 1) * cell_h + 0.2
-        image = (left / width, bottom / height, side / width, side / height)
         bar = ((left + side + 0.08) / width, bottom / height, 0.12 / width, side / height)
-        places.append((image, bar))
+        places.append(((left, bottom, side), bar))
     return places
 
 
