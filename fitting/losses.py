@@ -33,7 +33,7 @@ from softras_cl.checks import index_array, nonnegative, positive, real_array
 
 __all__ = [
     "MeshTopology", "mesh_topology",
-    "image_l2", "image_l1", "image_geman_mcclure", "silhouette_iou", "silhouette_l2", "landmarks_2d",
+    "image_l2", "image_l1", "image_geman_mcclure", "GemanMcClure", "silhouette_iou", "silhouette_l2", "landmarks_2d",
     "gaussian_prior", "sh_white", "laplacian_coordinates", "laplacian", "flatten", "edge_length",
     "weighted_sum",
 ]
@@ -139,24 +139,57 @@ def image_geman_mcclure(pred, target, scale, mask=None) -> tuple[float, dict]:
     on ``(pred - target) / s``, so neither a tiny nor a huge scale overflows or divides 0 by 0.
     An all-zero mask gives 0. Returns ``(value, {"pred": gradient of pred's shape})``.
     """
-    p, t = _image_pair(pred, target)
+    p, _ = _image_pair(pred, target)
     if p.ndim not in (2, 3):
         raise ValueError(f"pred: expected an (H, W) or (H, W, C) image, got shape {p.shape}")
-    s = real_array("scale", scale)
-    if s.ndim != 0:
-        raise ValueError(f"scale: expected a scalar, got shape {s.shape}")
-    positive("scale", s)
-    s = float(s)
-    r = (p - t) if p.ndim == 3 else (p - t)[..., None]
-    m = _image_mask(mask, r.shape[:2])
-    with np.errstate(over="ignore", under="ignore", invalid="ignore"):
-        z2 = np.square(r / s).sum(axis=-1)                 # inf where r >> s: then w = 0
-        w = 1.0 / (1.0 + z2)
-        # z2 <= 1: r2 is at most C s**2; z2 > 1: 1 - w has no cancellation and rho <= s**2
-        rho = np.where(z2 <= 1.0, np.square(r).sum(axis=-1) * w, (s * s) * (1.0 - w))
-        grad = (2.0 * w * w)[..., None] * r
-    value, g = _masked_mean(rho, np.ones_like(rho), m)
-    return value, {"pred": (g["pred"][..., None] * grad).reshape(p.shape)}
+    return GemanMcClure(target, scale, mask)(p)
+
+
+class GemanMcClure:
+    """:func:`image_geman_mcclure` with its target, scale and mask fixed, for a loss evaluated
+    many times (a fit's stage): their checks, the pixels of positive weight and those pixels'
+    target colours are taken once, here. ``loss(pred) -> (value, {"pred": gradient})``, the
+    same values to the bit as image_geman_mcclure(pred, target, scale, mask).
+    """
+
+    def __init__(self, target, scale, mask=None):
+        t = real_array("target", target)
+        if t.ndim not in (2, 3):
+            raise ValueError(f"target: expected an (H, W) or (H, W, C) image, got shape {t.shape}")
+        s = real_array("scale", scale)
+        if s.ndim != 0:
+            raise ValueError(f"scale: expected a scalar, got shape {s.shape}")
+        positive("scale", s)
+        self.shape, self.scale = t.shape, float(s)
+        m = _image_mask(mask, t.shape[:2])
+        weights = (np.ones(t.shape[:2]) if m is None else m).reshape(-1)
+        self.total = float(weights.sum())
+        # only pixels of positive weight add to the sum (the others add exact zeros): the
+        # kernel is evaluated on those alone (a face region is a fraction of the image)
+        self.keep = np.flatnonzero(weights)
+        self.weights = weights[self.keep]
+        self.target = t.reshape(len(weights), -1)[self.keep]
+
+    def __call__(self, pred) -> tuple[float, dict]:
+        p = real_array("pred", pred)
+        if p.shape != self.shape:
+            raise ValueError(f"pred: shape {p.shape} does not match target shape {self.shape}")
+        n_pixels = self.shape[0] * self.shape[1]
+        grad = np.zeros((n_pixels, self.target.shape[1]))
+        if self.total == 0.0:
+            return 0.0, {"pred": grad.reshape(p.shape)}
+        s = self.scale
+        r = p.reshape(n_pixels, -1)[self.keep] - self.target
+        with np.errstate(over="ignore", under="ignore", invalid="ignore"):
+            z2 = np.square(r / s).sum(axis=-1)                 # inf where r >> s: then w = 0
+            w = 1.0 / (1.0 + z2)
+            # z2 <= 1: r2 is at most C s**2; z2 > 1: 1 - w has no cancellation and rho <= s**2
+            rho = np.where(z2 <= 1.0, np.square(r).sum(axis=-1) * w, (s * s) * (1.0 - w))
+            weighted = np.zeros(n_pixels)
+            weighted[self.keep] = self.weights * rho
+            grad[self.keep] = (self.weights / self.total)[:, None] * ((2.0 * w * w)[:, None] * r)
+        value = weighted.reshape(self.shape[:2]).sum() / self.total
+        return float(value), {"pred": grad.reshape(p.shape)}
 
 
 def silhouette_iou(pred, target, eps: float = 1e-6) -> tuple[float, dict]:

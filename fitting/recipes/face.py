@@ -379,8 +379,8 @@ class FaceScene:
 
     def render(self, values: dict, sigma: float, gamma: float, grads=(), albedo=None,
                light=None, world=None, roi=None):
-        """Render the face; albedo (V, 3) / light override the model's (for the report);
-        world: the world vertices if already computed; roi: None or an (H, W) bool mask, the
+        """Render the face; albedo (V, 3) / light override the model's (for the report), or are
+        the model's if already computed; world: the world vertices if already computed; roi: None or an (H, W) bool mask, the
         only pixels needed (Renderer.forward: other screen tiles are not rasterised)."""
         self.renderer.settings = dataclasses.replace(self.settings, sigma=sigma, gamma=gamma)
         world = self.geometry(values)[0] if world is None else world
@@ -522,6 +522,7 @@ class FaceObjective:
         self.mask_erosion = mask_erosion
         self.mask, self._mask_stage = None, None
         self.robust_scale, self.photo_scale = robust_scale, None
+        self._robust_loss: losses.GemanMcClure | None = None
         self.coarse_sigma = coarse_sigma
         self._coarse: FaceObjective | None = None
 
@@ -611,6 +612,7 @@ class FaceObjective:
             errors = np.linalg.norm(out.rgb[0] - self.image, axis=-1)[self.mask]
             median = float(np.median(errors)) if errors.size else 0.0
             self.photo_scale = max(self.robust_scale * median, MIN_ROBUST_SCALE)
+            self._robust_loss = losses.GemanMcClure(self.image, self.photo_scale, self.mask)
 
     def face_region(self, values: dict, sigma: float, gamma: float) -> np.ndarray:
         """(H, W) bool: where the face is rendered (alpha > 0.5) and the photo's landmarks
@@ -650,20 +652,21 @@ class FaceObjective:
 
     def photo_term(self, values: dict, world: np.ndarray, sigma: float, gamma: float) -> tuple[float, dict]:
         """Sum over the face region of each pixel's squared linear-RGB error (summed over the
-        channels), or of its Geman-McClure kernel at ``photo_scale`` (losses.image_geman_mcclure)
-        when that is set; gradients wrt the world vertices ("world"), albedo, sh and focal."""
+        channels), or of its Geman-McClure kernel at ``photo_scale`` (losses.GemanMcClure, set
+        up by start_stage) when that is set; gradients wrt the world vertices ("world"), albedo,
+        sh and focal."""
+        albedo, albedo_ctx = self.scene.model.albedo(values["albedo"])
         # only the face region's tiles are rasterised: the loss and its gradient are the same
         out = self.scene.render(values, sigma, gamma, grads=("vertices", "albedo", "light", "camera"),
-                                world=world, roi=self.mask)
+                                albedo=albedo, world=world, roi=self.mask)
         pixels = max(int(self.mask.sum()), 1)
-        if self.photo_scale is None:
+        if self._robust_loss is None:
             value, g = losses.image_l2(out.rgb[0], self.image, self.mask)
             count = 3.0 * pixels
         else:
-            value, g = losses.image_geman_mcclure(out.rgb[0], self.image, self.photo_scale, self.mask)
+            value, g = self._robust_loss(out.rgb[0])
             count = float(pixels)
         g_img = self.scene.renderer.backward(out, grad_rgb=g["pred"][None] * count)
-        albedo_ctx = self.scene.model.albedo(values["albedo"])[1]
         return value * count, dict(world=g_img["vertices"],
                                    albedo=self.scene.model.albedo_vjp(albedo_ctx, g_img["albedo"])["coeffs"],
                                    sh=g_img["light"]["coefficients"],

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from softras_cl.checks import index_array, real_array
-from softras_cl.raster.corners import gather_corners, scatter_corners
+from softras_cl.raster.corners import gather_corners
 
 # Ramamoorthi-Hanrahan: basis constants in the order of docs/scene.md, and A_l per basis function.
 SH_Y0, SH_Y1, SH_Y2, SH_Y2_ZZ, SH_Y2_XXYY = 0.282095, 0.488603, 1.092548, 0.315392, 0.546274
@@ -71,18 +71,97 @@ def _faces(faces, batch: int, n_vertices: int) -> np.ndarray:
     return arr
 
 
+@dataclass(frozen=True)
+class Incidence:
+    """A face list checked and indexed for the normals of a batch of B meshes of V vertices.
+
+    faces (B, F, 3) int64 as checked; n_vertices: V; corners: three (B * F,) int64 rows of the
+    (B * V, 3) stacked vertices, at each face's corner 0, 1 and 2; face_sum (B * V, B * F) and
+    corner_sum (B * V, 3 * B * F): CSR matrices of ones summing per-face values and per-corner
+    values (corner-major: all corners 0, then 1, then 2) onto the vertices, each vertex's terms
+    in face-then-corner order (np.bincount's order in raster.corners.scatter_corners, so the
+    sums are the same to the bit).
+    """
+    faces: np.ndarray
+    n_vertices: int
+    corners: tuple
+    face_sum: object
+    corner_sum: object
+
+    def gather(self, per_vertex: np.ndarray, corner: int) -> np.ndarray:
+        """(B, V, K) values at every face's given corner -> (B, F, K)."""
+        flat = per_vertex.reshape(-1, per_vertex.shape[-1])
+        return flat.take(self.corners[corner], axis=0).reshape(self.faces.shape[:2] + per_vertex.shape[2:])
+
+    def sum_faces(self, per_face: np.ndarray) -> np.ndarray:
+        """(B, F, K) -> (B, V, K): each face's value added to its three vertices."""
+        batch, _, k = per_face.shape
+        return (self.face_sum @ per_face.reshape(-1, k)).reshape(batch, self.n_vertices, k)
+
+    def sum_corners(self, *per_corner: np.ndarray) -> np.ndarray:
+        """Three (B, F, K) values, at corners 0, 1 and 2 -> (B, V, K): each corner's value added
+        to its vertex."""
+        batch, _, k = per_corner[0].shape
+        stacked = np.concatenate([c.reshape(-1, k) for c in per_corner])
+        return (self.corner_sum @ stacked).reshape(batch, self.n_vertices, k)
+
+
+# A fit shades the same face list every iteration: the last few, keyed by content (a copy of
+# the input, compared in full: a face array changed in place is a new key).
+_INCIDENCE_CACHE: list = []
+_INCIDENCE_CACHE_SIZE = 4
+
+
+def _incidence(faces, batch: int, n_vertices: int) -> Incidence:
+    """The Incidence of (F, 3) or (B, F, 3) integer faces (checked as _faces checks them)."""
+    given = np.asarray(faces)
+    for key, inc in _INCIDENCE_CACHE:
+        if key[1:] == (given.dtype, batch, n_vertices) and np.array_equal(key[0], given):
+            return inc
+    inc = _build_incidence(_faces(given, batch, n_vertices), n_vertices)
+    _INCIDENCE_CACHE.insert(0, ((given.copy(), given.dtype, batch, n_vertices), inc))
+    del _INCIDENCE_CACHE[_INCIDENCE_CACHE_SIZE:]
+    return inc
+
+
+def _build_incidence(faces: np.ndarray, n_vertices: int) -> Incidence:
+    from scipy.sparse import csr_matrix
+
+    batch, n_faces = faces.shape[:2]
+    rows = (np.arange(batch)[:, None, None] * n_vertices + faces).reshape(-1)   # (b, f, c) order
+    order = np.argsort(rows, kind="stable")
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=batch * n_vertices))])
+    ones = np.ones(len(rows))
+
+    def matrix(columns, n_columns):
+        return csr_matrix((ones, columns[order], indptr), shape=(batch * n_vertices, n_columns))
+
+    corners = tuple(np.ascontiguousarray(rows.reshape(-1, 3)[:, c]) for c in range(3))
+    face = np.arange(len(rows)) // 3
+    corner_major = (np.arange(len(rows)) % 3) * (batch * n_faces) + face
+    return Incidence(faces, n_vertices, corners, matrix(face, batch * n_faces),
+                     matrix(corner_major, len(rows)))
+
+
+def _norm3(x: np.ndarray) -> np.ndarray:
+    """np.linalg.norm(x, axis=-1, keepdims=True) of (..., 3) vectors: the same sums in the same
+    order (the same bits), without the reduction machinery (5x faster for (N, 3))."""
+    sq = x * x
+    return np.sqrt(sq[..., 0:1] + sq[..., 1:2] + sq[..., 2:3])
+
+
 def _normalize(x: np.ndarray):
-    """Unit vectors along the last axis -> (unit, length); zero-length vectors stay zero."""
-    length = np.linalg.norm(x, axis=-1, keepdims=True)
-    safe = np.where(length > 0, length, 1.0)
-    return np.where(length > 0, x / safe, 0.0), length
+    """Unit (..., 3) vectors along the last axis -> (unit, length); zero-length vectors stay
+    zero."""
+    length = _norm3(x)
+    return np.divide(x, length, out=np.zeros_like(x), where=length > 0), length
 
 
 def _normalize_vjp(unit: np.ndarray, length: np.ndarray, grad: np.ndarray) -> np.ndarray:
     """Gradient of `_normalize` at x = unit * length (zero where length is zero)."""
-    safe = np.where(length > 0, length, 1.0)
-    proj = grad - unit * np.sum(unit * grad, -1, keepdims=True)
-    return np.where(length > 0, proj / safe, 0.0)
+    prod = unit * grad
+    proj = grad - unit * (prod[..., 0:1] + prod[..., 1:2] + prod[..., 2:3])
+    return np.divide(proj, length, out=np.zeros_like(proj), where=length > 0)
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -102,10 +181,10 @@ def _cross_vjp(e1: np.ndarray, e2: np.ndarray, grad: np.ndarray):
     return _cross(e2, grad), _cross(grad, e1)
 
 
-def _face_cross(vertices: np.ndarray, faces: np.ndarray):
+def _face_cross(vertices: np.ndarray, incidence: Incidence):
     """Unnormalised face normals cross(v1 - v0, v2 - v0): (B, F, 3), and the edges."""
-    tri = gather_corners(vertices, faces)
-    e1, e2 = tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0]
+    v0, v1, v2 = (incidence.gather(vertices, c) for c in range(3))
+    e1, e2 = v1 - v0, v2 - v0
     return _cross(e1, e2), e1, e2
 
 
@@ -115,12 +194,11 @@ def _face_cross(vertices: np.ndarray, faces: np.ndarray):
 class NormalsContext:
     """What face_normals_vjp and vertex_normals_vjp need (float64 unless said otherwise).
 
-    faces (B, F, 3) int64; n_vertices: V; e1, e2 (B, F, 3) the face edges v1 - v0, v2 - v0;
-    unit (B, N, 3) the normals returned and length (B, N, 1) the norms they were divided by
-    (N = F for face normals, V for vertex normals).
+    incidence: the Incidence of the faces (its faces (B, F, 3) int64, n_vertices V); e1, e2
+    (B, F, 3) the face edges v1 - v0, v2 - v0; unit (B, N, 3) the normals returned and length
+    (B, N, 1) the norms they were divided by (N = F for face normals, V for vertex normals).
     """
-    faces: np.ndarray
-    n_vertices: int
+    incidence: Incidence
     e1: np.ndarray
     e2: np.ndarray
     unit: np.ndarray
@@ -130,8 +208,7 @@ class NormalsContext:
 def _face_cross_vjp(ctx: NormalsContext, grad_cross: np.ndarray) -> np.ndarray:
     """(B, F, 3) gradient of the face cross products -> (B, V, 3) vertex gradient."""
     g1, g2 = _cross_vjp(ctx.e1, ctx.e2, grad_cross)
-    corner = np.stack([-(g1 + g2), g1, g2], axis=2)
-    return scatter_corners(corner, ctx.faces, ctx.n_vertices)
+    return ctx.incidence.sum_corners(-(g1 + g2), g1, g2)
 
 
 def face_normals(vertices, faces):
@@ -141,10 +218,10 @@ def face_normals(vertices, faces):
     Degenerate (zero-area) faces get a zero normal.
     """
     vertices = _points(vertices, "vertices")
-    faces = _faces(faces, vertices.shape[0], vertices.shape[1])
-    cross, e1, e2 = _face_cross(vertices, faces)
+    incidence = _incidence(faces, vertices.shape[0], vertices.shape[1])
+    cross, e1, e2 = _face_cross(vertices, incidence)
     normals, length = _normalize(cross)
-    return normals, NormalsContext(faces, vertices.shape[1], e1, e2, normals, length)
+    return normals, NormalsContext(incidence, e1, e2, normals, length)
 
 
 def face_normals_vjp(ctx: NormalsContext, grad_normals) -> dict:
@@ -160,19 +237,17 @@ def vertex_normals(vertices, faces):
     Vertices with a zero sum (unreferenced, or only degenerate faces) get a zero normal.
     """
     vertices = _points(vertices, "vertices")
-    n_vertices = vertices.shape[1]
-    faces = _faces(faces, vertices.shape[0], n_vertices)
-    cross, e1, e2 = _face_cross(vertices, faces)
-    total = scatter_corners(np.repeat(cross[:, :, None], 3, axis=2), faces, n_vertices)
-    normals, length = _normalize(total)
-    return normals, NormalsContext(faces, n_vertices, e1, e2, normals, length)
+    incidence = _incidence(faces, vertices.shape[0], vertices.shape[1])
+    cross, e1, e2 = _face_cross(vertices, incidence)
+    normals, length = _normalize(incidence.sum_faces(cross))
+    return normals, NormalsContext(incidence, e1, e2, normals, length)
 
 
 def vertex_normals_vjp(ctx: NormalsContext, grad_normals) -> dict:
     """grad_normals (B, V, 3) -> {"vertices": (B, V, 3)} float64."""
     grad_total = _normalize_vjp(ctx.unit, ctx.length, np.asarray(grad_normals, np.float64))
-    corners = gather_corners(grad_total, ctx.faces)
-    grad_cross = corners[:, :, 0] + corners[:, :, 1] + corners[:, :, 2]   # = .sum(axis=2), faster
+    gather = ctx.incidence.gather
+    grad_cross = gather(grad_total, 0) + gather(grad_total, 1) + gather(grad_total, 2)
     return {"vertices": _face_cross_vjp(ctx, grad_cross)}
 
 
@@ -511,7 +586,7 @@ def shade_faces(vertices, faces, albedo, light, camera_center=None):
     vertices = _points(vertices, "vertices")
     normals, normal_ctx = face_normals(vertices, faces)
     albedo = _points(albedo, "albedo", *normals.shape[:2])
-    centroids = gather_corners(vertices, normal_ctx.faces).mean(axis=2)
+    centroids = gather_corners(vertices, normal_ctx.incidence.faces).mean(axis=2)
     return _shade_points(normals, normal_ctx, centroids, albedo, light, camera_center)
 
 
@@ -522,7 +597,6 @@ def shade_faces_vjp(ctx: ShadeContext, grad_colors) -> dict:
     normal_ctx = ctx.normal_ctx
     grad_vertices = face_normals_vjp(normal_ctx, grads.pop("normals"))["vertices"]
     if grad_centroids is not None:
-        corner = np.repeat(grad_centroids[:, :, None] / 3.0, 3, axis=2)
-        grad_vertices = grad_vertices + scatter_corners(corner, normal_ctx.faces,
-                                                         normal_ctx.n_vertices)
+        corner = grad_centroids / 3.0
+        grad_vertices = grad_vertices + normal_ctx.incidence.sum_corners(corner, corner, corner)
     return dict(grads, vertices=grad_vertices)

@@ -379,6 +379,41 @@ def test_geman_mcclure_values_match_exact_arithmetic():
     assert losses.image_geman_mcclure(r, np.zeros_like(r), 0.3, np.zeros((2, 2))) == (0.0, {"pred": pytest.approx(0 * r)})
 
 
+@pytest.mark.parametrize("shape", [(6, 5), (6, 5, 3)])
+@pytest.mark.parametrize("mask_kind", ["none", "bool", "weights", "empty"])
+def test_geman_mcclure_equals_the_whole_image_formula_to_the_bit(rng, shape, mask_kind):
+    """Evaluated on the masked pixels alone, the value and gradient are those of the formula
+    over the whole image (mask times kernel, summed over every pixel): the same bits, so fits
+    give the same answers."""
+    pred, target = rng.random(shape), rng.random(shape)
+    mask = {"none": None, "bool": rng.random(shape[:2]) > 0.5, "empty": np.zeros(shape[:2]),
+            "weights": rng.random(shape[:2]) * (rng.random(shape[:2]) > 0.3)}[mask_kind]
+    s = 0.4
+    r = (pred - target).reshape(shape[:2] + (-1,))
+    m = np.ones(shape[:2]) if mask is None else mask.astype(float)
+    z2 = np.square(r / s).sum(axis=-1)
+    w = 1.0 / (1.0 + z2)
+    rho = np.where(z2 <= 1.0, np.square(r).sum(axis=-1) * w, (s * s) * (1.0 - w))
+    total = m.sum()
+    value = (m * rho).sum() / total if total else 0.0
+    grad = ((m / total)[..., None] * ((2.0 * w * w)[..., None] * r) if total else 0 * r).reshape(shape)
+    for got, g in (losses.image_geman_mcclure(pred, target, s, mask), losses.GemanMcClure(target, s, mask)(pred)):
+        assert got == value
+        np.testing.assert_array_equal(g["pred"], grad)
+
+
+def test_prepared_geman_mcclure_checks_its_inputs():
+    loss = losses.GemanMcClure(np.zeros((4, 4, 3)), 0.5, np.ones((4, 4)))
+    with pytest.raises(ValueError, match="pred: shape"):
+        loss(np.zeros((4, 5, 3)))
+    with pytest.raises(ValueError, match="pred contains NaN"):
+        loss(np.full((4, 4, 3), np.nan))
+    with pytest.raises(ValueError, match="target: expected"):
+        losses.GemanMcClure(np.zeros(4), 0.5)
+    with pytest.raises(ValueError, match="mask"):
+        losses.GemanMcClure(np.zeros((4, 4, 3)), 0.5, np.ones((3, 3)))
+
+
 @pytest.mark.parametrize("scale", [1e-300, 1e-150, 1e-8, 1.0, 1e8, 1e150])
 @pytest.mark.parametrize("residual", [0.0, 1e-300, 1e-150, 1e-8, 1.0, 1e8, 1e150])
 def test_geman_mcclure_is_finite_and_exact_at_extreme_residuals_and_scales(residual, scale):

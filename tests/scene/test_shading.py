@@ -166,6 +166,57 @@ def test_normals_vjp_fd(kind, batched_faces):
     np.testing.assert_array_equal(again, grads["vertices"])   # deterministic scatter
 
 
+def _sum_onto_vertices(per_corner, faces, n_vertices):
+    """(B, F, 3, K) corner values summed onto (B, V, K) with np.add.at, face after face and
+    corner after corner: the order of sums that fits' answers depend on, to the bit."""
+    out = np.zeros((len(per_corner), n_vertices, per_corner.shape[-1]))
+    for b in range(len(out)):
+        np.add.at(out[b], faces[b].reshape(-1), per_corner[b].reshape(-1, per_corner.shape[-1]))
+    return out
+
+
+def _vertex_normals_reference(verts, faces, cot):
+    """Vertex normals and their vjp for the cotangent cot, in plain numpy."""
+    tri = np.stack([v[f] for v, f in zip(verts, faces)])               # (B, F, 3, 3)
+    e1, e2 = tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0]
+    cross = np.cross(e1, e2)
+    total = _sum_onto_vertices(np.repeat(cross[:, :, None], 3, axis=2), faces, verts.shape[1])
+    length = np.linalg.norm(total, axis=-1, keepdims=True)
+    used = length > 0
+    normals = np.where(used, total / np.where(used, length, 1.0), 0.0)
+    proj = cot - normals * np.sum(normals * cot, -1, keepdims=True)
+    g_total = np.where(used, proj / np.where(used, length, 1.0), 0.0)
+    corners = np.stack([g[f] for g, f in zip(g_total, faces)])
+    g_cross = corners[:, :, 0] + corners[:, :, 1] + corners[:, :, 2]
+    g1, g2 = np.cross(e2, g_cross), np.cross(g_cross, e1)
+    g_verts = _sum_onto_vertices(np.stack([-(g1 + g2), g1, g2], axis=2), faces, verts.shape[1])
+    return normals, g_verts
+
+
+@pytest.mark.parametrize("batched_faces", [False, True])
+def test_vertex_normals_and_vjp_equal_plain_numpy_to_the_bit(batched_faces):
+    rng = np.random.default_rng(7)
+    verts = rng.normal(size=(2, 40, 3))
+    faces = rng.integers(0, 36, size=(90, 3))      # vertices 36-39 unused
+    faces[:4, 1] = faces[:4, 0]                    # degenerate faces
+    faces = np.stack([faces, faces[::-1, [1, 2, 0]]]) if batched_faces else faces
+    cot = rng.normal(size=verts.shape)
+    normals, ctx = vertex_normals(verts, faces)
+    ref_normals, ref_grad = _vertex_normals_reference(verts, np.broadcast_to(faces, (2,) + faces.shape[-2:]), cot)
+    np.testing.assert_array_equal(normals, ref_normals)
+    np.testing.assert_array_equal(vertex_normals_vjp(ctx, cot)["vertices"], ref_grad)
+
+
+def test_normals_follow_faces_changed_in_place():
+    verts, faces = octahedron(np.random.default_rng(3))
+    first = vertex_normals(verts, faces)[0]
+    faces[:] = faces[:, [0, 2, 1]]                 # every face turned over
+    np.testing.assert_array_equal(vertex_normals(verts, faces)[0], -first)
+    with pytest.raises(ValueError, match="faces"):
+        faces[0, 0] = 99
+        vertex_normals(verts, faces)
+
+
 # ----------------------------------------------------------------------------- lights
 
 def test_lambert_default_is_paper_setting_by_hand():
