@@ -203,3 +203,77 @@ def test_batched_rodrigues_vjp_equals_one_call_per_joint_bit_for_bit():
     grads = rng.normal(size=(24, 3, 3)) * 10.0 ** rng.uniform(-4, 4, size=(24, 1, 1))
     expected = np.stack([rodrigues_vjp(c, g)["omega"] for c, g in zip(ctxs, grads)])
     assert np.array_equal(_rodrigues_vjp_rows(ctxs, grads), expected)
+
+
+def _chain_loop(model, rot_local, rest):
+    """The kinematic chain one joint at a time (the reference order)."""
+    rot_global, joints = rot_local.copy(), rest.copy()
+    for j in range(1, model.n_joints):
+        p = model.parents[j]
+        rot_global[j] = rot_global[p] @ rot_local[j]
+        joints[j] = rot_global[p] @ (rest[j] - rest[p]) + joints[p]
+    return rot_global, joints
+
+
+def _chain_vjp_loop(model, ctx, g_rot, g_pos, g_rest):
+    """Back through the chain one joint at a time, from the last joint to the first."""
+    g_rot, g_pos, g_rest = g_rot.copy(), g_pos.copy(), g_rest.copy()
+    g_local = np.empty_like(g_rot)
+    rest, rg, rl = ctx.rest_joints, ctx.rot_global, ctx.rot_local
+    for j in range(model.n_joints - 1, 0, -1):
+        p = model.parents[j]
+        g_local[j] = rg[p].T @ g_rot[j]
+        g_rot[p] += g_rot[j] @ rl[j].T + np.outer(g_pos[j], rest[j] - rest[p])
+        g_pos[p] += g_pos[j]
+        step = rg[p].T @ g_pos[j]
+        g_rest[j] += step
+        g_rest[p] -= step
+    g_local[0] = g_rot[0]
+    g_rest[0] += g_pos[0]
+    return g_local, g_rest
+
+
+@pytest.mark.parametrize("demo", [False, True])
+def test_chain_by_tree_levels_equals_joint_loop_bit_for_bit(demo):
+    from softras_cl.fitting.models.body_loaders import load_demo_body_model
+
+    model = load_demo_body_model() if demo else random_model()
+    rng = np.random.default_rng(3)
+    n = model.n_joints
+    params = {"betas": rng.normal(size=model.n_betas), "body_pose": 0.5 * rng.normal(size=(n - 1, 3)),
+              "global_rotation": rng.normal(size=3), "translation": rng.normal(size=3)}
+    _, ctx = model.forward(**params)
+    for got, want in zip(model._chain(ctx.rot_local, ctx.rest_joints),
+                         _chain_loop(model, ctx.rot_local, ctx.rest_joints)):
+        assert np.array_equal(got, want)
+    cot = rng.normal(size=(n, 3, 3)), rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    for got, want in zip(model._chain_vjp(ctx, *cot), _chain_vjp_loop(model, ctx, *cot)):
+        assert np.array_equal(got, want)
+
+
+_THREADS_SCRIPT = """
+import hashlib, numpy as np
+from softras_cl.fitting.models.body_loaders import load_demo_body_model
+m = load_demo_body_model()
+rng = np.random.default_rng(0)
+n = m.n_joints
+body, ctx = m.forward(rng.normal(size=m.n_betas), 0.3 * rng.normal(size=(n - 1, 3)),
+                      rng.normal(size=3), rng.normal(size=3))
+g = m.forward_vjp(ctx, rng.normal(size=(m.n_vertices, 3)), rng.normal(size=(n, 3)))
+arrays = [body.vertices, body.joints] + [g[k] for k in sorted(g)]
+print(hashlib.sha256(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)).hexdigest())
+"""
+
+
+def test_forward_and_vjp_bits_do_not_depend_on_the_blas_thread_count():
+    """A dense BLAS product with a long inner dimension may split its sums by thread; the
+    model's products must not (a fit's path then depends on the machine's core count)."""
+    import os
+    import subprocess
+    import sys
+
+    def run(threads):
+        env = {**os.environ, "OMP_NUM_THREADS": str(threads), "OPENBLAS_NUM_THREADS": str(threads)}
+        return subprocess.run([sys.executable, "-c", _THREADS_SCRIPT], env=env, check=True,
+                              capture_output=True, text=True).stdout
+    assert run(1) == run(4)
