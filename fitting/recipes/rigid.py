@@ -96,13 +96,14 @@ def pool2(image: np.ndarray) -> np.ndarray:
     return (top + bottom) * 0.25
 
 
-def unpool2(grad: np.ndarray) -> np.ndarray:
-    """Adjoint of pool2: each value / 4 on its 2x2 block (one broadcast copy instead of two
-    np.repeat passes; the same values)."""
+def add_unpooled(acc: np.ndarray, grad: np.ndarray) -> np.ndarray:
+    """``acc += unpool2(grad)`` in place and return acc, where unpool2, the adjoint of pool2,
+    spreads each value / 4 over its 2x2 block: acc (2h, 2w[, C]), grad (h, w[, C]). One
+    broadcast add into a block view of acc (no upsampled copy; the same sums)."""
     h, w = grad.shape[:2]
-    quarter = grad / 4.0
-    blocks = np.broadcast_to(quarter[:, None, :, None], (h, 2, w, 2, *grad.shape[2:]))
-    return blocks.reshape(2 * h, 2 * w, *grad.shape[2:])
+    blocks = acc.reshape(h, 2, w, 2, *grad.shape[2:])
+    blocks += (grad / 4.0)[:, None, :, None]
+    return acc
 
 
 def image_pyramid(image: np.ndarray, levels: int) -> list:
@@ -131,7 +132,7 @@ def pyramid_l2(pred: np.ndarray, target, levels: int):
             p = pool2(p)
     g = grads[-1]
     for level in range(len(grads) - 2, -1, -1):
-        g = grads[level] + unpool2(g)
+        g = add_unpooled(grads[level], g)
     return value, g
 
 

@@ -137,8 +137,8 @@ def test_failure_basins_names_symmetric_poses():
                       "no symmetric pose": 0.25}
 
 
-def test_pool2_is_the_block_mean_and_unpool2_its_adjoint():
-    from softras_cl.fitting.recipes.rigid import pool2, unpool2
+def test_pool2_is_the_block_mean_and_add_unpooled_adds_its_adjoint():
+    from softras_cl.fitting.recipes.rigid import add_unpooled, pool2
     rng = np.random.default_rng(4)
     for shape in ((8, 6, 3), (4, 10)):
         x = rng.normal(size=shape)
@@ -146,7 +146,11 @@ def test_pool2_is_the_block_mean_and_unpool2_its_adjoint():
         blocks = x.reshape(h // 2, 2, w // 2, 2, *shape[2:])
         np.testing.assert_allclose(pool2(x), blocks.mean(axis=(1, 3)), rtol=1e-15, atol=1e-15)
         y = rng.normal(size=pool2(x).shape)
-        assert np.isclose((pool2(x) * y).sum(), (x * unpool2(y)).sum(), rtol=1e-14)
+        up = add_unpooled(np.zeros_like(x), y)
+        assert np.isclose((pool2(x) * y).sum(), (x * up).sum(), rtol=1e-14)
+        acc = rng.normal(size=shape)
+        expected = acc + np.repeat(np.repeat(y / 4.0, 2, axis=0), 2, axis=1)
+        assert add_unpooled(acc, y) is acc and np.array_equal(acc, expected)
 
 
 def test_pose_objective_renders_a_repeated_point_once():
