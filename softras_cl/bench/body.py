@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import time
 from pathlib import Path
@@ -65,14 +66,15 @@ def synthetic_body(model, rng: np.random.Generator, size: int, joints: bool) -> 
     return dict(truth=truth, image=image, joints_3d=state.joints, joints_2d=uv)
 
 
-def evaluate(fit, sample: dict, seconds: float) -> dict:
-    """The bench's numbers for one fit of one synthetic target."""
+def evaluate(fit, sample: dict, seconds: float, cpu_seconds: float) -> dict:
+    """The bench's numbers for one fit of one synthetic target (seconds: wall time; CPU time
+    of the process, the OpenCL device's threads included)."""
     joints = fit.scene.pose(fit.values)[0].joints
     true = sample["joints_3d"]
     return dict(mpjpe_mm=1e3 * float(np.linalg.norm(joints - true, axis=1).mean()),
                 mpjpe_pelvis_mm=1e3 * float(np.linalg.norm((joints - joints[0]) - (true - true[0]), axis=1).mean()),
                 silhouette_iou=fit.metrics()["silhouette_iou"], seconds=seconds,
-                evaluations=len(fit.result.history))
+                cpu_seconds=cpu_seconds, evaluations=len(fit.result.history))
 
 
 def summarise(rows: list[dict]) -> dict:
@@ -83,7 +85,8 @@ def summarise(rows: list[dict]) -> dict:
     return dict(poses=len(rows), mpjpe_mm=mean("mpjpe_mm"), mpjpe_pelvis_mm=mean("mpjpe_pelvis_mm"),
                 silhouette_iou=mean("silhouette_iou"),
                 silhouette_iou_min=float(min(r["silhouette_iou"] for r in rows)),
-                median_seconds=float(statistics.median(r["seconds"] for r in rows)))
+                median_seconds=float(statistics.median(r["seconds"] for r in rows)),
+                median_cpu_seconds=float(statistics.median(r["cpu_seconds"] for r in rows)))
 
 
 def run_budget(model, samples: list[dict], budget: str, size: int, progress: bool) -> list[dict]:
@@ -94,9 +97,9 @@ def run_budget(model, samples: list[dict], budget: str, size: int, progress: boo
     config = BodyFitConfig.from_budget(budget, size=size)
     rows = []
     for sample in tqdm(samples, desc=f"bench body [{budget}]", disable=not progress):
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         fit = fit_body(sample["image"], model, config, joints=sample["joints_2d"], progress=False)
-        rows.append(evaluate(fit, sample, time.perf_counter() - start))
+        rows.append(evaluate(fit, sample, time.perf_counter() - start, time.process_time() - cpu))
         rows[-1]["fit"] = fit
     return rows
 
@@ -159,13 +162,14 @@ def rest_baseline(model, samples: list[dict], size: int) -> dict:
 
 
 def format_table(summary: dict, rest: dict) -> str:
-    head = ("budget", "poses", "MPJPE mm", "pelvis-al. mm", "IoU", "min IoU", "median s/fit")
+    head = ("budget", "poses", "MPJPE mm", "pelvis-al. mm", "IoU", "min IoU", "median s/fit", "CPU s/fit")
     lines = ["  ".join(f"{h:>13}" for h in head)]
     lines.append("  ".join(f"{c:>13}" for c in ("(rest pose)", "", "", f"{rest['mpjpe_pelvis_mm']:.1f}",
-                                                  f"{rest['silhouette_iou']:.3f}", "", "")))
+                                                  f"{rest['silhouette_iou']:.3f}", "", "", "")))
     for name, s in summary.items():
         cells = (name, s["poses"], f"{s['mpjpe_mm']:.1f}", f"{s['mpjpe_pelvis_mm']:.1f}",
-                 f"{s['silhouette_iou']:.3f}", f"{s['silhouette_iou_min']:.3f}", f"{s['median_seconds']:.1f}")
+                 f"{s['silhouette_iou']:.3f}", f"{s['silhouette_iou_min']:.3f}", f"{s['median_seconds']:.1f}",
+                 f"{s['median_cpu_seconds']:.1f}")
         lines.append("  ".join(f"{c:>13}" for c in cells))
     return "\n".join(lines)
 
@@ -186,12 +190,14 @@ def run(args: argparse.Namespace) -> int:
         model = load_demo_body_model() if args.model is None else load_body_model(args.model)
         rng = np.random.default_rng(args.seed)
         samples = [synthetic_body(model, rng, args.size, args.joints) for _ in range(args.poses)]
+        load_start = os.getloadavg()
         per_budget = {b: run_budget(model, samples, b, args.size, not args.json) for b in budgets}
         summary = {b: summarise(rows) for b, rows in per_budget.items()}
         rest = rest_baseline(model, samples, args.size)
         doc = dict(size=args.size, seed=args.seed, joints=args.joints,
                    camera="one frontal camera, 3.7 m, 30 deg fov, aimed at 0.9 m height",
                    rest_pose=rest, summary=summary,
+                   load_average=dict(start=load_start, end=os.getloadavg()),
                    poses={b: [{k: v for k, v in r.items() if k != "fit"} for r in rows]
                           for b, rows in per_budget.items()},
                    provenance=provenance(dict(options=args)))

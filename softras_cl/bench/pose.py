@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import time
@@ -43,21 +44,23 @@ def variants(quick: bool = False) -> dict:
 
 
 def run_trials(scene, stages, targets, inits, progress) -> dict:
-    """Fit every (init, target) pair; errors in degrees and seconds per fit."""
+    """Fit every (init, target) pair; errors in degrees, wall and CPU seconds per fit."""
     from softras_cl.fitting.recipes.rigid import fit_rotation, rotation_error_deg
 
-    errors, seconds, results = [], [], []
+    errors, seconds, cpu, results = [], [], [], []
     for target, init in zip(targets, inits):
         _, out = scene.render(target, TARGET_SIGMA, TARGET_GAMMA)
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         result = fit_rotation(scene, out.rgb[0], out.alpha[0], init, stages)
         seconds.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - cpu_start)
         results.append(result.values["rotation"])
         errors.append(rotation_error_deg(result.values["rotation"], target))
         progress.update(1)
     e = np.array(errors)
     return dict(mean_deg=float(e.mean()), median_deg=float(np.median(e)), success=float((e < 10).mean()),
                 median_s=float(statistics.median(seconds)), mean_s=float(np.mean(seconds)),
+                median_cpu_s=float(statistics.median(cpu)),
                 stages=len(stages), iters_per_stage=stages[0].max_iters,
                 sigma=[s.sigma for s in stages], gamma=[s.gamma for s in stages],
                 basins=failure_basins(targets, results), errors_deg=e.round(3).tolist(),
@@ -199,14 +202,14 @@ def run(args: argparse.Namespace) -> int:
         rng = np.random.default_rng(args.seed)
         targets, inits = random_rotations(trials, rng), random_rotations(trials, rng)
         chosen = variants(args.quick)
-        rows = {}
+        rows, load_start = {}, os.getloadavg()
         with tqdm(total=trials * len(chosen), desc="pose fits", file=sys.stderr, disable=args.json) as bar:
             for name, stages in chosen.items():
                 bar.set_postfix_str(name)
                 rows[name] = run_trials(scene, stages, targets, inits, bar)
         random_guess = float(np.mean([rotation_error_deg(a, b) for a, b in zip(targets, inits)]))
         result = dict(trials=trials, seed=args.seed, size=scene.size, random_guess_deg=random_guess,
-                      paper=PAPER, variants=rows)
+                      paper=PAPER, variants=rows, load_average=dict(start=load_start, end=os.getloadavg()))
         save_chart(rows, out / "pose.png")
         default = "3 steps x 30" if args.quick else "5 steps x 100"
         save_strip(scene, targets[0], inits[0], chosen[default], out / "pose_strip.png")
@@ -225,10 +228,10 @@ def run(args: argparse.Namespace) -> int:
 def format_table(result: dict) -> str:
     lines = [f"colour-cube pose fitting: {result['trials']} trials, seed {result['seed']}, "
              f"{result['size']}^2; random guess {result['random_guess_deg']:.2f} deg (paper 126.48)",
-             f"{'variant':<16}{'mean deg':>10}{'median deg':>12}{'< 10 deg':>10}{'median s':>10}"]
+             f"{'variant':<16}{'mean deg':>10}{'median deg':>12}{'< 10 deg':>10}{'median s':>10}{'CPU s':>8}"]
     for name, r in result["variants"].items():
         lines.append(f"{name:<16}{r['mean_deg']:>10.2f}{r['median_deg']:>12.2f}"
-                     f"{100 * r['success']:>9.0f}%{r['median_s']:>10.2f}")
+                     f"{100 * r['success']:>9.0f}%{r['median_s']:>10.2f}{r['median_cpu_s']:>8.2f}")
     lines.append("paper: " + ", ".join(f"{k} {v}" for k, v in PAPER.items()))
     lines.append("where the fits ended (fractions of trials; a symmetric pose is a rotation of the cube "
                  "onto itself away from the target):")

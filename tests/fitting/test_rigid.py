@@ -75,7 +75,7 @@ def test_bench_pose_quick(tmp_path, capsys):
     result = json.loads(capsys.readouterr().out)
     assert set(result["variants"]) == {"no schedule", "3 steps x 30"}
     for row in result["variants"].values():
-        assert len(row["errors_deg"]) == 3 and row["median_s"] > 0
+        assert len(row["errors_deg"]) == 3 and row["median_s"] > 0 and row["median_cpu_s"] > 0
     for name in ("pose.json", "pose.png", "pose_strip.png"):
         assert (tmp_path / name).stat().st_size > 0
 
