@@ -544,6 +544,30 @@ inline PixelIn load_pixel(__global const real *grad_rgb, __global const real *gr
     return in;
 }
 
+/* Whether any cotangent (or the softmax's g.out image) at the SR_VEC pixels is non-zero. Where all
+ * are zero, every term a pair adds is a product with zero, i.e. +-0, and adding +-0 leaves the
+ * sums' bits unchanged (they start at +0 and x + -0 = x): the backward skips such rows. */
+inline bool has_cotangent(__global const real *grad_rgb, __global const real *grad_alpha,
+                          __global const real *grad_depth, __global const real *g_dot_img,
+                          size_t pix, size_t npix)
+{
+    maskv nonzero = (maskv)0;
+#if SR_OUT_RGB
+    for (int c = 0; c < 3; ++c)
+        nonzero |= VLOAD(0, grad_rgb + c * npix + pix) != R(0);
+#endif
+#if SR_OUT_DEPTH
+    nonzero |= VLOAD(0, grad_depth + pix) != R(0);
+#endif
+#if SR_OUT_ALPHA
+    nonzero |= VLOAD(0, grad_alpha + pix) != R(0);
+#endif
+#if SR_NEED_COLOR && !SR_COLOR_HARD
+    nonzero |= VLOAD(0, g_dot_img + pix) != R(0);
+#endif
+    return any(nonzero);
+}
+
 /* Spread dL/d(b) (unclipped barycentrics) to the vertex positions: db = -U^-1 dU b. */
 inline void barycentric_vjp(const Face *f, const Frag *r, const realv gb[3], maskv valid, Accum *acc)
 {
@@ -790,6 +814,13 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
     const realv px = ((real)(cb * SR_VEC) - R(0.5) * W + LANE_OFFSETS) * pix_scale;
     const int rows = min(TILE_H, H - tile_row * TILE_H);
     __global const real *image = tex_image + (size_t)batch * tex_h * tex_w * 3;
+    /* bit dr: row dr of the tile has a non-zero cotangent (a fit's masked loss leaves many without) */
+    uint live_rows = 0;
+    for (int dr = 0; dr < rows; ++dr) {
+        const size_t pix = ((size_t)batch * Hp + tile_row * TILE_H + dr) * Wp + cb * SR_VEC;
+        if (has_cotangent(grad_rgb, grad_alpha, grad_depth, g_dot_img, pix, npix))
+            live_rows |= 1u << dr;
+    }
 
     for (int k = tile_start[tile]; k < tile_start[tile + 1]; ++k) {
         const int face = tile_faces[k], slot = k;
@@ -809,7 +840,7 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
         for (int dr = 0; dr < rows; ++dr) {
             const int row = tile_row * TILE_H + dr;
             const real py = (R(0.5) * H - row - R(0.5)) * pix_scale;
-            if (outside_footprint(geom, face, px.s0, LAST_LANE(px), py))
+            if (!(live_rows >> dr & 1u) || outside_footprint(geom, face, px.s0, LAST_LANE(px), py))
                 continue;
             const Frag r = eval_frag(&f, px, py, &p);
             if (!any(r.valid))

@@ -148,6 +148,7 @@ class SoftRasterizer:
         # (kernel), "reductions" (per-face sums and sums onto vertices, their download).
         # Kernel stages then end with a queue.finish(); for profiling (softras-cl bench raster).
         self.stage_ms: dict | None = None
+        self._kernels: dict = {}
 
     def _stage(self, name: str, start: float, finish: bool = False) -> float:
         """Add the time since `start` to stage_ms[name] (when profiling); returns the new start."""
@@ -225,6 +226,14 @@ class SoftRasterizer:
 
     # ---- kernels ---------------------------------------------------------------------------
     def _kernel(self, name: str, grads: tuple, save_state: bool) -> cl.Kernel:
+        """Kernel `name` of the variant for the settings, grads and save_state (kept per rasteriser:
+        building the flags for the program cache's lookup cost more than a launch on small images)."""
+        key = (name, grads, save_state)
+        if key not in self._kernels:
+            self._kernels[key] = self._build_kernel(name, grads, save_state)
+        return self._kernels[key]
+
+    def _build_kernel(self, name: str, grads: tuple, save_state: bool) -> cl.Kernel:
         s = self.settings
         defines = dict(
             SR_DOUBLE=s.dtype == "float64", SR_LANES=self.lanes,

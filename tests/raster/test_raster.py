@@ -335,3 +335,30 @@ def test_lanes_must_suit_the_dtype():
         SoftRasterizer(settings(), lanes=8)
     with pytest.raises(ValueError, match=r"lanes must be one of \(8, 16\) for dtype='float32', got 4"):
         SoftRasterizer(settings(dtype="float32"), lanes=4)
+
+
+@pytest.mark.parametrize("variant", [dict(), dict(color_agg="hard", alpha_agg="sum", sigma=1e-4),
+                                     dict(outputs=("alpha",))], ids=_ids([{}, {"hard": 1}, {"alpha": 1}]))
+def test_rows_without_cotangents_are_skipped_exactly(variant):
+    """The backward skips rows whose cotangents are all zero: each output's cotangent is non-zero
+    on its own rows only (a skip that ignored one output's plane would lose its rows), batch item
+    1 has a whole tile row of zeros but for one pixel (a check of one lane would lose it), and
+    everything zero gives exactly zero gradients."""
+    s = settings(**variant)
+    vertices, faces, colors = random_scene(4, texture=s.texture)
+    colors = colors if "rgb" in s.outputs else {}
+    raster = SoftRasterizer(s)
+    cot = _cotangents(s, 5)
+    for k, g in enumerate(cot.values()):
+        g[:, [r for r in range(H) if r % 3 != k]] = 0.0
+        g[1, :8] = 0.0
+    lone = next(iter(cot.values()))
+    lone[1, 5, 13] = 1.0
+    grads = ("vertices", "colors") if colors else ("vertices",)
+    g = raster.backward(raster.forward(vertices, faces, grads=grads, **colors), **cot)
+    num = _central_difference(lambda v: _loss(raster, v, faces, colors, cot), vertices, np.arange(vertices.size))
+    assert np.abs(num).max() > 1e-3
+    np.testing.assert_allclose(g["vertices"].ravel(), num, rtol=0, atol=1e-6 * np.abs(num).max())
+    zero = raster.backward(raster.forward(vertices, faces, grads=grads, **colors),
+                           **{n: np.zeros_like(c) for n, c in cot.items()})
+    assert all(not v.any() for v in zero.values())
