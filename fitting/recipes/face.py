@@ -379,9 +379,10 @@ class FaceScene:
 
     def render(self, values: dict, sigma: float, gamma: float, grads=(), albedo=None,
                light=None, world=None, roi=None):
-        """Render the face; albedo (V, 3) / light override the model's (for the report), or are
-        the model's if already computed; world: the world vertices if already computed; roi: None or an (H, W) bool mask, the
-        only pixels needed (Renderer.forward: other screen tiles are not rasterised)."""
+        """Render the face; albedo (V, 3) / light: the model's if already computed, or others
+        (for the report); world: the world vertices if already computed; roi: None or an (H, W)
+        bool mask, the only pixels needed (Renderer.forward: other screen tiles are not
+        rasterised)."""
         self.renderer.settings = dataclasses.replace(self.settings, sigma=sigma, gamma=gamma)
         world = self.geometry(values)[0] if world is None else world
         albedo = self.model.albedo(values["albedo"])[0] if albedo is None else albedo
