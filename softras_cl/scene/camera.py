@@ -10,6 +10,7 @@ before anything is computed. Rotations (rodrigues and its vjp) live in softras_c
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import numbers
 from dataclasses import dataclass
@@ -17,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from softras_cl.checks import check_finite, check_shape, float_array, number
-from softras_cl.scene.rotation import (RodriguesContext, axis_angle_to_matrix, matrix3,
+from softras_cl.scene.rotation import (RodriguesContext, matrix3,
                                        matrix_to_axis_angle, rodrigues, rodrigues_vjp, vector3)
 
 PROJECTIONS = ("perspective", "orthographic")
@@ -202,13 +203,21 @@ class Camera:
         """(2,) float64 [fx, fy]."""
         return np.array([self.fx, self.fy])
 
+    @functools.cached_property
+    def _rodrigues(self) -> tuple[np.ndarray, RodriguesContext]:
+        """rodrigues(rotation) (R read-only), made once: the camera is immutable and one
+        render asks for R several times (projection, its vjp, the centre)."""
+        R, ctx = rodrigues(self.rotation)
+        R.flags.writeable = False
+        return R, ctx
+
     def rotation_matrix(self) -> np.ndarray:
         """(3, 3) float64 world -> camera rotation."""
-        return axis_angle_to_matrix(self.rotation)
+        return self._rodrigues[0].copy()
 
     def center(self) -> np.ndarray:
         """(3,) float64 camera centre in world coordinates, -R^T t."""
-        return -self.rotation_matrix().T @ self.translation
+        return -self._rodrigues[0].T @ self.translation
 
     def _ndc_scale(self) -> float:
         """2 / s, s = the shorter image side: pixels -> NDC."""
@@ -219,7 +228,7 @@ class Camera:
         """World vertices (V, 3) or (B, V, 3) float -> (screen (B, V, 3) float64
         [x_ndc, y_ndc, z_view], ctx). Perspective: every vertex must have Z > 0."""
         verts, batched = _points("vertices", vertices)
-        R, rot_ctx = rodrigues(self.rotation)
+        R, rot_ctx = self._rodrigues
         cam = verts @ R.T + self.translation
         if self.projection == "perspective":
             _check_in_front(cam[..., 2], batched)
@@ -286,7 +295,7 @@ class Camera:
         constant direction -R[2] (towards the camera along its axis).
         """
         pts, batched = _points("points", points)
-        R, rot_ctx = rodrigues(self.rotation)
+        R, rot_ctx = self._rodrigues
         if self.projection == "orthographic":
             d = np.broadcast_to(-R[2], pts.shape).copy()
             return d, ViewDirectionContext(self, rot_ctx, d, np.ones(pts.shape[:-1] + (1,)), batched)

@@ -37,20 +37,26 @@ def hat(w: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
+_E = tuple(hat(np.eye(3)[i]) for i in range(3))       # hat(e_i), the derivatives of hat(w)
+
+
 def _series(theta2: float, coeffs: tuple) -> float:
     """sum_k coeffs[k] theta2^k."""
     return sum(c * theta2 ** k for k, c in enumerate(coeffs))
+
+
+_f = math.factorial
+# Taylor coefficients (in t^2) of A, B, C and D below _SMALL_ANGLE
+_TAYLOR = ([(-1) ** k / _f(2 * k + 1) for k in range(6)], [(-1) ** k / _f(2 * k + 2) for k in range(6)],
+           [(-1) ** (k + 1) * 2 * (k + 1) / _f(2 * k + 3) for k in range(6)],
+           [(-1) ** (k + 1) * 2 * (k + 1) / _f(2 * k + 4) for k in range(6)])
 
 
 def _rodrigues_coeffs(theta: float) -> tuple[float, float, float, float]:
     """A = sin t / t, B = (1 - cos t) / t^2, C = A'(t) / t, D = B'(t) / t (Taylor for small t)."""
     t2 = theta * theta
     if theta < _SMALL_ANGLE:
-        f = math.factorial
-        a = _series(t2, [(-1) ** k / f(2 * k + 1) for k in range(6)])
-        b = _series(t2, [(-1) ** k / f(2 * k + 2) for k in range(6)])
-        c = _series(t2, [(-1) ** (k + 1) * 2 * (k + 1) / f(2 * k + 3) for k in range(6)])
-        d = _series(t2, [(-1) ** (k + 1) * 2 * (k + 1) / f(2 * k + 4) for k in range(6)])
+        a, b, c, d = (_series(t2, coeffs) for coeffs in _TAYLOR)
         return a, b, c, d
     s, c_ = math.sin(theta), math.cos(theta)
     one_minus_cos = 2.0 * math.sin(0.5 * theta) ** 2
@@ -97,11 +103,10 @@ def rodrigues_vjp(ctx: RodriguesContext, grad_R) -> dict:
     g = matrix3("grad_R", grad_R)
     w, k = ctx.omega, ctx.k
     a, b, c, d = _rodrigues_coeffs(float(np.linalg.norm(w)))
-    radial = c * np.sum(g * k) + d * np.sum(g * (k @ k))
+    radial = c * (g * k).sum() + d * (g * (k @ k)).sum()
     out = np.empty(3)
-    for i in range(3):
-        e = hat(np.eye(3)[i])
-        out[i] = w[i] * radial + a * np.sum(g * e) + b * np.sum(g * (e @ k + k @ e))
+    for i, e in enumerate(_E):
+        out[i] = w[i] * radial + a * (g * e).sum() + b * (g * (e @ k + k @ e)).sum()
     return {"omega": out}
 
 

@@ -449,3 +449,18 @@ def test_orbit_camera_at_the_poles_matches_the_limit():
                          image_size=(32, 32))
     np.testing.assert_allclose(orbit_camera(30.0, 20.0, 30.0, (32, 32)).rotation_matrix(),
                                old.rotation_matrix(), atol=1e-12)     # same camera as up = +y
+
+
+def test_rotation_is_made_once_and_handed_out_as_a_copy():
+    """A camera keeps its rotation matrix (one render asks for it several times); what
+    rotation_matrix() returns is the caller's to change."""
+    cam = Camera.look_at([1.0, 2.0, 3.0], [0.0, 0.0, 0.0])
+    pts = np.array([[0.1, 0.2, 0.3], [-0.2, 0.1, 0.0]])
+    screen, center = cam.project(pts)[0], cam.center()
+    R = cam.rotation_matrix()
+    np.testing.assert_allclose(R, Rotation.from_rotvec(cam.rotation.copy()).as_matrix(), atol=1e-14)
+    R[:] = 0.0
+    np.testing.assert_array_equal(cam.project(pts)[0], screen)
+    np.testing.assert_array_equal(cam.center(), center)
+    moved = cam.with_params(rotation=cam.rotation + 0.1)
+    assert not np.allclose(moved.rotation_matrix(), cam.rotation_matrix())
