@@ -357,12 +357,15 @@ class FaceScene:
 
     def camera(self, focal: float) -> Camera:
         """The Camera of this focal length (pixels); the last one is kept (Cameras are frozen):
-        the landmark and photo terms of one evaluation share it."""
+        the landmark and photo terms of one evaluation share it. Later ones are copies of the
+        first with another focal length (its pose and principal point never change)."""
         focal = float(focal)
-        if self._camera is None or self._camera[0] != focal:
+        if self._camera is None:
             cx, cy = self.principal
             K = [[focal, 0.0, cx], [0.0, focal, cy], [0.0, 0.0, 1.0]]
             self._camera = (focal, Camera.from_opencv(K, CAMERA_ROTATION, np.zeros(3), self.image_size))
+        elif self._camera[0] != focal:
+            self._camera = (focal, self._camera[1].with_params(fx=focal, fy=focal))
         return self._camera[1]
 
     def geometry(self, values: dict) -> tuple[np.ndarray, GeometryContext]:

@@ -434,12 +434,14 @@ def sh_basis(normals) -> np.ndarray:
 
 def sh_basis_vjp(normals, grad_basis) -> np.ndarray:
     """Gradient of sh_basis: normals (..., 3), grad_basis (..., 9) -> (..., 3)."""
-    x, y, z = np.moveaxis(np.asarray(normals, np.float64), -1, 0)
-    g = np.moveaxis(grad_basis, -1, 0)
-    gx = SH_Y1 * g[3] + SH_Y2 * (y * g[4] + z * g[7]) + 2 * SH_Y2_XXYY * x * g[8]
-    gy = SH_Y1 * g[1] + SH_Y2 * (x * g[4] + z * g[5]) - 2 * SH_Y2_XXYY * y * g[8]
-    gz = SH_Y1 * g[2] + SH_Y2 * (y * g[5] + x * g[7]) + 6 * SH_Y2_ZZ * z * g[6]
-    return np.stack([gx, gy, gz], -1)
+    normals = np.asarray(normals, np.float64)
+    x, y, z = (np.ascontiguousarray(normals[..., i]) for i in range(3))
+    g = np.ascontiguousarray(np.moveaxis(grad_basis, -1, 0))
+    out = np.empty(normals.shape)
+    out[..., 0] = SH_Y1 * g[3] + SH_Y2 * (y * g[4] + z * g[7]) + 2 * SH_Y2_XXYY * x * g[8]
+    out[..., 1] = SH_Y1 * g[1] + SH_Y2 * (x * g[4] + z * g[5]) - 2 * SH_Y2_XXYY * y * g[8]
+    out[..., 2] = SH_Y1 * g[2] + SH_Y2 * (y * g[5] + x * g[7]) + 6 * SH_Y2_ZZ * z * g[6]
+    return out
 
 
 def sh_ambient(grey=1.0) -> np.ndarray:

@@ -396,3 +396,17 @@ def test_prepare_fit_starts_from_the_cropped_photo_and_the_field_of_view_focal(t
     assert start["focal"][0] == pytest.approx(focal) and objective.focal0 == pytest.approx(focal)
     assert objective.robust_scale == config.robust_scale
     assert np.all(start["id"] == 0) and start["sh"].shape == (3, 9)
+
+
+def test_scene_camera_of_each_focal_is_the_opencv_camera_of_it(toy):
+    from softras_cl.scene.camera import Camera
+
+    scene = face.FaceScene(toy, (40, 30), principal=(14.0, 21.5))
+    points = np.array([[0.01, 0.02, -0.5], [-0.03, 0.0, -0.6]])
+    for focal in (90.0, 120.0, 90.0):
+        K = [[focal, 0.0, 14.0], [0.0, focal, 21.5], [0.0, 0.0, 1.0]]
+        expected = Camera.from_opencv(K, face.CAMERA_ROTATION, np.zeros(3), (40, 30))
+        cam = scene.camera(focal)
+        assert (cam.fx, cam.fy, cam.cx, cam.cy, cam.image_size) == (focal, focal, 14.0, 21.5, (40, 30))
+        np.testing.assert_array_equal(cam.project_pixels(points)[0], expected.project_pixels(points)[0])
+    assert scene.camera(90.0) is cam                     # the last one is kept
