@@ -901,3 +901,41 @@ __kernel void soft_raster_g_dot(const int H, const int ntx, const int Hp, const 
     }
     VSTORE(total, 0, g_dot_img + pix);
 }
+
+/* ---- layout: the padded planes (n, B, Hp, Wp) <-> interleaved (B, H, W, n) arrays ------------- */
+/* The host hands images and cotangents over as numpy's interleaved arrays; transposing them on
+ * the host (numpy's strided copies) cost more than these kernels. One work-item per SR_VEC pixels
+ * of a row, as in the kernels above. Plain copies: the values keep their bits. */
+
+/* dst (B, H, W, n) <- the first H rows and W columns of the n planes src (n, B, Hp, Wp). */
+__kernel void planes_to_pixels(const int W, const int H, const int Wp, const int Hp, const int ntx,
+                               const int n, __global const real *src, __global real *dst)
+{
+    const int cb = get_global_id(0), row = get_global_id(1), batch = get_global_id(2);
+    if (cb >= ntx || row >= H)
+        return;
+    const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
+    const size_t from = ((size_t)batch * Hp + row) * Wp, to = ((size_t)batch * H + row) * W;
+    for (int x = cb * SR_VEC; x < min(W, (cb + 1) * SR_VEC); ++x)
+        for (int c = 0; c < n; ++c)
+            dst[(to + x) * n + c] = src[c * npix + from + x];
+}
+
+/* dst (n, B, Hp, Wp) planes <- src (B, H, W, n), zero in the padding; all zero if !has_src. */
+__kernel void pixels_to_planes(const int W, const int H, const int Wp, const int Hp, const int ntx,
+                               const int n, const int has_src, __global const real *src,
+                               __global real *dst)
+{
+    const int cb = get_global_id(0), row = get_global_id(1), batch = get_global_id(2);
+    if (cb >= ntx)
+        return;
+    const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
+    const size_t to = ((size_t)batch * Hp + row) * Wp, from = ((size_t)batch * H + row) * W;
+    for (int x = cb * SR_VEC; x < (cb + 1) * SR_VEC; ++x)
+        for (int c = 0; c < n; ++c) {
+            real value = R(0);
+            if (has_src && row < H && x < W)
+                value = src[(from + x) * n + c];
+            dst[c * npix + to + x] = value;
+        }
+}

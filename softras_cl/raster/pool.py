@@ -10,7 +10,7 @@ Free buffers are kept up to the peak amount ever in use at once, so the pool's m
 small multiple of what one call needs (pixels + faces).
 
 `ScratchArrays.get(name, shape, dtype)` returns the same numpy array for the same key: host
-staging that a call fills and consumes before it returns (downloads, padded cotangent planes),
+staging that a call fills and consumes before it returns (uv texel sums),
 never an array handed to the caller.
 
 Neither is thread-safe: like the kernels' argument slots, a SoftRasterizer serves one thread.
@@ -85,22 +85,15 @@ class BufferPool:
 
 class ScratchArrays:
     """Host arrays kept by name, returned as `shape` views of a buffer that grows by size classes
-    (sizes that change from call to call, like bin entries in a fit, reuse one buffer).
-
-    zeros=True arrays are kept per exact shape and zero when created: callers that only write a
-    fixed region (padded planes) rely on the rest staying zero."""
+    (sizes that change from call to call, like uv texel sums, reuse one buffer)."""
 
     def __init__(self):
         self._arrays: dict = {}
 
-    def get(self, name: str, shape: tuple, dtype, zeros: bool = False) -> np.ndarray:
+    def get(self, name: str, shape: tuple, dtype) -> np.ndarray:
         shape, dtype = tuple(int(n) for n in shape), np.dtype(dtype)
         size = int(np.prod(shape))
         held = self._arrays.get(name)
-        if zeros:
-            if held is None or held.shape != shape or held.dtype != dtype:
-                self._arrays[name] = held = np.zeros(shape, dtype)
-            return held
         if held is None or held.dtype != dtype or held.size < size:
             self._arrays[name] = held = np.empty(size_class(size * dtype.itemsize) // dtype.itemsize, dtype)
         return held[:size].reshape(shape)

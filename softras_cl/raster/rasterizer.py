@@ -192,9 +192,10 @@ class SoftRasterizer:
         state = self._state_buffers(mesh.batch) if grads else None
         t = self._stage("upload", t, finish=True)
         images = self._run_forward(mesh, buffers, state)
-        hosts = {n: self._download(n, b, mesh.batch) for n, b in images.items()}
+        packed = {n: self._download(n, b, mesh.batch, state is not None) for n, b in images.items()}
         self._sync()
-        crops = [self._crop(hosts.get(n)) for n in ("rgb", "alpha", "depth")]
+        self.pool.give(buf for _, buf in packed.values() if buf is not None)
+        crops = [packed[n][0] if n in packed else None for n in ("rgb", "alpha", "depth")]
         saved = RasterContext(mesh, grads, bins, buffers, images, state) if grads else None
         if saved is not None:
             self.pool.give_when_dead(saved, [b for b in saved.device_buffers() if b is not self._dummy()])
@@ -306,7 +307,9 @@ class SoftRasterizer:
         if not kernel_grads:    # colour gradients only, and no rgb cotangent: all zero
             return dict(pos=None, attr=None, light=None, tex=None, scale=scale)
         # an output without a cotangent contributes zero; the kernel variant still reads its plane
-        cot_bufs = {n: self._upload_planes(n, c, mesh.batch) for n, c in cot.items() if n[len("grad_"):] in s.outputs}
+        staged = {n: self._upload_planes(n, c, mesh.batch, kernel_grads)
+                  for n, c in cot.items() if n[len("grad_"):] in s.outputs}
+        cot_bufs = {n: planes for n, (planes, _) in staged.items()}
         g_dot = self._g_dot_image(saved, cot_bufs, kernel_grads)
         nbytes = {k: math.prod(shape) * np.dtype(dtype).itemsize for k, (shape, dtype) in shapes.items()}
         out_bufs = {k: self.pool.take(n) for k, n in nbytes.items()}
@@ -327,7 +330,8 @@ class SoftRasterizer:
             tex = self.scratch.get("slot_tex", *shapes["tex"])
             self._transfers.append(cl.enqueue_copy(self.queue, tex, out_bufs["tex"], is_blocking=False))
         self._sync()
-        self.pool.give([*cot_bufs.values(), *([g_dot] if g_dot is not None else []),
+        self.pool.give([*cot_bufs.values(), *self._pooled(src for _, src in staged.values()),
+                        *([g_dot] if g_dot is not None else []),
                         *([out_bufs.pop("tex")] if tex is not None else [])])
         self._stage("backward", t, finish=True)
         return {**dict(pos=None, attr=None, light=None), **out_bufs, "tex": tex, "scale": scale}
@@ -447,42 +451,46 @@ class SoftRasterizer:
             self._dummy_buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, 64)
         return self._dummy_buf
 
-    def _download(self, name: str, buf: cl.Buffer, batch: int) -> np.ndarray:
-        """Start reading output `name`'s (planes, B, Hp, Wp) device image into a host array: a
-        fresh (B, H, W) one for an unpadded single plane, host staging otherwise. Valid after
-        _sync() (one wait for all the downloads instead of one each)."""
+    def _download(self, name: str, buf: cl.Buffer, batch: int, save_state: bool) -> tuple:
+        """Start reading output `name`'s (planes, B, Hp, Wp) device image into a fresh (B, H, W)
+        array, (B, H, W, 3) for rgb: directly for an unpadded single plane, else through a pooled
+        buffer that kernel planes_to_pixels fills. Returns (array, that buffer or None); the array
+        is valid and the buffer free after _sync() (one wait for all the downloads)."""
         s, g = self.settings, self.grid
         n_planes = 3 if name == "rgb" else 1
-        if n_planes == 1 and (g.hp, g.wp) == (s.height, s.width):     # nothing to crop
-            host = np.empty((batch, g.hp, g.wp), self.real)
-        else:
-            host = self.scratch.get("image_" + name, (n_planes, batch, g.hp, g.wp), self.real)
-        self._transfers.append(cl.enqueue_copy(self.queue, host, buf, is_blocking=False))
-        return host
+        host = np.empty((batch, s.height, s.width) + ((3,) if name == "rgb" else ()), self.real)
+        packed = None
+        if n_planes > 1 or (g.hp, g.wp) != (s.height, s.width):
+            packed = self.pool.take(host.nbytes)
+            knl = self._kernel("planes_to_pixels", (), save_state)
+            knl(self.queue, (_round_up(g.ntx), s.height, batch), GROUP, *self._layout_args(), np.int32(n_planes),
+                buf, packed)
+        self._transfers.append(cl.enqueue_copy(self.queue, host, packed or buf, is_blocking=False))
+        return host, packed
+
+    def _layout_args(self) -> list:
+        """W, H, Wp, Hp, ntx: the first arguments of kernels planes_to_pixels and pixels_to_planes."""
+        s, g, i32 = self.settings, self.grid, np.int32
+        return [i32(s.width), i32(s.height), i32(g.wp), i32(g.hp), i32(g.ntx)]
 
     def _sync(self) -> None:
         """Wait for everything queued, then let go of the finished transfers."""
         self.queue.finish()
         self._transfers.clear()
 
-    def _crop(self, host: np.ndarray | None) -> np.ndarray | None:
-        """A downloaded image (_download) as (B, H, W) for one plane, (B, H, W, planes) for more."""
-        if host is None or host.ndim == 3:
-            return host
-        img = host[:, :, :self.settings.height, :self.settings.width]
-        return img[0].copy() if len(img) == 1 else np.ascontiguousarray(np.moveaxis(img, 0, -1))
-
-    def _upload_planes(self, name: str, image: np.ndarray | None, batch: int) -> cl.Buffer:
-        """Cotangent `name` (B, H, W[, 3]; None = zeros) -> pooled device buffer of its
-        (planes, B, Hp, Wp) planes in the kernel dtype, zero-padded."""
-        s, g = self.settings, self.grid
-        host = self.scratch.get(name, (3 if name == "grad_rgb" else 1, batch, g.hp, g.wp), self.real, zeros=True)
-        region = host[:, :, :s.height, :s.width]
-        if image is None:
-            region[...] = 0
-        else:
-            np.copyto(region, image[None] if image.ndim == 3 else np.moveaxis(image, -1, 0), casting="unsafe")
-        return self._to_device(host)
+    def _upload_planes(self, name: str, image: np.ndarray | None, batch: int, kernel_grads: tuple) -> tuple:
+        """Cotangent `name` (B, H, W[, 3]; None = zeros) -> (pooled device buffer of its
+        (planes, B, Hp, Wp) planes in the kernel dtype, zero-padded, and the buffer kernel
+        pixels_to_planes fills them from: a pooled copy of the cotangent in the kernel dtype, to
+        give back after _sync(), or the dummy)."""
+        g = self.grid
+        n_planes = 3 if name == "grad_rgb" else 1
+        planes = self.pool.take(n_planes * batch * g.hp * g.wp * self.real.itemsize)
+        src = self._dummy() if image is None else self._to_device(np.ascontiguousarray(image, self.real))
+        knl = self._kernel("pixels_to_planes", kernel_grads, True)
+        knl(self.queue, (_round_up(g.ntx), g.hp, batch), GROUP, *self._layout_args(), np.int32(n_planes),
+            np.int32(image is not None), src, planes)
+        return planes, src
 
     def _g_dot_image(self, saved: RasterContext, cot_bufs: dict, kernel_grads: tuple) -> cl.Buffer | None:
         """Pooled device buffer of the per-pixel sum over rgb and depth channels of cotangent *

@@ -47,14 +47,15 @@ def test_give_when_dead_returns_buffers_after_the_owner_is_collected(context):
     assert pool.free_bytes == buf.size
 
 
-def test_scratch_arrays_are_kept_per_shape():
+def test_scratch_arrays_grow_by_size_classes():
     scratch = ScratchArrays()
-    a = scratch.get("x", (2, 3), np.float32, zeros=True)
-    assert not a.any()
+    a = scratch.get("x", (2, 3), np.float32)
+    assert a.shape == (2, 3) and a.dtype == np.float32
     a[0, 0] = 5
-    assert scratch.get("x", (2, 3), np.float32, zeros=True) is a
-    b = scratch.get("x", (3, 3), np.float32, zeros=True)
-    assert b is not a and not b.any()
+    b = scratch.get("x", (3, 2), np.float32)      # same size class: the same memory
+    assert b.shape == (3, 2) and b[0, 0] == 5
+    c = scratch.get("x", (100, 3), np.float32)
+    assert c.shape == (100, 3) and not np.shares_memory(a, c)
 
 
 def _scene(seed):
