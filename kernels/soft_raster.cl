@@ -874,11 +874,69 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
     }
 }
 
-/* ---- softmax backward: per-pixel sum over the rgb and depth channels of cotangent * output ---- */
-__kernel void soft_raster_g_dot(const int H, const int ntx, const int Hp, const int Wp,
-                                __global const real *grad_rgb, __global const real *grad_depth,
-                                __global const real *out_rgb, __global const real *out_depth,
-                                __global real *g_dot_img)
+/* ---- layout: the padded planes (n, B, Hp, Wp) <-> interleaved (B, H, W, n) arrays ------------- */
+/* The host hands images and cotangents over as numpy's interleaved arrays; transposing them on
+ * the host (numpy's strided copies) cost more than these kernels. One work-item per SR_VEC pixels
+ * of a row, as in the kernels above; plain copies, so the values keep their bits. */
+
+/* Pixels x0 <= x < x1 of one row of an output's n planes (from: the row's start in a plane) into
+ * its (B, H, W, n) array (to: the row's first pixel). */
+inline void pack_row(__global const real *src, __global real *dst, const int n, const size_t npix,
+                     const size_t from, const size_t to, const int x0, const int x1)
+{
+    for (int x = x0; x < x1; ++x)
+        for (int c = 0; c < n; ++c)
+            dst[(to + x) * n + c] = src[c * npix + from + x];
+}
+
+/* The forward's images, planes (n, B, Hp, Wp), as the (B, H, W[, 3]) arrays the host returns. */
+__kernel void planes_to_pixels(const int W, const int H, const int Wp, const int Hp, const int ntx,
+                               __global const real *rgb, __global const real *alpha,
+                               __global const real *depth, __global real *out_rgb,
+                               __global real *out_alpha, __global real *out_depth)
+{
+    const int cb = get_global_id(0), row = get_global_id(1), batch = get_global_id(2);
+    if (cb >= ntx || row >= H)
+        return;
+    const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
+    const size_t from = ((size_t)batch * Hp + row) * Wp, to = ((size_t)batch * H + row) * W;
+    const int x0 = cb * SR_VEC, x1 = min(W, x0 + SR_VEC);
+#if SR_OUT_RGB
+    pack_row(rgb, out_rgb, 3, npix, from, to, x0, x1);
+#endif
+#if SR_OUT_ALPHA
+    pack_row(alpha, out_alpha, 1, npix, from, to, x0, x1);
+#endif
+#if SR_OUT_DEPTH
+    pack_row(depth, out_depth, 1, npix, from, to, x0, x1);
+#endif
+}
+
+/* The SR_VEC pixels from x0 of one padded row (in_image: the row is one of the H image rows) of
+ * n planes, from a (B, H, W, n) array (from: the row's first pixel); zero in the padding, and
+ * everywhere without a source. */
+inline void unpack_row(__global const real *src, __global real *dst, const int n, const int has_src,
+                       const bool in_image, const size_t npix, const size_t from, const size_t to,
+                       const int x0, const int W)
+{
+    for (int x = x0; x < x0 + SR_VEC; ++x)
+        for (int c = 0; c < n; ++c) {
+            real value = R(0);
+            if (has_src && in_image && x < W)
+                value = src[(from + x) * n + c];
+            dst[c * npix + to + x] = value;
+        }
+}
+
+/* Backward prep: the cotangents (B, H, W[, 3]; has_*: given, else zero) as zero-padded planes,
+ * and for softmax colours the per-pixel sum over rgb and depth of cotangent * forward output. */
+__kernel void soft_raster_cotangents(const int W, const int H, const int Wp, const int Hp, const int ntx,
+                                     const int has_rgb, const int has_alpha, const int has_depth,
+                                     __global const real *grad_rgb, __global const real *grad_alpha,
+                                     __global const real *grad_depth,
+                                     __global const real *out_rgb, __global const real *out_depth,
+                                     __global real *plane_rgb, __global real *plane_alpha,
+                                     __global real *plane_depth, __global real *g_dot_img)
 {
     /* no fused multiply-adds: the same roundings as the sums this replaced (numpy's, on the host) */
 #pragma OPENCL FP_CONTRACT OFF
@@ -886,56 +944,31 @@ __kernel void soft_raster_g_dot(const int H, const int ntx, const int Hp, const 
     if (cb >= ntx)
         return;
     const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
-    const size_t pix = ((size_t)batch * Hp + row) * Wp + cb * SR_VEC;
+    const size_t to = ((size_t)batch * Hp + row) * Wp, from = ((size_t)batch * H + row) * W;
+    const int x0 = cb * SR_VEC;
+#if SR_OUT_RGB
+    unpack_row(grad_rgb, plane_rgb, 3, has_rgb, row < H, npix, from, to, x0, W);
+#endif
+#if SR_OUT_ALPHA
+    unpack_row(grad_alpha, plane_alpha, 1, has_alpha, row < H, npix, from, to, x0, W);
+#endif
+#if SR_OUT_DEPTH
+    unpack_row(grad_depth, plane_depth, 1, has_depth, row < H, npix, from, to, x0, W);
+#endif
+#if SR_NEED_COLOR && !SR_COLOR_HARD
+    const size_t pix = to + x0;
     realv total = (realv)R(0);
     if (row < H) {                /* the forward leaves the padding rows unwritten */
 #if SR_OUT_RGB
-        realv rgb = VLOAD(0, grad_rgb + pix) * VLOAD(0, out_rgb + pix);
+        realv rgb = VLOAD(0, plane_rgb + pix) * VLOAD(0, out_rgb + pix);
         for (int c = 1; c < 3; ++c)
-            rgb = rgb + VLOAD(0, grad_rgb + c * npix + pix) * VLOAD(0, out_rgb + c * npix + pix);
+            rgb = rgb + VLOAD(0, plane_rgb + c * npix + pix) * VLOAD(0, out_rgb + c * npix + pix);
         total = total + rgb;
 #endif
 #if SR_OUT_DEPTH
-        total = total + VLOAD(0, grad_depth + pix) * VLOAD(0, out_depth + pix);
+        total = total + VLOAD(0, plane_depth + pix) * VLOAD(0, out_depth + pix);
 #endif
     }
     VSTORE(total, 0, g_dot_img + pix);
-}
-
-/* ---- layout: the padded planes (n, B, Hp, Wp) <-> interleaved (B, H, W, n) arrays ------------- */
-/* The host hands images and cotangents over as numpy's interleaved arrays; transposing them on
- * the host (numpy's strided copies) cost more than these kernels. One work-item per SR_VEC pixels
- * of a row, as in the kernels above. Plain copies: the values keep their bits. */
-
-/* dst (B, H, W, n) <- the first H rows and W columns of the n planes src (n, B, Hp, Wp). */
-__kernel void planes_to_pixels(const int W, const int H, const int Wp, const int Hp, const int ntx,
-                               const int n, __global const real *src, __global real *dst)
-{
-    const int cb = get_global_id(0), row = get_global_id(1), batch = get_global_id(2);
-    if (cb >= ntx || row >= H)
-        return;
-    const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
-    const size_t from = ((size_t)batch * Hp + row) * Wp, to = ((size_t)batch * H + row) * W;
-    for (int x = cb * SR_VEC; x < min(W, (cb + 1) * SR_VEC); ++x)
-        for (int c = 0; c < n; ++c)
-            dst[(to + x) * n + c] = src[c * npix + from + x];
-}
-
-/* dst (n, B, Hp, Wp) planes <- src (B, H, W, n), zero in the padding; all zero if !has_src. */
-__kernel void pixels_to_planes(const int W, const int H, const int Wp, const int Hp, const int ntx,
-                               const int n, const int has_src, __global const real *src,
-                               __global real *dst)
-{
-    const int cb = get_global_id(0), row = get_global_id(1), batch = get_global_id(2);
-    if (cb >= ntx)
-        return;
-    const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
-    const size_t to = ((size_t)batch * Hp + row) * Wp, from = ((size_t)batch * H + row) * W;
-    for (int x = cb * SR_VEC; x < (cb + 1) * SR_VEC; ++x)
-        for (int c = 0; c < n; ++c) {
-            real value = R(0);
-            if (has_src && row < H && x < W)
-                value = src[(from + x) * n + c];
-            dst[c * npix + to + x] = value;
-        }
+#endif
 }

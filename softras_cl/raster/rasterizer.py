@@ -15,7 +15,7 @@ import pyopencl as cl
 
 from softras_cl.cl.device import has_fp64, has_int64_atomics, resolve_context, vector_lanes
 from softras_cl.cl.layout import CORNER_COLORS, LANES, LIGHT_PARAMS, vertex_attr_width
-from softras_cl.cl.program import build_kernel
+from softras_cl.cl.program import build_kernel, launch
 from softras_cl.raster.binning import Bins, bin_faces, face_setup, roi_tiles, tile_grid
 from softras_cl.raster.inputs import MeshInputs, check_cotangent, check_inputs
 from softras_cl.raster.memory import check_forward_memory
@@ -192,10 +192,10 @@ class SoftRasterizer:
         state = self._state_buffers(mesh.batch) if grads else None
         t = self._stage("upload", t, finish=True)
         images = self._run_forward(mesh, buffers, state)
-        packed = {n: self._download(n, b, mesh.batch, state is not None) for n, b in images.items()}
+        hosts, packed = self._download(images, mesh.batch, state is not None)
         self._sync()
-        self.pool.give(buf for _, buf in packed.values() if buf is not None)
-        crops = [packed[n][0] if n in packed else None for n in ("rgb", "alpha", "depth")]
+        self.pool.give(packed.values())
+        crops = [hosts.get(n) for n in ("rgb", "alpha", "depth")]
         saved = RasterContext(mesh, grads, bins, buffers, images, state) if grads else None
         if saved is not None:
             self.pool.give_when_dead(saved, [b for b in saved.device_buffers() if b is not self._dummy()])
@@ -273,7 +273,7 @@ class SoftRasterizer:
         out = {n: self.pool.take(npix * k * real.itemsize) for n, k in planes.items() if k}
         dummy = self._dummy()
         knl = self._kernel("soft_raster_fwd", (), state is not None)
-        knl(self.queue, (_round_up(g.ntx), g.hp, mesh.batch), GROUP, *self._geometry_args(mesh, bufs),
+        launch(knl, self.queue, (_round_up(g.ntx), g.hp, mesh.batch), GROUP, *self._geometry_args(mesh, bufs),
             *(real.type(c) for c in s.background),
             *(out.get(n, dummy) for n in ("rgb", "alpha", "depth")), *self._state_args(state))
         return out
@@ -306,11 +306,9 @@ class SoftRasterizer:
         kernel_grads = tuple(x for x in saved.grads if x != "colors" or {"attr", "tex"} & set(shapes))
         if not kernel_grads:    # colour gradients only, and no rgb cotangent: all zero
             return dict(pos=None, attr=None, light=None, tex=None, scale=scale)
-        # an output without a cotangent contributes zero; the kernel variant still reads its plane
-        staged = {n: self._upload_planes(n, c, mesh.batch, kernel_grads)
-                  for n, c in cot.items() if n[len("grad_"):] in s.outputs}
-        cot_bufs = {n: planes for n, (planes, _) in staged.items()}
-        g_dot = self._g_dot_image(saved, cot_bufs, kernel_grads)
+        # an output without a cotangent contributes zero; the kernel variant still reads its (zero) plane
+        cot_bufs, sources = self._cotangent_planes(saved, cot, kernel_grads)
+        g_dot = cot_bufs.pop("g_dot")
         nbytes = {k: math.prod(shape) * np.dtype(dtype).itemsize for k, (shape, dtype) in shapes.items()}
         out_bufs = {k: self.pool.take(n) for k, n in nbytes.items()}
         for k, buf in out_bufs.items():
@@ -321,7 +319,7 @@ class SoftRasterizer:
         knl = self._kernel("soft_raster_bwd", kernel_grads, True)
         t = self._stage("backward_prep", t, finish=True)
         dummy = self._dummy()
-        knl(self.queue, (_round_up(g.ntx), g.nty, mesh.batch), GROUP, *self._geometry_args(mesh, saved.buffers),
+        launch(knl, self.queue, (_round_up(g.ntx), g.nty, mesh.batch), GROUP, *self._geometry_args(mesh, saved.buffers),
             *(cot_bufs.get(n, dummy) for n in ("grad_rgb", "grad_alpha", "grad_depth")),
             dummy if g_dot is None else g_dot, *self._state_args(saved.state), real.type(scale),
             *(out_bufs.get(k, dummy) for k in ("pos", "attr", "light", "tex")))
@@ -330,8 +328,7 @@ class SoftRasterizer:
             tex = self.scratch.get("slot_tex", *shapes["tex"])
             self._transfers.append(cl.enqueue_copy(self.queue, tex, out_bufs["tex"], is_blocking=False))
         self._sync()
-        self.pool.give([*cot_bufs.values(), *self._pooled(src for _, src in staged.values()),
-                        *([g_dot] if g_dot is not None else []),
+        self.pool.give([*cot_bufs.values(), *sources, *([g_dot] if g_dot is not None else []),
                         *([out_bufs.pop("tex")] if tex is not None else [])])
         self._stage("backward", t, finish=True)
         return {**dict(pos=None, attr=None, light=None), **out_bufs, "tex": tex, "scale": scale}
@@ -451,22 +448,20 @@ class SoftRasterizer:
             self._dummy_buf = cl.Buffer(self.ctx, cl.mem_flags.READ_WRITE, 64)
         return self._dummy_buf
 
-    def _download(self, name: str, buf: cl.Buffer, batch: int, save_state: bool) -> tuple:
-        """Start reading output `name`'s (planes, B, Hp, Wp) device image into a fresh (B, H, W)
-        array, (B, H, W, 3) for rgb: directly for an unpadded single plane, else through a pooled
-        buffer that kernel planes_to_pixels fills. Returns (array, that buffer or None); the array
-        is valid and the buffer free after _sync() (one wait for all the downloads)."""
+    def _download(self, images: dict, batch: int, save_state: bool) -> tuple[dict, dict]:
+        """Start reading the forward's images ({name: (planes, B, Hp, Wp) device buffer}) into
+        fresh (B, H, W) arrays, (B, H, W, 3) for rgb, through pooled buffers that kernel
+        planes_to_pixels fills. Returns ({name: array}, {name: pooled buffer}); the arrays are
+        valid and the buffers free after _sync() (one wait for all the downloads)."""
         s, g = self.settings, self.grid
-        n_planes = 3 if name == "rgb" else 1
-        host = np.empty((batch, s.height, s.width) + ((3,) if name == "rgb" else ()), self.real)
-        packed = None
-        if n_planes > 1 or (g.hp, g.wp) != (s.height, s.width):
-            packed = self.pool.take(host.nbytes)
-            knl = self._kernel("planes_to_pixels", (), save_state)
-            knl(self.queue, (_round_up(g.ntx), s.height, batch), GROUP, *self._layout_args(), np.int32(n_planes),
-                buf, packed)
-        self._transfers.append(cl.enqueue_copy(self.queue, host, packed or buf, is_blocking=False))
-        return host, packed
+        hosts = {n: np.empty((batch, s.height, s.width) + ((3,) if n == "rgb" else ()), self.real) for n in images}
+        packed = {n: self.pool.take(a.nbytes) for n, a in hosts.items()}
+        dummy, names = self._dummy(), ("rgb", "alpha", "depth")
+        launch(self._kernel("planes_to_pixels", (), save_state), self.queue, (_round_up(g.ntx), s.height, batch),
+               GROUP, *self._layout_args(), *(images.get(n, dummy) for n in names), *(packed.get(n, dummy) for n in names))
+        for n, host in hosts.items():
+            self._transfers.append(cl.enqueue_copy(self.queue, host, packed[n], is_blocking=False))
+        return hosts, packed
 
     def _layout_args(self) -> list:
         """W, H, Wp, Hp, ntx: the first arguments of kernels planes_to_pixels and pixels_to_planes."""
@@ -478,34 +473,26 @@ class SoftRasterizer:
         self.queue.finish()
         self._transfers.clear()
 
-    def _upload_planes(self, name: str, image: np.ndarray | None, batch: int, kernel_grads: tuple) -> tuple:
-        """Cotangent `name` (B, H, W[, 3]; None = zeros) -> (pooled device buffer of its
-        (planes, B, Hp, Wp) planes in the kernel dtype, zero-padded, and the buffer kernel
-        pixels_to_planes fills them from: a pooled copy of the cotangent in the kernel dtype, to
-        give back after _sync(), or the dummy)."""
-        g = self.grid
-        n_planes = 3 if name == "grad_rgb" else 1
-        planes = self.pool.take(n_planes * batch * g.hp * g.wp * self.real.itemsize)
-        src = self._dummy() if image is None else self._to_device(np.ascontiguousarray(image, self.real))
-        knl = self._kernel("pixels_to_planes", kernel_grads, True)
-        knl(self.queue, (_round_up(g.ntx), g.hp, batch), GROUP, *self._layout_args(), np.int32(n_planes),
-            np.int32(image is not None), src, planes)
-        return planes, src
-
-    def _g_dot_image(self, saved: RasterContext, cot_bufs: dict, kernel_grads: tuple) -> cl.Buffer | None:
-        """Pooled device buffer of the per-pixel sum over rgb and depth channels of cotangent *
-        output (softmax backward), or None when the settings need none."""
+    def _cotangent_planes(self, saved: RasterContext, cot: dict, kernel_grads: tuple) -> tuple[dict, list]:
+        """Kernel soft_raster_cotangents: the cotangents (B, H, W[, 3]; None = zeros) of every
+        output as pooled device buffers of zero-padded (planes, B, Hp, Wp) planes in the kernel
+        dtype, and for softmax colours the g.out image (B, Hp, Wp). Returns ({"grad_rgb", ...:
+        planes, "g_dot": image (None without softmax colours)}, pooled buffers to give back after
+        _sync(): the planes' sources, device copies of the cotangents cast to the kernel dtype)."""
         s, g, batch = self.settings, self.grid, saved.mesh.batch
-        if s.color_agg != "softmax" or not {"rgb", "depth"} & set(s.outputs):
-            return None
-        out = self.pool.take(batch * g.hp * g.wp * self.real.itemsize)
-        dummy, i32 = self._dummy(), np.int32
-        knl = self._kernel("soft_raster_g_dot", kernel_grads, True)
-        knl(self.queue, (_round_up(g.ntx), g.hp, batch), GROUP, i32(s.height), i32(g.ntx), i32(g.hp), i32(g.wp),
-            cot_bufs.get("grad_rgb", dummy), cot_bufs.get("grad_depth", dummy),
-            saved.images.get("rgb", dummy), saved.images.get("depth", dummy), out)
-        return out
-
+        npix, itemsize = batch * g.hp * g.wp, self.real.itemsize
+        names = [n for n in ("grad_rgb", "grad_alpha", "grad_depth") if n[len("grad_"):] in s.outputs]
+        planes = {n: self.pool.take(npix * itemsize * (3 if n == "grad_rgb" else 1)) for n in names}
+        soft = s.color_agg == "softmax" and {"rgb", "depth"} & set(s.outputs)
+        planes["g_dot"] = self.pool.take(npix * itemsize) if soft else None
+        sources = {n: self._to_device(np.ascontiguousarray(cot[n], self.real)) for n in names if cot[n] is not None}
+        dummy, all_names = self._dummy(), ("grad_rgb", "grad_alpha", "grad_depth")
+        launch(self._kernel("soft_raster_cotangents", kernel_grads, True), self.queue,
+               (_round_up(g.ntx), g.hp, batch), GROUP, *self._layout_args(),
+               *(np.int32(n in sources) for n in all_names), *(sources.get(n, dummy) for n in all_names),
+               saved.images.get("rgb", dummy), saved.images.get("depth", dummy),
+               *(planes.get(n) or dummy for n in (*all_names, "g_dot")))
+        return planes, self._pooled(sources.values())
 
 def _round_up(n: int) -> int:
     """n rounded up to a whole number of work-groups along x (the kernels skip the extra items)."""

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyopencl as cl
 
-from softras_cl.cl.program import build_kernel
+from softras_cl.cl.program import build_kernel, launch
 from softras_cl.raster.binning import Bins
 from softras_cl.raster.pool import BufferPool
 
@@ -80,7 +80,7 @@ class GradSums:
         """Pooled buffer of (n_faces, width) per-face sums (`dtype`) of the (n_list, width) slot
         rows `slots` (real), grouped by the device copies of Bins.face_start and Bins.face_slots."""
         out = self.pool.take(n_faces * width * self.dtype.itemsize)
-        self._kernel("face_sums")(self.queue, (_round_up(n_faces),), GROUP, np.int32(n_faces),
+        launch(self._kernel("face_sums"), self.queue, (_round_up(n_faces),), GROUP, np.int32(n_faces),
                                   np.int32(width), face_start, face_slots, slots, out)
         return out
 
@@ -92,7 +92,7 @@ class GradSums:
         start, corners = self._corner_buffers(faces, n_vertices)
         total = faces.shape[0] * n_vertices
         out = self.pool.take(total * 3 * self.dtype.itemsize)
-        self._kernel("vertex_sums")(self.queue, (_round_up(total),), GROUP, np.int32(total),
+        launch(self._kernel("vertex_sums"), self.queue, (_round_up(total),), GROUP, np.int32(total),
                                     np.int32(face_width), np.int32(offset), start, corners, face_vals, out)
         return out
 
