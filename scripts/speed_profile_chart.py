@@ -6,8 +6,9 @@
 Samples of the main thread only (stacks from other threads, e.g. tqdm's monitor, are left
 out), seconds = samples / rate. A stack belongs to the first rule that matches it: any import
 frame -> start-up: imports; OpenCL program builds or binary loads -> other; anything under the
-report writers and atomic output files (the solver's checkpoints
-too) -> reports and outputs; pyopencl waits and enqueues -> kernels; else the
+report writers, the solver's writers (checkpoint, history, loss curve) and atomic output
+files -> reports and outputs; pyopencl waits and enqueues, and the rasteriser's own waits for
+the device (an innermost frame such as SoftRasterizer._sync) -> kernels; else the
 innermost project module on the stack (raster/cl -> rasteriser host, scene -> shading, camera,
 renderer, fitting/models -> face model, the rest of fitting and nlopt -> objective, losses,
 solver). Prints a markdown table and draws a stacked bar per profile.
@@ -22,10 +23,14 @@ CATEGORIES = ("start-up: imports", "kernels (host waits)", "rasteriser host", "s
               "face model", "objective, losses, solver", "reports and outputs", "other")
 REPORT_FRAMES = ("fitting/reports/", "fitting/recipes/face_texture.py", "softras_cl/io/outputs.py",
                  "softras_cl/io/meshes.py")
+SOLVER_WRITERS = "_Fit.write_"      # the solver's checkpoint, history and loss curve
 INNER = (("softras_cl/raster/", "rasteriser host"), ("softras_cl/cl/", "rasteriser host"),
          ("softras_cl/scene/", "shading, camera, renderer"), ("fitting/models/", "face model"),
          ("fitting/", "objective, losses, solver"), ("nlopt/", "objective, losses, solver"))
 WAITS = ("wait", "enqueue", "finish", "_download", "get")
+# the rasteriser's own frames that block on the device (queue.finish inside them is native code,
+# so py-spy shows them as the innermost frame)
+DEVICE_WAITS = ("._sync", ".wait", ".finish")
 
 
 def category(frames: list[str]) -> str:
@@ -36,8 +41,11 @@ def category(frames: list[str]) -> str:
         return "start-up: imports"
     if any("Program" in f and ("build" in f or "binary" in f) for f in frames):
         return "other"
-    if any(f.startswith(REPORT_FRAMES) for f in files):
+    if any(f.startswith(REPORT_FRAMES) for f in files) or any(f.startswith(SOLVER_WRITERS) for f in frames):
         return "reports and outputs"
+    leaf, leaf_file = frames[-1].split(" (", 1)[0], files[-1]
+    if leaf_file.startswith(("softras_cl/raster/", "softras_cl/cl/")) and leaf.endswith(DEVICE_WAITS):
+        return "kernels (host waits)"
     inner = "other"
     for frame, f in zip(frames, files):
         if f.startswith("pyopencl/") and any(w in frame for w in WAITS):

@@ -24,6 +24,11 @@ FIT = ROOT + ";fit_face (fitting/recipes/face.py:714);FaceObjective.photo_term (
     (";Renderer.forward (softras_cl/scene/renderer.py:109);SoftRasterizer._download "
      "(softras_cl/raster/rasterizer.py:367);enqueue_copy (pyopencl/__init__.py:1419);"
      "wait (pyopencl/__init__.py:1)", "kernels (host waits)"),
+    (";Renderer.forward (softras_cl/scene/renderer.py:109);SoftRasterizer.forward "
+     "(softras_cl/raster/rasterizer.py:201);SoftRasterizer._sync (softras_cl/raster/rasterizer.py:456)",
+     "kernels (host waits)"),
+    (";Renderer.backward (softras_cl/scene/renderer.py:130);GradSums.wait (softras_cl/raster/reduce.py:120)",
+     "kernels (host waits)"),
     (";Renderer.forward (softras_cl/scene/renderer.py:109);bin_faces (softras_cl/raster/binning.py:169)",
      "rasteriser host"),
     (";Renderer.forward (softras_cl/scene/renderer.py:106);vertex_normals (softras_cl/scene/shading.py:165)",
@@ -39,6 +44,8 @@ def test_innermost_project_module_decides(chart, tail, expected):
 def test_reports_and_imports_win_over_the_inner_frames(chart):
     report = ROOT + ";write_outputs (fitting/reports/face.py:260);draw (fitting/reports/face.py:101)"
     assert chart.category((report + ";bin_faces (softras_cl/raster/binning.py:169)").split(";")) == "reports and outputs"
+    plot = FIT + ";_Fit.write_plot (fitting/solver.py:290);Axes.plot (matplotlib/axes/_axes.py:1)"
+    assert chart.category(plot.split(";")) == "reports and outputs"
     lazy = report + ";_find_and_load (<frozen importlib._bootstrap>:1176)"
     assert chart.category(lazy.split(";")) == "start-up: imports"
 
