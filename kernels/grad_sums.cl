@@ -21,7 +21,9 @@ typedef real sum_t;
  * slots[face_slots[j]] for j in face_start[g] .. face_start[g + 1] - 1, and an entry with
  * face_slots[j] < 0 (outside a region of interest) adds 0. One work-item per face (global size
  * >= n_faces): one per (face, column) made the work-groups so many that launching them cost
- * more than the sums on a CPU device. */
+ * more than the sums on a CPU device. Up to SUM_COLUMNS columns at a time advance together, so
+ * each slot row is read once per chunk instead of once per column. */
+#define SUM_COLUMNS 9
 __kernel void face_sums(const int n_faces, const int width,
                         __global const int *face_start, __global const int *face_slots,
                         __global const real *slots, __global sum_t *sums)
@@ -30,14 +32,20 @@ __kernel void face_sums(const int n_faces, const int width,
     if (g >= n_faces)
         return;
     const int first = face_start[g], end = face_start[g + 1];
-    for (int c = 0; c < width; ++c) {
-        sum_t s = (sum_t)0;
+    for (int c0 = 0; c0 < width; c0 += SUM_COLUMNS) {
+        const int n = min(SUM_COLUMNS, width - c0);
+        sum_t s[SUM_COLUMNS];
+        for (int c = 0; c < n; ++c)
+            s[c] = (sum_t)0;
         for (int j = first; j < end; ++j) {
             const int k = face_slots[j];
-            const sum_t term = k < 0 ? (sum_t)0 : (sum_t)slots[(size_t)k * width + c];
-            s = j == first ? term : s + term;    /* the first term as is, like numpy's reductions */
+            for (int c = 0; c < n; ++c) {
+                const sum_t term = k < 0 ? (sum_t)0 : (sum_t)slots[(size_t)k * width + c0 + c];
+                s[c] = j == first ? term : s[c] + term;    /* the first term as is, like numpy's reductions */
+            }
         }
-        sums[(size_t)g * width + c] = s;
+        for (int c = 0; c < n; ++c)
+            sums[(size_t)g * width + c0 + c] = s[c];
     }
 }
 

@@ -424,11 +424,12 @@ class SoftRasterizer:
     # ---- buffers ---------------------------------------------------------------------------
     def _upload(self, mesh: MeshInputs, geom: np.ndarray, bins: Bins) -> FaceBuffers:
         """Device copies (pooled buffers) of the face records, colour inputs and bins, in the kernel dtype."""
-        arrays = dict(geom=geom.astype(self.real, order="C"), attr=mesh.face_attributes().astype(self.real),
-                      tex_image=mesh.texture_image_array().astype(self.real),
-                      light=(mesh.light if mesh.light is not None else np.zeros(0)).astype(self.real),
-                      tile_start=bins.tile_start, tile_faces=bins.tile_faces)
-        return FaceBuffers(**{name: self._to_device(np.ascontiguousarray(a)) for name, a in arrays.items()})
+        reals = dict(geom=geom, attr=mesh.face_attributes(), tex_image=mesh.texture_image_array(),
+                     light=mesh.light if mesh.light is not None else np.zeros(0))
+        # copies only where the dtype or the layout differs (geom: a transposed view)
+        arrays = {**{k: np.ascontiguousarray(a, self.real) for k, a in reals.items()},
+                  "tile_start": bins.tile_start, "tile_faces": bins.tile_faces}
+        return FaceBuffers(**{name: self._to_device(a) for name, a in arrays.items()})
 
     def _to_device(self, array: np.ndarray) -> cl.Buffer:
         """A pooled device copy of `array` (the dummy buffer when it is empty)."""
