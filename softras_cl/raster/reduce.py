@@ -58,6 +58,7 @@ class GradSums:
         self.ctx, self.queue, self.pool = ctx, queue, pool
         self.dtype = np.dtype(np.float64 if sum_double else real)
         self._defines = dict(SR_DOUBLE=np.dtype(real) == np.float64, SR_LANES=lanes, SR_SUM_DOUBLE=sum_double)
+        self._kernels: dict = {}
         self._index_key = None
         self._index_bufs = None
         # transfers in flight: pyopencl's transfer events wait for their transfer when freed,
@@ -65,7 +66,10 @@ class GradSums:
         self._transfers: list = []
 
     def _kernel(self, name: str) -> cl.Kernel:
-        return build_kernel(self.ctx, "grad_sums.cl", name, self._defines)
+        """Kernel `name`, kept (the program cache's lookup formats every flag, per call)."""
+        if name not in self._kernels:
+            self._kernels[name] = build_kernel(self.ctx, "grad_sums.cl", name, self._defines)
+        return self._kernels[name]
 
     def upload(self, array: np.ndarray) -> cl.Buffer:
         """A pooled device copy of the int32 `array`, enqueued: `array` must stay alive and
