@@ -274,8 +274,8 @@ class SoftRasterizer:
         dummy = self._dummy()
         knl = self._kernel("soft_raster_fwd", (), state is not None)
         launch(knl, self.queue, (_round_up(g.ntx), g.hp, mesh.batch), GROUP, *self._geometry_args(mesh, bufs),
-            *(real.type(c) for c in s.background),
-            *(out.get(n, dummy) for n in ("rgb", "alpha", "depth")), *self._state_args(state))
+               *(real.type(c) for c in s.background),
+               *(out.get(n, dummy) for n in ("rgb", "alpha", "depth")), *self._state_args(state))
         return out
 
     def _state_buffers(self, batch: int) -> PixelState:
@@ -320,9 +320,9 @@ class SoftRasterizer:
         t = self._stage("backward_prep", t, finish=True)
         dummy = self._dummy()
         launch(knl, self.queue, (_round_up(g.ntx), g.nty, mesh.batch), GROUP, *self._geometry_args(mesh, saved.buffers),
-            *(cot_bufs.get(n, dummy) for n in ("grad_rgb", "grad_alpha", "grad_depth")),
-            dummy if g_dot is None else g_dot, *self._state_args(saved.state), real.type(scale),
-            *(out_bufs.get(k, dummy) for k in ("pos", "attr", "light", "tex")))
+               *(cot_bufs.get(n, dummy) for n in ("grad_rgb", "grad_alpha", "grad_depth")),
+               dummy if g_dot is None else g_dot, *self._state_args(saved.state), real.type(scale),
+               *(out_bufs.get(k, dummy) for k in ("pos", "attr", "light", "tex")))
         tex = None
         if "tex" in shapes:
             tex = self.scratch.get("slot_tex", *shapes["tex"])
@@ -465,7 +465,7 @@ class SoftRasterizer:
         return hosts, packed
 
     def _layout_args(self) -> list:
-        """W, H, Wp, Hp, ntx: the first arguments of kernels planes_to_pixels and pixels_to_planes."""
+        """W, H, Wp, Hp, ntx: the first arguments of kernels planes_to_pixels and soft_raster_cotangents."""
         s, g, i32 = self.settings, self.grid, np.int32
         return [i32(s.width), i32(s.height), i32(g.wp), i32(g.hp), i32(g.ntx)]
 
@@ -494,6 +494,7 @@ class SoftRasterizer:
                saved.images.get("rgb", dummy), saved.images.get("depth", dummy),
                *(planes.get(n) or dummy for n in (*all_names, "g_dot")))
         return planes, self._pooled(sources.values())
+
 
 def _round_up(n: int) -> int:
     """n rounded up to a whole number of work-groups along x (the kernels skip the extra items)."""
