@@ -246,27 +246,30 @@ class Camera:
             return cam[..., 0] / cam[..., 2], cam[..., 1] / cam[..., 2]
         return cam[..., 0], cam[..., 1]
 
-    def project_vjp(self, ctx: ProjectionContext, grad_screen) -> dict:
+    def project_vjp(self, ctx: ProjectionContext, grad_screen, camera: bool = True) -> dict:
         """dL/dscreen (B, V, 3) -> dict(vertices=same shape as given to project, rotation=(3,),
-        translation=(3,), focal=(2,) [dL/dfx, dL/dfy]), all float64."""
+        translation=(3,), focal=(2,) [dL/dfx, dL/dfy]), all float64; with camera=False only
+        "vertices" (the camera's own gradients are not computed)."""
         g = _cotangent("grad_screen", grad_screen, ctx.cam_points.shape, ctx.batched)
         k = self._ndc_scale()
         cam = ctx.cam_points
         a, b = self._plane(cam)
         ga = k * self.fx * g[..., 0]                     # dL/da, a = X/Z or X
         gb = -k * self.fy * g[..., 1]
-        focal = np.array([k * np.sum(g[..., 0] * a), -k * np.sum(g[..., 1] * b)])
         if self.projection == "perspective":
             inv_z = 1.0 / cam[..., 2]
             g_cam = np.stack([ga * inv_z, gb * inv_z, g[..., 2] - (ga * a + gb * b) * inv_z], axis=-1)
         else:
             g_cam = np.stack([ga, gb, g[..., 2]], axis=-1)
         g_verts = g_cam @ ctx.R
+        vertices = dict(vertices=g_verts if ctx.batched else g_verts[0])
+        if not camera:
+            return vertices
+        focal = np.array([k * np.sum(g[..., 0] * a), -k * np.sum(g[..., 1] * b)])
         # sums over views and points as BLAS products (10x faster than einsum and sum(axis=(0, 1)))
         flat = g_cam.reshape(-1, 3)
         g_R = flat.T @ ctx.vertices.reshape(-1, 3)
-        return dict(vertices=g_verts if ctx.batched else g_verts[0],
-                    rotation=rodrigues_vjp(ctx.rotation, g_R)["omega"],
+        return dict(vertices, rotation=rodrigues_vjp(ctx.rotation, g_R)["omega"],
                     translation=np.ones(len(flat)) @ flat, focal=focal)
 
     def project_pixels(self, points) -> tuple[np.ndarray, ProjectionContext]:

@@ -122,7 +122,8 @@ class Renderer:
             raise ValueError("output: forward() was called without grads=...; nothing to differentiate")
         g_raster = saved.raster.backward(saved.raster_out, grad_rgb, grad_alpha, grad_depth)
         g_shade = self._shading_vjp(saved, g_raster)
-        g_cams = [cam.project_vjp(ctx, g_raster["vertices"][b:b + 1]) if "vertices" in g_raster else None
+        g_cams = [cam.project_vjp(ctx, g_raster["vertices"][b:b + 1], camera="camera" in saved.grads)
+                  if "vertices" in g_raster else None
                   for b, (cam, ctx) in enumerate(zip(saved.cameras, saved.cam_ctx))]
         return self._collect(saved, g_raster, g_shade, g_cams)
 

@@ -202,6 +202,8 @@ def test_project_vjp_vs_fd(cam, batched):
     assert_grad(g["translation"], fd_gradient(lambda t: loss(cam.with_params(translation=t)),
                                               cam.translation.copy()))
     assert_grad(g["focal"], fd_gradient(lambda f: loss(cam.with_params(fx=f[0], fy=f[1])), cam.focal))
+    vertices_only = cam.project_vjp(ctx, G, camera=False)      # the camera's gradients skipped
+    assert list(vertices_only) == ["vertices"] and np.array_equal(vertices_only["vertices"], g["vertices"])
 
 
 def test_project_vjp_accepts_unbatched_cotangent():
