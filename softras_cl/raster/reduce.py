@@ -85,7 +85,7 @@ class GradSums:
         rows `slots` (real), grouped by the device copies of Bins.face_start and Bins.face_slots."""
         out = self.pool.take(n_faces * width * self.dtype.itemsize)
         launch(self._kernel("face_sums"), self.queue, (_round_up(n_faces),), GROUP, np.int32(n_faces),
-                                  np.int32(width), face_start, face_slots, slots, out)
+               np.int32(width), face_start, face_slots, slots, out)
         return out
 
     def vertex_sums(self, face_vals: cl.Buffer, face_width: int, offset: int, faces: np.ndarray,
@@ -97,7 +97,7 @@ class GradSums:
         total = faces.shape[0] * n_vertices
         out = self.pool.take(total * 3 * self.dtype.itemsize)
         launch(self._kernel("vertex_sums"), self.queue, (_round_up(total),), GROUP, np.int32(total),
-                                    np.int32(face_width), np.int32(offset), start, corners, face_vals, out)
+               np.int32(face_width), np.int32(offset), start, corners, face_vals, out)
         return out
 
     def _corner_buffers(self, faces: np.ndarray, n_vertices: int) -> tuple[cl.Buffer, cl.Buffer]:
