@@ -144,3 +144,18 @@ def test_a_command_imports_only_its_own_module():
             "choices = build_parser()._subparsers._group_actions[0].choices\n"
             "assert sorted(choices) == sorted(COMMANDS)\n")
     run_python(code)
+
+
+def test_bench_face_imports_the_mitsuba_comparison_only_when_asked():
+    """Start-up: `bench face --renderers softras` does not import the Mitsuba comparison (with
+    trimesh, about 0.9 s), while --renderers mitsuba still checks that Mitsuba is installed."""
+    code = ("import sys\n"
+            "from softras_cl.bench.face import parse_renderers\n"
+            "assert parse_renderers('softras') == ['softras']\n"
+            "assert 'softras_cl.validate.mitsuba' not in sys.modules\n"
+            "try:\n"
+            "    parse_renderers('softras,mitsuba')\n"
+            "except Exception as e:\n"
+            "    assert 'Mitsuba 3' in str(e), e\n"
+            "assert 'softras_cl.validate.mitsuba' in sys.modules\n")
+    run_python(code)
