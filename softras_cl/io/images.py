@@ -110,13 +110,14 @@ def pil_to_array(img) -> tuple[np.ndarray, float]:
 
 def _to_linear_rgb(data: np.ndarray, maxval: float) -> np.ndarray:
     """(H, W, C) integers, C in {1, 2, 3, 4}, sRGB -> (H, W, 3|4) float64 linear (+ alpha)."""
-    x = data.astype(np.float64) / maxval
-    channels = x.shape[-1]
-    if channels in (1, 2):                            # grey (+ alpha) -> RGB (+ alpha)
-        x = np.concatenate([np.repeat(x[..., :1], 3, axis=-1), x[..., 1:]], axis=-1)
-    rgb = to_linear(x[..., :3])
-    if x.shape[-1] == 4:
-        return np.concatenate([rgb, x[..., 3:]], axis=-1)
+    levels = np.arange(int(maxval) + 1) / maxval
+    # each stored level decoded once and looked up: the same values as decoding every pixel
+    # (to_linear is elementwise), without a power per pixel of a many-megapixel photo
+    decoded = to_linear(levels)
+    grey = data.shape[-1] in (1, 2)                   # grey (+ alpha) -> RGB (+ alpha)
+    rgb = decoded[np.repeat(data[..., :1], 3, axis=-1) if grey else data[..., :3]]
+    if data.shape[-1] in (2, 4):
+        return np.concatenate([rgb, levels[data[..., -1:]]], axis=-1)
     return rgb
 
 

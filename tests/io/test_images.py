@@ -166,3 +166,32 @@ def test_png_written_with_fast_compression(tmp_path):
     write_figure(fig, tmp_path / "fig.png", **PNG_OPTIONS)
     assert _zlib_level_field(tmp_path / "default.png") == 2
     assert _zlib_level_field(tmp_path / "a.png") == 0 and _zlib_level_field(tmp_path / "fig.png") == 0
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+@pytest.mark.parametrize("channels", [1, 2, 3, 4])
+def test_read_decodes_every_level_as_to_linear_does_bit_for_bit(tmp_path, bits, channels):
+    """read_image decodes through a table of levels: it must give the bits that decoding each
+    pixel with to_linear gives, for every level, every channel layout, alpha undecoded."""
+    maxval = 2 ** bits - 1
+    levels = np.arange(maxval + 1) if bits == 8 else np.r_[0:256, 32000:32256, 65280:65536]
+    data = np.stack([np.roll(levels, 17 * c) for c in range(channels)], -1)[None]
+    data = data.astype(np.uint8 if bits == 8 else np.uint16)
+    path = tmp_path / "levels.png"
+    if bits == 8:
+        mode = {1: "L", 2: "LA", 3: "RGB", 4: "RGBA"}[channels]
+        Image.fromarray(data if channels > 1 else data[..., 0], mode=mode).save(path)
+    else:
+        import png
+        writer = png.Writer(width=data.shape[1], height=1, greyscale=channels < 3,
+                            alpha=channels in (2, 4), bitdepth=16)
+        with open(path, "wb") as f:
+            writer.write(f, data.reshape(1, -1))
+    x = data / float(maxval)
+    colour = x[..., :1].repeat(3, -1) if channels < 3 else x[..., :3]
+    expected = to_linear(colour)
+    if channels in (2, 4):
+        expected = np.concatenate([expected, x[..., -1:]], -1)
+    got = read_image(path)
+    assert got.dtype == np.float64 and got.shape == expected.shape
+    np.testing.assert_array_equal(got.view(np.int64), expected.view(np.int64))
