@@ -33,9 +33,13 @@ PNG_COMPRESSION = 1
 PNG_OPTIONS = dict(pil_kwargs={"compress_level": PNG_COMPRESSION})
 
 
-def _signed_power(x: np.ndarray, p: float) -> np.ndarray:
-    """sign(x) |x|^p: the curves' extension to negative values."""
-    return np.sign(x) * np.abs(x) ** p
+def _curve(x: np.ndarray, knee: float, below, above) -> np.ndarray:
+    """below(x) where x <= knee, else above(x) (NaN included), as float64 of x's shape; above,
+    the power, is evaluated on those values only (it is most of the cost)."""
+    out = np.array(below(x), dtype=np.float64)
+    upper = ~(x <= knee)
+    out[upper] = above(x[upper])
+    return out
 
 
 _LINEAR_KNEE = 0.0031308
@@ -45,13 +49,13 @@ _ENCODED_KNEE = 1.055 * _LINEAR_KNEE ** (1.0 / 2.4) - 0.055   # 0.0404499..., wh
 def to_linear(srgb) -> np.ndarray:
     """sRGB-encoded values (any shape) -> linear values, float64 (IEC 61966-2-1 decoding)."""
     v = np.asarray(srgb, dtype=np.float64)
-    return np.where(v <= _ENCODED_KNEE, v / 12.92, _signed_power((v + 0.055) / 1.055, 2.4))
+    return _curve(v, _ENCODED_KNEE, lambda v: v / 12.92, lambda v: ((v + 0.055) / 1.055) ** 2.4)
 
 
 def to_srgb(linear) -> np.ndarray:
     """Linear values (any shape) -> sRGB-encoded values, float64 (IEC 61966-2-1 encoding)."""
     x = np.asarray(linear, dtype=np.float64)
-    return np.where(x <= _LINEAR_KNEE, x * 12.92, 1.055 * _signed_power(x, 1.0 / 2.4) - 0.055)
+    return _curve(x, _LINEAR_KNEE, lambda x: x * 12.92, lambda x: 1.055 * x ** (1.0 / 2.4) - 0.055)
 
 
 # ---------------------------------------------------------------------------------------------
