@@ -11,6 +11,7 @@ Order of choice (`select_device`):
 """
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import re
@@ -35,8 +36,10 @@ NO_PLATFORM_HELP = (
 _contexts: dict = {}
 
 
+@functools.cache
 def _entries() -> list[tuple[int, int, cl.Platform, cl.Device]]:
-    """All (platform index, device index, platform, device); RuntimeError if there are none."""
+    """All (platform index, device index, platform, device); RuntimeError if there are none.
+    Enumerated once per process (a few ms on PoCL, and every renderer asks for its device)."""
     try:
         platforms = cl.get_platforms()
     except cl.Error as e:

@@ -86,10 +86,24 @@ def test_no_platform_message(monkeypatch, broken):
             raise cl.LogicError("clGetPlatformIDs failed: PLATFORM_NOT_FOUND_KHR")
         return []
     monkeypatch.setattr(cl, "get_platforms", fake)
-    for call in (device.select_device, device.list_devices):
-        with pytest.raises(RuntimeError, match="pip install pocl-binary-distribution") as e:
-            call()
-        assert "pocl-opencl-icd" in str(e.value)
+    device._entries.cache_clear()          # the enumeration is kept per process: redo it
+    try:
+        for call in (device.select_device, device.list_devices):
+            with pytest.raises(RuntimeError, match="pip install pocl-binary-distribution") as e:
+                call()
+            assert "pocl-opencl-icd" in str(e.value)
+    finally:
+        device._entries.cache_clear()
+
+
+def test_devices_are_enumerated_once(monkeypatch):
+    device._entries.cache_clear()
+    calls = []
+    real = cl.get_platforms
+    monkeypatch.setattr(cl, "get_platforms", lambda: calls.append(1) or real())
+    first = device.select_device()
+    assert device.select_device() == first and len(device.list_devices()) >= 1
+    assert len(calls) == 1
 
 
 def test_capabilities_and_context_cache():
