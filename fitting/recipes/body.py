@@ -451,7 +451,7 @@ class BodyObjective:
         value, g = losses.landmarks_2d(points, self.target.joints, self.target.joint_weights,
                                        self.robust_px)
         factor = len(points) * (1.0 if self.robust_px is None else self.robust_px ** 2)
-        g_3d = self.scene.camera.project_pixels_vjp(ctx, g["points"] * factor)["vertices"]
+        g_3d = self.scene.camera.project_pixels_vjp(ctx, g["points"] * factor, camera=False)["vertices"]
         return value * factor, {"joints": g_3d}
 
     def prior_terms(self, values: dict, w: dict) -> dict:

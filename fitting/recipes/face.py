@@ -348,6 +348,7 @@ class FaceScene:
         self.settings = RasterSettings(image_size=self.image_size, outputs=("rgb", "alpha"),
                                        near=near, far=far, dtype=dtype, alpha_agg=alpha_agg)
         self.renderer = Renderer(self.settings, shading="vertex")
+        self._drawn: tuple = (None, None, None, None)    # see _render_settings
         self._camera: tuple[float, Camera] | None = None
 
     def set_depth_range(self, translation) -> None:
@@ -368,6 +369,15 @@ class FaceScene:
             self._camera = (focal, self._camera[1].with_params(fx=focal, fy=focal))
         return self._camera[1]
 
+    def _render_settings(self, sigma: float, gamma: float) -> RasterSettings:
+        """self.settings with this sigma and gamma, made (and validated) once for every
+        evaluation of a stage: the last ones are kept with what they were made from."""
+        settings, last_sigma, last_gamma, made = self._drawn
+        if settings is not self.settings or last_sigma != sigma or last_gamma != gamma:
+            made = dataclasses.replace(self.settings, sigma=sigma, gamma=gamma)
+            self._drawn = (self.settings, sigma, gamma, made)
+        return made
+
     def geometry(self, values: dict) -> tuple[np.ndarray, GeometryContext]:
         """-> (world vertices (V, 3) float64, GeometryContext for geometry_vjp)."""
         shape, shape_ctx = self.model.shape(values["id"], values["exp"])
@@ -386,7 +396,7 @@ class FaceScene:
         (for the report); world: the world vertices if already computed; roi: None or an (H, W)
         bool mask, the only pixels needed (Renderer.forward: other screen tiles are not
         rasterised)."""
-        self.renderer.settings = dataclasses.replace(self.settings, sigma=sigma, gamma=gamma)
+        self.renderer.settings = self._render_settings(sigma, gamma)
         world = self.geometry(values)[0] if world is None else world
         albedo = self.model.albedo(values["albedo"])[0] if albedo is None else albedo
         light = SHLight(values["sh"]) if light is None else light
@@ -594,7 +604,7 @@ class FaceObjective:
         points, ctx = camera.project_pixels(landmarks)
         value, g = losses.landmarks_2d(points, self.target, self.landmark_weights)
         n = len(points)
-        g_cam = camera.project_pixels_vjp(ctx, g["points"] * n)
+        g_cam = camera.project_pixels_vjp(ctx, g["points"] * n, camera="focal")
         return value * n, dict(world=model.landmarks_vjp(landmark_ctx, g_cam["vertices"])["vertices"],
                                focal=np.array([g_cam["focal"].sum()]))
 
@@ -661,7 +671,7 @@ class FaceObjective:
         sh and focal."""
         albedo, albedo_ctx = self.scene.model.albedo(values["albedo"])
         # only the face region's tiles are rasterised: the loss and its gradient are the same
-        out = self.scene.render(values, sigma, gamma, grads=("vertices", "albedo", "light", "camera"),
+        out = self.scene.render(values, sigma, gamma, grads=("vertices", "albedo", "light", "focal"),
                                 albedo=albedo, world=world, roi=self.mask)
         pixels = max(int(self.mask.sum()), 1)
         if self._robust_loss is None:
@@ -674,7 +684,7 @@ class FaceObjective:
         return value * count, dict(world=g_img["vertices"],
                                    albedo=self.scene.model.albedo_vjp(albedo_ctx, g_img["albedo"])["coeffs"],
                                    sh=g_img["light"]["coefficients"],
-                                   focal=np.array([g_img["camera"]["focal"].sum()]))
+                                   focal=np.array([g_img["focal"].sum()]))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -6,7 +6,8 @@
 
 `Renderer.backward` runs the vector-Jacobian products of those stages in reverse and returns
 gradients for exactly the groups asked for in `forward(grads=...)`: "vertices" (world),
-"albedo" (or the unlit colour input), "camera" (rotation, translation, focal per view) and
+"albedo" (or the unlit colour input), "camera" (rotation, translation, focal per view),
+"focal" (the focal lengths alone, for a caller that needs no other camera gradient) and
 "light" (its parameters). Conventions: docs/scene.md and docs/conventions.md.
 """
 from __future__ import annotations
@@ -23,7 +24,7 @@ from softras_cl.raster.rasterizer import RasterOutput, SoftRasterizer
 from softras_cl.raster.settings import RasterSettings
 
 SHADINGS = ("vertex", "face", "pixel", "none")
-GRAD_GROUPS = ("vertices", "albedo", "camera", "light")
+GRAD_GROUPS = ("vertices", "albedo", "camera", "light", "focal")
 
 
 @dataclass
@@ -81,6 +82,7 @@ class Renderer:
         self.settings, self.shading = settings, shading
         self.device, self.context, self.queue = device, context, queue
         self._rasterizers: dict = {}
+        self._settings: dict = {}       # (settings, texture, lighting, projection) -> drawn with
 
     def forward(self, vertices, faces, cameras, albedo=None, light=None, face_textures=None,
                 texture_image=None, uvs=None, grads=(), roi=None) -> RenderOutput:
@@ -116,13 +118,15 @@ class Renderer:
         shape). Returns {group: gradient} for the groups passed to forward(grads=...):
         vertices (shape given), albedo (shape given; for unlit textures the texture's shape),
         camera (a dict of rotation (3,), translation (3,), focal (2,) per view: a list when a
-        list of cameras was given), light (dict of the light's parameters)."""
+        list of cameras was given), focal ((2,) [dL/dfx, dL/dfy] per view, likewise: camera's
+        focal without the rest of camera), light (dict of the light's parameters)."""
         saved = output.saved
         if saved is None or not saved.grads:
             raise ValueError("output: forward() was called without grads=...; nothing to differentiate")
         g_raster = saved.raster.backward(saved.raster_out, grad_rgb, grad_alpha, grad_depth)
         g_shade = self._shading_vjp(saved, g_raster)
-        g_cams = [cam.project_vjp(ctx, g_raster["vertices"][b:b + 1], camera="camera" in saved.grads)
+        camera = "camera" in saved.grads or ("focal" if "focal" in saved.grads else False)
+        g_cams = [cam.project_vjp(ctx, g_raster["vertices"][b:b + 1], camera=camera)
                   if "vertices" in g_raster else None
                   for b, (cam, ctx) in enumerate(zip(saved.cameras, saved.cam_ctx))]
         return self._collect(saved, g_raster, g_shade, g_cams)
@@ -153,8 +157,12 @@ class Renderer:
                    "uv" if "texture_image" in color_args else "vertex")
         lighting = ("none" if self.shading != "pixel" else
                     "sh" if isinstance(light, shading.SHLight) else "lambert")
-        s = self.settings.replace(texture=texture, lighting=lighting,
-                                  perspective_correct=projection == "perspective")
+        # a fit draws with the same settings every evaluation: made (and validated) once
+        key = (self.settings, texture, lighting, projection)
+        s = self._settings.get(key)
+        if s is None:
+            s = self._settings[key] = self.settings.replace(
+                texture=texture, lighting=lighting, perspective_correct=projection == "perspective")
         if s not in self._rasterizers:
             self._rasterizers[s] = SoftRasterizer(s, device=self.device, context=self.context,
                                                    queue=self.queue)
@@ -186,6 +194,8 @@ class Renderer:
                         for b, (cam, ctx, g) in enumerate(zip(saved.cameras, saved.cam_ctx, g_cams))]
             out["camera"] = ({k: sum(v[k] for v in per_view) for k in per_view[0]}
                              if saved.single_camera else per_view)
+        if "focal" in grads:
+            out["focal"] = sum(g["focal"] for g in g_cams) if saved.single_camera else [g["focal"] for g in g_cams]
         if "light" in grads:
             out["light"] = {k: g_shade[k] for k in saved.light.params()}
         return out
@@ -266,6 +276,6 @@ def _check_grad_groups(grads, shading_mode: str) -> tuple:
 
 def _raster_grads(grads: tuple, shading_mode: str) -> tuple:
     """What the rasteriser must differentiate for the requested groups."""
-    positions = {"vertices", "camera"} & set(grads)
+    positions = {"vertices", "camera", "focal"} & set(grads)
     colors = {"albedo", "light"} & set(grads) or (positions and shading_mode != "none")
     return (("vertices",) if positions else ()) + (("colors",) if colors else ())

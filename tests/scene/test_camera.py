@@ -204,6 +204,16 @@ def test_project_vjp_vs_fd(cam, batched):
     assert_grad(g["focal"], fd_gradient(lambda f: loss(cam.with_params(fx=f[0], fy=f[1])), cam.focal))
     vertices_only = cam.project_vjp(ctx, G, camera=False)      # the camera's gradients skipped
     assert list(vertices_only) == ["vertices"] and np.array_equal(vertices_only["vertices"], g["vertices"])
+    focal_only = cam.project_vjp(ctx, G, camera="focal")      # rotation and translation skipped
+    assert sorted(focal_only) == ["focal", "vertices"]
+    assert all(np.array_equal(focal_only[k], g[k]) for k in focal_only)
+
+
+def test_project_vjp_rejects_an_unknown_camera_choice():
+    cam = next(cameras())
+    out, ctx = cam.project(RNG.uniform(-1, 1, (4, 3)))
+    with pytest.raises(ValueError, match="camera must be True, False or 'focal'"):
+        cam.project_vjp(ctx, np.zeros(out.shape), camera="rotation")
 
 
 def test_project_vjp_accepts_unbatched_cotangent():
@@ -410,6 +420,9 @@ def test_project_pixels_vjp_vs_fd():
     f_fd = (np.sum(G * cam.with_params(fx=cam.fx + h, fy=cam.fy + h).project_pixels(pts)[0])
             - np.sum(G * cam.with_params(fx=cam.fx - h, fy=cam.fy - h).project_pixels(pts)[0])) / (2 * h)
     np.testing.assert_allclose(g["focal"].sum(), f_fd, rtol=1e-6)
+    focal_only = cam.project_pixels_vjp(ctx, G, camera="focal")
+    assert sorted(focal_only) == ["focal", "vertices"]
+    assert all(np.array_equal(focal_only[k], g[k]) for k in focal_only)
 
 
 def test_project_pixels_rejects_batches_and_bad_cotangents():

@@ -142,6 +142,25 @@ def test_only_requested_gradients_are_returned():
     assert out.saved.raster_out.saved.grads == ("colors",)   # no position adjoint compiled
 
 
+@pytest.mark.parametrize("single", [True, False], ids=["one camera", "camera list"])
+def test_focal_group_is_the_camera_groups_focal_to_the_bit(single):
+    """grads=("focal",) returns camera's focal gradients (checked against finite differences
+    above) and nothing else, for one Camera (summed over the batch) or a list."""
+    v, f, albedo = scene()
+    verts = np.stack([v, v + [0.05, -0.02, 0.1]])
+    cams = cameras()[0] if single else cameras()[:2]
+    cot = _cot(2, seed=8)
+    renderer = Renderer(settings())
+    full, focal = (renderer.forward(verts, f, cams, albedo=albedo, grads=grads) for grads in
+                   (("vertices", "camera"), ("focal",)))
+    want = renderer.backward(full, grad_rgb=cot["rgb"], grad_alpha=cot["alpha"])["camera"]
+    got = renderer.backward(focal, grad_rgb=cot["rgb"], grad_alpha=cot["alpha"])
+    assert set(got) == {"focal"} and focal.saved.raster_out.saved.grads == ("vertices", "colors")
+    want = [want["focal"]] if single else [w["focal"] for w in want]
+    for g, w in zip([got["focal"]] if single else got["focal"], want, strict=True):
+        assert g.shape == (2,) and np.array_equal(g, w)
+
+
 def test_own_context_and_queue_reach_the_rasterizer_and_change_nothing():
     import pyopencl as cl
 

@@ -193,16 +193,26 @@ def _vertex_normals_reference(verts, faces, cot):
     return normals, g_verts
 
 
+@pytest.mark.parametrize("all_used", [False, True])
 @pytest.mark.parametrize("batched_faces", [False, True])
-def test_vertex_normals_and_vjp_equal_plain_numpy_to_the_bit(batched_faces):
+def test_vertex_normals_and_vjp_equal_plain_numpy_to_the_bit(batched_faces, all_used):
+    """all_used: every vertex has a non-zero normal (the unmasked division); else some
+    vertices are unused and some faces degenerate (zero lengths)."""
     rng = np.random.default_rng(7)
     verts = rng.normal(size=(2, 40, 3))
-    faces = rng.integers(0, 36, size=(90, 3))      # vertices 36-39 unused
-    faces[:4, 1] = faces[:4, 0]                    # degenerate faces
+    if all_used:
+        faces = np.concatenate([[np.roll(np.arange(40), -k) for k in range(3)][i][:, None]
+                                for i in range(3)], axis=1)
+        faces = np.concatenate([faces, rng.integers(0, 40, size=(50, 3))])
+        faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
+    else:
+        faces = rng.integers(0, 36, size=(90, 3))      # vertices 36-39 unused
+        faces[:4, 1] = faces[:4, 0]                    # degenerate faces
     faces = np.stack([faces, faces[::-1, [1, 2, 0]]]) if batched_faces else faces
     cot = rng.normal(size=verts.shape)
     normals, ctx = vertex_normals(verts, faces)
     ref_normals, ref_grad = _vertex_normals_reference(verts, np.broadcast_to(faces, (2,) + faces.shape[-2:]), cot)
+    assert (np.linalg.norm(ref_normals, axis=-1) > 0).all() == all_used
     np.testing.assert_array_equal(normals, ref_normals)
     np.testing.assert_array_equal(vertex_normals_vjp(ctx, cot)["vertices"], ref_grad)
 
