@@ -149,7 +149,9 @@ class GemanMcClure:
     """:func:`image_geman_mcclure` with its target, scale and mask fixed, for a loss evaluated
     many times (a fit's stage): their checks, the pixels of positive weight and those pixels'
     target colours are taken once, here. ``loss(pred) -> (value, {"pred": gradient})``, the
-    same values to the bit as image_geman_mcclure(pred, target, scale, mask).
+    same values to the bit as image_geman_mcclure(pred, target, scale, mask);
+    ``loss(pred, grad_scale)`` returns the gradient times grad_scale (the same bits as
+    multiplying it afterwards, without another pass over the whole image).
     """
 
     def __init__(self, target, scale, mask=None):
@@ -173,7 +175,7 @@ class GemanMcClure:
         self.elements = (self.keep * channels + np.arange(channels)[:, None]).reshape(-1)
         self.target = t.reshape(-1).take(self.elements).reshape(channels, -1)
 
-    def __call__(self, pred) -> tuple[float, dict]:
+    def __call__(self, pred, grad_scale: float = 1.0) -> tuple[float, dict]:
         p = real_array("pred", pred)
         if p.shape != self.shape:
             raise ValueError(f"pred: shape {p.shape} does not match target shape {self.shape}")
@@ -189,7 +191,7 @@ class GemanMcClure:
             rho = np.where(z2 <= 1.0, _channel_sum(np.square(r)) * w, (s * s) * (1.0 - w))
             weighted = np.zeros(self.shape[:2])
             np.put(weighted, self.keep, self.weights * rho)
-            np.put(grad, self.elements, (self.weights / self.total) * ((2.0 * w * w) * r))
+            np.put(grad, self.elements, (self.weights / self.total) * ((2.0 * w * w) * r) * grad_scale)
         return float(weighted.sum() / self.total), {"pred": grad.reshape(p.shape)}
 
 

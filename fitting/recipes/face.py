@@ -677,10 +677,12 @@ class FaceObjective:
         if self._robust_loss is None:
             value, g = losses.image_l2(out.rgb[0], self.image, self.mask)
             count = 3.0 * pixels
+            g_rgb = g["pred"][None] * count
         else:
-            value, g = self._robust_loss(out.rgb[0])
             count = float(pixels)
-        g_img = self.scene.renderer.backward(out, grad_rgb=g["pred"][None] * count)
+            value, g = self._robust_loss(out.rgb[0], grad_scale=count)
+            g_rgb = g["pred"][None]
+        g_img = self.scene.renderer.backward(out, grad_rgb=g_rgb)
         return value * count, dict(world=g_img["vertices"],
                                    albedo=self.scene.model.albedo_vjp(albedo_ctx, g_img["albedo"])["coeffs"],
                                    sh=g_img["light"]["coefficients"],

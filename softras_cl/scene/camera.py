@@ -43,7 +43,7 @@ def _points(name: str, value) -> tuple[np.ndarray, bool]:
         raise ValueError(f"{name} must have shape (V, 3) or (B, V, 3) with B, V >= 1, got {arr.shape}")
     check_finite(name, arr)
     batched = arr.ndim == 3
-    arr = arr.astype(np.float64)
+    arr = arr.astype(np.float64, copy=False)
     return (arr if batched else arr[None]), batched
 
 
@@ -53,7 +53,7 @@ def _cotangent(name: str, value, shape: tuple, batched: bool) -> np.ndarray:
     if not batched and arr.shape == shape[1:]:
         arr = arr[None]
     check_shape(name, arr, shape)
-    return check_finite(name, arr).astype(np.float64)
+    return check_finite(name, arr).astype(np.float64, copy=False)
 
 
 def _check_rotation_matrix(name: str, R) -> np.ndarray:

@@ -400,6 +400,9 @@ def test_geman_mcclure_equals_the_whole_image_formula_to_the_bit(rng, shape, mas
     for got, g in (losses.image_geman_mcclure(pred, target, s, mask), losses.GemanMcClure(target, s, mask)(pred)):
         assert got == value
         np.testing.assert_array_equal(g["pred"], grad)
+    got, g = losses.GemanMcClure(target, s, mask)(pred, grad_scale=37.0)    # the caller's weight
+    assert got == value
+    np.testing.assert_array_equal(g["pred"], grad * 37.0)
 
 
 def test_prepared_geman_mcclure_checks_its_inputs():
