@@ -106,33 +106,48 @@ def footprint_margin(s: RasterSettings) -> float:
     return math.sqrt(s.sigma * math.log(1.0 / s.dist_eps - 1.0))
 
 
+def box_growth(s: RasterSettings) -> tuple[bool, float, float]:
+    """(grow, factor, margin) of the footprint boxes: with grow, each triangle is first scaled by
+    `factor` about its centroid (the barycentric metric's region min(b) >= -margin); then its box
+    is widened by `margin` NDC (inf: unbounded). Shared by _footprint_boxes and the device set-up."""
+    margin = footprint_margin(s)
+    grow = s.metric == "barycentric" and math.isfinite(margin)
+    factor = 1 + 3 * margin if grow else 1.0
+    if grow:
+        margin = 0.0
+    return grow, factor, margin + 2e-3 / min(s.width, s.height)
+
+
 def _footprint_boxes(x: np.ndarray, y: np.ndarray, s: RasterSettings) -> np.ndarray:
     """(4, B*F) NDC boxes (xmin, xmax, ymin, ymax) where a face can reach D >= dist_eps, from
-    corner coordinates x, y (3, B*F).
+    corner coordinates x, y (3, B*F) (box_growth).
 
     Grown by a thousandth of a pixel, so that float32 kernels never meet a pair the box
     excludes; unbounded footprints (dist_eps = 0) are clipped to +-1e6.
     """
-    margin = footprint_margin(s)
-    if s.metric == "barycentric" and math.isfinite(margin):
-        grow = 1 + 3 * margin                              # region min(b) >= -margin
-        x = x.mean(0) + grow * (x - x.mean(0))
-        y = y.mean(0) + grow * (y - y.mean(0))
-        margin = 0.0
-    margin += 2e-3 / min(s.width, s.height)
+    grow, factor, margin = box_growth(s)
+    if grow:
+        x = x.mean(0) + factor * (x - x.mean(0))
+        y = y.mean(0) + factor * (y - y.mean(0))
     box = [x.min(0) - margin, x.max(0) + margin, y.min(0) - margin, y.max(0) + margin]
     return np.clip(box, -1e6, 1e6)
+
+
+def pixel_scale(s: RasterSettings) -> tuple[float, float, float]:
+    """(inv_ps, half_w, top): NDC x maps to pixel column x * inv_ps + half_w - 0.5 and NDC y to
+    row top - y * inv_ps (pixel centres at integers)."""
+    return min(s.width, s.height) / 2.0, s.width / 2, s.height / 2 - 0.5
 
 
 def _pixel_ranges(boxes: np.ndarray, s: RasterSettings):
     """Inclusive pixel column and row ranges (c0, c1, r0, r1), each (B*F,) int64, whose centres
     fall in the (B*F, 4) NDC boxes; clipped to [-1, width] and [-1, height]."""
     w, h = s.width, s.height
-    inv_ps = min(w, h) / 2.0
-    c0 = np.ceil(boxes[:, 0] * inv_ps + w / 2 - 0.5)
-    c1 = np.floor(boxes[:, 1] * inv_ps + w / 2 - 0.5)
-    r0 = np.ceil(h / 2 - 0.5 - boxes[:, 3] * inv_ps)
-    r1 = np.floor(h / 2 - 0.5 - boxes[:, 2] * inv_ps)
+    inv_ps, half_w, top = pixel_scale(s)
+    c0 = np.ceil(boxes[:, 0] * inv_ps + half_w - 0.5)
+    c1 = np.floor(boxes[:, 1] * inv_ps + half_w - 0.5)
+    r0 = np.ceil(top - boxes[:, 3] * inv_ps)
+    r1 = np.floor(top - boxes[:, 2] * inv_ps)
     clip = lambda a, n: np.clip(a, -1, n).astype(np.int64)
     return clip(c0, w), clip(c1, w), clip(r0, h), clip(r1, h)
 
@@ -153,32 +168,50 @@ def roi_tiles(roi, batch: int, g: Grid, s: RasterSettings) -> np.ndarray | None:
     return padded.reshape(batch, g.nty, TILE_H, g.ntx, g.tile_w).any(axis=(2, 4)).reshape(-1)
 
 
-def bin_faces(geom: np.ndarray, drawable: np.ndarray, batch: int, n_faces: int,
-              s: RasterSettings, g: Grid, tiles: np.ndarray | None = None) -> Bins:
-    """Bin every drawable face into the tiles of grid g its footprint touches.
-
-    geom: (B*F, FACE_STRIDE) from face_setup, drawable: (B*F,) bool; tiles: None (all tiles) or
-    (B * nty * ntx,) bool from roi_tiles: only these tiles get faces, the others render as
-    background and pass no gradient. ValueError when the (tile, face) pairs would overflow int32.
-    """
+def face_tiles(geom: np.ndarray, drawable: np.ndarray, s: RasterSettings, g: Grid) -> np.ndarray:
+    """(B*F, 4) int64 (tx0, ty0, nx, ny): the first tile column and row of grid g each face's
+    footprint box touches and how many columns and rows; all four 0 for faces that touch no
+    pixel or cannot be drawn. geom, drawable: from face_setup."""
     c0, c1, r0, r1 = _pixel_ranges(geom[:, FACE_BOX:FACE_BOX + 4], s)
     c0, r0 = np.maximum(c0, 0), np.maximum(r0, 0)
     c1, r1 = np.minimum(c1, s.width - 1), np.minimum(r1, s.height - 1)
     live = drawable & (c1 >= c0) & (r1 >= r0)
     tx0, ty0 = c0 // g.tile_w, r0 // TILE_H
-    nx = np.where(live, c1 // g.tile_w - tx0 + 1, 0)
-    ny = np.where(live, r1 // TILE_H - ty0 + 1, 0)
+    ranges = np.stack([tx0, ty0, c1 // g.tile_w - tx0 + 1, r1 // TILE_H - ty0 + 1], 1)
+    ranges[~live] = 0
+    return ranges
+
+
+def bin_faces(geom: np.ndarray, drawable: np.ndarray, batch: int, n_faces: int,
+              s: RasterSettings, g: Grid, tiles: np.ndarray | None = None) -> Bins:
+    """bin_tiles of face_tiles(geom, drawable, s, g): every drawable face binned into the tiles
+    its footprint touches."""
+    return bin_tiles(face_tiles(geom, drawable, s, g), batch, n_faces, g, tiles)
+
+
+def bin_tiles(ranges: np.ndarray, batch: int, n_faces: int, g: Grid, tiles: np.ndarray | None = None) -> Bins:
+    """Bin every face into the tiles of grid g of its tile range.
+
+    ranges: (B*F, 4) int (tx0, ty0, nx, ny) from face_tiles (or the device set-up); tiles: None
+    (all tiles) or (B * nty * ntx,) bool from roi_tiles: only these tiles get faces, the others
+    render as background and pass no gradient. ValueError when the (tile, face) pairs would
+    overflow int32.
+    """
+    n_tiles = batch * g.ntx * g.nty
+    index = np.int32 if n_tiles < 2 ** 31 else np.int64      # tile ids; int32 arithmetic is faster
+    tx0, ty0, nx, ny = (ranges[:, i].astype(index) for i in range(4))
     counts = nx * ny
-    face_start = np.concatenate([[0], np.cumsum(counts)])
+    face_start = np.concatenate([[0], np.cumsum(counts, dtype=np.int64)])
     total = int(face_start[-1])
     if total >= 2 ** 31:
         raise ValueError(f"{total} (tile, face) pairs exceed the int32 limit: lower image_size, "
                          "raise dist_eps or split the batch")
-    face = np.repeat(np.arange(len(counts)), counts)
-    local = np.arange(total) - face_start[face]
-    tx = tx0[face] + local % nx[face]
-    ty = ty0[face] + local // nx[face]
-    tile = ((face // n_faces) * g.nty + ty) * g.ntx + tx if total else np.zeros(0, np.int64)
+    face_start = face_start.astype(np.int32)
+    face = np.repeat(np.arange(len(counts), dtype=np.int32), counts)
+    # entry k of a face is its tile row k // nx, column k % nx, from the face's first tile
+    row, col = np.divmod(np.arange(total, dtype=np.int32) - face_start[face], nx[face])
+    item = np.arange(len(counts), dtype=index) // n_faces
+    tile = ((item * g.nty + ty0) * g.ntx + tx0)[face] + row * g.ntx + col
     slots = None
     if tiles is not None:
         # only the entries in the region of interest go to the kernels; they keep their slots
@@ -187,10 +220,8 @@ def bin_faces(geom: np.ndarray, drawable: np.ndarray, batch: int, n_faces: int,
         slots = np.flatnonzero(tiles[tile])
         face, tile = face[slots], tile[slots]
     # numpy's stable sort of 16-bit keys is a radix sort: ~10x faster than on wider integers
-    n_tiles = batch * g.ntx * g.nty
     order = np.argsort(tile.astype(np.uint16) if n_tiles <= 2 ** 16 else tile, kind="stable")
     tile_start = np.concatenate([[0], np.cumsum(np.bincount(tile, minlength=n_tiles))])
     face_slots = np.full(total, -1, np.int32)
     face_slots[order if slots is None else slots[order]] = np.arange(len(order), dtype=np.int32)
-    return Bins(tile_start.astype(np.int32), face[order].astype(np.int32),
-                face_start.astype(np.int32), face_slots)
+    return Bins(tile_start.astype(np.int32), face[order], face_start, face_slots)

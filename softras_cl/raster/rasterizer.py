@@ -16,7 +16,8 @@ import pyopencl as cl
 from softras_cl.cl.device import has_fp64, has_int64_atomics, resolve_context, vector_lanes
 from softras_cl.cl.layout import CORNER_COLORS, LANES, LIGHT_PARAMS, vertex_attr_width
 from softras_cl.cl.program import build_kernel, launch
-from softras_cl.raster.binning import Bins, bin_faces, face_setup, roi_tiles, tile_grid
+from softras_cl.raster.binning import Bins, bin_tiles, face_setup, face_tiles, roi_tiles, tile_grid
+from softras_cl.raster.device_setup import DeviceSetup
 from softras_cl.raster.inputs import MeshInputs, check_cotangent, check_inputs
 from softras_cl.raster.memory import check_forward_memory
 from softras_cl.raster.pool import BufferPool, ScratchArrays
@@ -24,6 +25,9 @@ from softras_cl.raster.reduce import GradSums, bins_buffers
 from softras_cl.raster.settings import RasterSettings
 
 GRAD_NAMES = ("vertices", "colors")
+# B*F faces from which the face set-up runs on the device (where it can): below, the host's numpy
+# costs less than the device's upload, launch and wait (PoCL, 2 cores: about equal at 1000 faces)
+DEVICE_SETUP_FACES = 1024
 # Work-group shape of both kernels. Set explicitly: left to the driver, PoCL picked groups of
 # 4096 work-items whose float64 private state overflowed its thread stacks (a crash at 1024^2).
 GROUP = (8, 1, 1)
@@ -139,6 +143,9 @@ class SoftRasterizer:
         self.pool = BufferPool(self.ctx)
         self.scratch = ScratchArrays()
         self.sums = GradSums(self.ctx, self.queue, self.pool, self.real, self.lanes, has_fp64(self.device))
+        self.setup = (DeviceSetup(self.ctx, self.queue, self.pool, settings, self.grid, self.real)
+                      if has_fp64(self.device) else None)
+        self.device_setup_faces = DEVICE_SETUP_FACES
         # events of transfers in flight: pyopencl's transfer events wait for their transfer when
         # freed, so they are kept until _sync waits for all of them at once
         self._transfers: list = []
@@ -183,10 +190,10 @@ class SoftRasterizer:
             raise ValueError(f"uv-texture gradients need cl_khr_int64_base_atomics, which device "
                              f"{self.device.name!r} lacks")
         check_forward_memory(s, self.device, mesh.batch, mesh.n_faces, grads, mesh.tex_res, mesh.tex_shape)
-        geom, drawable = face_setup(mesh, s)
+        tiles = roi_tiles(roi, mesh.batch, self.grid, s)
+        geom, ranges = self._face_setup(mesh)
         t = self._stage("setup", t)
-        bins = bin_faces(geom, drawable, mesh.batch, mesh.n_faces, s, self.grid,
-                         roi_tiles(roi, mesh.batch, self.grid, s))
+        bins = bin_tiles(ranges, mesh.batch, mesh.n_faces, self.grid, tiles)
         t = self._stage("binning", t)
         buffers = self._upload(mesh, geom, bins)
         state = self._state_buffers(mesh.batch) if grads else None
@@ -422,14 +429,28 @@ class SoftRasterizer:
         return out
 
     # ---- buffers ---------------------------------------------------------------------------
-    def _upload(self, mesh: MeshInputs, geom: np.ndarray, bins: Bins) -> FaceBuffers:
-        """Device copies (pooled buffers) of the face records, colour inputs and bins, in the kernel dtype."""
-        reals = dict(geom=geom, attr=mesh.face_attributes(), tex_image=mesh.texture_image_array(),
+    def _face_setup(self, mesh: MeshInputs) -> tuple:
+        """(records, tile ranges) of every face: on the device where it has cl_khr_fp64 and there
+        are at least device_setup_faces (softras_cl.raster.device_setup: a pooled buffer), else on
+        the host (binning.face_setup: a (B*F, FACE_STRIDE) float64 array); the ranges are
+        (B*F, 4) ints (binning.face_tiles). Both give the same bits."""
+        if self.setup is not None and mesh.n_faces and mesh.batch * mesh.n_faces >= self.device_setup_faces:
+            return self.setup.run(mesh)
+        geom, drawable = face_setup(mesh, self.settings)
+        return geom, face_tiles(geom, drawable, self.settings, self.grid)
+
+    def _upload(self, mesh: MeshInputs, geom, bins: Bins) -> FaceBuffers:
+        """Device copies (pooled buffers) of the face records (unless `geom` is already a device
+        buffer), colour inputs and bins, in the kernel dtype."""
+        reals = dict(attr=mesh.face_attributes(), tex_image=mesh.texture_image_array(),
                      light=mesh.light if mesh.light is not None else np.zeros(0))
-        # copies only where the dtype or the layout differs (geom: a transposed view)
+        if not isinstance(geom, cl.Buffer):
+            reals["geom"] = geom
+        # copies only where the dtype or the layout differs (host geom: a transposed view)
         arrays = {**{k: np.ascontiguousarray(a, self.real) for k, a in reals.items()},
                   "tile_start": bins.tile_start, "tile_faces": bins.tile_faces}
-        return FaceBuffers(**{name: self._to_device(a) for name, a in arrays.items()})
+        buffers = {name: self._to_device(a) for name, a in arrays.items()}
+        return FaceBuffers(**{"geom": geom, **buffers})
 
     def _to_device(self, array: np.ndarray) -> cl.Buffer:
         """A pooled device copy of `array` (the dummy buffer when it is empty)."""

@@ -10,6 +10,7 @@ import pytest
 
 from softras_cl import RasterSettings, SoftRasterizer
 from softras_cl.raster import rasterizer as raster_module
+from softras_cl.raster import device_setup
 
 VERTS = np.array([[-0.5, -0.5, 2.0], [0.5, -0.5, 2.0], [0.0, 0.5, 2.0], [0.5, 0.5, 3.0]])
 FACES = np.array([[0, 1, 2], [1, 3, 2]])
@@ -24,6 +25,7 @@ def no_kernels(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("no error was raised before a kernel was built (the bad input was accepted)")
     monkeypatch.setattr(raster_module, "build_kernel", refuse)
+    monkeypatch.setattr(device_setup, "build_kernel", refuse)
 
 
 def raises(exc, *names):
@@ -405,6 +407,7 @@ def test_request_over_the_device_buffer_limit_is_refused_before_allocation(no_ke
     r = rasterizer(image_size=(4096, 4096))
     r.device = FakeDevice(max_alloc=128 * 1024 ** 2, global_mem=1024 ** 3)
     monkeypatch.setattr(raster_module, "face_setup", lambda *a: pytest.fail("set-up ran"))
+    monkeypatch.setattr(device_setup.DeviceSetup, "run", lambda *a: pytest.fail("set-up ran"))
     with pytest.raises(ResourceError, match=r"rasterising 1 x 4096 x 4096 pixels needs a 192 MB buffer, "
                                             r"but device 'fake' allows at most 128 MB in one buffer"):
         r.forward(VERTS, FACES, colors=COLORS)

@@ -141,6 +141,48 @@ def test_report_parser_on_text():
         ("a", "Oclgrind - OpenCL runtime error detected"), ("b", "Something new")]
 
 
+# The device face set-up (kernels/face_setup.cl) on the sweep's faces, which every forward of
+# the sweep runs too: here its records and tile ranges are also compared with the host's.
+FACE_SETUP = textwrap.dedent("""
+    import sys
+    import numpy as np
+    import pyopencl as cl
+    sys.path.insert(0, {scripts!r})
+    import oclgrind_sweep as sweep
+    sweep.skip_pyopencl_nvidia_probe()
+    sweep.keep_buffers_alive()
+    from softras_cl import SoftRasterizer
+    from softras_cl.raster.binning import face_setup, face_tiles
+    from softras_cl.raster.inputs import check_inputs
+    for kw, lanes in [(dict(dtype="float64", double_sided=False), None), (dict(dtype="float32"), 8),
+                      (dict(dtype="float32", metric="barycentric"), 16), (dict(dtype="float64", dist_eps=0.0), None)]:
+        print("oclgrind-sweep: variant face set-up", kw, lanes, file=sys.stderr, flush=True)
+        s = sweep.raster_settings(outputs=("alpha",), **kw)
+        raster = SoftRasterizer(s, lanes=lanes)
+        assert raster.setup is not None, "no cl_khr_fp64: the device set-up does not run"
+        vertices, faces, _ = sweep.raster_scene(2, "vertex")
+        mesh = check_inputs(s, vertices, faces)
+        buf, ranges = raster.setup.run(mesh)
+        records = np.empty((mesh.batch * mesh.n_faces, 28), raster.real)
+        cl.enqueue_copy(raster.queue, records, buf)
+        geom, drawable = face_setup(mesh, s)
+        assert records.tobytes() == np.ascontiguousarray(geom, raster.real).tobytes(), kw
+        assert np.array_equal(ranges, face_tiles(geom, drawable, s, raster.grid)), kw
+    print("face set-up equal")
+""")
+
+
+@pytest.mark.oclgrind
+@needs_oclgrind
+def test_device_face_setup_is_clean_under_oclgrind_and_equals_the_host(tmp_path):
+    script = tmp_path / "face_setup.py"
+    script.write_text(FACE_SETUP.format(scripts=str(REPO / "scripts")))
+    proc = run_under_oclgrind([str(script)], timeout=600)
+    reports = oclgrind_reports(proc.stderr)
+    assert not reports, "\n\n".join(f"[{r.variant}]\n{r.text}" for r in reports[:10])
+    assert proc.returncode == 0 and "face set-up equal" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-3000:]
+
+
 def test_sweep_covers_every_variant():
     """The sweep lists the whole build-time matrix, the extras and the Renderer paths."""
     names = subprocess.run([sys.executable, str(SWEEP), "--list"], capture_output=True,
