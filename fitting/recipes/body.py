@@ -41,7 +41,6 @@ decreasing sigma/gamma schedule (BUDGETS). A large gamma first lets faces hidden
 from __future__ import annotations
 
 import colorsys
-import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -50,7 +49,7 @@ import numpy as np
 from softras_cl.checks import check_finite, number
 from softras_cl.errors import InputError
 from softras_cl.scene.camera import Camera
-from softras_cl.scene.renderer import Renderer
+from softras_cl.scene.renderer import Renderer, settings_with
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.fitting import losses
 from softras_cl.fitting.metrics import psnr
@@ -376,7 +375,7 @@ class BodyScene:
         """RenderOutput of posed vertices (V, 3) with part colours (or ``colours`` (V, 3)), the
         model's faces (or a subset ``faces`` (F', 3)); ``changes``: other RasterSettings fields
         (e.g. color_agg="hard")."""
-        self.renderer.settings = dataclasses.replace(self.settings, sigma=sigma, gamma=gamma, **changes)
+        self.renderer.settings = settings_with(self.settings, sigma=sigma, gamma=gamma, **changes)
         return self.renderer.forward(vertices, self.model.faces if faces is None else faces, self.camera,
                                      albedo=self.colors if colors is None else colors, grads=grads)
 

@@ -64,7 +64,7 @@ from softras_cl.checks import check_finite, number
 from softras_cl.errors import InputError
 from softras_cl.scene.camera import Camera
 from softras_cl.scene.rotation import RodriguesContext, matrix_to_axis_angle, rodrigues, rodrigues_vjp
-from softras_cl.scene.renderer import Renderer
+from softras_cl.scene.renderer import Renderer, settings_with
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.shading import SH_A, SHLight, sh_ambient, sh_basis, vertex_normals
 from softras_cl.fitting import losses
@@ -348,7 +348,6 @@ class FaceScene:
         self.settings = RasterSettings(image_size=self.image_size, outputs=("rgb", "alpha"),
                                        near=near, far=far, dtype=dtype, alpha_agg=alpha_agg)
         self.renderer = Renderer(self.settings, shading="vertex")
-        self._drawn: tuple = (None, None, None, None)    # see _render_settings
         self._camera: tuple[float, Camera] | None = None
 
     def set_depth_range(self, translation) -> None:
@@ -369,15 +368,6 @@ class FaceScene:
             self._camera = (focal, self._camera[1].with_params(fx=focal, fy=focal))
         return self._camera[1]
 
-    def _render_settings(self, sigma: float, gamma: float) -> RasterSettings:
-        """self.settings with this sigma and gamma, made (and validated) once for every
-        evaluation of a stage: the last ones are kept with what they were made from."""
-        settings, last_sigma, last_gamma, made = self._drawn
-        if settings is not self.settings or last_sigma != sigma or last_gamma != gamma:
-            made = dataclasses.replace(self.settings, sigma=sigma, gamma=gamma)
-            self._drawn = (self.settings, sigma, gamma, made)
-        return made
-
     def geometry(self, values: dict) -> tuple[np.ndarray, GeometryContext]:
         """-> (world vertices (V, 3) float64, GeometryContext for geometry_vjp)."""
         shape, shape_ctx = self.model.shape(values["id"], values["exp"])
@@ -396,7 +386,7 @@ class FaceScene:
         (for the report); world: the world vertices if already computed; roi: None or an (H, W)
         bool mask, the only pixels needed (Renderer.forward: other screen tiles are not
         rasterised)."""
-        self.renderer.settings = self._render_settings(sigma, gamma)
+        self.renderer.settings = settings_with(self.settings, sigma=sigma, gamma=gamma)
         world = self.geometry(values)[0] if world is None else world
         albedo = self.model.albedo(values["albedo"])[0] if albedo is None else albedo
         light = SHLight(values["sh"]) if light is None else light

@@ -12,6 +12,8 @@ gradients for exactly the groups asked for in `forward(grads=...)`: "vertices" (
 """
 from __future__ import annotations
 
+import dataclasses
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -210,6 +212,13 @@ class Renderer:
             per_corner = np.repeat(g[:, :, None, :] / 3.0, 3, axis=2)
             g = scatter_corners(per_corner, mesh.faces, mesh.n_vertices)
         return g if len(saved.albedo_shape) == 3 else g.sum(0)
+
+
+@functools.lru_cache(maxsize=32)
+def settings_with(settings: RasterSettings, **changes) -> RasterSettings:
+    """``dataclasses.replace(settings, **changes)``, made (and validated) once for each
+    settings and changes: a fit sets the same sigma and gamma for every evaluation of a stage."""
+    return dataclasses.replace(settings, **changes)
 
 
 def _light_vector(light) -> np.ndarray:

@@ -8,7 +8,7 @@ import pytest
 from softras_cl import RasterSettings
 from softras_cl.scene.camera import Camera
 from softras_cl.scene.meshes import icosphere
-from softras_cl.scene.renderer import Renderer
+from softras_cl.scene.renderer import Renderer, settings_with
 from softras_cl.scene.shading import LambertLight, PhongLight, SHLight
 
 H, W = 18, 22
@@ -159,6 +159,16 @@ def test_focal_group_is_the_camera_groups_focal_to_the_bit(single):
     want = [want["focal"]] if single else [w["focal"] for w in want]
     for g, w in zip([got["focal"]] if single else got["focal"], want, strict=True):
         assert g.shape == (2,) and np.array_equal(g, w)
+
+
+def test_settings_with_is_replace_made_once():
+    base = settings()
+    made = settings_with(base, sigma=2e-4, gamma=3e-3)
+    assert made == dataclasses.replace(base, sigma=2e-4, gamma=3e-3)
+    assert settings_with(base, sigma=2e-4, gamma=3e-3) is made
+    assert settings_with(base, sigma=2e-4, gamma=4e-3).gamma == 4e-3
+    with pytest.raises(ValueError, match="sigma"):
+        settings_with(base, sigma=-1.0)
 
 
 def test_own_context_and_queue_reach_the_rasterizer_and_change_nothing():
