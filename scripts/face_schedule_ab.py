@@ -51,6 +51,11 @@ VARIANTS = {
     "lm5": dict(landmark_weight_photo=5.0),
     "lm3": dict(landmark_weight_photo=3.0),
     "lm1": dict(landmark_weight_photo=1.0),
+    # the half-resolution stage's face list (fitting.models.mesh_lod): the model's own, clustered
+    "fullmesh": dict(coarse_mesh=None),
+    "mesh1.5": dict(coarse_mesh=1.5),
+    "mesh2": dict(coarse_mesh=2.0),
+    "mesh3": dict(coarse_mesh=3.0),
 }
 FIGURES = ("cpu_seconds", "seconds", "rmse_mm", "rigid_rmse_mm", "psnr_face_db", "landmark_error_px",
            "focal_error")

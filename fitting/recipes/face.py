@@ -70,6 +70,7 @@ from softras_cl.scene.shading import SH_A, SHLight, sh_ambient, sh_basis, vertex
 from softras_cl.fitting import losses
 from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.models.face_model import LinearContext
+from softras_cl.fitting.models.mesh_lod import coarse_faces
 from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
@@ -95,6 +96,10 @@ CAMERA_ROTATION = np.diag([1.0, -1.0, -1.0])   # world (y up, camera looks down 
 # Photometric stages whose sigma is at least this render at half the working resolution (see
 # FaceObjective.photo_level): the first stage of every budget. FaceFitConfig.coarse_sigma's default.
 COARSE_SIGMA = 1e-4
+# ... and draw a coarser face list (fitting.models.mesh_lod): the model's vertices clustered in
+# cubes of this many median edge lengths (at half size a working pixel spans about two edges of
+# the demo face). FaceFitConfig.coarse_mesh's default.
+COARSE_MESH = 2.0
 # Robust photometric term (FaceObjective.start_stage): Geman-McClure scale = ROBUST_SCALE x the
 # median per-pixel linear-RGB error at a stage's start, never below MIN_ROBUST_SCALE (an error
 # that small is noise, not something the model cannot explain).
@@ -135,6 +140,8 @@ class FaceFitConfig:
         to nlopt's own stop or its budget.
     coarse_sigma: photometric stages whose sigma is at least this compare the photo at half
         the working resolution (FaceObjective.photo_level; None: never).
+    coarse_mesh: those stages draw the model's faces clustered in cubes of this many median
+        edge lengths (fitting.models.mesh_lod.coarse_faces; None: the model's own faces).
     n_id / n_exp / n_albedo: use only the first components of the model (None: all).
     dtype: rasteriser precision; float64 keeps line searches clean.
     """
@@ -145,6 +152,7 @@ class FaceFitConfig:
     photo_stages: tuple = BUDGETS["default"]["photo_stages"]
     stall_window: int = 0
     coarse_sigma: float | None = COARSE_SIGMA
+    coarse_mesh: float | None = COARSE_MESH
     weights: dict = field(default_factory=lambda: dict(
         landmarks=1.0 / 4.0, photo=100.0, id_prior=1.0, exp_prior=1.0,
         albedo_prior=1.0, sh_white=1000.0, focal_prior=1.0))
@@ -215,6 +223,8 @@ def _check_face_config(c: FaceFitConfig) -> None:
     _int_at_least("stall_window", c.stall_window, 0, " (evaluations; 0: no convergence stop)")
     if c.coarse_sigma is not None:
         _check(lambda: number("coarse_sigma", c.coarse_sigma, positive=True))
+    if c.coarse_mesh is not None:
+        _check(lambda: number("coarse_mesh", c.coarse_mesh, positive=True))
     if c.robust_scale is not None:
         _check(lambda: number("robust_scale", c.robust_scale, positive=True))
     if _check(lambda: number("forehead", c.forehead)) < 0:
@@ -335,12 +345,15 @@ class FaceScene:
     through the seams between triangles, docs/conventions.md); depth_range (near, far) in
     metres: gamma acts on depth normalised by far - near (eq. 10), so a range fitted to the
     face (see :func:`depth_range`) makes a gamma mean the same at any distance; principal
-    (cx, cy): the principal point in pixels (default: the image centre).
+    (cx, cy): the principal point in pixels (default: the image centre); faces (F', 3) int32:
+    the triangles drawn, over the model's vertices (default the model's own; a coarser list
+    from fitting.models.mesh_lod for a low-resolution image).
     """
 
     def __init__(self, model, image_size, dtype: str = "float64", alpha_agg: str = "occupancy",
-                 depth_range=(0.01, 20.0), principal=None):
+                 depth_range=(0.01, 20.0), principal=None, faces=None):
         self.model = model
+        self.faces = model.faces if faces is None else faces
         self.image_size = tuple(int(n) for n in image_size)
         h, w = self.image_size
         self.principal = (w / 2.0 - 0.5, h / 2.0 - 0.5) if principal is None else tuple(map(float, principal))
@@ -390,7 +403,7 @@ class FaceScene:
         world = self.geometry(values)[0] if world is None else world
         albedo = self.model.albedo(values["albedo"])[0] if albedo is None else albedo
         light = SHLight(values["sh"]) if light is None else light
-        return self.renderer.forward(world, self.model.faces, self.camera(values["focal"][0]),
+        return self.renderer.forward(world, self.faces, self.camera(values["focal"][0]),
                                      albedo=albedo, light=light, grads=grads, roi=roi)
 
 
@@ -519,7 +532,7 @@ class FaceObjective:
 
     def __init__(self, scene: FaceScene, image, landmarks, mask_erosion: int = 2, focal0: float = 1.0,
                  forehead: float = 0.15, coarse_sigma: float | None = COARSE_SIGMA,
-                 robust_scale: float | None = ROBUST_SCALE):
+                 robust_scale: float | None = ROBUST_SCALE, coarse_mesh: float | None = COARSE_MESH):
         self.scene, self.image, self.target = scene, image, np.asarray(landmarks, np.float64)
         self.focal0, self.forehead = float(focal0), float(forehead)
         self.landmark_weights = landmark_weights()
@@ -527,23 +540,27 @@ class FaceObjective:
         self.mask, self._mask_stage = None, None
         self.robust_scale, self.photo_scale = robust_scale, None
         self._robust_loss: losses.GemanMcClure | None = None
-        self.coarse_sigma = coarse_sigma
+        self.coarse_sigma, self.coarse_mesh = coarse_sigma, coarse_mesh
         self._coarse: FaceObjective | None = None
 
     def photo_level(self, sigma: float) -> "FaceObjective":
         """The objective whose image the photometric term of a stage with this sigma compares:
         this one, or (sigma >= coarse_sigma, working image at least 2 * MIN_SIZE a side) its
         half-resolution copy (see :func:`half_resolution`): the stage's blur already spans about
-        a working pixel, and the half-size render costs a quarter of the pixel-face pairs."""
+        a working pixel, and the half-size render costs a quarter of the pixel-face pairs. The
+        copy draws the faces of coarse_mesh (fitting.models.mesh_lod.coarse_faces) when set:
+        most triangles would cover less than a pixel there, and every one costs host and
+        kernel work whatever its size."""
         if (self.coarse_sigma is None or sigma < self.coarse_sigma
                 or min(self.image.shape[:2]) < 2 * MIN_SIZE):
             return self
         if self._coarse is None:
             scene = self.scene
             image, to_half = half_resolution(self.image)
+            faces = None if self.coarse_mesh is None else coarse_faces(scene.model, self.coarse_mesh)
             coarse_scene = FaceScene(scene.model, image.shape[:2], scene.settings.dtype,
                                      scene.settings.alpha_agg, (scene.settings.near, scene.settings.far),
-                                     principal=to_half(np.array([scene.principal]))[0])
+                                     principal=to_half(np.array([scene.principal]))[0], faces=faces)
             self._coarse = FaceObjective(coarse_scene, image, to_half(self.target),
                                          max(1, self.mask_erosion // 2) if self.mask_erosion else 0,
                                          self.focal0 * 0.5, self.forehead, coarse_sigma=None,
@@ -761,7 +778,7 @@ def prepare_fit(photo, landmarks, model, config: FaceFitConfig) -> tuple[FaceObj
                       principal=principal)
     objective = FaceObjective(scene, image, target, config.mask_erosion, focal0=focal,
                               forehead=config.forehead, coarse_sigma=config.coarse_sigma,
-                              robust_scale=config.robust_scale)
+                              robust_scale=config.robust_scale, coarse_mesh=config.coarse_mesh)
     values = dict(zero, rotation=rotation, translation=translation, focal=np.array([focal]))
     sh = initial_light(scene, values, image)
     return objective, crop, face_params(model, focal, rotation, translation, sh)

@@ -254,6 +254,8 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     (dict(photo_stages=((1e-4, 1e-3, 10, -1e-3),)), "photo_stages[0] stall_rel must be >= 0, got -0.001"),
     (dict(photo_stages=((1e-4, 1e-3),)), "photo_stages[0] must be (sigma, gamma, evaluations) or"),
     (dict(coarse_sigma=0.0), "coarse_sigma must be > 0, got 0.0"),
+    (dict(coarse_mesh=-2.0), "coarse_mesh must be > 0, got -2.0"),
+    (dict(coarse_mesh=float("inf")), "coarse_mesh must be a finite number"),
 ])
 def test_face_config_names_a_bad_field(changes, says):
     from softras_cl.errors import InputError
@@ -280,29 +282,36 @@ def test_prepare_photo_names_a_nan_landmark():
         face.prepare_photo(np.zeros((100, 100, 3)), lmk, 64)
 
 
-@pytest.mark.parametrize("robust_scale", [None, 1.0])
-def test_coarse_stage_gradient_matches_central_differences_and_sums_like_full_resolution(toy, robust_scale):
+@pytest.mark.parametrize("robust_scale, coarse_mesh", [(None, None), (1.0, None), (None, 2.0), (1.0, 2.0)])
+def test_coarse_stage_gradient_matches_central_differences_and_sums_like_full_resolution(toy, robust_scale,
+                                                                                        coarse_mesh):
     rng = np.random.default_rng(3)
     scene = face.FaceScene(toy, (64, 64))
     values = toy_values(toy, rng)
     image = rng.random((64, 64, 3)) * 0.5
-    objective = face.FaceObjective(scene, image, _spread_landmarks(64), mask_erosion=0, robust_scale=robust_scale)
+    objective = face.FaceObjective(scene, image, _spread_landmarks(64), mask_erosion=0, robust_scale=robust_scale,
+                                   coarse_mesh=coarse_mesh)
     stage = Stage("photo-1", ("id",), dict(photo=1.0), sigma=1e-3, gamma=1e-2)
     level = objective.photo_level(stage.sigma)
     assert level is not objective and level.image.shape == (32, 32, 3)
+    if coarse_mesh is None:
+        assert level.scene.faces is toy.faces
+    else:                               # the model's vertices, fewer and larger triangles
+        assert len(level.scene.faces) < 0.5 * len(toy.faces) and level.scene.faces.max() < toy.n_vertices
     np.testing.assert_allclose(level.image[3, 5], image[6:8, 10:12].mean(axis=(0, 1)))
     assert face.FaceObjective(scene, image, level.target, coarse_sigma=None).photo_level(1.0) is not level
     loss, grads, _ = objective(values, stage)
     assert level.mask.sum() > 100 and objective.mask is None
     assert (level.photo_scale is None) == (robust_scale is None)
     for name in ("focal", "translation", "albedo"):
-        fd = central_differences(objective, values, stage, name)
+        # a step small enough not to cross a face's cut-off (see the test above)
+        fd = central_differences(objective, values, stage, name, step=1e-7)
         np.testing.assert_allclose(grads[name], fd, rtol=2e-5, atol=2e-5 * np.abs(fd).max() + 1e-9, err_msg=name)
     # a half-size pixel counts for four: on a smooth photo the sum is near the full-resolution one
     y, x = np.mgrid[0:64, 0:64] / 64.0
     smooth = np.stack([0.2 + 0.3 * x, 0.4 - 0.2 * y, 0.3 + 0.1 * x * y], -1)
     coarse = face.FaceObjective(scene, smooth, objective.target, mask_erosion=0,
-                                robust_scale=robust_scale)(values, stage)[0]
+                                robust_scale=robust_scale, coarse_mesh=coarse_mesh)(values, stage)[0]
     full = face.FaceObjective(scene, smooth, objective.target, mask_erosion=0, coarse_sigma=None,
                               robust_scale=robust_scale)(values, stage)[0]
     assert 0.8 < coarse / full < 1.25
