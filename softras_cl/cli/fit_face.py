@@ -45,7 +45,7 @@ Without --same-person several photos are independent fits (above)."""
 
 def register(sub) -> None:
     """Add `fit-face` to the `softras-cl` subparsers `sub`."""
-    from softras_cl.fitting.recipes.face import BUDGETS
+    from softras_cl.fitting.recipes.face import BUDGETS, COARSE_MESH
 
     p = sub.add_parser("fit-face", help="fit a face model to a photo and its 68 landmarks",
                        description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -82,6 +82,12 @@ def register(sub) -> None:
                    help="weight of the photometric term (default 100, i.e. pixel noise ~0.1, with a "
                         "robust kernel that caps what hair, glasses or shadows can pull; higher "
                         "trusts the photo more; see docs/face_fitting.md and `softras-cl bench face`)")
+    p.add_argument("--coarse-mesh", type=float, default=COARSE_MESH, metavar="EDGES",
+                   help="the first, half-resolution photometric stage draws the model's faces "
+                        "merged into cubes of EDGES median edge lengths: most of the full mesh's "
+                        f"triangles cover less than a pixel there (default {COARSE_MESH:g}; 0: "
+                        "the model's own faces; docs/face_fitting.md shows what the choices "
+                        "cost and gain)")
     p.add_argument("--focal", type=float, default=None,
                    help="focal length in pixels of the photo, if known (default: fitted)")
     p.add_argument("--n-id", type=int, default=None, help="identity components to use (default: all)")
@@ -155,7 +161,8 @@ def _single_landmarks(files: list[str] | None) -> str | None:
 
 
 CONFIG_OPTIONS = {"size": "--size", "focal": "--focal", "photo_weight": "--photo-weight",
-                  "n_id": "--n-id", "n_exp": "--n-exp", "n_albedo": "--n-albedo"}
+                  "n_id": "--n-id", "n_exp": "--n-exp", "n_albedo": "--n-albedo",
+                  "coarse_mesh": "--coarse-mesh"}
 
 
 def _config(args: argparse.Namespace):
@@ -165,7 +172,7 @@ def _config(args: argparse.Namespace):
     with named_as_options(CONFIG_OPTIONS):
         return FaceFitConfig.from_budget(args.budget, photo_weight=args.photo_weight, size=args.size,
                                          focal=args.focal, n_id=args.n_id, n_exp=args.n_exp,
-                                         n_albedo=args.n_albedo)
+                                         n_albedo=args.n_albedo, coarse_mesh=args.coarse_mesh or None)
 
 
 def run_one(args: argparse.Namespace) -> int:

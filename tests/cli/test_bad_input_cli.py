@@ -189,6 +189,7 @@ def test_compare_bad_option(run_cli, sphere, tmp_path):
     ("--focal", "0", "--focal must be > 0, got 0.0"),
     ("--focal", "nan", "--focal must be a finite number, got nan"),
     ("--photo-weight", "inf", "--photo-weight must be a finite number, got inf"),
+    ("--coarse-mesh", "-1", "--coarse-mesh must be > 0, got -1.0"),
 ])
 def test_fit_face_refuses_bad_options(run_cli, examples_data, tmp_path, option, value, says):
     result = run_cli("fit-face", examples_data / "astronaut.png", "--landmarks",
