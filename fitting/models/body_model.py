@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from softras_cl.checks import check_shape, real_array
-from softras_cl.scene.rotation import RodriguesContext, _rodrigues_coeffs, hat, rodrigues_rows
+from softras_cl.scene.rotation import RodriguesContext, hat, rodrigues_rows
 
 if TYPE_CHECKING:
     import scipy.sparse
@@ -241,8 +241,9 @@ class BodyModel:
         gj = np.zeros((self.n_joints, 3)) if grad_joints is None else _floats(
             "grad_joints", grad_joints, (self.n_joints, 3))
         # Skinning: v = blend_rot v_posed + W (tg - Rg J).
-        g_vposed = np.einsum("vba,vb->va", ctx.blend_rot, gv)
-        g_rot = (self._skin_t @ (gv[:, _OUTER_ROWS] * ctx.v_posed[:, _OUTER_COLS])).reshape(-1, 3, 3)
+        g_vposed = _transposed_rows_times(ctx.blend_rot, gv)
+        outer = (gv[:, :, None] * ctx.v_posed[:, None, :]).reshape(-1, 9)    # (V, 9) g v^T row-major
+        g_rot = (self._skin_t @ outer).reshape(-1, 3, 3)
         g_off = self._skin_t @ gv
         g_rot -= g_off[:, :, None] * ctx.rest_joints[:, None, :]
         g_rest = -np.einsum("jab,ja->jb", ctx.rot_global, g_off)
@@ -292,9 +293,18 @@ class BodyModel:
         np.savez_compressed(Path(path), **fields)
 
 
-# (V, 9) outer products u v^T, row-major, as two gathers: u[:, _OUTER_ROWS] * v[:, _OUTER_COLS]
-_OUTER_ROWS, _OUTER_COLS = np.repeat(np.arange(3), 3), np.tile(np.arange(3), 3)
 _HAT_BASIS = np.stack([hat(np.eye(3)[i]) for i in range(3)])     # hat(e_i), (3, 3, 3)
+
+
+def _transposed_rows_times(m: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(V, 3, 3) matrices transposed times (V, 3) vectors, row by row: np.einsum("vba,vb->va",
+    m, x) with einsum's sums (0 + first + second + third product, one row after the other:
+    the same bits, tested) on whole columns, twice as fast."""
+    out = np.empty(x.shape)
+    x0, x1, x2 = x[:, 0], x[:, 1], x[:, 2]
+    for a in range(3):
+        out[:, a] = ((0.0 + m[:, 0, a] * x0) + m[:, 1, a] * x1) + m[:, 2, a] * x2
+    return out
 
 
 def _rodrigues_vjp_rows(ctxs, grads: np.ndarray) -> np.ndarray:
@@ -304,7 +314,7 @@ def _rodrigues_vjp_rows(ctxs, grads: np.ndarray) -> np.ndarray:
     w = np.stack([c.omega for c in ctxs])
     k = np.stack([c.k for c in ctxs])
     n = len(w)
-    a, b, c, d = np.array([_rodrigues_coeffs(float(np.linalg.norm(x))) for x in w]).T
+    a, b, c, d = np.array([ctx.coeffs for ctx in ctxs]).T
     dot = lambda m: (grads * m).reshape(n, 9).sum(axis=1)      # np.sum(g * m) per joint
     radial = c * dot(k) + d * dot(k @ k)
     out = np.empty((n, 3))

@@ -69,17 +69,21 @@ def _rodrigues_coeffs(theta: float) -> tuple[float, float, float, float]:
 
 @dataclass(frozen=True)
 class RodriguesContext:
-    """What rodrigues_vjp needs: omega (3,) float64 and its cross-product matrix k (3, 3)."""
+    """What rodrigues_vjp needs: omega (3,) float64, its cross-product matrix k (3, 3) and
+    coeffs, the coefficients (A, B, C, D) of |omega| (_rodrigues_coeffs: the forward computes
+    all four, the vjp uses them)."""
     omega: np.ndarray
     k: np.ndarray
+    coeffs: tuple[float, float, float, float]
 
 
 def rodrigues(omega) -> tuple[np.ndarray, RodriguesContext]:
     """Axis-angle omega (3,) -> (R (3, 3) float64 = I + A K + B K^2 with K = hat(omega), ctx)."""
     w = vector3("omega", omega)
-    a, b, _, _ = _rodrigues_coeffs(float(np.linalg.norm(w)))
+    coeffs = _rodrigues_coeffs(float(np.linalg.norm(w)))
+    a, b = coeffs[:2]
     k = hat(w)
-    return np.eye(3) + a * k + b * (k @ k), RodriguesContext(w, k)
+    return np.eye(3) + a * k + b * (k @ k), RodriguesContext(w, k, coeffs)
 
 
 def rodrigues_rows(omegas) -> tuple[np.ndarray, tuple[RodriguesContext, ...]]:
@@ -90,9 +94,10 @@ def rodrigues_rows(omegas) -> tuple[np.ndarray, tuple[RodriguesContext, ...]]:
     k = np.zeros((len(w), 3, 3))
     k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
     k[:, 1, 0], k[:, 2, 0], k[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
-    a, b = np.array([_rodrigues_coeffs(float(np.linalg.norm(x)))[:2] for x in w]).reshape(-1, 2).T
+    coeffs = [_rodrigues_coeffs(float(np.linalg.norm(x))) for x in w]
+    a, b = np.array(coeffs).reshape(-1, 4)[:, :2].T
     R = np.eye(3) + a[:, None, None] * k + b[:, None, None] * (k @ k)
-    return R, tuple(RodriguesContext(x, kx) for x, kx in zip(w, k))
+    return R, tuple(RodriguesContext(x, kx, c) for x, kx, c in zip(w, k, coeffs))
 
 
 def rodrigues_vjp(ctx: RodriguesContext, grad_R) -> dict:
@@ -102,7 +107,7 @@ def rodrigues_vjp(ctx: RodriguesContext, grad_R) -> dict:
     """
     g = matrix3("grad_R", grad_R)
     w, k = ctx.omega, ctx.k
-    a, b, c, d = _rodrigues_coeffs(float(np.linalg.norm(w)))
+    a, b, c, d = ctx.coeffs
     radial = c * (g * k).sum() + d * (g * (k @ k)).sum()
     out = np.empty(3)
     for i, e in enumerate(_E):

@@ -81,5 +81,7 @@ def test_rodrigues_rows_equals_rodrigues_row_by_row():
     for w, r, ctx in zip(omegas, R, ctxs):
         one, one_ctx = rodrigues(w)
         assert np.array_equal(r, one) and np.array_equal(ctx.k, one_ctx.k) and np.array_equal(ctx.omega, one_ctx.omega)
+        # the vjp's coefficients, made by the forward: those of |omega|
+        assert ctx.coeffs == one_ctx.coeffs == _rodrigues_coeffs(float(np.linalg.norm(w)))
     with pytest.raises(ValueError, match="omegas"):
         rodrigues_rows(np.zeros((4, 2)))
