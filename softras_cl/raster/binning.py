@@ -168,6 +168,26 @@ def roi_tiles(roi, batch: int, g: Grid, s: RasterSettings) -> np.ndarray | None:
     return padded.reshape(batch, g.nty, TILE_H, g.ntx, g.tile_w).any(axis=(2, 4)).reshape(-1)
 
 
+class RoiTiles:
+    """roi_tiles for one grid and settings, remembering the last mask's answer (a fit passes the
+    same region for a whole stage; comparing the mask costs a tenth of recomputing it)."""
+
+    def __init__(self, g: Grid, s: RasterSettings):
+        self.grid, self.settings = g, s
+        self._last: tuple | None = None        # (mask copy, batch, tiles)
+
+    def __call__(self, roi, batch: int) -> np.ndarray | None:
+        last = self._last
+        if (last is not None and isinstance(roi, np.ndarray) and roi.dtype == last[0].dtype
+                and last[1] == batch and np.array_equal(last[0], roi)):
+            return last[2]
+        tiles = roi_tiles(roi, batch, self.grid, self.settings)
+        if tiles is not None:
+            tiles.flags.writeable = False
+            self._last = (np.array(roi, copy=True), batch, tiles)
+        return tiles
+
+
 def face_tiles(geom: np.ndarray, drawable: np.ndarray, s: RasterSettings, g: Grid) -> np.ndarray:
     """(B*F, 4) int64 (tx0, ty0, nx, ny): the first tile column and row of grid g each face's
     footprint box touches and how many columns and rows; all four 0 for faces that touch no

@@ -16,18 +16,22 @@ import pyopencl as cl
 from softras_cl.cl.device import has_fp64, has_int64_atomics, resolve_context, vector_lanes
 from softras_cl.cl.layout import CORNER_COLORS, LANES, LIGHT_PARAMS, vertex_attr_width
 from softras_cl.cl.program import build_kernel, launch
-from softras_cl.raster.binning import Bins, bin_tiles, face_setup, face_tiles, roi_tiles, tile_grid
+from softras_cl.raster.binning import Bins, RoiTiles, bin_tiles, face_setup, face_tiles, tile_grid
 from softras_cl.raster.device_setup import DeviceSetup
 from softras_cl.raster.inputs import MeshInputs, check_cotangent, check_inputs
 from softras_cl.raster.memory import check_forward_memory
 from softras_cl.raster.pool import BufferPool, ScratchArrays
-from softras_cl.raster.reduce import GradSums, bins_buffers
+from softras_cl.raster.reduce import GradSums
 from softras_cl.raster.settings import RasterSettings
 
 GRAD_NAMES = ("vertices", "colors")
 # B*F faces from which the face set-up runs on the device (where it can): below, the host's numpy
 # costs less than the device's upload, launch and wait (PoCL, 2 cores: about equal at 1000 faces)
 DEVICE_SETUP_FACES = 1024
+# bytes from which an upload that needs no conversion gets its own transfer rather than a copy
+# into the staging of the others (SoftRasterizer._upload_parts): ~0.1 ms per MB copied against
+# ~30 us per transfer enqueued (PoCL, 2 cores)
+OWN_TRANSFER = 256 * 1024
 # Work-group shape of both kernels. Set explicitly: left to the driver, PoCL picked groups of
 # 4096 work-items whose float64 private state overflowed its thread stacks (a crash at 1024^2).
 GROUP = (8, 1, 1)
@@ -42,7 +46,9 @@ class FaceBuffers:
     attr: (B*F, K) real, MeshInputs.face_attributes() (corner colours [+ normals], texels or uvs)
     tex_image: (B, Ht, Wt, 3) real uv texture map
     light: (LIGHT_PARAMS,) real lighting parameters
-    tile_start, tile_faces: int32, the arrays of the same names in Bins
+    tile_start, tile_faces, face_start, face_slots: int32, the arrays of the same names in Bins
+        (the last two only with gradients, for the backward's sums; else the dummy buffer)
+    owned: the pooled buffers behind them (the others are sub-buffers of these, or the dummy)
     """
     geom: cl.Buffer
     attr: cl.Buffer
@@ -50,6 +56,9 @@ class FaceBuffers:
     light: cl.Buffer
     tile_start: cl.Buffer
     tile_faces: cl.Buffer
+    face_start: cl.Buffer
+    face_slots: cl.Buffer
+    owned: list
 
 
 @dataclass
@@ -91,8 +100,8 @@ class RasterContext:
         return host + sum(b.size for b in self.device_buffers())
 
     def device_buffers(self) -> list:
-        """Every device buffer the context holds, each once."""
-        found = [getattr(obj, f.name) for obj in (self.buffers, self.state) for f in fields(obj)]
+        """Every pooled device buffer the context holds (sub-buffers are counted in theirs), each once."""
+        found = self.buffers.owned + [getattr(self.state, f.name) for f in fields(self.state)]
         return list({b.int_ptr: b for b in found + list(self.images.values()) if b is not None}.values())
 
 
@@ -139,6 +148,7 @@ class SoftRasterizer:
             raise ValueError(f"lanes must be one of {LANES[settings.dtype]} for dtype={settings.dtype!r}, got {lanes!r}")
         self.lanes = lanes or vector_lanes(self.device, settings.dtype)
         self.grid = tile_grid(settings, self.lanes)
+        self.roi_tiles = RoiTiles(self.grid, settings)
         # device buffers and host staging reused from call to call (softras_cl.raster.pool)
         self.pool = BufferPool(self.ctx)
         self.scratch = ScratchArrays()
@@ -190,12 +200,12 @@ class SoftRasterizer:
             raise ValueError(f"uv-texture gradients need cl_khr_int64_base_atomics, which device "
                              f"{self.device.name!r} lacks")
         check_forward_memory(s, self.device, mesh.batch, mesh.n_faces, grads, mesh.tex_res, mesh.tex_shape)
-        tiles = roi_tiles(roi, mesh.batch, self.grid, s)
+        tiles = self.roi_tiles(roi, mesh.batch)
         geom, ranges = self._face_setup(mesh)
         t = self._stage("setup", t)
         bins = bin_tiles(ranges, mesh.batch, mesh.n_faces, self.grid, tiles)
         t = self._stage("binning", t)
-        buffers = self._upload(mesh, geom, bins)
+        buffers = self._upload(mesh, geom, bins, bool(grads))
         state = self._state_buffers(mesh.batch) if grads else None
         t = self._stage("upload", t, finish=True)
         images = self._run_forward(mesh, buffers, state)
@@ -205,9 +215,9 @@ class SoftRasterizer:
         crops = [hosts.get(n) for n in ("rgb", "alpha", "depth")]
         saved = RasterContext(mesh, grads, bins, buffers, images, state) if grads else None
         if saved is not None:
-            self.pool.give_when_dead(saved, [b for b in saved.device_buffers() if b is not self._dummy()])
+            self.pool.give_when_dead(saved, saved.device_buffers())
         else:
-            self.pool.give(self._pooled(list(images.values()) + [getattr(buffers, f.name) for f in fields(buffers)]))
+            self.pool.give(list(images.values()) + buffers.owned)
         self._stage("forward", t, finish=True)
         return RasterOutput(*crops, saved)
 
@@ -362,7 +372,7 @@ class SoftRasterizer:
         """Sum the (tile, face) slots per face in a fixed order, then faces onto vertices (on the
         device: softras_cl.raster.reduce); every transfer is enqueued, then waited for once."""
         mesh, grads = saved.mesh, saved.grads
-        bins = bins_buffers(self.sums, saved.bins) if any(slots[k] is not None for k in ("pos", "attr", "light")) else None
+        bins = saved.buffers.face_start, saved.buffers.face_slots
         sums = {k: self.sums.face_sums(slots[k], width, *bins, mesh.batch * mesh.n_faces)
                 for k, width in self._slot_widths(mesh).items() if slots.get(k) is not None}
         hosts = {}
@@ -371,7 +381,7 @@ class SoftRasterizer:
         if "colors" in grads:
             hosts.update(self._color_sums(mesh, sums, slots))
         self.sums.wait()
-        self.pool.give([*sums.values(), *(bins or ())])
+        self.pool.give(sums.values())
         return self._shape_grads(mesh, hosts)
 
     def _slot_widths(self, mesh: MeshInputs) -> dict:
@@ -439,30 +449,53 @@ class SoftRasterizer:
         geom, drawable = face_setup(mesh, self.settings)
         return geom, face_tiles(geom, drawable, self.settings, self.grid)
 
-    def _upload(self, mesh: MeshInputs, geom, bins: Bins) -> FaceBuffers:
-        """Device copies (pooled buffers) of the face records (unless `geom` is already a device
-        buffer), colour inputs and bins, in the kernel dtype."""
-        reals = dict(attr=mesh.face_attributes(), tex_image=mesh.texture_image_array(),
-                     light=mesh.light if mesh.light is not None else np.zeros(0))
-        if not isinstance(geom, cl.Buffer):
-            reals["geom"] = geom
-        # copies only where the dtype or the layout differs (host geom: a transposed view)
-        arrays = {**{k: np.ascontiguousarray(a, self.real) for k, a in reals.items()},
-                  "tile_start": bins.tile_start, "tile_faces": bins.tile_faces}
-        buffers = {name: self._to_device(a) for name, a in arrays.items()}
-        return FaceBuffers(**{"geom": geom, **buffers})
+    def _upload(self, mesh: MeshInputs, geom, bins: Bins, grads: bool) -> FaceBuffers:
+        """Device copies of the face records (unless `geom` is already a device buffer), colour
+        inputs and bins (face_start and face_slots only with `grads`), in the kernel dtype, by
+        one transfer (_upload_parts)."""
+        real, i32 = self.real, np.int32
+        parts = dict(attr=(mesh.face_attributes(), real), tex_image=(mesh.texture_image_array(), real),
+                     light=(mesh.light if mesh.light is not None else np.zeros(0), real),
+                     tile_start=(bins.tile_start, i32), tile_faces=(bins.tile_faces, i32),
+                     face_start=(bins.face_start if grads else np.zeros(0), i32),
+                     face_slots=(bins.face_slots if grads else np.zeros(0), i32))
+        owned = [geom] if isinstance(geom, cl.Buffer) else []     # the device set-up's pooled records
+        if not owned:
+            parts["geom"] = (geom, real)
+        uploaded, bufs = self._upload_parts("upload", parts)
+        return FaceBuffers(**{"geom": geom, **bufs, "owned": owned + uploaded})
 
-    def _to_device(self, array: np.ndarray) -> cl.Buffer:
-        """A pooled device copy of `array` (the dummy buffer when it is empty)."""
-        if not array.size:
-            return self._dummy()
-        buf = self.pool.take(array.nbytes)
-        self._transfers.append(cl.enqueue_copy(self.queue, buf, array, is_blocking=False))
-        return buf
-
-    def _pooled(self, buffers) -> list:
-        """The buffers that came from the pool (all but the dummy)."""
-        return [b for b in buffers if b is not self._dummy()]
+    def _upload_parts(self, name: str, parts: dict) -> tuple[list, dict]:
+        """Copy arrays to the device in few transfers (on PoCL each transfer enqueued costs tens
+        of microseconds, under load much more): parts {key: (array, dtype)}. Arrays of at least
+        OWN_TRANSFER bytes already in their dtype and contiguous get a buffer and a transfer each;
+        the others are converted into host staging `name` (overwritten by the next call: the
+        transfer must be waited for first, as _sync does), each at an offset a sub-buffer can
+        start at, and go by one transfer. Returns (the pooled buffers, {key: its buffer or
+        sub-buffer, or the dummy buffer for an empty array})."""
+        bufs, owned, layout, end = {}, [], {}, 0
+        align = self.device.mem_base_addr_align // 8
+        for key, (array, dtype) in parts.items():
+            nbytes = array.size * np.dtype(dtype).itemsize
+            if not nbytes:
+                bufs[key] = self._dummy()
+            elif nbytes >= OWN_TRANSFER and array.dtype == dtype and array.flags.c_contiguous:
+                bufs[key] = self.pool.take(nbytes)
+                owned.append(bufs[key])
+                self._transfers.append(cl.enqueue_copy(self.queue, bufs[key], array, is_blocking=False))
+            else:
+                layout[key] = (end, nbytes)
+                end += -(-nbytes // align) * align
+        if layout:
+            staging = self.scratch.get(name, (end,), np.uint8)
+            for key, (start, nbytes) in layout.items():
+                array, dtype = parts[key]
+                np.copyto(staging[start:start + nbytes].view(dtype).reshape(array.shape), array, casting="unsafe")
+            packed = self.pool.take(end)
+            owned.append(packed)
+            self._transfers.append(cl.enqueue_copy(self.queue, packed, staging, is_blocking=False))
+            bufs.update({key: packed.get_sub_region(*where) for key, where in layout.items()})
+        return owned, bufs
 
     def _dummy(self) -> cl.Buffer:
         """A small buffer standing in for arguments the kernel variant never reads."""
@@ -507,14 +540,14 @@ class SoftRasterizer:
         planes = {n: self.pool.take(npix * itemsize * (3 if n == "grad_rgb" else 1)) for n in names}
         soft = s.color_agg == "softmax" and {"rgb", "depth"} & set(s.outputs)
         planes["g_dot"] = self.pool.take(npix * itemsize) if soft else None
-        sources = {n: self._to_device(np.ascontiguousarray(cot[n], self.real)) for n in names if cot[n] is not None}
+        uploaded, sources = self._upload_parts("cotangents", {n: (cot[n], self.real) for n in names if cot[n] is not None})
         dummy, all_names = self._dummy(), ("grad_rgb", "grad_alpha", "grad_depth")
         launch(self._kernel("soft_raster_cotangents", kernel_grads, True), self.queue,
                (_round_up(g.ntx), g.hp, batch), GROUP, *self._layout_args(),
                *(np.int32(n in sources) for n in all_names), *(sources.get(n, dummy) for n in all_names),
                saved.images.get("rgb", dummy), saved.images.get("depth", dummy),
                *(planes.get(n) or dummy for n in (*all_names, "g_dot")))
-        return planes, self._pooled(sources.values())
+        return planes, uploaded
 
 
 def _round_up(n: int) -> int:

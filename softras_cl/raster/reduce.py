@@ -17,7 +17,6 @@ import numpy as np
 import pyopencl as cl
 
 from softras_cl.cl.program import build_kernel, launch
-from softras_cl.raster.binning import Bins
 from softras_cl.raster.pool import BufferPool
 
 GROUP = (64,)       # work-group of both kernels; the items beyond the end are skipped
@@ -71,14 +70,6 @@ class GradSums:
             self._kernels[name] = build_kernel(self.ctx, "grad_sums.cl", name, self._defines)
         return self._kernels[name]
 
-    def upload(self, array: np.ndarray) -> cl.Buffer:
-        """A pooled device copy of the int32 `array`, enqueued: `array` must stay alive and
-        unchanged until wait()."""
-        buf = self.pool.take(max(array.nbytes, 4))
-        if array.size:
-            self._transfers.append(cl.enqueue_copy(self.queue, buf, array, is_blocking=False))
-        return buf
-
     def face_sums(self, slots: cl.Buffer, width: int, face_start: cl.Buffer, face_slots: cl.Buffer,
                   n_faces: int) -> cl.Buffer:
         """Pooled buffer of (n_faces, width) per-face sums (`dtype`) of the (n_list, width) slot
@@ -128,7 +119,3 @@ class GradSums:
 def _round_up(n: int) -> int:
     return -(-max(n, 1) // GROUP[0]) * GROUP[0]
 
-
-def bins_buffers(sums: GradSums, bins: Bins) -> tuple[cl.Buffer, cl.Buffer]:
-    """Pooled device copies of bins.face_start and bins.face_slots."""
-    return sums.upload(bins.face_start), sums.upload(bins.face_slots)

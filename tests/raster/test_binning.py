@@ -36,3 +36,20 @@ def test_tiles_list_their_faces_in_face_order_and_slots_invert_the_lists(size, l
     assert sorted(bins.face_slots.tolist()) == list(range(bins.n_entries))
     face_of = np.repeat(np.arange(len(bins.face_start) - 1), np.diff(bins.face_start))
     assert np.array_equal(bins.tile_faces[bins.face_slots], face_of)
+
+
+def test_roi_tiles_remembers_the_last_mask_and_still_checks_each():
+    from softras_cl.raster.binning import RoiTiles, roi_tiles
+
+    s = RasterSettings(image_size=(20, 30), outputs=("alpha",))
+    g = tile_grid(s, 8)
+    tiles = RoiTiles(g, s)
+    mask = np.zeros((20, 30), bool)
+    mask[3:5, 2:4] = True
+    first = tiles(mask, 1)
+    assert np.array_equal(first, roi_tiles(mask, 1, g, s)) and tiles(mask.copy(), 1) is first
+    mask[15, 25] = True                     # changed in place: a new answer
+    assert np.array_equal(tiles(mask, 1), roi_tiles(mask, 1, g, s)) and first.sum() == 1
+    assert tiles(mask, 2).shape == (2 * g.ntx * g.nty,) and tiles(None, 1) is None
+    with pytest.raises(ValueError, match="roi must be a bool mask"):
+        tiles(mask.astype(int), 2)

@@ -98,3 +98,27 @@ def test_interleaved_calls_match_fresh_rasterisers(roi):
         if _ == 0:
             free = shared.pool.free_bytes
     assert shared.pool.free_bytes == free
+
+
+def test_upload_parts_lands_every_array_in_its_buffer_with_few_transfers():
+    """SoftRasterizer._upload_parts: small arrays (and any needing a cast) share one staged
+    transfer, each in a sub-buffer; large contiguous ones in their dtype go on their own."""
+    import pyopencl as cl
+
+    from softras_cl import RasterSettings, SoftRasterizer
+    from softras_cl.raster.rasterizer import OWN_TRANSFER
+
+    raster = SoftRasterizer(RasterSettings(image_size=(8, 8), outputs=("alpha",), dtype="float32"))
+    rng = np.random.default_rng(0)
+    big = rng.normal(size=OWN_TRANSFER // 4).astype(np.float32)
+    parts = dict(small=(np.arange(7, dtype=np.int32), np.int32), cast=(rng.normal(size=(5, 3)), np.float32),
+                 strided=(rng.normal(size=(6, 4)).astype(np.float32).T, np.float32), empty=(np.zeros(0), np.float32),
+                 big=(big, np.float32), big_cast=(big.astype(np.float64), np.float32))
+    owned, bufs = raster._upload_parts("test", parts)
+    raster._sync()
+    assert len(owned) == 2 and bufs["empty"] is raster._dummy() and bufs["big"] in owned
+    for key, (array, dtype) in parts.items():
+        if array.size:
+            got = np.empty(array.shape, dtype)
+            cl.enqueue_copy(raster.queue, got, bufs[key])
+            assert np.array_equal(got, array.astype(dtype)), key

@@ -10,7 +10,7 @@ from softras_cl.cl.source import kernel_source
 from softras_cl.raster.binning import Bins
 from softras_cl.raster.corners import scatter_corners
 from softras_cl.raster.pool import BufferPool
-from softras_cl.raster.reduce import GradSums, bins_buffers, corner_index
+from softras_cl.raster.reduce import GradSums, corner_index
 
 
 def gradsums(real, sum_double):
@@ -47,7 +47,9 @@ def sequential_face_sums(slots, bins):
 
 def device_face_sums(sums, slots, bins):
     buf = cl.Buffer(sums.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=slots)
-    out = sums.face_sums(buf, slots.shape[1], *bins_buffers(sums, bins), len(bins.face_start) - 1)
+    index = [cl.Buffer(sums.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
+             for a in (bins.face_start, bins.face_slots)]
+    out = sums.face_sums(buf, slots.shape[1], *index, len(bins.face_start) - 1)
     host = sums.download(out, (len(bins.face_start) - 1, slots.shape[1]))
     sums.wait()
     return host
