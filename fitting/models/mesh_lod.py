@@ -60,8 +60,8 @@ def cluster_faces(points, faces, cell: float) -> np.ndarray:
     return np.ascontiguousarray(merged[area > 0], dtype=np.int32)
 
 
-def coarse_faces(model, edges: float) -> np.ndarray:
-    """A face model's faces (F', 3) int32 clustered over its mean shape with cubes of ``edges``
-    median edge lengths (see :func:`cluster_faces`)."""
-    cell = edges * median_edge_length(model.mean_shape, model.faces)
-    return cluster_faces(model.mean_shape, model.faces, cell)
+def coarse_faces(points, faces, edges: float) -> np.ndarray:
+    """``faces`` (F, 3) clustered over ``points`` (V, 3) (a model's mean or template shape) with
+    cubes of ``edges`` median edge lengths: (F', 3) int32 (see :func:`cluster_faces`)."""
+    points = real_array("points", points, (None, 3), "(V, 3)")
+    return cluster_faces(points, faces, edges * median_edge_length(points, np.asarray(faces)))

@@ -557,8 +557,10 @@ class FaceObjective:
         if self._coarse is None:
             scene = self.scene
             image, to_half = half_resolution(self.image)
-            faces = None if self.coarse_mesh is None else coarse_faces(scene.model, self.coarse_mesh)
-            coarse_scene = FaceScene(scene.model, image.shape[:2], scene.settings.dtype,
+            model = scene.model
+            faces = None if self.coarse_mesh is None else coarse_faces(model.mean_shape, model.faces,
+                                                                        self.coarse_mesh)
+            coarse_scene = FaceScene(model, image.shape[:2], scene.settings.dtype,
                                      scene.settings.alpha_agg, (scene.settings.near, scene.settings.far),
                                      principal=to_half(np.array([scene.principal]))[0], faces=faces)
             self._coarse = FaceObjective(coarse_scene, image, to_half(self.target),

@@ -50,9 +50,9 @@ def test_each_cube_keeps_the_vertex_nearest_its_centroid():
 
 def test_the_demo_face_at_two_edges_draws_the_same_surface_with_a_third_of_the_faces():
     model = load_demo_face_model()
-    coarse = coarse_faces(model, 2.0)
+    coarse = coarse_faces(model.mean_shape, model.faces, 2.0)
     assert len(coarse) < len(model.faces) / 2.5 and coarse.max() < model.n_vertices
-    np.testing.assert_array_equal(coarse, coarse_faces(model, 2.0))          # deterministic
+    np.testing.assert_array_equal(coarse, coarse_faces(model.mean_shape, model.faces, 2.0))   # deterministic
     full_area = np.linalg.norm(np.cross(*(model.mean_shape[model.faces[:, k]] - model.mean_shape[model.faces[:, 0]]
                                           for k in (1, 2))), axis=1).sum()
     p = model.mean_shape[coarse]
