@@ -332,7 +332,8 @@ class SoftRasterizer:
             if k == "tex" or s.texture == "face":             # texels are added into
                 # zeros copied from the host: Oclgrind does not count clEnqueueFillBuffer as
                 # initialising memory (and the copy is cheap: calloc's pages are not touched)
-                cl.enqueue_copy(self.queue, buf, np.zeros(nbytes[k], np.uint8))
+                self._transfers.append(cl.enqueue_copy(self.queue, buf, np.zeros(nbytes[k], np.uint8),
+                                                       is_blocking=False))
         knl = self._kernel("soft_raster_bwd", kernel_grads, True)
         t = self._stage("backward_prep", t, finish=True)
         dummy = self._dummy()
@@ -344,7 +345,8 @@ class SoftRasterizer:
         if "tex" in shapes:
             tex = self.scratch.get("slot_tex", *shapes["tex"])
             self._transfers.append(cl.enqueue_copy(self.queue, tex, out_bufs["tex"], is_blocking=False))
-        self._sync()
+            self._sync()        # the texel sums are read on the host next; else _gather_grads waits
+        # given back before the kernel ends: an in-order queue runs any later use after it
         self.pool.give([*cot_bufs.values(), *sources, *([g_dot] if g_dot is not None else []),
                         *([out_bufs.pop("tex")] if tex is not None else [])])
         self._stage("backward", t, finish=True)
