@@ -54,6 +54,7 @@ from softras_cl.raster.settings import RasterSettings
 from softras_cl.fitting import losses
 from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.models.body_model import BodyContext, BodyPose
+from softras_cl.fitting.models.mesh_lod import coarse_faces
 from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
@@ -92,6 +93,12 @@ POSE_SIGMA = {
     "left_foot": 0.15, "right_foot": 0.15,
 }
 DEFAULT_POSE_SIGMA = 0.5
+# The image stages draw the model's faces clustered in cubes of this many median edge lengths
+# of its template (fitting.models.mesh_lod): at the default 96 px a pixel spans about 1.3 edges
+# of the demo body, so most of its triangles are smaller than a pixel, and fewer, larger ones
+# also thin the occupancy halo along the outline (see BUDGETS). Measured against 2 edges and the
+# full mesh in docs/body_fitting.md. BodyFitConfig.coarse_mesh's default.
+COARSE_MESH = 3.0
 TRANSLATION_SIGMA = 0.3          # metres
 DEPTH_RANGE = 5.0                # metres between the near and far planes, centred on the body
 
@@ -189,6 +196,9 @@ class BodyFitConfig:
     joint_iters / image_stages: the schedule (BUDGETS).
     weights: loss-term weights by name (module docstring); terms without data are dropped.
     robust_px: Geman-McClure scale in pixels of the joint term (None: plain squares).
+    coarse_mesh: the image stages draw the model's faces clustered in cubes of this many median
+        edge lengths of its template (fitting.models.mesh_lod.coarse_faces; None: the model's
+        own faces). The fitted body, its joints and every picture and metric use the full mesh.
     dtype: rasteriser precision; float64 keeps line searches clean.
     """
     size: int = 96
@@ -202,6 +212,7 @@ class BodyFitConfig:
         image=1.0 / 0.1 ** 2, silhouette=10.0, joints=1.0 / 2.0 ** 2, pose_prior=1.0,
         shape_prior=1.0, translation_prior=1.0, limits=100.0))
     robust_px: float | None = None
+    coarse_mesh: float | None = COARSE_MESH
     dtype: str = "float64"
 
     def __post_init__(self):
@@ -247,6 +258,8 @@ def _check_body_config(c: BodyFitConfig) -> None:
             raise InputError(f"weights[{name!r}] must be >= 0, got {w!r}")
     if c.robust_px is not None:
         _number("robust_px", c.robust_px, positive=True)
+    if c.coarse_mesh is not None:
+        _number("coarse_mesh", c.coarse_mesh, positive=True)
     if c.dtype not in ("float32", "float64"):
         raise InputError(f"dtype must be 'float32' or 'float64', got {c.dtype!r}")
 
@@ -396,12 +409,14 @@ class BodyObjective:
     images ("rgb", "alpha"), the joint term wrt the 3D joints ("joints"), the priors wrt the
     blocks; :func:`losses.weighted_sum` adds them by key, the renderer's backward and the
     model's vjp take them to the blocks. ``observer(values, stage)``, if given, is called at
-    every evaluation (e.g. to record intermediate renders).
+    every evaluation (e.g. to record intermediate renders). faces (F', 3) int32: the triangles
+    the image terms draw (default the model's; fit_body passes BodyFitConfig.coarse_mesh's).
     """
 
     def __init__(self, scene: BodyScene, target: BodyTarget, robust_px: float | None = None,
-                 observer: Callable | None = None):
+                 observer: Callable | None = None, faces=None):
         self.scene, self.target, self.robust_px, self.observer = scene, target, robust_px, observer
+        self.faces = faces          # the image terms' face list (None: the model's)
         self.sigmas = pose_sigmas(scene.model)
         self.hinges = hinge_frames(scene.model)
 
@@ -412,7 +427,8 @@ class BodyObjective:
         state, body_ctx = self.scene.pose(values)
         terms, out = self.prior_terms(values, w), None
         if w.get("image") or w.get("silhouette"):
-            out = self.scene.render(state.vertices, stage.sigma, stage.gamma, grads=("vertices",))
+            out = self.scene.render(state.vertices, stage.sigma, stage.gamma, grads=("vertices",),
+                                    faces=self.faces)
             terms.update(self.image_terms(out))
         if w.get("joints"):
             terms["joints"] = self.joint_term(state.joints)
@@ -576,7 +592,9 @@ def fit_body(target, model, config: BodyFitConfig = BodyFitConfig(), joints=None
         init = rest_values(model)
         init["translation"] = initial_translation(scene, init, data.alpha)
     params = body_params(model, {k: np.asarray(v, np.float64) for k, v in init.items()})
-    objective = BodyObjective(scene, data, config.robust_px, observer)
+    faces = None if config.coarse_mesh is None else coarse_faces(model.v_template, model.faces,
+                                                                  config.coarse_mesh)
+    objective = BodyObjective(scene, data, config.robust_px, observer, faces)
     result = fit(params, objective, default_stages(config, data), out_dir=out_dir, progress=progress,
                  resume=resume)
     return BodyFit(result.values, scene, data, result)

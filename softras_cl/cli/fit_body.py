@@ -61,6 +61,12 @@ def register(sub) -> None:
                    help=f"camera and aim height in metres (default {d.height})")
     p.add_argument("--fov", type=float, default=d.fov_deg,
                    help=f"field of view in degrees across the shorter image side (default {d.fov_deg})")
+    p.add_argument("--coarse-mesh", type=float, default=d.coarse_mesh, metavar="EDGES",
+                   help="the image stages draw the model's faces merged into cubes of EDGES median "
+                        "edge lengths of its template: most of the full mesh's triangles cover less "
+                        f"than a pixel at the working size (default {d.coarse_mesh:g}; 0: the "
+                        "model's own faces; the fitted body, its joints and every output use the "
+                        "full mesh; docs/body_fitting.md shows what the choices cost and gain)")
     p.add_argument("--robust-joints", type=float, default=None, metavar="PX",
                    help="Geman-McClure scale in pixels for the joint term (default: plain squares)")
     p.add_argument("--resume", action="store_true",
@@ -83,7 +89,8 @@ def _load_inputs(args):
 
 
 CONFIG_OPTIONS = {"size": "--size", "distance": "--distance", "height": "--height", "fov_deg": "--fov",
-                  "background": "--background", "robust_px": "--robust-joints"}
+                  "background": "--background", "robust_px": "--robust-joints",
+                  "coarse_mesh": "--coarse-mesh"}
 
 
 def _config(args: argparse.Namespace):
@@ -94,7 +101,7 @@ def _config(args: argparse.Namespace):
         return BodyFitConfig.from_budget(args.budget, size=args.size, distance=args.distance,
                                          height=args.height, fov_deg=args.fov,
                                          background=parse_background(args.background),
-                                         robust_px=args.robust_joints)
+                                         robust_px=args.robust_joints, coarse_mesh=args.coarse_mesh or None)
 
 
 def _run_record(args: argparse.Namespace) -> dict:

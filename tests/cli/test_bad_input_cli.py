@@ -233,6 +233,7 @@ def test_fit_face_refuses_a_tiny_photo(run_cli, tmp_path):
     ("--fov", "0", "--fov must be in (0, 180) degrees, got 0.0"),
     ("--height", "nan", "--height must be a finite number, got nan"),
     ("--robust-joints", "-1", "--robust-joints must be > 0, got -1.0"),
+    ("--coarse-mesh", "-3", "--coarse-mesh must be > 0, got -3.0"),
 ])
 def test_fit_body_refuses_bad_options(run_cli, tmp_path, option, value, says):
     disc = np.zeros((32, 32))

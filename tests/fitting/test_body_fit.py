@@ -4,6 +4,7 @@ import re
 
 import numpy as np
 import pytest
+from softras_cl.fitting.models.mesh_lod import coarse_faces
 from softras_cl.fitting.recipes import body
 from softras_cl.fitting.solver import Stage
 
@@ -39,10 +40,11 @@ def synthetic_target(model, values, size):
     return image, scene.camera.project_pixels(state.joints)[0]
 
 
-@pytest.mark.parametrize("weights, robust", [(ALL_TERMS, 3.0), (ALL_TERMS, None),
-                                             (dict(joints=0.25, pose_prior=1.0, limits=100.0), None)],
-                         ids=["image stage, robust joints", "image stage", "joint stage"])
-def test_objective_gradient_matches_central_differences(model, weights, robust):
+@pytest.mark.parametrize("weights, robust, coarse", [
+    (ALL_TERMS, 3.0, None), (ALL_TERMS, None, None), (ALL_TERMS, None, 3.0),
+    (dict(joints=0.25, pose_prior=1.0, limits=100.0), None, None)],
+    ids=["image stage, robust joints", "image stage", "image stage, coarse mesh", "joint stage"])
+def test_objective_gradient_matches_central_differences(model, weights, robust, coarse):
     rng = np.random.default_rng(3)
     size = 32
     image, joints = synthetic_target(model, body.rest_values(model), size)
@@ -50,7 +52,8 @@ def test_objective_gradient_matches_central_differences(model, weights, robust):
     scene.settings = scene.settings.replace(dist_eps=1e-9)    # a tiny cut-off: smooth for differences
     target = body.prepare_target(image, size, joints=np.clip(joints + rng.normal(0, 2, joints.shape), 0, size - 1),
                                  joint_weights=rng.uniform(0.5, 1.5, model.n_joints), n_joints=model.n_joints)
-    objective = body.BodyObjective(scene, target, robust_px=robust)
+    faces = None if coarse is None else coarse_faces(model.v_template, model.faces, coarse)
+    objective = body.BodyObjective(scene, target, robust_px=robust, faces=faces)
     stage = Stage("s", ("betas",), weights, sigma=1e-4, gamma=1e-2)
     values = random_values(model, rng)
     _, grads, terms = objective(values, stage)
@@ -117,11 +120,12 @@ def test_bad_targets_and_joints_are_rejected(model, target, joints, match):
 
 
 def test_the_schedule_is_followed(model, monkeypatch):
-    seen = []
+    seen, drawn = [], []
     render = body.BodyScene.render
 
     def recording(self, vertices, sigma, gamma, *args, **kwargs):
         seen.append((sigma, gamma))
+        drawn.append(len(self.model.faces if kwargs.get("faces") is None else kwargs["faces"]))
         return render(self, vertices, sigma, gamma, *args, **kwargs)
 
     monkeypatch.setattr(body.BodyScene, "render", recording)
@@ -134,6 +138,10 @@ def test_the_schedule_is_followed(model, monkeypatch):
     fitting_renders = [s for s in seen if s != (1e-6, 1e-4)]        # not the sharp initial render
     assert list(dict.fromkeys(fitting_renders)) == [(1e-4, 1e-2), (3e-5, 3e-3), (1e-5, 1e-3)]
     assert len(fitting_renders) == len(stages_seen) - stages_seen.count("joints")
+    # the image stages draw the coarse face list, the initial sharp render the model's own
+    coarse = len(coarse_faces(model.v_template, model.faces, config.coarse_mesh))
+    assert {n for s, n in zip(seen, drawn) if s != (1e-6, 1e-4)} == {coarse} and coarse < len(model.faces) / 4
+    assert {n for s, n in zip(seen, drawn) if s == (1e-6, 1e-4)} == {len(model.faces)}
     assert set(fit.result.outcomes) == {"joints", "image-1", "image-2", "image-3"}
 
 
@@ -162,6 +170,7 @@ def test_a_small_synthetic_fit_recovers_a_known_pose(model):
     (dict(fov_deg=0.0), "fov_deg must be in (0, 180) degrees, got 0.0"),
     (dict(height=float("nan")), "height must be a finite number, got nan"),
     (dict(robust_px=-1.0), "robust_px must be > 0, got -1.0"),
+    (dict(coarse_mesh=0.0), "coarse_mesh must be > 0, got 0.0"),
     (dict(size=4), "size must be an integer >= 16"),
     (dict(background=(0.0, 1.0)), "background must be 3 numbers"),
 ])
