@@ -11,10 +11,12 @@
  *   SR_LIGHTING           0: colours as given, 1: per-pixel Lambert, 2: per-pixel SH (texture 0)
  *   SR_SAVE_STATE         forward also writes what the backward needs
  *   SR_GRAD_POS, SR_GRAD_COLOR   which gradients the backward computes
+ *   SR_ROWS               image rows per forward work-item (divides TILE_H)
  *
  * Work layout: the image (padded to Wp x Hp) is cut into tiles of SR_VEC x TILE_H pixels; the
  * host bins each face into the tiles its cut-off footprint touches, in increasing face order.
- * Forward: one work-item = SR_VEC adjacent pixels of one row (a realv), looping over its tile's faces.
+ * Forward: one work-item = SR_VEC adjacent pixels (a realv) of SR_ROWS adjacent rows, looping over
+ * its tile's faces.
  * Backward: one work-item = one tile, looping over its faces; each (tile, face) pair writes its
  * summed gradient to its own slot (its index in the tile lists, so the writes go in order), and
  * kernels/grad_sums.cl adds the slots of each face in a fixed order, so results are bit-identical
@@ -371,131 +373,200 @@ inline Params make_params(real inv_sigma, real x_cut, real inv_gamma, real near,
     __global const real *light, __global const int *tile_start, __global const int *tile_faces
 
 /* ---- forward ------------------------------------------------------------------------------ */
+#ifndef SR_ROWS
+#error "SR_ROWS (image rows per forward work-item, dividing TILE_H) must be passed with -D"
+#endif
+#if TILE_H % SR_ROWS
+#error "SR_ROWS must divide TILE_H"
+#endif
+
+/* The forward's running sums at SR_VEC pixels of one row. */
+typedef struct {
+#if SR_NEED_COLOR && !SR_COLOR_HARD
+    realv m, S, accZ, acc[3];      /* online softmax: running maximum, normaliser, sums */
+#elif SR_NEED_COLOR
+    realv bestZ, best[3];
+    idv best_id;
+#endif
+#if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
+    realv l_rest, l_min;           /* sum of log(1 - D) without its most negative term, that term */
+    idv min_id;
+#elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
+    realv sumD;
+#elif SR_OUT_ALPHA
+    maskv covered;
+#endif
+} FwdSums;
+
+inline void fwd_init(FwdSums *a, real eps, real inv_gamma, real far, const realv bg[3])
+{
+#if SR_NEED_COLOR && !SR_COLOR_HARD
+    a->m = (realv)(eps * inv_gamma);
+    a->S = (realv)R(1);
+    a->accZ = (realv)far;
+    for (int c = 0; c < 3; ++c)
+        a->acc[c] = bg[c];
+#elif SR_NEED_COLOR
+    a->bestZ = (realv)far;
+    for (int c = 0; c < 3; ++c)
+        a->best[c] = bg[c];
+    a->best_id = (idv)(-1);
+#endif
+#if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
+    a->l_rest = a->l_min = (realv)R(0);
+    a->min_id = (idv)(-1);
+#elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
+    a->sumD = (realv)R(0);
+#elif SR_OUT_ALPHA
+    a->covered = (maskv)0;
+#endif
+}
+
+/* Add face `face` (fragment r) to the sums of its pixels. */
+inline void fwd_add(FwdSums *a, const Frag *r, int face, const Params *p, real far, real inv_gamma,
+                    __global const real *attr, __global const real *image, __global const real *light,
+                    int tex_res, int tex_h, int tex_w)
+{
+#if (SR_NEED_COLOR && !SR_COLOR_HARD) || (SR_OUT_ALPHA && SR_ALPHA_AGG != 2)
+    realv log_D, log_1mD;     /* log D and log(1 - D), sharing one exp and one log1p */
+    log_sigmoid_pair(r->x, &log_D, &log_1mD);
+#endif
+#if SR_NEED_COLOR
+    realv C[3] = {(realv)R(0), (realv)R(0), (realv)R(0)};
+#if SR_OUT_RGB
+    face_color(attr, image, light, face, tex_res, tex_h, tex_w, r, C, 0, 0);
+#endif
+#if !SR_COLOR_HARD
+    /* online softmax: one exp per pair, the running maximum m keeps every exp <= 1 */
+    realv t = log_D + (far - r->Z) * p->inv_range * inv_gamma;
+    realv diff = t - a->m, e = exp(-fabs(diff));
+    maskv up = (diff > R(0)) & r->valid;
+    realv old_scale = select((realv)R(1), e, up);
+    realv new_weight = keep(select(e, (realv)R(1), up), r->valid);
+    a->S = a->S * old_scale + new_weight;
+    for (int c = 0; c < 3; ++c)
+        a->acc[c] = a->acc[c] * old_scale + new_weight * C[c];
+    a->accZ = a->accZ * old_scale + new_weight * r->Z;
+    a->m = select(a->m, t, up);
+#else
+    maskv nearer = r->inside & r->valid & ((r->Z < a->bestZ) | (a->best_id < 0));
+    a->bestZ = select(a->bestZ, r->Z, nearer);
+    for (int c = 0; c < 3; ++c)
+        a->best[c] = select(a->best[c], C[c], nearer);
+    a->best_id = select(a->best_id, (idv)face, nearer);
+#endif
+#endif
+#if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
+    /* log(1 - D) summed; the most negative term is kept apart for a stable backward */
+    realv l1m = log_1mD;
+    maskv lower = (l1m < a->l_min) & r->valid;
+    a->l_rest += keep(select(l1m, a->l_min, lower), r->valid);
+    a->l_min = select(a->l_min, l1m, lower);
+    a->min_id = select(a->min_id, (idv)face, lower);
+#elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
+    a->sumD += keep(exp(log_D), r->valid);
+#elif SR_OUT_ALPHA
+    a->covered |= r->inside & r->valid;
+#endif
+}
+
+/* The images (and with SR_SAVE_STATE the backward's state) at the SR_VEC pixels from pix. */
+inline void fwd_store(const FwdSums *a, size_t pix, size_t npix,
+                      __global real *out_rgb, __global real *out_alpha, __global real *out_depth,
+                      __global real *color_state, __global real *alpha_state, __global int *id_state)
+{
+#if SR_NEED_COLOR && !SR_COLOR_HARD
+    const realv inv_S = R(1) / a->S;
+#if SR_OUT_RGB
+    for (int c = 0; c < 3; ++c)
+        VSTORE(a->acc[c] * inv_S, 0, out_rgb + c * npix + pix);
+#endif
+#if SR_OUT_DEPTH
+    VSTORE(a->accZ * inv_S, 0, out_depth + pix);
+#endif
+#if SR_SAVE_STATE
+    VSTORE(a->m + log(a->S), 0, color_state + pix);
+#endif
+#elif SR_NEED_COLOR
+#if SR_OUT_RGB
+    for (int c = 0; c < 3; ++c)
+        VSTORE(a->best[c], 0, out_rgb + c * npix + pix);
+#endif
+#if SR_OUT_DEPTH
+    VSTORE(a->bestZ, 0, out_depth + pix);
+#endif
+#if SR_SAVE_STATE
+    VSTORE(TO_INT(a->best_id), 0, id_state + pix);
+#endif
+#endif
+
+#if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
+    VSTORE(-expm1(a->l_rest + a->l_min), 0, out_alpha + pix);
+#if SR_SAVE_STATE
+    VSTORE(a->l_rest, 0, alpha_state + pix);
+    VSTORE(a->l_min, 0, alpha_state + npix + pix);
+    VSTORE(TO_INT(a->min_id), 0, id_state + npix + pix);
+#endif
+#elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
+    VSTORE(fmin(a->sumD, R(1)), 0, out_alpha + pix);
+#if SR_SAVE_STATE
+    VSTORE(a->sumD, 0, alpha_state + pix);
+#endif
+#elif SR_OUT_ALPHA
+    VSTORE(select((realv)R(0), (realv)R(1), a->covered), 0, out_alpha + pix);
+#endif
+}
+
+/* One work-item = SR_VEC pixels of SR_ROWS adjacent rows of one tile. Each face of the tile's
+ * list is loaded once and added to every row its footprint box reaches, so each pixel sees the
+ * same faces in the same order with the same arithmetic whatever SR_ROWS is. */
 __kernel void soft_raster_fwd(GEOMETRY_ARGS,
                               const real bg_r, const real bg_g, const real bg_b,
                               __global real *out_rgb, __global real *out_alpha, __global real *out_depth,
                               __global real *color_state, __global real *alpha_state,
                               __global int *id_state)
 {
-    const int cb = get_global_id(0), row = get_global_id(1), batch = get_global_id(2);
-    if (row >= H || cb >= ntx)    /* padding rows / work-items of the last group */
+    const int cb = get_global_id(0), row0 = get_global_id(1) * SR_ROWS, batch = get_global_id(2);
+    if (row0 >= H || cb >= ntx)    /* padding rows / work-items of the last group */
         return;
     const Params p = make_params(inv_sigma, x_cut, inv_gamma, near, far);
-    const int tile = (batch * nty + row / TILE_H) * ntx + cb;
+    const int tile = (batch * nty + row0 / TILE_H) * ntx + cb;
     const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
-    const size_t pix = ((size_t)batch * Hp + row) * Wp + cb * SR_VEC;
     const realv px = ((real)(cb * SR_VEC) - R(0.5) * W + LANE_OFFSETS) * pix_scale;
-    const real py = (R(0.5) * H - row - R(0.5)) * pix_scale;
+    const real x_lo = px.s0, x_hi = LAST_LANE(px);
     const realv bg[3] = {(realv)bg_r, (realv)bg_g, (realv)bg_b};
     __global const real *image = tex_image + (size_t)batch * tex_h * tex_w * 3;
-
-#if SR_NEED_COLOR && !SR_COLOR_HARD
-    realv m = (realv)(eps * inv_gamma), S = (realv)R(1), accZ = (realv)far;
-    realv acc[3] = {bg[0], bg[1], bg[2]};
-#elif SR_NEED_COLOR
-    realv bestZ = (realv)far, best[3] = {bg[0], bg[1], bg[2]};
-    idv best_id = (idv)(-1);
-#endif
-#if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
-    realv l_rest = (realv)R(0), l_min = (realv)R(0);
-    idv min_id = (idv)(-1);
-#elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
-    realv sumD = (realv)R(0);
-#elif SR_OUT_ALPHA
-    maskv covered = (maskv)0;
-#endif
+    real py[SR_ROWS];
+    FwdSums sums[SR_ROWS];
+    for (int i = 0; i < SR_ROWS; ++i) {
+        py[i] = (R(0.5) * H - (row0 + i) - R(0.5)) * pix_scale;
+        fwd_init(&sums[i], eps, inv_gamma, far, bg);
+    }
+    const int rows = min(SR_ROWS, H - row0);
 
     for (int k = tile_start[tile]; k < tile_start[tile + 1]; ++k) {
         const int face = tile_faces[k];
-        if (outside_footprint(geom, face, px.s0, LAST_LANE(px), py))
+        __global const real *box = geom + face * FACE_STRIDE + FACE_BOX;   /* xmin, xmax, ymin, ymax */
+        if (x_hi < box[0] || x_lo > box[1])
+            continue;
+        const real y_min = box[2], y_max = box[3];
+        uint hit = 0;    /* bit i: row i is inside the box's rows */
+        for (int i = 0; i < SR_ROWS; ++i)
+            hit |= (uint)(i < rows && !(py[i] < y_min || py[i] > y_max)) << i;
+        if (!hit)
             continue;
         const Face f = load_face(geom, face);
-        const Frag r = eval_frag(&f, px, py, &p);
-        if (!any(r.valid))
-            continue;
-#if (SR_NEED_COLOR && !SR_COLOR_HARD) || (SR_OUT_ALPHA && SR_ALPHA_AGG != 2)
-        realv log_D, log_1mD;     /* log D and log(1 - D), sharing one exp and one log1p */
-        log_sigmoid_pair(r.x, &log_D, &log_1mD);
-#endif
-#if SR_NEED_COLOR
-        realv C[3] = {(realv)R(0), (realv)R(0), (realv)R(0)};
-#if SR_OUT_RGB
-        face_color(attr, image, light, face, tex_res, tex_h, tex_w, &r, C, 0, 0);
-#endif
-#if !SR_COLOR_HARD
-        /* online softmax: one exp per pair, the running maximum m keeps every exp <= 1 */
-        realv t = log_D + (far - r.Z) * p.inv_range * inv_gamma;
-        realv diff = t - m, e = exp(-fabs(diff));
-        maskv up = (diff > R(0)) & r.valid;
-        realv old_scale = select((realv)R(1), e, up);
-        realv new_weight = keep(select(e, (realv)R(1), up), r.valid);
-        S = S * old_scale + new_weight;
-        for (int c = 0; c < 3; ++c)
-            acc[c] = acc[c] * old_scale + new_weight * C[c];
-        accZ = accZ * old_scale + new_weight * r.Z;
-        m = select(m, t, up);
-#else
-        maskv nearer = r.inside & r.valid & ((r.Z < bestZ) | (best_id < 0));
-        bestZ = select(bestZ, r.Z, nearer);
-        for (int c = 0; c < 3; ++c)
-            best[c] = select(best[c], C[c], nearer);
-        best_id = select(best_id, (idv)face, nearer);
-#endif
-#endif
-#if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
-        /* log(1 - D) summed; the most negative term is kept apart for a stable backward */
-        realv l1m = log_1mD;
-        maskv lower = (l1m < l_min) & r.valid;
-        l_rest += keep(select(l1m, l_min, lower), r.valid);
-        l_min = select(l_min, l1m, lower);
-        min_id = select(min_id, (idv)face, lower);
-#elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
-        sumD += keep(exp(log_D), r.valid);
-#elif SR_OUT_ALPHA
-        covered |= r.inside & r.valid;
-#endif
+        for (int i = 0; i < SR_ROWS; ++i) {
+            if (!(hit >> i & 1u))
+                continue;
+            const Frag r = eval_frag(&f, px, py[i], &p);
+            if (any(r.valid))
+                fwd_add(&sums[i], &r, face, &p, far, inv_gamma, attr, image, light, tex_res, tex_h, tex_w);
+        }
     }
-
-#if SR_NEED_COLOR && !SR_COLOR_HARD
-    const realv inv_S = R(1) / S;
-#if SR_OUT_RGB
-    for (int c = 0; c < 3; ++c)
-        VSTORE(acc[c] * inv_S, 0, out_rgb + c * npix + pix);
-#endif
-#if SR_OUT_DEPTH
-    VSTORE(accZ * inv_S, 0, out_depth + pix);
-#endif
-#if SR_SAVE_STATE
-    VSTORE(m + log(S), 0, color_state + pix);
-#endif
-#elif SR_NEED_COLOR
-#if SR_OUT_RGB
-    for (int c = 0; c < 3; ++c)
-        VSTORE(best[c], 0, out_rgb + c * npix + pix);
-#endif
-#if SR_OUT_DEPTH
-    VSTORE(bestZ, 0, out_depth + pix);
-#endif
-#if SR_SAVE_STATE
-    VSTORE(TO_INT(best_id), 0, id_state + pix);
-#endif
-#endif
-
-#if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
-    VSTORE(-expm1(l_rest + l_min), 0, out_alpha + pix);
-#if SR_SAVE_STATE
-    VSTORE(l_rest, 0, alpha_state + pix);
-    VSTORE(l_min, 0, alpha_state + npix + pix);
-    VSTORE(TO_INT(min_id), 0, id_state + npix + pix);
-#endif
-#elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
-    VSTORE(fmin(sumD, R(1)), 0, out_alpha + pix);
-#if SR_SAVE_STATE
-    VSTORE(sumD, 0, alpha_state + pix);
-#endif
-#elif SR_OUT_ALPHA
-    VSTORE(select((realv)R(0), (realv)R(1), covered), 0, out_alpha + pix);
-#endif
+    for (int i = 0; i < rows; ++i)
+        fwd_store(&sums[i], ((size_t)batch * Hp + row0 + i) * Wp + cb * SR_VEC, npix,
+                  out_rgb, out_alpha, out_depth, color_state, alpha_state, id_state);
 }
 
 /* ---- backward ----------------------------------------------------------------------------- */

@@ -35,6 +35,9 @@ OWN_TRANSFER = 256 * 1024
 # Work-group shape of both kernels. Set explicitly: left to the driver, PoCL picked groups of
 # 4096 work-items whose float64 private state overflowed its thread stacks (a crash at 1024^2).
 GROUP = (8, 1, 1)
+# Image rows per forward work-item (kernels/soft_raster.cl, SR_ROWS; divides TILE_H): each face
+# record is loaded once for that many rows.
+FWD_ROWS = 4
 
 
 @dataclass
@@ -263,7 +266,7 @@ class SoftRasterizer:
             SR_TEXTURE=("vertex", "face", "uv").index(s.texture),
             SR_PERSPECTIVE=s.perspective_correct,
             SR_LIGHTING=("none", "lambert", "sh").index(s.lighting),
-            SR_SAVE_STATE=save_state,
+            SR_SAVE_STATE=save_state, SR_ROWS=FWD_ROWS,
             SR_GRAD_POS="vertices" in grads,
             SR_GRAD_COLOR="colors" in grads and "rgb" in s.outputs)
         return build_kernel(self.ctx, "soft_raster.cl", name, defines, s.fast_math)
@@ -290,7 +293,8 @@ class SoftRasterizer:
         out = {n: self.pool.take(npix * k * real.itemsize) for n, k in planes.items() if k}
         dummy = self._dummy()
         knl = self._kernel("soft_raster_fwd", (), state is not None)
-        launch(knl, self.queue, (_round_up(g.ntx), g.hp, mesh.batch), GROUP, *self._geometry_args(mesh, bufs),
+        launch(knl, self.queue, (_round_up(g.ntx), g.hp // FWD_ROWS, mesh.batch), GROUP,
+               *self._geometry_args(mesh, bufs),
                *(real.type(c) for c in s.background),
                *(out.get(n, dummy) for n in ("rgb", "alpha", "depth")), *self._state_args(state))
         return out

@@ -9,7 +9,7 @@ from softras_cl.raster.settings import RasterSettings
 
 DEFINES = dict(SR_DOUBLE=0, SR_OUT_RGB=1, SR_OUT_ALPHA=1, SR_OUT_DEPTH=0, SR_METRIC_BARY=0,
                SR_COLOR_HARD=0, SR_ALPHA_AGG=0, SR_TEXTURE=0, SR_PERSPECTIVE=1, SR_LIGHTING=0,
-               SR_SAVE_STATE=0, SR_GRAD_POS=0, SR_GRAD_COLOR=0)
+               SR_SAVE_STATE=0, SR_GRAD_POS=0, SR_GRAD_COLOR=0, SR_ROWS=1)
 
 
 @pytest.fixture

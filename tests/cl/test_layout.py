@@ -12,7 +12,7 @@ from softras_cl.cl.source import kernel_source
 KERNELS = Path(__file__).resolve().parents[2] / "kernels"
 DEFINES = dict(SR_DOUBLE=0, SR_OUT_RGB=1, SR_OUT_ALPHA=1, SR_OUT_DEPTH=0, SR_METRIC_BARY=0,
                SR_COLOR_HARD=0, SR_ALPHA_AGG=0, SR_TEXTURE=0, SR_PERSPECTIVE=1, SR_LIGHTING=0,
-               SR_SAVE_STATE=1, SR_GRAD_POS=1, SR_GRAD_COLOR=1)
+               SR_SAVE_STATE=1, SR_GRAD_POS=1, SR_GRAD_COLOR=1, SR_ROWS=1)
 
 
 def test_layout_constants_are_never_defined_in_kernels():
