@@ -36,8 +36,9 @@ OWN_TRANSFER = 256 * 1024
 # 4096 work-items whose float64 private state overflowed its thread stacks (a crash at 1024^2).
 GROUP = (8, 1, 1)
 # Image rows per forward work-item (kernels/soft_raster.cl, SR_ROWS; divides TILE_H): each face
-# record is loaded once for that many rows.
-FWD_ROWS = 4
+# record is loaded once for that many rows. A whole tile, as in the backward: 1, 2, 4, 8 rows cost
+# 57, 59, 55, 52 ms CPU at 1024^2 on PoCL (docs/bench/raster.md, "Sixth pass: kernels").
+FWD_ROWS = 8
 
 
 @dataclass
