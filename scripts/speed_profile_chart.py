@@ -33,10 +33,17 @@ WAITS = ("wait", "enqueue", "finish", "_download", "get")
 DEVICE_WAITS = ("._sync", ".wait", ".finish")
 
 
+def _source_path(path: str) -> str:
+    """The path in the source tree: fitting/ is installed as softras_cl/fitting/, which is what
+    a non-editable install or a git worktree (through its symlink) shows."""
+    installed = "softras_cl/fitting/"
+    return "fitting/" + path[len(installed):] if path.startswith(installed) else path
+
+
 def category(frames: list[str]) -> str:
     """The category of one main-thread stack (root first), frames as py-spy writes them:
     'function (file:line)'."""
-    files = [f.rsplit("(", 1)[-1] for f in frames]
+    files = [_source_path(f.rsplit("(", 1)[-1]) for f in frames]
     if any("_find_and_load" in f for f in frames):
         return "start-up: imports"
     if any("Program" in f and ("build" in f or "binary" in f) for f in frames):

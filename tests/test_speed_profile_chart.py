@@ -58,3 +58,12 @@ def test_totals_count_the_main_thread_only(chart, tmp_path):
     totals = chart.totals(raw, rate=100.0)
     assert totals["face model"] == 2.5 and totals["objective, losses, solver"] == 0.5
     assert sum(totals.values()) == 3.0 and list(totals) == list(chart.CATEGORIES)
+
+
+def test_the_installed_fitting_path_counts_as_the_source_tree(chart):
+    """A non-editable install or a git worktree shows fitting/ as softras_cl/fitting/."""
+    installed = (ROOT + ";fit_face (softras_cl/fitting/recipes/face.py:714);"
+                 "FaceModel.albedo (softras_cl/fitting/models/face_model.py:175)")
+    assert chart.category(installed.split(";")) == "face model"
+    report = ROOT + ";write_outputs (softras_cl/fitting/reports/face.py:260)"
+    assert chart.category(report.split(";")) == "reports and outputs"
