@@ -328,3 +328,21 @@ def test_unusable_output_folder_is_exit_3(run_cli, sphere, tmp_path):
         result = run_cli(*argv, "--out", blocker / "x.png")
         assert result.code == EXIT_OUTPUT, result.err
         assert f"--out {blocker / 'x.png'}: cannot create its folder: File exists" in one_line(result)
+
+
+@pytest.mark.parametrize("command", ["fit-face", "fit-body"])
+def test_coarse_mesh_option_sets_the_fit_config(command):
+    """--coarse-mesh EDGES reaches the fit's config; 0 means the model's own faces."""
+    from importlib import import_module
+
+    from softras_cl.cli import build_parser
+
+    module = import_module(f"softras_cl.cli.{command.replace('-', '_')}")
+    recipe = import_module(f"softras_cl.fitting.recipes.{command.split('-')[1]}")
+
+    def config(*extra):
+        return module._config(build_parser(command).parse_args([command, "in.png", "--out", "o", *extra]))
+
+    assert config().coarse_mesh == recipe.COARSE_MESH
+    assert config("--coarse-mesh", "2.5").coarse_mesh == 2.5
+    assert config("--coarse-mesh", "0").coarse_mesh is None

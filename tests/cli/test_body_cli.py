@@ -117,16 +117,3 @@ def test_fit_body_batch_from_a_manifest_with_joints(tmp_path, target):
     assert with_joints["metrics"]["joint_error_px_full"] < 3.0 and "joint_error_px_full" not in alone["metrics"]
     assert with_joints["metrics"]["silhouette_iou"] > 0.7
     assert (out / "summary.png").stat().st_size > 0 and (out / "results.csv").exists()
-
-
-def test_coarse_mesh_option_sets_the_fit_config():
-    from softras_cl.cli import build_parser
-    from softras_cl.cli.fit_body import _config
-    from softras_cl.fitting.recipes.body import COARSE_MESH
-
-    def config(*extra):
-        return _config(build_parser("fit-body").parse_args(["fit-body", "t.png", "--out", "o", *extra]))
-
-    assert config().coarse_mesh == COARSE_MESH
-    assert config("--coarse-mesh", "2").coarse_mesh == 2.0
-    assert config("--coarse-mesh", "0").coarse_mesh is None          # the model's own faces

@@ -94,16 +94,3 @@ def test_bench_face_rejects_unknown_budgets(run_cli):
     result = run_cli("bench", "face", "--budgets", "fast,quick")
     assert result.code == 2
     assert "--budgets must name some of" in result.err
-
-
-def test_coarse_mesh_option_sets_the_fit_config():
-    from softras_cl.cli import build_parser
-    from softras_cl.cli.fit_face import _config
-    from softras_cl.fitting.recipes.face import COARSE_MESH
-
-    def config(*extra):
-        return _config(build_parser("fit-face").parse_args(["fit-face", "p.png", "--out", "o", *extra]))
-
-    assert config().coarse_mesh == COARSE_MESH
-    assert config("--coarse-mesh", "3").coarse_mesh == 3.0
-    assert config("--coarse-mesh", "0").coarse_mesh is None          # the model's own faces
