@@ -423,7 +423,7 @@ inline void fwd_init(FwdSums *a, real eps, real inv_gamma, real far, const realv
 }
 
 /* Add face `face` (fragment r) to the sums of its pixels. Always inlined: as a call (PoCL did not
- * inline it), the fragment went through memory (docs/bench/raster.md, "Sixth pass: kernels"). */
+ * inline it), the fragment went through memory (docs/notes/raster_passes.md, "Sixth pass: kernels"). */
 __attribute__((always_inline))
 inline void fwd_add(FwdSums *a, const Frag *r, int face, const Params *p, real far, real inv_gamma,
                     __global const real *attr, __global const real *image, __global const real *light,

@@ -1,4 +1,4 @@
-"""Per-evaluation cost of the face objective's parts (docs/speed_face_host.md), one tree.
+"""Per-evaluation cost of the face objective's parts (docs/notes/face_host.md), one tree.
 
     .venv/bin/softras-cl -q fit-face examples/data/astronaut.png --landmarks examples/data/astronaut.pts --out /tmp/fit
     .venv/bin/python scripts/face_host_parts.py /tmp/fit/params.npz --evals 100 > after.json

@@ -37,7 +37,7 @@ OWN_TRANSFER = 256 * 1024
 GROUP = (8, 1, 1)
 # Image rows per forward work-item (kernels/soft_raster.cl, SR_ROWS; divides TILE_H): each face
 # record is loaded once for that many rows. A whole tile, as in the backward: 1, 2, 4, 8 rows cost
-# 57, 59, 55, 52 ms CPU at 1024^2 on PoCL (docs/bench/raster.md, "Sixth pass: kernels").
+# 57, 59, 55, 52 ms CPU at 1024^2 on PoCL (docs/notes/raster_passes.md, "Sixth pass: kernels").
 FWD_ROWS = 8
 
 
