@@ -255,6 +255,21 @@ def test_fit_body_refuses_an_infinite_mask(run_cli, tmp_path):
     assert "target contains NaN or Inf (1 non-finite value(s), first at index (3, 4))" in one_line(result)
 
 
+@pytest.mark.parametrize("bad", ["target", "joints"])
+def test_fit_body_names_an_npy_of_strings(run_cli, tmp_path, bad):
+    disc = np.zeros((32, 32))
+    disc[8:24, 12:20] = 1.0
+    np.save(tmp_path / "disc.npy", disc)
+    np.save(tmp_path / "words.npy", np.array(["a", "b"]))
+    target, joints = ("words.npy", "disc.npy") if bad == "target" else ("disc.npy", "words.npy")
+    result = run_cli("fit-body", tmp_path / target, "--joints", tmp_path / joints, "--silhouette",
+                     "--out", tmp_path / "b", "--no-progress")
+    assert result.code == EXIT_INPUT
+    says = "target" if bad == "target" else "joints file"
+    assert f"{says} {tmp_path / 'words.npy'}: expected numbers (" in one_line(result)
+    assert "got an array of dtype <U1" in one_line(result)
+
+
 # ---- devices: every command, through a real process (the environment is read at start) -----------
 COMMANDS = {
     "devices": ["devices"],
