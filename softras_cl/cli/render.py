@@ -23,6 +23,7 @@ def _run_render(args: argparse.Namespace) -> int:
     from softras_cl.scene.renderer import Renderer
     from softras_cl.raster.settings import RasterSettings
 
+    _check_output_files(args)
     mesh, camera = load_view(args)
     check_drawable(mesh, args.mesh.name)
     outputs = ("rgb", "alpha", "depth") if args.depth_out else ("rgb", "alpha")
@@ -56,6 +57,16 @@ def _run_render(args: argparse.Namespace) -> int:
           f"{'textured, unlit' if textured else args.light}): rendered in {seconds * 1000:.0f} ms, "
           f"{time.perf_counter() - start:.1f} s with writing")
     return 0
+
+
+def _check_output_files(args: argparse.Namespace) -> None:
+    """--out (and --depth-out) must name files render can write: InputError before rendering."""
+    from softras_cl.errors import InputError
+    from softras_cl.io.images import image_format
+
+    image_format(args.out, alpha=args.transparent, what="--out")
+    if args.depth_out is not None and args.depth_out.is_dir():
+        raise InputError(f"--depth-out {args.depth_out} is a folder: expected a .png file path")
 
 
 def _write_depth(path: Path, depth, alpha) -> None:

@@ -57,6 +57,31 @@ def test_render_refuses_bad_options(run_cli, sphere, tmp_path, option, value, sa
     assert not (tmp_path / "r.png").exists()
 
 
+@pytest.mark.parametrize("out, extra, says", [
+    ("folder", [], "--out {path} is a folder: expected an image file path (.png, .jpg,"),
+    ("render", [], "--out {path}: no extension: expected an image file path (.png, .jpg,"),
+    ("render.npy", [], "--out {path}: no image format Pillow writes has the extension '.npy'"),
+    ("render.jpg", ["--transparent"], "--out {path}: JPEG cannot store alpha"),
+], ids=["folder", "no-extension", "npy", "jpeg-with-alpha"])
+def test_render_checks_out_before_rendering(run_cli, sphere, tmp_path, monkeypatch, out, extra, says):
+    from softras_cl.scene.renderer import Renderer
+
+    monkeypatch.setattr(Renderer, "forward", lambda *a, **k: pytest.fail("rendered before checking --out"))
+    (tmp_path / "folder").mkdir()
+    result = run_cli("render", sphere, "--size", "16", "--out", tmp_path / out, *extra)
+    assert result.code == EXIT_INPUT
+    assert says.format(path=tmp_path / out) in one_line(result)
+
+
+def test_render_checks_depth_out_before_rendering(run_cli, sphere, tmp_path, monkeypatch):
+    from softras_cl.scene.renderer import Renderer
+
+    monkeypatch.setattr(Renderer, "forward", lambda *a, **k: pytest.fail("rendered before checking --depth-out"))
+    result = run_cli("render", sphere, "--size", "16", "--out", tmp_path / "r.png", "--depth-out", tmp_path)
+    assert result.code == EXIT_INPUT
+    assert f"--depth-out {tmp_path} is a folder: expected a .png file path" in one_line(result)
+
+
 def test_render_dist_eps_out_of_range_names_it(run_cli, sphere, tmp_path):
     result = run_cli("render", sphere, "--dist-eps", "0.7", "--size", "32", "--out", tmp_path / "r.png")
     assert result.code == EXIT_INPUT
