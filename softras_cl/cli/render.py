@@ -5,7 +5,7 @@ import argparse
 import time
 from pathlib import Path
 
-from softras_cl.io.outputs import atomic_path
+from softras_cl.io.outputs import atomic_path, replaced_file
 from softras_cl.cli.view import (add_view_options, check_command_memory, check_drawable, finite_float,
                                  load_view, make_light, output_folder, positive_float, triple)
 
@@ -60,13 +60,18 @@ def _run_render(args: argparse.Namespace) -> int:
 
 
 def _check_output_files(args: argparse.Namespace) -> None:
-    """--out (and --depth-out) must name files render can write: InputError before rendering."""
+    """--out (and --depth-out) must name files render can write, checked before rendering:
+    InputError for a folder or an extension that is no image format, OutputError for a path
+    that leads to a device or other file that is not a regular one."""
     from softras_cl.errors import InputError
     from softras_cl.io.images import image_format
 
     image_format(args.out, alpha=args.transparent, what="--out")
-    if args.depth_out is not None and args.depth_out.is_dir():
-        raise InputError(f"--depth-out {args.depth_out} is a folder: expected a .png file path")
+    replaced_file(args.out)
+    if args.depth_out is not None:
+        if args.depth_out.is_dir():
+            raise InputError(f"--depth-out {args.depth_out} is a folder: expected a .png file path")
+        replaced_file(args.depth_out)
 
 
 def _write_depth(path: Path, depth, alpha) -> None:

@@ -5,6 +5,8 @@
   reader sees the old file or the complete new one, never a truncated one. When the write fails
   (disk full, read-only folder) or is interrupted, the temporary file is removed and the old
   file is left unchanged; the error is an :class:`~softras_cl.errors.OutputError` naming the file.
+  A symbolic link is written through (its target replaced, the link kept); a path that is or
+  leads to a folder or a device is refused.
 - :class:`OutputFolder`: an output folder checked up front (a usable path, creatable, writable)
   and locked while a run writes into it, so a second run into the same folder refuses with a
   clear message instead of mixing its files with the first one's. The lock is an OS file lock
@@ -25,6 +27,7 @@ import json
 import math
 import os
 import re
+import stat
 import sys
 import tempfile
 import time
@@ -33,8 +36,8 @@ from typing import Iterator
 
 from softras_cl.errors import InputError, OutputError
 
-__all__ = ["atomic_path", "write_bytes", "write_text", "write_json", "write_figure", "json_safe",
-           "file_sha256", "OutputFolder", "LOCK_NAME",
+__all__ = ["atomic_path", "replaced_file", "write_bytes", "write_text", "write_json", "write_figure",
+           "json_safe", "file_sha256", "OutputFolder", "LOCK_NAME",
            "RUN_RECORD", "COMPLETE_RECORD"]
 
 LOCK_NAME = ".softras-cl.lock"
@@ -57,30 +60,66 @@ def atomic_path(path) -> Iterator[Path]:
 
     On any error or interrupt in the block, the temporary file is removed, ``path`` keeps its
     old content, and an OSError is re-raised as OutputError("cannot write PATH: reason; ...").
+    When ``path`` is a symbolic link, its target is replaced (the temporary file is made in the
+    target's folder) and the link kept; a ``path`` that leads to something other than a regular
+    file (a folder, a device) is refused with OutputError before anything is written.
     """
     path = Path(path)
+    target, shown = replaced_file(path)
     try:
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=f"{TEMP_MARK}{path.suffix}")
+        fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.stem}.", suffix=f"{TEMP_MARK}{target.suffix}")
     except OSError as e:
-        raise OutputError(f"cannot write {path}: {_describe(e)}") from e
+        raise OutputError(f"cannot write {shown}: {_describe(e)}") from e
     tmp = Path(tmp)
     try:
         try:
             if hasattr(os, "fchmod"):       # not on Windows, where permissions work otherwise
-                os.fchmod(fd, _file_mode(path))
+                os.fchmod(fd, _file_mode(target))
         finally:
             os.close(fd)
         yield tmp
         with open(tmp, "rb+") as f:     # the data must be on disk before the rename publishes it
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        os.replace(tmp, target)
     except BaseException as e:
         with contextlib.suppress(OSError):
             tmp.unlink()
         if isinstance(e, OSError) and not isinstance(e, OutputError):
-            kept = " (the existing file is unchanged)" if path.exists() else ""
-            raise OutputError(f"cannot write {path}: {_describe(e)}{kept}") from e
+            kept = " (the existing file is unchanged)" if target.exists() else ""
+            raise OutputError(f"cannot write {shown}: {_describe(e)}{kept}") from e
         raise
+
+
+def replaced_file(path) -> tuple[Path, str]:
+    """(the file a write to ``path`` replaces, how messages name it); a command calls it to check
+    an output file before its work, atomic_path before writing. A symbolic link is written
+    through: its target (existing or not) is replaced and the link kept. OutputError when that
+    file exists but is not a regular file (a folder, a device such as /dev/full, a FIFO):
+    renaming a new file over it would remove it, and writing into it is not atomic."""
+    path = Path(path)
+    target = Path(os.path.realpath(path)) if path.is_symlink() else path
+    shown = f"{path} (a link to {target})" if target != path else str(path)
+    try:
+        mode = target.stat().st_mode
+    except (FileNotFoundError, NotADirectoryError):     # a new file (its folder is checked later)
+        return target, shown
+    except OSError as e:                    # a loop of links, a folder that cannot be searched
+        raise OutputError(f"cannot write {shown}: {_describe(e)}") from e
+    if not stat.S_ISREG(mode):
+        raise OutputError(f"cannot write {shown}: it is {_file_kind(mode)}, not a regular file; "
+                          "results are written as whole files (a new file renamed into place)")
+    return target, shown
+
+
+def _file_kind(mode: int) -> str:
+    """'a folder', 'a device', ... for what ``stat`` says is not a regular file."""
+    if stat.S_ISDIR(mode):
+        return "a folder"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    if stat.S_ISFIFO(mode):
+        return "a FIFO"
+    return "a socket" if stat.S_ISSOCK(mode) else "a special file"
 
 
 def _file_mode(path: Path) -> int:

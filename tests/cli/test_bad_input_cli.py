@@ -82,6 +82,28 @@ def test_render_checks_depth_out_before_rendering(run_cli, sphere, tmp_path, mon
     assert f"--depth-out {tmp_path} is a folder: expected a .png file path" in one_line(result)
 
 
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX links and devices")
+def test_render_out_through_a_link(run_cli, sphere, tmp_path, monkeypatch):
+    from softras_cl.errors import EXIT_OUTPUT
+    from softras_cl.scene.renderer import Renderer
+
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "elsewhere" / "r.png").write_text("old")
+    (tmp_path / "r.png").symlink_to(tmp_path / "elsewhere" / "r.png")
+    result = run_cli("render", sphere, "--size", "16", "--out", tmp_path / "r.png")
+    assert result.code == 0, result.err
+    assert (tmp_path / "r.png").is_symlink()
+    assert (tmp_path / "elsewhere" / "r.png").read_bytes().startswith(b"\x89PNG")
+
+    (tmp_path / "device.png").symlink_to(os.devnull)
+    monkeypatch.setattr(Renderer, "forward", lambda *a, **k: pytest.fail("rendered before checking --out"))
+    result = run_cli("render", sphere, "--size", "16", "--out", tmp_path / "device.png")
+    assert result.code == EXIT_OUTPUT
+    assert (f"cannot write {tmp_path / 'device.png'} (a link to {os.devnull}): it is a device, "
+            "not a regular file") in one_line(result)
+    assert (tmp_path / "device.png").is_symlink()
+
+
 def test_render_dist_eps_out_of_range_names_it(run_cli, sphere, tmp_path):
     result = run_cli("render", sphere, "--dist-eps", "0.7", "--size", "32", "--out", tmp_path / "r.png")
     assert result.code == EXIT_INPUT

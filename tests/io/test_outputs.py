@@ -63,6 +63,40 @@ def test_an_interrupted_write_keeps_the_old_file(tmp_path):
     assert target.read_text() == "old" and leftovers(tmp_path) == []
 
 
+@pytest.mark.skipif(not hasattr(os, "symlink") or sys.platform == "win32", reason="POSIX links")
+def test_a_link_is_written_through_to_its_target_and_kept(tmp_path):
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "result.json").write_text("old")
+    os.chmod(elsewhere / "result.json", 0o640)
+    link = tmp_path / "result.json"
+    link.symlink_to(Path("elsewhere") / "result.json")          # relative, as `ln -s` makes them
+    write_text(link, "new")
+    assert link.is_symlink() and os.readlink(link) == str(Path("elsewhere") / "result.json")
+    assert (elsewhere / "result.json").read_text() == "new"
+    assert (elsewhere / "result.json").stat().st_mode & 0o777 == 0o640
+    assert leftovers(tmp_path) == [] and leftovers(elsewhere) == []
+
+    image_link = tmp_path / "render.png"                     # a link to a file not written yet
+    image_link.symlink_to(elsewhere / "render.png")
+    write_image(image_link, np.full((4, 4, 3), 0.5))
+    assert image_link.is_symlink() and (elsewhere / "render.png").stat().st_size > 0
+
+
+@pytest.mark.skipif(not hasattr(os, "symlink") or sys.platform == "win32", reason="POSIX devices")
+def test_a_path_to_a_device_or_a_folder_is_refused(tmp_path):
+    link = tmp_path / "render.png"
+    link.symlink_to(os.devnull)
+    with pytest.raises(OutputError, match=rf"cannot write .*render.png \(a link to {os.devnull}\): it is "
+                                          r"a device, not a regular file"):
+        write_image(link, np.full((4, 4, 3), 0.5))
+    assert link.is_symlink() and os.readlink(link) == os.devnull
+    (tmp_path / "folder").mkdir()
+    with pytest.raises(OutputError, match=r"cannot write .*folder: it is a folder, not a regular file"):
+        write_text(tmp_path / "folder", "x")
+    assert leftovers(tmp_path) == []
+
+
 @contextlib.contextmanager
 def tiny_filesystem(tmp_path: Path, size: str = "64k"):
     """A real tmpfs of ``size`` (root only), so 'disk full' is the kernel's, not a mock."""
