@@ -36,7 +36,7 @@ from typing import Iterator
 
 from softras_cl.errors import InputError, OutputError
 
-__all__ = ["atomic_path", "replaced_file", "write_bytes", "write_text", "write_json", "write_figure",
+__all__ = ["atomic_path", "replaced_file", "check_output_file", "write_bytes", "write_text", "write_json", "write_figure",
            "json_safe", "file_sha256", "OutputFolder", "LOCK_NAME",
            "RUN_RECORD", "COMPLETE_RECORD"]
 
@@ -109,6 +109,25 @@ def replaced_file(path) -> tuple[Path, str]:
         raise OutputError(f"cannot write {shown}: it is {_file_kind(mode)}, not a regular file; "
                           "results are written as whole files (a new file renamed into place)")
     return target, shown
+
+
+def check_output_file(path, option: str) -> Path:
+    """Check, before a command's work, that it will be able to write the file ``path``: its
+    folder is created if missing and a file can be made there (a read-only file system, /proc,
+    a folder without write permission fail, even for root), and ``path`` does not lead to a
+    folder or a device (:func:`replaced_file`). OutputError naming ``option`` (e.g. "--out")."""
+    path = Path(path)
+    target, shown = replaced_file(path)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"{option} {shown}: cannot create its folder: {_describe(e)}") from None
+    try:
+        with tempfile.TemporaryFile(dir=target.parent, prefix=f".{target.stem}.probe"):
+            pass
+    except OSError as e:
+        raise OutputError(f"{option} {shown}: cannot write in its folder {target.parent}: {_describe(e)}") from None
+    return path
 
 
 def _file_kind(mode: int) -> str:

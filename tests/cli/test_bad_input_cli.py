@@ -317,6 +317,45 @@ def test_fit_body_names_an_npy_of_strings(run_cli, tmp_path, bad):
     assert "got an array of dtype <U1" in one_line(result)
 
 
+@pytest.fixture
+def read_only_folder(tmp_path):
+    """A folder on a read-only file system: a read-only bind mount (root and mount needed, else
+    the test is skipped; file modes would not stop root, a read-only mount does)."""
+    source, folder = tmp_path / "source", tmp_path / "read-only"
+    source.mkdir()
+    folder.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "--bind", "-o", "ro", str(source), str(folder)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("a read-only file system is made with a read-only bind mount: root and mount")
+    try:
+        if os.access(folder, os.W_OK):      # old kernels ignore "ro" on the first bind: remount
+            subprocess.run(["mount", "-o", "remount,ro,bind", str(folder)], check=True)
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], check=False)
+
+
+@pytest.mark.parametrize("option", ["--out", "--overlay"])
+@pytest.mark.parametrize("where", ["proc", "read-only mount"])
+def test_detect_landmarks_checks_its_outputs_before_detecting(run_cli, examples_data, tmp_path, monkeypatch,
+                                                              request, where, option):
+    """/proc takes no new files on every Linux, for root too; the read-only mount is the sweep's
+    case (it was exit 2 with a raw [Errno 30], after the detection ran)."""
+    from softras_cl.errors import EXIT_OUTPUT
+    from softras_cl.fitting import landmark_detect
+
+    if not Path("/proc/self").exists():
+        pytest.skip("needs Linux's /proc")
+    folder = Path("/proc") if where == "proc" else request.getfixturevalue("read_only_folder")
+    monkeypatch.setattr(landmark_detect, "detect_faces", lambda *a, **k: pytest.fail("detected before the check"))
+    unwritable = folder / ("a.pts" if option == "--out" else "a.png")
+    outputs = (["--out", unwritable] if option == "--out"
+               else ["--out", tmp_path / "a.pts", "--overlay", unwritable])
+    result = run_cli("detect-landmarks", examples_data / "astronaut.png", *outputs)
+    assert result.code == EXIT_OUTPUT
+    assert f"{option} {unwritable}: cannot write in its folder {folder}: " in one_line(result)
+
+
 # ---- devices: every command, through a real process (the environment is read at start) -----------
 COMMANDS = {
     "devices": ["devices"],
