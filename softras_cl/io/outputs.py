@@ -38,11 +38,12 @@ from softras_cl.errors import InputError, OutputError
 
 __all__ = ["atomic_path", "replaced_file", "check_output_file", "write_bytes", "write_text", "write_json", "write_figure",
            "json_safe", "file_sha256", "OutputFolder", "LOCK_NAME",
-           "RUN_RECORD", "COMPLETE_RECORD"]
+           "RUN_RECORD", "COMPLETE_RECORD", "INPUT_FILES"]
 
 LOCK_NAME = ".softras-cl.lock"
 RUN_RECORD = "run.json"
 COMPLETE_RECORD = "complete.json"
+INPUT_FILES = "files"         # complete.json's list of the input files, as the command named them
 # atomic_path's temporary files: ".STEM.XXXXXXXX.tmp.SUFFIX" (8 characters from mkstemp)
 TEMP_MARK = ".tmp"
 _TEMPORARY = re.compile(r"^\..+\.[A-Za-z0-9_]{8}" + re.escape(TEMP_MARK) + r"(\.[^.]+)?$")
@@ -265,25 +266,54 @@ class OutputFolder:
             self._file.close()               # closing releases the lock
             self._file = None
 
-    def begin(self, record: dict, resume: bool = False) -> None:
-        """Record that a run of ``record`` (JSON-able: command, input digests, options) is under
+    def begin(self, record: dict, resume: bool = False, overwrite: bool = False) -> str | None:
+        """Record that a run of ``record`` (JSON-able: command, inputs (digests), options) is under
         way: write run.json, remove complete.json. With ``resume``, the folder's run.json must
-        hold the same record (InputError naming what differs)."""
+        hold the same record (InputError naming what differs). Without it, a complete run of
+        other inputs in the folder is refused (InputError naming the files it holds) unless
+        ``overwrite``. Returns the line to show when a complete run of other options or (with
+        ``overwrite``) inputs is replaced, else None."""
         record = json_safe(record)
         if resume:
-            previous = _read_json(self.path / RUN_RECORD)
-            if not isinstance(previous, dict):
-                raise InputError(f"cannot resume in {self.path}: no run was started there "
-                                 f"({RUN_RECORD} is missing or unreadable)")
-            differs = _differences(previous, record)
-            if differs:
-                raise InputError(f"cannot resume in {self.path}: it holds a run with other "
-                                 f"{', '.join(differs)}; resume with the same ones or use another "
-                                 f"{self.option}")
+            self._check_resumable(record)
+        replacing = None if resume else self._check_replaceable(record, overwrite)
         with contextlib.suppress(FileNotFoundError):
             (self.path / COMPLETE_RECORD).unlink()
         self._remove_stale_temporaries()
         write_json(self.path / RUN_RECORD, record)
+        return replacing
+
+    def _check_resumable(self, record: dict) -> None:
+        previous = _read_json(self.path / RUN_RECORD)
+        if not isinstance(previous, dict):
+            raise InputError(f"cannot resume in {self.path}: no run was started there "
+                             f"({RUN_RECORD} is missing or unreadable)")
+        differs = _differences(previous, record)
+        if differs:
+            raise InputError(f"cannot resume in {self.path}: it holds a run with other "
+                             f"{', '.join(differs)}; resume with the same ones or use another "
+                             f"{self.option}")
+
+    def _check_replaceable(self, record: dict, overwrite: bool) -> str | None:
+        """What replacing the folder's complete run (if any) by a run of ``record`` means: None
+        for none or the same record, a line for other options, InputError for other inputs
+        (a line with ``overwrite``)."""
+        held = _read_json(self.path / COMPLETE_RECORD)
+        if not isinstance(held, dict):
+            return None
+        differs = _differences({key: held.get(key) for key in record}, record)
+        options = [d.removeprefix("options ") for d in differs if d.startswith("options ")]
+        inputs = [d.removeprefix("inputs ") for d in differs if not d.startswith("options ")]
+        what = f"the complete {held.get('command', 'run')} of {_held_files(held)}"
+        if inputs and not overwrite:
+            raise InputError(f"{self.option} {self.path} holds {what}; this run's inputs differ "
+                             f"({', '.join(inputs)}): add --overwrite to replace it, or choose "
+                             f"another {self.option}")
+        if inputs:
+            return f"{self.option} {self.path}: replacing {what} (--overwrite)"
+        if options:
+            return f"{self.option} {self.path}: replacing {what}, fitted with other options ({', '.join(options)})"
+        return None
 
     def _remove_stale_temporaries(self) -> None:
         """Remove the temporary files of writes that a killed run (kill -9, power loss) left
@@ -294,8 +324,9 @@ class OutputFolder:
                     path.unlink()
 
     def finish(self, summary: dict) -> None:
-        """Mark the run complete: complete.json = run.json's record plus ``summary``. Call it
-        after every other output is written."""
+        """Mark the run complete: complete.json = run.json's record plus ``summary`` (whose
+        INPUT_FILES entry, the input files as given, names them when another run is refused
+        here). Call it after every other output is written."""
         record = _read_json(self.path / RUN_RECORD) or {}
         write_json(self.path / COMPLETE_RECORD, {**record, **summary})
 
@@ -304,6 +335,15 @@ class OutputFolder:
             return open(self.lock_path, "a+b")
         except OSError as e:
             raise OutputError(f"{self.option} {self.path} is not writable: {_describe(e)}") from e
+
+
+def _held_files(record: dict) -> str:
+    """'astronaut.png' (the input files a complete run names), or 'an earlier run's inputs'
+    when it names none."""
+    files = record.get(INPUT_FILES)
+    if isinstance(files, list) and files:
+        return ", ".join(map(str, files))
+    return "an earlier run's inputs"
 
 
 def _differences(old: dict, new: dict) -> list[str]:

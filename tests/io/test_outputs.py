@@ -12,9 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from softras_cl.errors import OutputError
+from softras_cl.errors import InputError, OutputError
 from softras_cl.io.images import write_image
-from softras_cl.io.outputs import LOCK_NAME, OutputFolder, atomic_path, write_text
+from softras_cl.io.outputs import (COMPLETE_RECORD, INPUT_FILES, LOCK_NAME, OutputFolder, atomic_path,
+                                   write_text)
 
 
 def leftovers(folder: Path) -> list[str]:
@@ -208,3 +209,40 @@ def test_a_new_run_removes_what_a_killed_run_left_half_written(tmp_path):
         out.begin({"command": "fit-face"})
     assert not [p for p in stale if p.exists()]
     assert all(p.read_text() == "keep" for p in users)
+
+
+FIT_A = dict(command="fit-face", inputs=dict(photo="a" * 64, landmarks="b" * 64), options=dict(size=96))
+
+
+def complete_fit(folder: Path, record: dict, files: list[str]) -> None:
+    """``folder`` as a finished run of ``record`` leaves it (run.json, complete.json)."""
+    with OutputFolder(folder, "fit-face", "--out") as out:
+        out.begin(record)
+        out.finish({"status": "done", INPUT_FILES: files})
+
+
+def test_a_complete_fit_of_other_inputs_is_kept_unless_overwrite(tmp_path):
+    complete_fit(tmp_path, FIT_A, ["photos/astronaut.png"])
+    before = (tmp_path / COMPLETE_RECORD).read_text()
+    other_photo = dict(FIT_A, inputs=dict(FIT_A["inputs"], photo="c" * 64))
+    with OutputFolder(tmp_path, "fit-face", "--out") as out:
+        with pytest.raises(InputError, match=rf"--out {tmp_path} holds the complete fit-face of "
+                                             r"photos/astronaut.png; this run's inputs differ \(photo\): "
+                                             r"add --overwrite to replace it, or choose another --out"):
+            out.begin(other_photo)
+        assert (tmp_path / COMPLETE_RECORD).read_text() == before
+        line = out.begin(other_photo, overwrite=True)
+    assert line == f"--out {tmp_path}: replacing the complete fit-face of photos/astronaut.png (--overwrite)"
+    assert not (tmp_path / COMPLETE_RECORD).exists()
+
+
+def test_a_complete_fit_of_the_same_inputs_is_replaced_saying_so_when_options_differ(tmp_path):
+    complete_fit(tmp_path, FIT_A, ["astronaut.png"])
+    with OutputFolder(tmp_path, "fit-face", "--out") as out:
+        line = out.begin(dict(FIT_A, options=dict(size=128)))
+    assert line == (f"--out {tmp_path}: replacing the complete fit-face of astronaut.png, fitted with "
+                    "other options (size)")
+    complete_fit(tmp_path, FIT_A, ["astronaut.png"])
+    with OutputFolder(tmp_path, "fit-face", "--out") as out:
+        assert out.begin(FIT_A) is None                     # a rerun: replaced as before, silently
+    assert not (tmp_path / COMPLETE_RECORD).exists()
