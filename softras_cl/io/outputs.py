@@ -36,8 +36,8 @@ from typing import Iterator
 
 from softras_cl.errors import InputError, OutputError
 
-__all__ = ["atomic_path", "replaced_file", "check_output_file", "write_bytes", "write_text", "write_json", "write_figure",
-           "json_safe", "file_sha256", "OutputFolder", "LOCK_NAME",
+__all__ = ["atomic_path", "replaced_file", "check_output_file", "write_bytes", "write_text",
+           "write_json", "write_figure", "json_safe", "file_sha256", "OutputFolder", "LOCK_NAME",
            "RUN_RECORD", "COMPLETE_RECORD", "INPUT_FILES"]
 
 LOCK_NAME = ".softras-cl.lock"
@@ -127,7 +127,8 @@ def check_output_file(path, option: str) -> Path:
         with tempfile.TemporaryFile(dir=target.parent, prefix=f".{target.stem}.probe"):
             pass
     except OSError as e:
-        raise OutputError(f"{option} {shown}: cannot write in its folder {target.parent}: {_describe(e)}") from None
+        raise OutputError(f"{option} {shown}: cannot write in its folder {target.parent}: "
+                          f"{_describe(e)}") from None
     return path
 
 
@@ -284,6 +285,7 @@ class OutputFolder:
         return replacing
 
     def _check_resumable(self, record: dict) -> None:
+        """InputError unless the folder's run.json holds ``record`` (the run to resume)."""
         previous = _read_json(self.path / RUN_RECORD)
         if not isinstance(previous, dict):
             raise InputError(f"cannot resume in {self.path}: no run was started there "
