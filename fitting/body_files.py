@@ -23,7 +23,7 @@ def read_joints(path, n_joints: int) -> tuple[np.ndarray, np.ndarray]:
             io.StringIO(path.read_text().replace(",", " ")), ndmin=2)
     except (OSError, ValueError) as e:
         raise ValueError(f"joints file {path}: cannot read it ({e})") from e
-    rows = np.asarray(rows, np.float64)
+    rows = _numbers(rows, f"joints file {path}", "rows 'x y' or 'x y weight'")
     if rows.ndim != 2 or rows.shape[1] not in (2, 3):
         raise ValueError(f"joints file {path}: expected rows 'x y' or 'x y weight', got shape {rows.shape}")
     if len(rows) != n_joints:
@@ -44,12 +44,21 @@ def read_target(path, silhouette: bool) -> np.ndarray:
             img = np.load(path)
         except (OSError, ValueError) as e:
             raise ValueError(f"cannot read target {path}: {e}") from e
+        img = _numbers(img, f"target {path}", "an (H, W) mask or an (H, W, 3|4) linear image")
     else:
         img = read_image(path)
-    img = np.asarray(img, np.float64)
     if silhouette and img.ndim == 3 and img.shape[2] in (3, 4):
         img = img[..., 3] if img.shape[2] == 4 else img.mean(-1)
     return img
+
+
+def _numbers(values: np.ndarray, what: str, expected: str) -> np.ndarray:
+    """``values`` (an array read from a file) as float64; ValueError naming ``what`` and the
+    ``expected`` content when they are not numbers (strings, objects, ...)."""
+    if not (np.issubdtype(values.dtype, np.number) or values.dtype == np.bool_):
+        raise ValueError(f"{what}: expected numbers ({expected}), got an array of dtype "
+                         f"{values.dtype} and shape {values.shape}")
+    return np.asarray(values, np.float64)
 
 
 def parse_background(text: str) -> tuple[float, float, float]:

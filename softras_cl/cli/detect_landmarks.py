@@ -19,9 +19,12 @@ def _run_detect(args: argparse.Namespace) -> int:
 
     from softras_cl.fitting.landmark_detect import (detect_faces, draw_landmarks, no_face_error,
                                                     read_photo_rgb8)
+    from softras_cl.io.images import image_format
     from softras_cl.io.landmarks import write_pts
+    from softras_cl.io.outputs import atomic_path
 
     image = read_photo_rgb8(args.photo)
+    _check_output_files(args)
     options = {"upsample": args.upsample, "min_score": args.min_score}
     faces = detect_faces(image, args.backend, **options)
     if not faces:
@@ -36,9 +39,23 @@ def _run_detect(args: argparse.Namespace) -> int:
     if len(faces) > 1 and not args.all_faces:
         print(f"{len(faces)} faces found; wrote the largest (--all-faces writes each)")
     if args.overlay:
-        draw_landmarks(image, np.stack([f.points for f in chosen]), scale=args.overlay_scale).save(args.overlay)
+        overlay = draw_landmarks(image, np.stack([f.points for f in chosen]), scale=args.overlay_scale)
+        with atomic_path(args.overlay) as tmp:
+            overlay.save(tmp, format=image_format(args.overlay))
         print(f"wrote {args.overlay}")
     return 0
+
+
+def _check_output_files(args: argparse.Namespace) -> None:
+    """--out (and --overlay) can be written, checked before detecting: OutputError (exit 3)
+    naming the option, InputError for an --overlay that is no image file."""
+    from softras_cl.io.images import image_format
+    from softras_cl.io.outputs import check_output_file
+
+    check_output_file(face_out_path(args.out, 0) if args.all_faces else args.out, "--out")
+    if args.overlay:
+        image_format(args.overlay, what="--overlay")
+        check_output_file(args.overlay, "--overlay")
 
 
 def register(sub) -> None:

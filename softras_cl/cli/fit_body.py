@@ -72,6 +72,10 @@ def register(sub) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue the interrupted fit in --out from its checkpoint.npz (same target, "
                         "model, joints and options, else refused); finished stages are skipped")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a complete fit of another target (other joints or model) that --out "
+                        "holds (else refused; one of the same inputs is replaced, saying so if its "
+                        "options differ)")
     add_batch_options(p, "body")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -144,7 +148,7 @@ def run_one(args: argparse.Namespace) -> int:
                              extra=dict(target=str(args.target), seconds=seconds, budget=args.budget))
 
     required = ("silhouette_iou",) + (("joint_error_px_full",) if joints is not None else ())
-    run = run_fit(args, "fit-body", _run_record(args), fit, required, write)
+    run = run_fit(args, "fit-body", _run_record(args), fit, required, write, [args.target])
     metrics = run.metrics
     joints_msg = (f", joint error {metrics['joint_error_px_full']:.1f} px" if "joint_error_px_full" in metrics
                   else "")

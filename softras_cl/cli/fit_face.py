@@ -96,6 +96,10 @@ def register(sub) -> None:
     p.add_argument("--resume", action="store_true",
                    help="continue the interrupted fit in --out from its checkpoint.npz (same photo, "
                         "landmarks, model and options, else refused); finished stages are skipped")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a complete fit of another photo (other landmarks or model) that --out "
+                        "holds (else refused; one of the same inputs is replaced, saying so if its "
+                        "options differ)")
     add_batch_options(p, "face")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -189,7 +193,8 @@ def run_one(args: argparse.Namespace) -> int:
         return write_outputs(fit, photo, folder, metrics=metrics, run_config=dict(fit=config, options=args),
                              extra=dict(photo=str(args.photo), seconds=seconds, budget=args.budget))
 
-    run = run_fit(args, "fit-face", _run_record(args), fit, ("landmark_error_px_full", "psnr_face_db"), write)
+    run = run_fit(args, "fit-face", _run_record(args), fit, ("landmark_error_px_full", "psnr_face_db"), write,
+                  [args.photo])
     metrics = run.metrics
     print(f"fit-face {run_state(run.interrupted)} in {run.seconds:.1f} s: landmark error "
           f"{metrics['landmark_error_px_full']:.2f} px, face-region PSNR {metrics['psnr_face_db']:.1f} dB "
@@ -262,7 +267,7 @@ def run_same_person(args: argparse.Namespace) -> int:
                                    run_config=dict(fit=config, options=args),
                                    extra=dict(seconds=seconds, budget=args.budget))
 
-    run = run_fit(args, "fit-face", record, fit, ("landmark_error_px_full", "psnr_face_db"), write)
+    run = run_fit(args, "fit-face", record, fit, ("landmark_error_px_full", "psnr_face_db"), write, paths)
     print(f"fit-face --same-person {run_state(run.interrupted)} in {run.seconds:.1f} s: {len(paths)} photos, "
           f"mean landmark error {run.metrics['landmark_error_px_full']:.2f} px, mean face-region PSNR "
           f"{run.metrics['psnr_face_db']:.1f} dB (model, sRGB); outputs in {run.folder}/")

@@ -5,9 +5,9 @@ import argparse
 import time
 from pathlib import Path
 
-from softras_cl.io.outputs import atomic_path
+from softras_cl.io.outputs import atomic_path, check_output_file
 from softras_cl.cli.view import (add_view_options, check_command_memory, check_drawable, finite_float,
-                                 load_view, make_light, output_folder, positive_float, triple)
+                                 load_view, make_light, positive_float, triple)
 
 # Peak bytes per pixel of the whole command after rendering, measured (max RSS, 2048^2 and
 # 4096^2): the float64 copies and sRGB encoding of write_image dominate (rgb 183, rgba 219,
@@ -23,6 +23,7 @@ def _run_render(args: argparse.Namespace) -> int:
     from softras_cl.scene.renderer import Renderer
     from softras_cl.raster.settings import RasterSettings
 
+    _check_image_paths(args)
     mesh, camera = load_view(args)
     check_drawable(mesh, args.mesh.name)
     outputs = ("rgb", "alpha", "depth") if args.depth_out else ("rgb", "alpha")
@@ -31,9 +32,9 @@ def _run_render(args: argparse.Namespace) -> int:
                               double_sided=args.double_sided, dtype=args.dtype, near=0.1, far=100.0)
     per_pixel = BYTES_PER_PIXEL["rgba" if args.transparent else "rgb"] + BYTES_PER_PIXEL["depth"] * bool(args.depth_out)
     check_command_memory("render", settings, mesh.n_faces, per_pixel)
-    output_folder(args.out)
+    check_output_file(args.out, "--out")
     if args.depth_out:
-        output_folder(args.depth_out, "--depth-out")
+        check_output_file(args.depth_out, "--depth-out")
     textured = mesh.texture is not None and mesh.uvs is not None
     albedo = mesh.colors if mesh.colors is not None else np.full(mesh.vertices.shape, 0.7)
     start = time.perf_counter()
@@ -58,6 +59,18 @@ def _run_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_image_paths(args: argparse.Namespace) -> None:
+    """--out (and --depth-out) must name image files: InputError for a folder or an extension
+    that is no image format, before the mesh is read (whether the files can be written is
+    checked before rendering, by check_output_file)."""
+    from softras_cl.errors import InputError
+    from softras_cl.io.images import image_format
+
+    image_format(args.out, alpha=args.transparent, what="--out")
+    if args.depth_out is not None and args.depth_out.is_dir():
+        raise InputError(f"--depth-out {args.depth_out} is a folder: expected a .png file path")
+
+
 def _write_depth(path: Path, depth, alpha) -> None:
     """Depth as a grey PNG, near = white, far = black, over the pixels with alpha > 0.5."""
     import matplotlib.image
@@ -65,7 +78,6 @@ def _write_depth(path: Path, depth, alpha) -> None:
 
     inside = alpha > 0.5
     shown = np.where(inside, depth, np.nan)
-    path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         matplotlib.image.imsave(tmp, shown, cmap="gray_r", format="png")
 

@@ -10,7 +10,7 @@ from typing import Callable, Iterator
 
 from softras_cl.errors import InputError
 from softras_cl.fitting.metrics import finite_metrics
-from softras_cl.io.outputs import OutputFolder
+from softras_cl.io.outputs import INPUT_FILES, OutputFolder
 from softras_cl.interrupts import Caught, first_interrupt_calls
 
 
@@ -58,13 +58,16 @@ class FitRun:
 
 
 def run_fit(args, command: str, record: dict, fit: Callable, required: tuple[str, ...],
-            write: Callable) -> FitRun:
+            write: Callable, files: list) -> FitRun:
     """One fit into the locked folder ``args.out``: run.json from ``record`` (``args.resume``
-    continues the fit there), ``fit(folder) -> FaceFit | BodyFit``, its ``required`` metrics
+    continues the fit there; a complete fit of other inputs there is refused unless
+    ``args.overwrite``), ``fit(folder) -> FaceFit | BodyFit``, its ``required`` metrics
     checked finite, ``write(fit, folder, metrics, seconds) -> metrics`` under finishing_outputs,
-    and complete.json unless the run was interrupted."""
+    and complete.json (naming the input ``files``, as given) unless the run was interrupted."""
     with OutputFolder(args.out, command, "--out") as out:
-        out.begin(record, resume=args.resume)
+        replacing = out.begin(record, resume=args.resume, overwrite=args.overwrite)
+        if replacing:
+            print(replacing)
         start = time.perf_counter()
         result = fit(out.path)
         seconds = time.perf_counter() - start
@@ -73,5 +76,6 @@ def run_fit(args, command: str, record: dict, fit: Callable, required: tuple[str
             metrics = write(result, out.path, metrics, seconds)
             interrupted = result.result.interrupted or late.signum is not None
             if not interrupted:
-                out.finish(dict(status="done", metrics=metrics, seconds=seconds))
+                out.finish({"status": "done", INPUT_FILES: [str(f) for f in files], "metrics": metrics,
+                            "seconds": seconds})
     return FitRun(metrics, seconds, interrupted, out.path)

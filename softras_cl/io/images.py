@@ -13,6 +13,9 @@ without its ~1 s import on every run). Alpha is never encoded: it is stored and 
 - `write_image(path, image, bits=8)`: one (H, W, 3), (H, W, 4) or (H, W) linear image, clipped
   to [0, 1], sRGB-encoded, rounded to 8 bits (any format Pillow writes, chosen by the
   extension) or 16 bits (PNG only).
+- `image_format(path)`: the format write_image picks from the extension, or an InputError
+  saying what is expected (a folder, no or an unknown extension): a command checks its output
+  path with it before the work.
 - `to_srgb(linear)` / `to_linear(srgb)`: the transfer functions alone, on every value of any
   array (no clipping: values outside [0, 1] follow the curves' extensions).
 """
@@ -22,10 +25,13 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.errors import InputError
 from softras_cl.io.outputs import atomic_path
 
-__all__ = ["read_image", "write_image", "to_srgb", "to_linear"]
+__all__ = ["read_image", "write_image", "image_format", "to_srgb", "to_linear", "COMMON_SUFFIXES"]
 
+# the extensions write_image is mostly used with (it writes any format Pillow writes)
+COMMON_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # zlib level of the 8-bit PNGs written (Pillow's default is 6): the same pixels, 3-4x faster to
 # write, files about 10% larger; figures use it too (PNG_OPTIONS, matplotlib's savefig)
@@ -176,6 +182,26 @@ def _image_to_write(image) -> np.ndarray:
     return a
 
 
+def image_format(path, alpha: bool = False, what: str = "image") -> str:
+    """The Pillow format (e.g. "PNG") in which write_image writes 8-bit ``path``, from its
+    extension. InputError (a ValueError) saying what is expected when ``path`` is a folder, has
+    no extension Pillow writes, or is a JPEG for an image with ``alpha``; ``what`` names the
+    path in the message (e.g. "--out")."""
+    from PIL import Image
+
+    path = Path(path)
+    expected = f"expected an image file path ({', '.join(COMMON_SUFFIXES)}, or another format Pillow writes)"
+    if path.is_dir():
+        raise InputError(f"{what} {path} is a folder: {expected}")
+    fmt = Image.registered_extensions().get(path.suffix.lower())
+    if fmt not in Image.SAVE:
+        reason = f"no image format Pillow writes has the extension {path.suffix!r}" if path.suffix else "no extension"
+        raise InputError(f"{what} {path}: {reason}: {expected}")
+    if alpha and fmt == "JPEG":
+        raise InputError(f"{what} {path}: JPEG cannot store alpha: write an (H, W, 3) image, or use .png")
+    return fmt
+
+
 def write_image(path, image, bits: int = 8) -> None:
     """Write one linear-RGB image, sRGB-encoded.
 
@@ -210,12 +236,7 @@ def write_image(path, image, bits: int = 8) -> None:
     from PIL import Image
 
     q = np.round(np.clip(enc, 0.0, 1.0) * 255.0).astype(np.uint8)
-    if q.ndim == 3 and q.shape[-1] == 4 and suffix in (".jpg", ".jpeg"):
-        raise ValueError(f"JPEG cannot store alpha: write an (H, W, 3) image to {path}, "
-                         "or use .png")
-    fmt = Image.registered_extensions().get(suffix)
-    if fmt is None:
-        raise ValueError(f"cannot write image {path}: unknown extension {path.suffix!r}")
+    fmt = image_format(path, alpha=q.ndim == 3 and q.shape[-1] == 4)
     try:
         with atomic_path(path) as tmp:
             options = {"compress_level": PNG_COMPRESSION} if fmt == "PNG" else {}

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.io.outputs import write_text
+
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?|[-+]?(?:nan|inf)"
 
 
@@ -109,11 +111,12 @@ def read_landmarks(path, image_size=None, n_points: int | None = 68) -> np.ndarr
 
 
 def write_pts(path, points) -> None:
-    """Write (N, 2) pixel coordinates (0-based, x right, y down) as an iBUG .pts file (1-based)."""
+    """Write (N, 2) pixel coordinates (0-based, x right, y down) as an iBUG .pts file (1-based),
+    atomically (softras_cl.io.outputs.write_text)."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 2:
         raise ValueError(f"write_pts: points must have shape (N, 2), got {points.shape}")
     if not np.all(np.isfinite(points)):
         raise ValueError("write_pts: points contain NaN or inf")
     lines = [f"{float(x) + 1.0!r} {float(y) + 1.0!r}" for x, y in points]
-    Path(path).write_text(f"version: 1\nn_points: {len(points)}\n{{\n" + "\n".join(lines) + "\n}\n")
+    write_text(path, f"version: 1\nn_points: {len(points)}\n{{\n" + "\n".join(lines) + "\n}\n")

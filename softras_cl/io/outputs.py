@@ -5,6 +5,8 @@
   reader sees the old file or the complete new one, never a truncated one. When the write fails
   (disk full, read-only folder) or is interrupted, the temporary file is removed and the old
   file is left unchanged; the error is an :class:`~softras_cl.errors.OutputError` naming the file.
+  A symbolic link is written through (its target replaced, the link kept); a path that is or
+  leads to a folder or a device is refused.
 - :class:`OutputFolder`: an output folder checked up front (a usable path, creatable, writable)
   and locked while a run writes into it, so a second run into the same folder refuses with a
   clear message instead of mixing its files with the first one's. The lock is an OS file lock
@@ -25,6 +27,7 @@ import json
 import math
 import os
 import re
+import stat
 import sys
 import tempfile
 import time
@@ -33,13 +36,14 @@ from typing import Iterator
 
 from softras_cl.errors import InputError, OutputError
 
-__all__ = ["atomic_path", "write_bytes", "write_text", "write_json", "write_figure", "json_safe",
-           "file_sha256", "OutputFolder", "LOCK_NAME",
-           "RUN_RECORD", "COMPLETE_RECORD"]
+__all__ = ["atomic_path", "replaced_file", "check_output_file", "write_bytes", "write_text",
+           "write_json", "write_figure", "json_safe", "file_sha256", "OutputFolder", "LOCK_NAME",
+           "RUN_RECORD", "COMPLETE_RECORD", "INPUT_FILES"]
 
 LOCK_NAME = ".softras-cl.lock"
 RUN_RECORD = "run.json"
 COMPLETE_RECORD = "complete.json"
+INPUT_FILES = "files"         # complete.json's list of the input files, as the command named them
 # atomic_path's temporary files: ".STEM.XXXXXXXX.tmp.SUFFIX" (8 characters from mkstemp)
 TEMP_MARK = ".tmp"
 _TEMPORARY = re.compile(r"^\..+\.[A-Za-z0-9_]{8}" + re.escape(TEMP_MARK) + r"(\.[^.]+)?$")
@@ -57,30 +61,86 @@ def atomic_path(path) -> Iterator[Path]:
 
     On any error or interrupt in the block, the temporary file is removed, ``path`` keeps its
     old content, and an OSError is re-raised as OutputError("cannot write PATH: reason; ...").
+    When ``path`` is a symbolic link, its target is replaced (the temporary file is made in the
+    target's folder) and the link kept; a ``path`` that leads to something other than a regular
+    file (a folder, a device) is refused with OutputError before anything is written.
     """
     path = Path(path)
+    target, shown = replaced_file(path)
     try:
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=f"{TEMP_MARK}{path.suffix}")
+        fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.stem}.", suffix=f"{TEMP_MARK}{target.suffix}")
     except OSError as e:
-        raise OutputError(f"cannot write {path}: {_describe(e)}") from e
+        raise OutputError(f"cannot write {shown}: {_describe(e)}") from e
     tmp = Path(tmp)
     try:
         try:
             if hasattr(os, "fchmod"):       # not on Windows, where permissions work otherwise
-                os.fchmod(fd, _file_mode(path))
+                os.fchmod(fd, _file_mode(target))
         finally:
             os.close(fd)
         yield tmp
         with open(tmp, "rb+") as f:     # the data must be on disk before the rename publishes it
             os.fsync(f.fileno())
-        os.replace(tmp, path)
+        os.replace(tmp, target)
     except BaseException as e:
         with contextlib.suppress(OSError):
             tmp.unlink()
         if isinstance(e, OSError) and not isinstance(e, OutputError):
-            kept = " (the existing file is unchanged)" if path.exists() else ""
-            raise OutputError(f"cannot write {path}: {_describe(e)}{kept}") from e
+            kept = " (the existing file is unchanged)" if target.exists() else ""
+            raise OutputError(f"cannot write {shown}: {_describe(e)}{kept}") from e
         raise
+
+
+def replaced_file(path) -> tuple[Path, str]:
+    """(the file a write to ``path`` replaces, how messages name it); a command calls it to check
+    an output file before its work, atomic_path before writing. A symbolic link is written
+    through: its target (existing or not) is replaced and the link kept. OutputError when that
+    file exists but is not a regular file (a folder, a device such as /dev/full, a FIFO):
+    renaming a new file over it would remove it, and writing into it is not atomic."""
+    path = Path(path)
+    target = Path(os.path.realpath(path)) if path.is_symlink() else path
+    shown = f"{path} (a link to {target})" if target != path else str(path)
+    try:
+        mode = target.stat().st_mode
+    except (FileNotFoundError, NotADirectoryError):     # a new file (its folder is checked later)
+        return target, shown
+    except OSError as e:                    # a loop of links, a folder that cannot be searched
+        raise OutputError(f"cannot write {shown}: {_describe(e)}") from e
+    if not stat.S_ISREG(mode):
+        raise OutputError(f"cannot write {shown}: it is {_file_kind(mode)}, not a regular file; "
+                          "results are written as whole files (a new file renamed into place)")
+    return target, shown
+
+
+def check_output_file(path, option: str) -> Path:
+    """Check, before a command's work, that it will be able to write the file ``path``: its
+    folder is created if missing and a file can be made there (a read-only file system, /proc,
+    a folder without write permission fail, even for root), and ``path`` does not lead to a
+    folder or a device (:func:`replaced_file`). OutputError naming ``option`` (e.g. "--out")."""
+    path = Path(path)
+    target, shown = replaced_file(path)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"{option} {shown}: cannot create its folder: {_describe(e)}") from None
+    try:
+        with tempfile.TemporaryFile(dir=target.parent, prefix=f".{target.stem}.probe"):
+            pass
+    except OSError as e:
+        raise OutputError(f"{option} {shown}: cannot write in its folder {target.parent}: "
+                          f"{_describe(e)}") from None
+    return path
+
+
+def _file_kind(mode: int) -> str:
+    """'a folder', 'a device', ... for what ``stat`` says is not a regular file."""
+    if stat.S_ISDIR(mode):
+        return "a folder"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    if stat.S_ISFIFO(mode):
+        return "a FIFO"
+    return "a socket" if stat.S_ISSOCK(mode) else "a special file"
 
 
 def _file_mode(path: Path) -> int:
@@ -207,25 +267,55 @@ class OutputFolder:
             self._file.close()               # closing releases the lock
             self._file = None
 
-    def begin(self, record: dict, resume: bool = False) -> None:
-        """Record that a run of ``record`` (JSON-able: command, input digests, options) is under
+    def begin(self, record: dict, resume: bool = False, overwrite: bool = False) -> str | None:
+        """Record that a run of ``record`` (JSON-able: command, inputs (digests), options) is under
         way: write run.json, remove complete.json. With ``resume``, the folder's run.json must
-        hold the same record (InputError naming what differs)."""
+        hold the same record (InputError naming what differs). Without it, a complete run of
+        other inputs in the folder is refused (InputError naming the files it holds) unless
+        ``overwrite``. Returns the line to show when a complete run of other options or (with
+        ``overwrite``) inputs is replaced, else None."""
         record = json_safe(record)
         if resume:
-            previous = _read_json(self.path / RUN_RECORD)
-            if not isinstance(previous, dict):
-                raise InputError(f"cannot resume in {self.path}: no run was started there "
-                                 f"({RUN_RECORD} is missing or unreadable)")
-            differs = _differences(previous, record)
-            if differs:
-                raise InputError(f"cannot resume in {self.path}: it holds a run with other "
-                                 f"{', '.join(differs)}; resume with the same ones or use another "
-                                 f"{self.option}")
+            self._check_resumable(record)
+        replacing = None if resume else self._check_replaceable(record, overwrite)
         with contextlib.suppress(FileNotFoundError):
             (self.path / COMPLETE_RECORD).unlink()
         self._remove_stale_temporaries()
         write_json(self.path / RUN_RECORD, record)
+        return replacing
+
+    def _check_resumable(self, record: dict) -> None:
+        """InputError unless the folder's run.json holds ``record`` (the run to resume)."""
+        previous = _read_json(self.path / RUN_RECORD)
+        if not isinstance(previous, dict):
+            raise InputError(f"cannot resume in {self.path}: no run was started there "
+                             f"({RUN_RECORD} is missing or unreadable)")
+        differs = _differences(previous, record)
+        if differs:
+            raise InputError(f"cannot resume in {self.path}: it holds a run with other "
+                             f"{', '.join(differs)}; resume with the same ones or use another "
+                             f"{self.option}")
+
+    def _check_replaceable(self, record: dict, overwrite: bool) -> str | None:
+        """What replacing the folder's complete run (if any) by a run of ``record`` means: None
+        for none or the same record, a line for other options, InputError for other inputs
+        (a line with ``overwrite``)."""
+        held = _read_json(self.path / COMPLETE_RECORD)
+        if not isinstance(held, dict):
+            return None
+        differs = _differences({key: held.get(key) for key in record}, record)
+        options = [d.removeprefix("options ") for d in differs if d.startswith("options ")]
+        inputs = [d.removeprefix("inputs ") for d in differs if not d.startswith("options ")]
+        what = f"the complete {held.get('command', 'run')} of {_held_files(held)}"
+        if inputs and not overwrite:
+            raise InputError(f"{self.option} {self.path} holds {what}; this run's inputs differ "
+                             f"({', '.join(inputs)}): add --overwrite to replace it, or choose "
+                             f"another {self.option}")
+        if inputs:
+            return f"{self.option} {self.path}: replacing {what} (--overwrite)"
+        if options:
+            return f"{self.option} {self.path}: replacing {what}, fitted with other options ({', '.join(options)})"
+        return None
 
     def _remove_stale_temporaries(self) -> None:
         """Remove the temporary files of writes that a killed run (kill -9, power loss) left
@@ -236,8 +326,9 @@ class OutputFolder:
                     path.unlink()
 
     def finish(self, summary: dict) -> None:
-        """Mark the run complete: complete.json = run.json's record plus ``summary``. Call it
-        after every other output is written."""
+        """Mark the run complete: complete.json = run.json's record plus ``summary`` (whose
+        INPUT_FILES entry, the input files as given, names them when another run is refused
+        here). Call it after every other output is written."""
         record = _read_json(self.path / RUN_RECORD) or {}
         write_json(self.path / COMPLETE_RECORD, {**record, **summary})
 
@@ -246,6 +337,15 @@ class OutputFolder:
             return open(self.lock_path, "a+b")
         except OSError as e:
             raise OutputError(f"{self.option} {self.path} is not writable: {_describe(e)}") from e
+
+
+def _held_files(record: dict) -> str:
+    """'astronaut.png' (the input files a complete run names), or 'an earlier run's inputs'
+    when it names none."""
+    files = record.get(INPUT_FILES)
+    if isinstance(files, list) and files:
+        return ", ".join(map(str, files))
+    return "an earlier run's inputs"
 
 
 def _differences(old: dict, new: dict) -> list[str]:

@@ -57,6 +57,53 @@ def test_render_refuses_bad_options(run_cli, sphere, tmp_path, option, value, sa
     assert not (tmp_path / "r.png").exists()
 
 
+@pytest.mark.parametrize("out, extra, says", [
+    ("folder", [], "--out {path} is a folder: expected an image file path (.png, .jpg,"),
+    ("render", [], "--out {path}: no extension: expected an image file path (.png, .jpg,"),
+    ("render.npy", [], "--out {path}: no image format Pillow writes has the extension '.npy'"),
+    ("render.jpg", ["--transparent"], "--out {path}: JPEG cannot store alpha"),
+], ids=["folder", "no-extension", "npy", "jpeg-with-alpha"])
+def test_render_checks_out_before_rendering(run_cli, sphere, tmp_path, monkeypatch, out, extra, says):
+    from softras_cl.scene.renderer import Renderer
+
+    monkeypatch.setattr(Renderer, "forward", lambda *a, **k: pytest.fail("rendered before checking --out"))
+    (tmp_path / "folder").mkdir()
+    result = run_cli("render", sphere, "--size", "16", "--out", tmp_path / out, *extra)
+    assert result.code == EXIT_INPUT
+    assert says.format(path=tmp_path / out) in one_line(result)
+
+
+def test_render_checks_depth_out_before_rendering(run_cli, sphere, tmp_path, monkeypatch):
+    from softras_cl.scene.renderer import Renderer
+
+    monkeypatch.setattr(Renderer, "forward", lambda *a, **k: pytest.fail("rendered before checking --depth-out"))
+    result = run_cli("render", sphere, "--size", "16", "--out", tmp_path / "r.png", "--depth-out", tmp_path)
+    assert result.code == EXIT_INPUT
+    assert f"--depth-out {tmp_path} is a folder: expected a .png file path" in one_line(result)
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX links and devices")
+def test_render_out_through_a_link(run_cli, sphere, tmp_path, monkeypatch):
+    from softras_cl.errors import EXIT_OUTPUT
+    from softras_cl.scene.renderer import Renderer
+
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "elsewhere" / "r.png").write_text("old")
+    (tmp_path / "r.png").symlink_to(tmp_path / "elsewhere" / "r.png")
+    result = run_cli("render", sphere, "--size", "16", "--out", tmp_path / "r.png")
+    assert result.code == 0, result.err
+    assert (tmp_path / "r.png").is_symlink()
+    assert (tmp_path / "elsewhere" / "r.png").read_bytes().startswith(b"\x89PNG")
+
+    (tmp_path / "device.png").symlink_to(os.devnull)
+    monkeypatch.setattr(Renderer, "forward", lambda *a, **k: pytest.fail("rendered before checking --out"))
+    result = run_cli("render", sphere, "--size", "16", "--out", tmp_path / "device.png")
+    assert result.code == EXIT_OUTPUT
+    assert (f"cannot write {tmp_path / 'device.png'} (a link to {os.devnull}): it is a device, "
+            "not a regular file") in one_line(result)
+    assert (tmp_path / "device.png").is_symlink()
+
+
 def test_render_dist_eps_out_of_range_names_it(run_cli, sphere, tmp_path):
     result = run_cli("render", sphere, "--dist-eps", "0.7", "--size", "32", "--out", tmp_path / "r.png")
     assert result.code == EXIT_INPUT
@@ -253,6 +300,60 @@ def test_fit_body_refuses_an_infinite_mask(run_cli, tmp_path):
     result = run_cli("fit-body", tmp_path / "disc.npy", "--silhouette", "--out", tmp_path / "b", "--no-progress")
     assert result.code == EXIT_INPUT
     assert "target contains NaN or Inf (1 non-finite value(s), first at index (3, 4))" in one_line(result)
+
+
+@pytest.mark.parametrize("bad", ["target", "joints"])
+def test_fit_body_names_an_npy_of_strings(run_cli, tmp_path, bad):
+    disc = np.zeros((32, 32))
+    disc[8:24, 12:20] = 1.0
+    np.save(tmp_path / "disc.npy", disc)
+    np.save(tmp_path / "words.npy", np.array(["a", "b"]))
+    target, joints = ("words.npy", "disc.npy") if bad == "target" else ("disc.npy", "words.npy")
+    result = run_cli("fit-body", tmp_path / target, "--joints", tmp_path / joints, "--silhouette",
+                     "--out", tmp_path / "b", "--no-progress")
+    assert result.code == EXIT_INPUT
+    says = "target" if bad == "target" else "joints file"
+    assert f"{says} {tmp_path / 'words.npy'}: expected numbers (" in one_line(result)
+    assert "got an array of dtype <U1" in one_line(result)
+
+
+@pytest.fixture
+def read_only_folder(tmp_path):
+    """A folder on a read-only file system: a read-only bind mount (root and mount needed, else
+    the test is skipped; file modes would not stop root, a read-only mount does)."""
+    source, folder = tmp_path / "source", tmp_path / "read-only"
+    source.mkdir()
+    folder.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "--bind", "-o", "ro", str(source), str(folder)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("a read-only file system is made with a read-only bind mount: root and mount")
+    try:
+        if os.access(folder, os.W_OK):      # old kernels ignore "ro" on the first bind: remount
+            subprocess.run(["mount", "-o", "remount,ro,bind", str(folder)], check=True)
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], check=False)
+
+
+@pytest.mark.parametrize("option", ["--out", "--overlay"])
+@pytest.mark.parametrize("where", ["proc", "read-only mount"])
+def test_detect_landmarks_checks_its_outputs_before_detecting(run_cli, examples_data, tmp_path, monkeypatch,
+                                                              request, where, option):
+    """/proc takes no new files on every Linux, for root too; the read-only mount is the sweep's
+    case (it was exit 2 with a raw [Errno 30], after the detection ran)."""
+    from softras_cl.errors import EXIT_OUTPUT
+    from softras_cl.fitting import landmark_detect
+
+    if not Path("/proc/self").exists():
+        pytest.skip("needs Linux's /proc")
+    folder = Path("/proc") if where == "proc" else request.getfixturevalue("read_only_folder")
+    monkeypatch.setattr(landmark_detect, "detect_faces", lambda *a, **k: pytest.fail("detected before the check"))
+    unwritable = folder / ("a.pts" if option == "--out" else "a.png")
+    outputs = (["--out", unwritable] if option == "--out"
+               else ["--out", tmp_path / "a.pts", "--overlay", unwritable])
+    result = run_cli("detect-landmarks", examples_data / "astronaut.png", *outputs)
+    assert result.code == EXIT_OUTPUT
+    assert f"{option} {unwritable}: cannot write in its folder {folder}: " in one_line(result)
 
 
 # ---- devices: every command, through a real process (the environment is read at start) -----------

@@ -174,3 +174,55 @@ def test_unusable_out_is_one_line_with_exit_3(tmp_path, run_cli, make_out, messa
 def test_resume_without_a_started_run_is_refused(tmp_path, run_cli):
     result = run_cli(*FIT, "--out", tmp_path / "empty", "--resume")
     assert result.code == 2 and "no run was started there" in result.err
+
+
+@pytest.mark.slow
+def test_a_complete_fit_of_another_photo_needs_overwrite(tmp_path, run_cli):
+    """Another photo into a folder that holds a complete fit is refused before fitting (single
+    and --same-person runs alike); --overwrite replaces it; the same photo with other options
+    is replaced with one line saying so; a rerun is replaced silently, as before."""
+    out = tmp_path / "fit"
+    quick = ["--budget", "fast", "--size", "32", "--no-progress", "--out", out]
+    other = EXAMPLES / "grace_hopper.jpg"
+    assert run_cli(*FIT[:-3], *quick).code == 0
+    held = (out / COMPLETE_RECORD).read_text()
+    assert json.loads(held)["files"] == [str(PHOTO)]
+
+    for argv in (["fit-face", other], ["fit-face", PHOTO, other, "--same-person"]):
+        refused = run_cli(*argv, *quick)
+        assert refused.code == 2, refused.err
+        assert (f"--out {out} holds the complete fit-face of {PHOTO}; this run's inputs differ"
+                in refused.err)
+        assert "add --overwrite to replace it, or choose another --out" in refused.err
+        assert (out / COMPLETE_RECORD).read_text() == held and (out / RUN_RECORD).exists()
+
+    replaced = run_cli("fit-face", other, *quick, "--overwrite")
+    assert replaced.code == 0, replaced.err
+    assert f"--out {out}: replacing the complete fit-face of {PHOTO} (--overwrite)" in replaced.out
+    assert json.loads((out / COMPLETE_RECORD).read_text())["files"] == [str(other)]
+
+    resized = run_cli("fit-face", other, *quick, "--size", "40")
+    assert resized.code == 0, resized.err
+    assert (f"--out {out}: replacing the complete fit-face of {other}, fitted with other options (size)"
+            in resized.out)
+    rerun = run_cli("fit-face", other, *quick, "--size", "40")
+    assert rerun.code == 0 and "replacing" not in rerun.out
+    assert json.loads((out / COMPLETE_RECORD).read_text())["options"]["size"] == 40
+
+
+def test_fit_body_keeps_a_complete_fit_of_another_target_unless_overwrite(tmp_path, run_cli):
+    disc = np.zeros((32, 32))
+    disc[8:24, 12:20] = 1.0
+    np.save(tmp_path / "narrow.npy", disc)
+    disc[8:24, 10:22] = 1.0
+    np.save(tmp_path / "wide.npy", disc)
+    out = tmp_path / "fit"
+    quick = ["--silhouette", "--size", "16", "--budget", "fast", "--no-progress", "--out", out]
+    assert run_cli("fit-body", tmp_path / "narrow.npy", *quick).code == 0
+    refused = run_cli("fit-body", tmp_path / "wide.npy", *quick)
+    assert refused.code == 2
+    assert (f"--out {out} holds the complete fit-body of {tmp_path / 'narrow.npy'}; this run's inputs "
+            "differ (target): add --overwrite") in refused.err
+    replaced = run_cli("fit-body", tmp_path / "wide.npy", *quick, "--overwrite")
+    assert replaced.code == 0 and "(--overwrite)" in replaced.out
+    assert json.loads((out / COMPLETE_RECORD).read_text())["files"] == [str(tmp_path / "wide.npy")]

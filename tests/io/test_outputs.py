@@ -12,9 +12,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from softras_cl.errors import OutputError
+from softras_cl.errors import InputError, OutputError
 from softras_cl.io.images import write_image
-from softras_cl.io.outputs import LOCK_NAME, OutputFolder, atomic_path, write_text
+from softras_cl.io.outputs import (COMPLETE_RECORD, INPUT_FILES, LOCK_NAME, OutputFolder, atomic_path,
+                                   write_text)
 
 
 def leftovers(folder: Path) -> list[str]:
@@ -61,6 +62,40 @@ def test_an_interrupted_write_keeps_the_old_file(tmp_path):
             tmp.write_bytes(b"partial")
             raise KeyboardInterrupt
     assert target.read_text() == "old" and leftovers(tmp_path) == []
+
+
+@pytest.mark.skipif(not hasattr(os, "symlink") or sys.platform == "win32", reason="POSIX links")
+def test_a_link_is_written_through_to_its_target_and_kept(tmp_path):
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "result.json").write_text("old")
+    os.chmod(elsewhere / "result.json", 0o640)
+    link = tmp_path / "result.json"
+    link.symlink_to(Path("elsewhere") / "result.json")          # relative, as `ln -s` makes them
+    write_text(link, "new")
+    assert link.is_symlink() and os.readlink(link) == str(Path("elsewhere") / "result.json")
+    assert (elsewhere / "result.json").read_text() == "new"
+    assert (elsewhere / "result.json").stat().st_mode & 0o777 == 0o640
+    assert leftovers(tmp_path) == [] and leftovers(elsewhere) == []
+
+    image_link = tmp_path / "render.png"                     # a link to a file not written yet
+    image_link.symlink_to(elsewhere / "render.png")
+    write_image(image_link, np.full((4, 4, 3), 0.5))
+    assert image_link.is_symlink() and (elsewhere / "render.png").stat().st_size > 0
+
+
+@pytest.mark.skipif(not hasattr(os, "symlink") or sys.platform == "win32", reason="POSIX devices")
+def test_a_path_to_a_device_or_a_folder_is_refused(tmp_path):
+    link = tmp_path / "render.png"
+    link.symlink_to(os.devnull)
+    with pytest.raises(OutputError, match=rf"cannot write .*render.png \(a link to {os.devnull}\): it is "
+                                          r"a device, not a regular file"):
+        write_image(link, np.full((4, 4, 3), 0.5))
+    assert link.is_symlink() and os.readlink(link) == os.devnull
+    (tmp_path / "folder").mkdir()
+    with pytest.raises(OutputError, match=r"cannot write .*folder: it is a folder, not a regular file"):
+        write_text(tmp_path / "folder", "x")
+    assert leftovers(tmp_path) == []
 
 
 @contextlib.contextmanager
@@ -174,3 +209,40 @@ def test_a_new_run_removes_what_a_killed_run_left_half_written(tmp_path):
         out.begin({"command": "fit-face"})
     assert not [p for p in stale if p.exists()]
     assert all(p.read_text() == "keep" for p in users)
+
+
+FIT_A = dict(command="fit-face", inputs=dict(photo="a" * 64, landmarks="b" * 64), options=dict(size=96))
+
+
+def complete_fit(folder: Path, record: dict, files: list[str]) -> None:
+    """``folder`` as a finished run of ``record`` leaves it (run.json, complete.json)."""
+    with OutputFolder(folder, "fit-face", "--out") as out:
+        out.begin(record)
+        out.finish({"status": "done", INPUT_FILES: files})
+
+
+def test_a_complete_fit_of_other_inputs_is_kept_unless_overwrite(tmp_path):
+    complete_fit(tmp_path, FIT_A, ["photos/astronaut.png"])
+    before = (tmp_path / COMPLETE_RECORD).read_text()
+    other_photo = dict(FIT_A, inputs=dict(FIT_A["inputs"], photo="c" * 64))
+    with OutputFolder(tmp_path, "fit-face", "--out") as out:
+        with pytest.raises(InputError, match=rf"--out {tmp_path} holds the complete fit-face of "
+                                             r"photos/astronaut.png; this run's inputs differ \(photo\): "
+                                             r"add --overwrite to replace it, or choose another --out"):
+            out.begin(other_photo)
+        assert (tmp_path / COMPLETE_RECORD).read_text() == before
+        line = out.begin(other_photo, overwrite=True)
+    assert line == f"--out {tmp_path}: replacing the complete fit-face of photos/astronaut.png (--overwrite)"
+    assert not (tmp_path / COMPLETE_RECORD).exists()
+
+
+def test_a_complete_fit_of_the_same_inputs_is_replaced_saying_so_when_options_differ(tmp_path):
+    complete_fit(tmp_path, FIT_A, ["astronaut.png"])
+    with OutputFolder(tmp_path, "fit-face", "--out") as out:
+        line = out.begin(dict(FIT_A, options=dict(size=128)))
+    assert line == (f"--out {tmp_path}: replacing the complete fit-face of astronaut.png, fitted with "
+                    "other options (size)")
+    complete_fit(tmp_path, FIT_A, ["astronaut.png"])
+    with OutputFolder(tmp_path, "fit-face", "--out") as out:
+        assert out.begin(FIT_A) is None                     # a rerun: replaced as before, silently
+    assert not (tmp_path / COMPLETE_RECORD).exists()
