@@ -16,6 +16,7 @@ import pytest
 
 from softras_cl import RasterSettings, SoftRasterizer
 from softras_cl.raster import reference
+from softras_cl.raster.settings import FLOAT32_GRAD_SIGMA
 from softras_cl.cl.device import has_fp64, select_device
 from softras_cl.scene.meshes import screen_space_sphere
 
@@ -235,7 +236,8 @@ def test_pixel_on_edge_and_vertex(dtype, metric):
     verts = np.array([[x, y, z] for (x, y), z in zip(corners, [2.0, 3.0, 4.0, 3.0])])
     faces = np.array([[0, 1, 2], [0, 2, 3]])   # share the diagonal (1, 6)-(6, 1)
     colors = np.random.default_rng(6).uniform(0, 1, (4, 3))
-    s, out, g = run(verts, faces, colors, image_size=(h, w), sigma=1e-8, gamma=1e-3, dist_eps=0.0,
+    sigma = 1e-8 if dtype == "float64" else FLOAT32_GRAD_SIGMA     # float32 gradients need sigma >= 1e-7
+    s, out, g = run(verts, faces, colors, image_size=(h, w), sigma=sigma, gamma=1e-3, dist_eps=0.0,
                     metric=metric, background=BG, dtype=dtype)
     check_ranges(s, out, colors)
     a = out.alpha[0]
