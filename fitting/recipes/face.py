@@ -359,7 +359,7 @@ class FaceScene:
         h, w = self.image_size
         self.principal = (w / 2.0 - 0.5, h / 2.0 - 0.5) if principal is None else tuple(map(float, principal))
         near, far = (float(d) for d in depth_range)
-        # the renderer's settings, and `settings`: the same with the depth range drawn with now
+        # settings: the renderer's, with the depth range the renders use now (set_depth_range)
         self.settings = RasterSettings(image_size=self.image_size, outputs=("rgb", "alpha"),
                                        near=near, far=far, dtype=dtype, alpha_agg=alpha_agg)
         self.renderer = Renderer(self.settings, shading="vertex")
@@ -576,7 +576,8 @@ class FaceObjective:
 
     def _half_size(self) -> "FaceObjective":
         """This objective on the half-resolution image (the scene's half_size, drawing the
-        coarse_mesh faces when set): landmarks, focal and mask erosion halved, never coarser."""
+        coarse_mesh faces when set): landmarks, focal and mask erosion halved; it has no
+        half-resolution copy of its own."""
         model = self.scene.model
         faces = None if self.coarse_mesh is None else coarse_faces(model.mean_shape, model.faces, self.coarse_mesh)
         image, to_half = half_resolution(self.image)

@@ -160,9 +160,10 @@ class Renderer:
         if saved is None or not saved.grads:
             raise ValueError("output: forward() was called without grads=...; nothing to differentiate")
         if saved.renderer is not self:
+            made = saved.raster.settings
             raise ValueError(f"output was made by another Renderer (shading={saved.renderer.shading!r}, "
-                             f"{saved.raster_out.saved.settings}): call backward on the renderer whose "
-                             "forward made it")
+                             f"image_size={made.image_size}, dtype={made.dtype!r}): call backward on the "
+                             "renderer whose forward made it")
         return saved
 
     # ---- stages ----------------------------------------------------------------------------
