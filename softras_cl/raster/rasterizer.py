@@ -270,6 +270,8 @@ class SoftRasterizer:
         Each cotangent has the shape of the matching output (None = zero). Returns a dict with
         the names given as `grads` to forward: "vertices" (shape of the vertices given, float64)
         and "colors" (shape of the colour input given: colors, face_textures or texture_image).
+        output: what this rasteriser's forward returned, with grads (ValueError for another's:
+        its buffers, sizes, dtype and settings are that rasteriser's).
         """
         saved = _own_context(self, output)
         s, mesh = saved.settings, saved.mesh

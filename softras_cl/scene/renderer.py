@@ -142,7 +142,8 @@ class Renderer:
         vertices (shape given), albedo (shape given; for unlit textures the texture's shape),
         camera (a dict of rotation (3,), translation (3,), focal (2,) per view: a list when a
         list of cameras was given), focal ((2,) [dL/dfx, dL/dfy] per view, likewise: camera's
-        focal without the rest of camera), light (dict of the light's parameters)."""
+        focal without the rest of camera), light (dict of the light's parameters). output:
+        what this renderer's forward returned, with grads (ValueError for another's)."""
         saved = self._own_context(output)
         g_raster = saved.raster.backward(saved.raster_out, grad_rgb, grad_alpha, grad_depth)
         g_shade = self._shading_vjp(saved, g_raster)
