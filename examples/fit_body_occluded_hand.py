@@ -31,6 +31,7 @@ import numpy as np
 from softras_cl.fitting.recipes import body
 from softras_cl.fitting.models.body_loaders import load_demo_body_model
 
+from softras_cl.scene.renderer import SHARP
 from softras_cl.scene.rotation import matrix_to_axis_angle
 from softras_cl.io.images import to_srgb
 
@@ -62,7 +63,7 @@ def arm_pose(model, upper_arm_direction, elbow_flexion: float) -> dict:
 
 def hard_render(scene, vertices, faces=None):
     """z-buffered render (hard rgb and alpha): the image a camera sees."""
-    return scene.render(vertices, 1e-6, 1e-4, color_agg="hard", alpha_agg="hard", faces=faces)
+    return scene.render(vertices, *SHARP, color_agg="hard", alpha_agg="hard", faces=faces)
 
 
 def hand_visibility(scene, model, vertices) -> tuple[int, int]:
@@ -107,7 +108,7 @@ def save_strip(scene, target, rows: list, path: Path) -> None:
     fig, axes = plt.subplots(len(rows), n, figsize=(1.9 * n, 2.5 * len(rows)), squeeze=False)
     for r, (label, snaps) in enumerate(rows):
         panels = [("target", target)] + [
-            (f"eval {k}", scene.composite(scene.render(scene.pose(v)[0].vertices, 1e-6, 1e-4)))
+            (f"eval {k}", scene.composite(scene.render(scene.pose(v)[0].vertices, *SHARP)))
             for k, v in sorted(snaps.items())]
         for ax in axes[r]:
             ax.axis("off")

@@ -60,12 +60,6 @@ def unbroadcast(name: str, grad: np.ndarray, shape: tuple) -> np.ndarray:
 
 
 # ---- the rasteriser ---------------------------------------------------------------------------
-def raster_batch(arrays: dict) -> int:
-    """B of a rasteriser call: the vertices' batch axis, else 1 (as SoftRasterizer.forward)."""
-    v = arrays["vertices"]
-    return v.shape[0] if np.ndim(v) == 3 else 1
-
-
 def raster_grads(wanted) -> tuple[str, ...]:
     """SoftRasterizer.forward(grads=...) for gradients of the argument names `wanted`."""
     wanted = set(wanted)

@@ -15,7 +15,8 @@ dtypes: float inputs are float32 or float64 CPU tensors (or numpy arrays, never 
 faces are integer tensors or arrays. Images come back in settings.dtype (as from the numpy API),
 each gradient in its input's dtype and shape. A CUDA (or other non-CPU) tensor, a wrong dtype, a
 wrong shape or NaN raise an error naming the argument before any kernel runs. Usage and what is
-differentiable: docs/interop.md.
+differentiable: docs/interop.md. Gradients are first order only: a gradient taken with
+create_graph=True is not differentiable again (differentiating it raises InputError).
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ import numpy as np
 import torch
 
 from softras_cl import interop
+from softras_cl.errors import InputError
 from softras_cl.raster.rasterizer import SoftRasterizer as _NumpyRasterizer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.renderer import Renderer as _NumpyRenderer
@@ -78,6 +80,34 @@ def _cotangent(grad: torch.Tensor | None) -> np.ndarray | None:
     return None if grad is None else grad.detach().numpy()
 
 
+class _FirstOrderOnly(torch.autograd.Function):
+    """apply(name, n, *grads, *inputs) -> the n gradients of a bridge's backward, recorded as
+    functions of the op's inputs, whose own backward (the gradient of those gradients) raises
+    InputError naming the bridge's function `name`."""
+
+    @staticmethod
+    def forward(ctx, name, n, *tensors):
+        ctx.name = name
+        return tuple(g.clone() for g in tensors[:n])
+
+    @staticmethod
+    def backward(ctx, *unused):
+        raise InputError(f"{ctx.name}: double backward is not supported: its gradients are first "
+                         "order only (the OpenCL kernels have no second derivatives), so a gradient "
+                         "taken with create_graph=True cannot be differentiated again")
+
+
+def _first_order(name: str, grads: tuple, inputs: tuple) -> tuple:
+    """A backward's gradients (tensors or None) as they are, or, when autograd records them
+    (create_graph=True), passed through _FirstOrderOnly with the op's `inputs` (its saved
+    tensors) so that differentiating them raises."""
+    if not torch.is_grad_enabled():
+        return grads
+    given = [g for g in grads if g is not None]
+    outs = iter(_FirstOrderOnly.apply(name, len(given), *given, *inputs))
+    return tuple(None if g is None else next(outs) for g in grads)
+
+
 class RasterizeFunction(torch.autograd.Function):
     """Autograd op of SoftRasterizer: apply(rasterizer, arrays, names, *tensors) -> the images in
     settings.outputs order. `arrays` holds the non-differentiated inputs as numpy arrays; the
@@ -92,19 +122,19 @@ class RasterizeFunction(torch.autograd.Function):
                                      wanted)
         ctx.set_materialize_grads(False)
         ctx.rasterizer, ctx.out, ctx.wanted = rasterizer, out, wanted
+        ctx.save_for_backward(*tensors)     # only for _first_order's record of a double backward
         ctx.inputs = {n: (t.dtype, t.shape) for n, t in named.items()}
         return tuple(torch.from_numpy(getattr(out, o)) for o in interop.output_names(rasterizer.settings))
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx, *grad_outputs):
         names = interop.output_names(ctx.rasterizer.settings)
         cot = {o: _cotangent(g) for o, g in zip(names, grad_outputs)}
         grads = interop.raster_input_grads(ctx.rasterizer, ctx.out, cot,
                                            {n: tuple(s) for n, (_, s) in ctx.inputs.items()}, ctx.wanted)
-        return (None, None, None) + tuple(
+        return (None, None, None) + _first_order("softras_cl.torch.rasterize", tuple(
             torch.from_numpy(grads[n]).to(dtype) if n in grads else None
-            for n, (dtype, _) in ctx.inputs.items())
+            for n, (dtype, _) in ctx.inputs.items()), ctx.saved_tensors)
 
 
 class RenderFunction(torch.autograd.Function):
@@ -120,18 +150,19 @@ class RenderFunction(torch.autograd.Function):
                                      cameras, light, wanted)
         ctx.set_materialize_grads(False)
         ctx.renderer, ctx.out, ctx.wanted = renderer, out, wanted
+        ctx.save_for_backward(*tensors)     # only for _first_order's record of a double backward
         ctx.inputs = {n: (t.dtype, t.shape) for n, t in named.items()}
         return tuple(torch.from_numpy(getattr(out, o)) for o in interop.output_names(renderer.settings))
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx, *grad_outputs):
         names = interop.output_names(ctx.renderer.settings)
         cot = {o: _cotangent(g) for o, g in zip(names, grad_outputs)}
         grads = interop.render_input_grads(ctx.renderer, ctx.out, cot,
                                            {n: tuple(s) for n, (_, s) in ctx.inputs.items()}, ctx.wanted)
-        return (None,) * 5 + tuple(torch.from_numpy(grads[n]).to(dtype) if n in grads else None
-                                   for n, (dtype, _) in ctx.inputs.items())
+        return (None,) * 5 + _first_order("softras_cl.torch.render", tuple(
+            torch.from_numpy(grads[n]).to(dtype) if n in grads else None
+            for n, (dtype, _) in ctx.inputs.items()), ctx.saved_tensors)
 
 
 def _apply(function, head: tuple, named: dict, arrays: dict, wanted: tuple, settings) -> Images:

@@ -49,7 +49,7 @@ import numpy as np
 from softras_cl.checks import check_finite, number
 from softras_cl.errors import InputError
 from softras_cl.scene.camera import Camera
-from softras_cl.scene.renderer import Renderer, settings_with
+from softras_cl.scene.renderer import SHARP, Renderer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.fitting import losses
 from softras_cl.fitting.metrics import psnr
@@ -377,6 +377,7 @@ class BodyScene:
                                        near=near, far=config.distance + DEPTH_RANGE / 2,
                                        background=tuple(config.background), dtype=config.dtype)
         self.renderer = Renderer(self.settings, shading="none")
+        self._variants: dict = {}       # render(**changes): a renderer per set of changes
 
     def pose(self, values: dict) -> tuple[BodyPose, BodyContext]:
         """The body posed by the blocks ``values`` (betas, body_pose, global_rotation,
@@ -387,10 +388,19 @@ class BodyScene:
     def render(self, vertices, sigma: float, gamma: float, grads=(), colors=None, faces=None, **changes):
         """RenderOutput of posed vertices (V, 3) with part colours (or ``colours`` (V, 3)), the
         model's faces (or a subset ``faces`` (F', 3)); ``changes``: other RasterSettings fields
-        (e.g. color_agg="hard")."""
-        self.renderer.settings = settings_with(self.settings, sigma=sigma, gamma=gamma, **changes)
-        return self.renderer.forward(vertices, self.model.faces if faces is None else faces, self.camera,
-                                     albedo=self.colors if colors is None else colors, grads=grads)
+        (e.g. color_agg="hard"), drawn by a renderer of their own (made once; its outputs go
+        back through it, not through ``renderer``)."""
+        renderer = self._variant(changes) if changes else self.renderer
+        return renderer.forward(vertices, self.model.faces if faces is None else faces, self.camera,
+                                albedo=self.colors if colors is None else colors, grads=grads,
+                                sigma=sigma, gamma=gamma)
+
+    def _variant(self, changes: dict) -> Renderer:
+        """The renderer of these settings with ``changes``, made at its first use."""
+        key = tuple(sorted(changes.items()))
+        if key not in self._variants:
+            self._variants[key] = Renderer(self.settings.replace(**changes), shading="none")
+        return self._variants[key]
 
     def composite(self, out) -> np.ndarray:
         """(H, W, 3) the render's rgb composited by its alpha over the background."""
@@ -533,7 +543,7 @@ def initial_translation(scene: BodyScene, values: dict, alpha: np.ndarray) -> np
         return np.array([(xs * a).sum(), (ys * a).sum()]) / max(a.sum(), 1e-9)
 
     state, _ = scene.pose(values)
-    shift_px = centroid(alpha) - centroid(scene.render(state.vertices, 1e-6, 1e-4).alpha[0])
+    shift_px = centroid(alpha) - centroid(scene.render(state.vertices, *SHARP).alpha[0])
     depth = scene.config.distance - state.joints[0, 2]
     focal = float(scene.camera.focal[1])
     return values["translation"] + np.array([shift_px[0], -shift_px[1], 0.0]) * depth / focal
@@ -560,7 +570,7 @@ class BodyFit:
         composited render (colour targets, dB, linear RGB), mean 2D joint error over the seen
         joints (working and full-size pixels; when the target has joints)."""
         state, _ = self.scene.pose(self.values)
-        out = self.scene.render(state.vertices, 1e-6, 1e-4)
+        out = self.scene.render(state.vertices, *SHARP)
         mine, theirs = out.alpha[0] > 0.5, self.target.alpha > 0.5
         doc = dict(silhouette_iou=float((mine & theirs).sum() / max((mine | theirs).sum(), 1)))
         if self.target.rgb is not None:

@@ -64,7 +64,7 @@ from softras_cl.checks import check_finite, number
 from softras_cl.errors import InputError
 from softras_cl.scene.camera import Camera
 from softras_cl.scene.rotation import RodriguesContext, matrix_to_axis_angle, rodrigues, rodrigues_vjp
-from softras_cl.scene.renderer import Renderer, settings_with
+from softras_cl.scene.renderer import SHARP, Renderer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.shading import SH_A, SHLight, sh_ambient, sh_basis, vertex_normals
 from softras_cl.fitting import losses
@@ -344,7 +344,8 @@ class FaceScene:
     compositing a render over a photo, where occupancy alpha would let the background show
     through the seams between triangles, docs/conventions.md); depth_range (near, far) in
     metres: gamma acts on depth normalised by far - near (eq. 10), so a range fitted to the
-    face (see :func:`depth_range`) makes a gamma mean the same at any distance; principal
+    face (see :func:`depth_range`) makes a gamma mean the same at any distance (set it again
+    with :meth:`set_depth_range`: the renderer stays, the range goes to each render); principal
     (cx, cy): the principal point in pixels (default: the image centre); faces (F', 3) int32:
     the triangles drawn, over the model's vertices (default the model's own; a coarser list
     from fitting.models.mesh_lod for a low-resolution image).
@@ -358,15 +359,25 @@ class FaceScene:
         h, w = self.image_size
         self.principal = (w / 2.0 - 0.5, h / 2.0 - 0.5) if principal is None else tuple(map(float, principal))
         near, far = (float(d) for d in depth_range)
+        # settings: the renderer's, with the depth range the renders use now (set_depth_range)
         self.settings = RasterSettings(image_size=self.image_size, outputs=("rgb", "alpha"),
                                        near=near, far=far, dtype=dtype, alpha_agg=alpha_agg)
         self.renderer = Renderer(self.settings, shading="vertex")
         self._camera: tuple[float, Camera] | None = None
 
     def set_depth_range(self, translation) -> None:
-        """Fit near/far to a face at ``translation`` (see :func:`depth_range`)."""
+        """Fit near/far to a face at ``translation`` (see :func:`depth_range`) for the renders
+        that follow."""
         near, far = depth_range(translation)
-        self.settings = dataclasses.replace(self.settings, near=near, far=far)
+        self.settings = self.settings.replace(near=near, far=far)
+
+    def half_size(self, faces=None) -> "FaceScene":
+        """This scene at half its resolution (:func:`half_resolution`): image (h // 2, w // 2),
+        the principal point mapped as pixel centres are, the same model, dtype, alpha and depth
+        range; faces (F', 3) int32: the triangles drawn (default the model's)."""
+        s, (h, w) = self.settings, self.image_size
+        return FaceScene(self.model, (h // 2, w // 2), s.dtype, s.alpha_agg, (s.near, s.far),
+                         principal=half_pixels(np.array([self.principal]))[0], faces=faces)
 
     def camera(self, focal: float) -> Camera:
         """The Camera of this focal length (pixels); the last one is kept (Cameras are frozen):
@@ -399,22 +410,27 @@ class FaceScene:
         (for the report); world: the world vertices if already computed; roi: None or an (H, W)
         bool mask, the only pixels needed (Renderer.forward: other screen tiles are not
         rasterised)."""
-        self.renderer.settings = settings_with(self.settings, sigma=sigma, gamma=gamma)
         world = self.geometry(values)[0] if world is None else world
         albedo = self.model.albedo(values["albedo"])[0] if albedo is None else albedo
         light = SHLight(values["sh"]) if light is None else light
         return self.renderer.forward(world, self.faces, self.camera(values["focal"][0]),
-                                     albedo=albedo, light=light, grads=grads, roi=roi)
+                                     albedo=albedo, light=light, grads=grads, roi=roi, sigma=sigma,
+                                     gamma=gamma, near=self.settings.near, far=self.settings.far)
 
 
 def half_resolution(image: np.ndarray):
-    """(image (h // 2, w // 2, 3): the mean of each 2x2 block of pixels, a function mapping
-    (N, 2) working pixels to its pixels): pixel centres map as ``u_half = (u + 0.5) / 2 - 0.5``;
-    an odd last row or column is left out."""
+    """(image (h // 2, w // 2, 3): the mean of each 2x2 block of pixels, :func:`half_pixels`
+    mapping (N, 2) working pixels to its pixels); an odd last row or column is left out."""
     h, w = (n // 2 for n in image.shape[:2])
     blocks = np.asarray(image, np.float64)[:2 * h, :2 * w].reshape(h, 2, w, 2, -1)
     half = blocks.mean(axis=(1, 3))
-    return half, lambda points: (np.asarray(points, np.float64) + 0.5) * 0.5 - 0.5
+    return half, half_pixels
+
+
+def half_pixels(points) -> np.ndarray:
+    """(N, 2) pixels -> the same points in pixels of the half-resolution image: pixel centres
+    map as ``u_half = (u + 0.5) / 2 - 0.5``."""
+    return (np.asarray(points, np.float64) + 0.5) * 0.5 - 0.5
 
 
 def depth_range(translation) -> tuple[float, float]:
@@ -464,7 +480,7 @@ def initial_light(scene: FaceScene, values: dict, image: np.ndarray, ridge: floa
     uv, _ = scene.camera(values["focal"][0]).project_pixels(world)
     h, w = scene.image_size
     facing = np.einsum("vi,vi->v", normals, -world / np.linalg.norm(world, axis=1, keepdims=True))
-    inside = binary_erosion(scene.render(dict(values, sh=sh_ambient(1.0)), 1e-6, 1e-4).alpha[0] > 0.5,
+    inside = binary_erosion(scene.render(dict(values, sh=sh_ambient(1.0)), *SHARP).alpha[0] > 0.5,
                             iterations=2)
     px = np.clip(np.round(uv).astype(int), 0, [w - 1, h - 1])
     keep = (facing > 0.3) & inside[px[:, 1], px[:, 0]]
@@ -555,19 +571,27 @@ class FaceObjective:
                 or min(self.image.shape[:2]) < 2 * MIN_SIZE):
             return self
         if self._coarse is None:
-            scene = self.scene
-            image, to_half = half_resolution(self.image)
-            model = scene.model
-            faces = None if self.coarse_mesh is None else coarse_faces(model.mean_shape, model.faces,
-                                                                        self.coarse_mesh)
-            coarse_scene = FaceScene(model, image.shape[:2], scene.settings.dtype,
-                                     scene.settings.alpha_agg, (scene.settings.near, scene.settings.far),
-                                     principal=to_half(np.array([scene.principal]))[0], faces=faces)
-            self._coarse = FaceObjective(coarse_scene, image, to_half(self.target),
-                                         max(1, self.mask_erosion // 2) if self.mask_erosion else 0,
-                                         self.focal0 * 0.5, self.forehead, coarse_sigma=None,
-                                         robust_scale=self.robust_scale)
+            self._coarse = self._half_size()
         return self._coarse
+
+    def _half_size(self) -> "FaceObjective":
+        """This objective on the half-resolution image (the scene's half_size, drawing the
+        coarse_mesh faces when set): landmarks, focal and mask erosion halved; it has no
+        half-resolution copy of its own."""
+        model = self.scene.model
+        faces = None if self.coarse_mesh is None else coarse_faces(model.mean_shape, model.faces, self.coarse_mesh)
+        image, to_half = half_resolution(self.image)
+        return FaceObjective(self.scene.half_size(faces), image, to_half(self.target),
+                             mask_erosion=max(1, self.mask_erosion // 2) if self.mask_erosion else 0,
+                             focal0=self.focal0 * 0.5, forehead=self.forehead, coarse_sigma=None,
+                             robust_scale=self.robust_scale)
+
+    def set_depth_range(self, translation) -> None:
+        """Fit near/far to a face at ``translation`` (:func:`depth_range`) in this objective's
+        scene and in its half-resolution copy's, for the renders that follow."""
+        for objective in (self, self._coarse):
+            if objective is not None:
+                objective.scene.set_depth_range(translation)
 
     def __call__(self, values: dict, stage: Stage):
         w = stage.weights
@@ -580,7 +604,7 @@ class FaceObjective:
             scale = 1.0 if level is self else 0.5
             level_values = values if level is self else dict(values, focal=values["focal"] * scale)
             if level._mask_stage != stage.name:
-                self.scene.set_depth_range(values["translation"])
+                self.set_depth_range(values["translation"])
                 level.start_stage(level_values, stage)
             value, g = level.photo_term(level_values, world, stage.sigma, stage.gamma)
             if level is not self:       # a half-size pixel stands for 4 working pixels
@@ -623,11 +647,10 @@ class FaceObjective:
         return r * r, dict(focal=np.array([2.0 * r / (math.log(2.0) * focal[0])]))
 
     def start_stage(self, values: dict, stage: Stage) -> None:
-        """Fix what a photometric stage's function depends on, from one render at its start:
-        the depth range, the face region (``mask``) and the robust scale (``photo_scale``:
-        robust_scale x the median per-pixel linear-RGB error over the face region, at least
-        MIN_ROBUST_SCALE; None without robust_scale)."""
-        self.scene.set_depth_range(values["translation"])
+        """Fix what a photometric stage's function depends on, from one render at its start
+        (after set_depth_range): the face region (``mask``) and the robust scale
+        (``photo_scale``: robust_scale x the median per-pixel linear-RGB error over the face
+        region, at least MIN_ROBUST_SCALE; None without robust_scale)."""
         out = self.scene.render(values, stage.sigma, stage.gamma)
         self.mask = self._region(out.alpha[0])
         self._mask_stage = stage.name
@@ -734,8 +757,8 @@ class FaceFit:
         from softras_cl.io.images import to_srgb
 
         err = float(np.linalg.norm(self.fitted_landmarks() - self.landmarks, axis=1).mean())
-        rgb = self.scene.render(self.values, 1e-6, 1e-4).rgb[0]
-        mask = self.objective.face_region(self.values, 1e-6, 1e-4)
+        rgb = self.scene.render(self.values, *SHARP).rgb[0]
+        mask = self.objective.face_region(self.values, *SHARP)
         return dict(landmark_error_px=err, landmark_error_px_full=err / self.crop.scale,
                     psnr_face_db=psnr(to_srgb(np.clip(rgb, 0, 1)), to_srgb(np.clip(self.image, 0, 1)), mask),
                     face_pixels=int(mask.sum()))
@@ -757,8 +780,8 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
     stages = default_stages(config, fit_focal=config.focal is None)
     result = fit(params, objective, stages, out_dir=out_dir, progress=progress, resume=resume)
     if objective.mask is None:      # no photometric stage ran here (e.g. resuming a finished fit)
-        objective.scene.set_depth_range(result.values["translation"])
-    mask = objective.mask if objective.mask is not None else objective.face_region(result.values, 1e-6, 1e-4)
+        objective.set_depth_range(result.values["translation"])
+    mask = objective.mask if objective.mask is not None else objective.face_region(result.values, *SHARP)
     return FaceFit(result.values, objective.scene, objective.image, objective.target, crop, mask, result, objective)
 
 

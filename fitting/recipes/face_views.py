@@ -34,6 +34,7 @@ from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.recipes.face import (N_LANDMARKS, FaceFit, FaceFitConfig, FaceObjective,
                                              default_stages, prepare_fit)
 from softras_cl.fitting.solver import FitResult, Stage, fit
+from softras_cl.scene.renderer import SHARP
 
 __all__ = ["SHARED", "PRIORS_ONCE", "LANDMARK_WEIGHT_PHOTO", "joint_config", "view_block", "focal_scales", "FaceViewsObjective", "FaceViewsFit", "joint_params",
            "joint_stages", "prepare_view", "fit_face_views"]
@@ -219,6 +220,6 @@ def fit_face_views(photos, landmarks, model, config: FaceFitConfig | None = None
     fits = []
     for k, view in enumerate(views):
         obj, values = view.objective, objective.view_values(result.values, k)
-        mask = obj.mask if obj.mask is not None else obj.face_region(values, 1e-6, 1e-4)
+        mask = obj.mask if obj.mask is not None else obj.face_region(values, *SHARP)
         fits.append(FaceFit(values, obj.scene, obj.image, obj.target, view.crop, mask, result, obj))
     return FaceViewsFit(result.values, fits, result)

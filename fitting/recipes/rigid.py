@@ -47,7 +47,7 @@ def color_cube(half_size: float = 0.5):
 
 @dataclass
 class PoseScene:
-    """The cube, the fixed camera and the base raster settings (sigma/gamma set per stage)."""
+    """The cube, the fixed camera and one renderer (sigma/gamma given per render)."""
     size: int = 64
     fov_deg: float = 35.0
     distance: float = 3.5
@@ -61,16 +61,10 @@ class PoseScene:
         self.textures = colors[None, :, None, None, :]
         self.camera = Camera.look_at((0.0, 0.0, self.distance), (0.0, 0.0, 0.0), fov_deg=self.fov_deg,
                                      image_size=(self.size, self.size))
-        self._renderers: dict = {}
-
-    def renderer(self, sigma: float, gamma: float) -> Renderer:
-        key = (sigma, gamma)
-        if key not in self._renderers:
-            settings = RasterSettings(image_size=(self.size, self.size), sigma=sigma, gamma=gamma,
-                                      outputs=("rgb", "alpha"), background=(0.0, 0.0, 0.0), dtype=self.dtype,
-                                      double_sided=self.double_sided, near=self.near, far=self.far)
-            self._renderers[key] = Renderer(settings, shading="none")
-        return self._renderers[key]
+        settings = RasterSettings(image_size=(self.size, self.size), outputs=("rgb", "alpha"),
+                                  background=(0.0, 0.0, 0.0), dtype=self.dtype,
+                                  double_sided=self.double_sided, near=self.near, far=self.far)
+        self.renderer = Renderer(settings, shading="none")
 
     def render(self, rotation: np.ndarray, sigma: float, gamma: float, grads: tuple = ()):
         """(renderer, RenderOutput) of the cube rotated by axis-angle `rotation` (3,)."""
@@ -78,9 +72,9 @@ class PoseScene:
 
     def render_rotated(self, matrix: np.ndarray, sigma: float, gamma: float, grads: tuple = ()):
         """(renderer, RenderOutput) of the cube rotated by the rotation matrix (3, 3)."""
-        renderer = self.renderer(sigma, gamma)
-        return renderer, renderer.forward(self.vertices @ matrix.T, self.faces, self.camera,
-                                          face_textures=self.textures, grads=grads)
+        return self.renderer, self.renderer.forward(self.vertices @ matrix.T, self.faces, self.camera,
+                                                    face_textures=self.textures, grads=grads,
+                                                    sigma=sigma, gamma=gamma)
 
 
 def composite(rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:

@@ -116,21 +116,6 @@ def default_stages(sigmas=(1e-3, 1e-4, 1e-5), iters=(60, 60, 60), gamma: float =
 # objective
 # ---------------------------------------------------------------------------------------------
 
-class _Renderers:
-    """One Renderer per (sigma, gamma), all sharing the base settings."""
-
-    def __init__(self, settings: RasterSettings):
-        self.settings = _alpha_settings(settings)
-        self._cache: dict = {}
-
-    def __call__(self, sigma, gamma) -> Renderer:
-        s = self.settings
-        key = (s.sigma if sigma is None else float(sigma), s.gamma if gamma is None else float(gamma))
-        if key not in self._cache:
-            self._cache[key] = Renderer(s.replace(sigma=key[0], gamma=key[1]), shading="none")
-        return self._cache[key]
-
-
 def deformed_vertices(template_vertices: np.ndarray, values: dict) -> np.ndarray:
     """scale * template + offsets (missing blocks: scale 1, offsets 0)."""
     v = np.asarray(template_vertices, np.float64)
@@ -144,7 +129,7 @@ def silhouette_objective(target_alphas, cameras: Sequence[Camera], template_vert
 
     Terms (weighted by ``stage.weights``, a missing weight is 0): "iou" (per-view IoU losses
     summed over views, times H * W), "laplacian" and "flatten" (of the deformed vertices). The
-    stage's sigma and gamma select the renderer (None: those of ``settings``)."""
+    stage's sigma and gamma are those of its renders (None: those of ``settings``)."""
     target = np.asarray(target_alphas, np.float64)
     cameras = list(cameras)
     if target.ndim != 3 or target.shape[0] != len(cameras):
@@ -156,7 +141,7 @@ def silhouette_objective(target_alphas, cameras: Sequence[Camera], template_vert
     template = np.asarray(template_vertices, np.float64)
     faces = np.asarray(faces)
     topo = losses.mesh_topology(faces, len(template))
-    renderers = _Renderers(settings)
+    renderer = Renderer(_alpha_settings(settings), shading="none")
     n_pix = float(target.shape[1] * target.shape[2])
 
     def objective(values: dict, stage: Stage):
@@ -165,8 +150,7 @@ def silhouette_objective(target_alphas, cameras: Sequence[Camera], template_vert
         terms, g_v, weighted = {}, np.zeros_like(verts), {}
         w_iou = float(w.get("iou", 0.0))
         if w_iou > 0.0:
-            renderer = renderers(stage.sigma, stage.gamma)
-            out = renderer.forward(verts, faces, cameras, grads=("vertices",))
+            out = renderer.forward(verts, faces, cameras, grads=("vertices",), sigma=stage.sigma, gamma=stage.gamma)
             alpha = out.alpha.astype(np.float64)
             value, g_alpha = 0.0, np.empty_like(alpha)
             for b in range(len(cameras)):

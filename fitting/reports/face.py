@@ -23,6 +23,7 @@ from softras_cl.scene.rotation import axis_angle_to_matrix
 from softras_cl.io.images import PNG_OPTIONS, to_srgb, write_image
 from softras_cl.io.meshes import save_mesh
 from softras_cl.io.outputs import atomic_path, write_figure, write_json
+from softras_cl.scene.renderer import SHARP   # the report renders: the fitted surface, drawn sharp
 from softras_cl.scene.shading import SHLight
 from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.recipes.face import CAMERA_ROTATION, FaceFit, FaceScene
@@ -31,7 +32,6 @@ from softras_cl.fitting.recipes.face_texture import (FaceTexture, estimate_textu
 from softras_cl.provenance import provenance
 
 OVERLAY_MAX = 1024       # longest side of overlay.png (the photo's own size when smaller)
-SHARP = (1e-6, 1e-4)     # sigma, gamma of the report renders: the fitted surface, drawn sharp
 # Samples a side per pixel of the pictures. One sample per pixel draws the thin creases of the
 # fitted surface (under the lower lip, the chin's underside: sub-pixel, downward-facing
 # triangles, dark under a light from above) as dotted lines; averaged samples draw them as the
@@ -171,8 +171,8 @@ def render_over(fit: FaceFit, photo: np.ndarray, max_side: int = OVERLAY_MAX,
 def textured_metrics(fit: FaceFit, texture: FaceTexture) -> dict:
     """Face-region PSNR (sRGB, dB) of the render with the detail texture, on the working image
     and the face region of FaceFit.metrics (whose psnr_face_db is the model alone)."""
-    rgb, _ = render_textured(fit.scene, fit.values, texture, 1e-6, 1e-4)
-    mask = fit.objective.face_region(fit.values, 1e-6, 1e-4)
+    rgb, _ = render_textured(fit.scene, fit.values, texture, *SHARP)
+    mask = fit.objective.face_region(fit.values, *SHARP)
     return dict(psnr_face_db_textured=psnr(to_srgb(np.clip(rgb, 0, 1)), to_srgb(np.clip(fit.image, 0, 1)), mask),
                 texture_seen_fraction=float(texture.seen.sum() / max(texture.layout.covered.sum(), 1)))
 
@@ -192,7 +192,7 @@ def _panels(fit: FaceFit, texture: FaceTexture | None) -> dict:
     panels = {"photo + landmarks": srgb(fit.image), "model fit + fitted landmarks": srgb(model)}
     if texture is not None:
         panels["fit with the detail texture"] = srgb(composite(draw(scene, values, k, texture), fit.image))
-    panels["|error| model (face region, sRGB)"] = _error(fit.scene.render(fit.values, 1e-6, 1e-4).rgb[0], fit)
+    panels["|error| model (face region, sRGB)"] = _error(fit.scene.render(fit.values, *SHARP).rgb[0], fit)
     panels["model albedo"] = srgb(draw(scene, values, k, openings=False, light=SHLight.ambient(1.0))[0])
     if texture is not None:
         white = dict(values, sh=SHLight.ambient(1.0).coefficients)
@@ -200,7 +200,7 @@ def _panels(fit: FaceFit, texture: FaceTexture | None) -> dict:
     panels["shading (grey albedo)"] = srgb(draw(scene, values, k, openings=False, albedo=np.full((n, 3), 0.5))[0])
     if texture is not None:
         panels["|error| with the detail texture"] = _error(
-            render_textured(fit.scene, fit.values, texture, 1e-6, 1e-4)[0], fit)
+            render_textured(fit.scene, fit.values, texture, *SHARP)[0], fit)
     return panels
 
 

@@ -57,11 +57,12 @@ def synthetic_body(model, rng: np.random.Generator, size: int, joints: bool) -> 
     """One target: truth blocks, image (size, size, 3), true 3D joints (J, 3), noisy 2D joints
     (J, 2) or None."""
     from softras_cl.fitting.recipes.body import BodyFitConfig, BodyScene
+    from softras_cl.scene.renderer import SHARP
 
     truth = random_pose(model, rng)
     scene = BodyScene(model, (size, size), BodyFitConfig(size=size))
     state, _ = scene.pose(truth)
-    image = scene.composite(scene.render(state.vertices, 1e-6, 1e-4, color_agg="hard", alpha_agg="hard"))
+    image = scene.composite(scene.render(state.vertices, *SHARP, color_agg="hard", alpha_agg="hard"))
     uv = scene.camera.project_pixels(state.joints)[0] + rng.normal(0, 1.0, (model.n_joints, 2)) if joints else None
     return dict(truth=truth, image=image, joints_3d=state.joints, joints_2d=uv)
 
@@ -132,7 +133,7 @@ def save_chart(summary: dict, rest: dict, path: Path) -> None:
 def save_strip(samples: list[dict], rows: list[dict], path: Path, n: int = 5) -> None:
     """Target over fit for the first n targets of a budget."""
     from softras_cl.bench.tools import save_image_strip
-    from softras_cl.fitting.reports.face import SHARP
+    from softras_cl.scene.renderer import SHARP
 
     columns = []
     for sample, row in zip(samples[:n], rows[:n]):
@@ -146,6 +147,7 @@ def save_strip(samples: list[dict], rows: list[dict], path: Path, n: int = 5) ->
 def rest_baseline(model, samples: list[dict], size: int) -> dict:
     """The numbers of the starting point (rest pose, mean shape, centred on the target)."""
     from softras_cl.fitting.recipes.body import BodyFitConfig, BodyScene, initial_translation, rest_values
+    from softras_cl.scene.renderer import SHARP
 
     scene = BodyScene(model, (size, size), BodyFitConfig(size=size))
     errs, ious = [], []
@@ -156,7 +158,7 @@ def rest_baseline(model, samples: list[dict], size: int) -> dict:
         joints = scene.pose(values)[0].joints
         true = s["joints_3d"]
         errs.append(1e3 * np.linalg.norm((joints - joints[0]) - (true - true[0]), axis=1).mean())
-        mine = scene.render(scene.pose(values)[0].vertices, 1e-6, 1e-4).alpha[0] > 0.5
+        mine = scene.render(scene.pose(values)[0].vertices, *SHARP).alpha[0] > 0.5
         ious.append((mine & (alpha > 0.5)).sum() / max((mine | (alpha > 0.5)).sum(), 1))
     return dict(mpjpe_pelvis_mm=float(np.mean(errs)), silhouette_iou=float(np.mean(ious)))
 

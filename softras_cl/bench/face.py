@@ -94,9 +94,10 @@ def photograph(model, truth: dict, rng: np.random.Generator, size: int = 256) ->
     """The synthetic photo of known parameters ``truth`` (see :func:`random_truth`) over a random
     background, with noisy landmarks: what :func:`synthetic_face` returns."""
     from softras_cl.fitting.recipes.face import FaceScene, depth_range
+    from softras_cl.scene.renderer import SHARP
 
     scene = FaceScene(model, (size, size), alpha_agg="hard", depth_range=depth_range(truth["translation"]))
-    out = scene.render(truth, 1e-6, 1e-4)
+    out = scene.render(truth, *SHARP)
     alpha = out.alpha[0][..., None]
     background = smooth_background(rng, size)
     photo = alpha * out.rgb[0] + (1.0 - alpha) * background
@@ -169,14 +170,16 @@ def focal_error(fitted: float, true: float) -> float:
 
 def evaluate(fit, sample: dict, model, seconds: float) -> dict:
     """The bench's numbers for one fit of one synthetic face."""
+    from softras_cl.scene.renderer import SHARP
+
     truth = sample["truth"]
     true_shape, _ = model.shape(truth["id"], truth["exp"])
     shape, _ = fit.scene.model.shape(fit.values["id"], fit.values["exp"])
     metrics = fit.metrics()
     landmarks = fit.crop.to_full(fit.fitted_landmarks())
     focal = fit.values["focal"][0] / fit.crop.scale      # working-image pixels -> the photo's
-    region = fit.objective.face_region(fit.values, 1e-6, 1e-4)
-    residual = fit.scene.render(fit.values, 1e-6, 1e-4).rgb[0][region] - fit.image[region]
+    region = fit.objective.face_region(fit.values, *SHARP)
+    residual = fit.scene.render(fit.values, *SHARP).rgb[0][region] - fit.image[region]
     return dict(rmse_mm=1e3 * aligned_rmse(shape, true_shape),
                 mean_face_rmse_mm=1e3 * aligned_rmse(model.mean_shape, true_shape),
                 rigid_rmse_mm=1e3 * aligned_rmse(shape, true_shape, scale=False),
@@ -295,7 +298,8 @@ def save_chart(summary: dict, path: Path) -> None:
 def save_strip(rows: list[dict], path: Path, n: int = 4) -> None:
     """Photo over fit for the first n faces of a budget."""
     from softras_cl.bench.tools import save_image_strip
-    from softras_cl.fitting.reports.face import SHARP, display_scene
+    from softras_cl.fitting.reports.face import display_scene
+    from softras_cl.scene.renderer import SHARP
 
     columns = []
     for row in rows[:n]:

@@ -15,11 +15,11 @@ BYTES_PER_PIXEL = 400
 def _run_compare(args: argparse.Namespace) -> int:
     from softras_cl.errors import ResultError
     from softras_cl.raster.settings import RasterSettings
-    from softras_cl.validate.compare import SHARP, compare_mesh, degenerate, json_metrics, save_comparison
+    from softras_cl.validate.compare import REFERENCE_SHARP, compare_mesh, degenerate, json_metrics, save_comparison
 
     mesh, camera = load_view(args)
     settings = RasterSettings(image_size=tuple(camera.image_size), outputs=("rgb", "alpha", "depth"),
-                              dist_eps=args.dist_eps, near=0.1, far=100.0, **SHARP)
+                              dist_eps=args.dist_eps, near=0.1, far=100.0, **REFERENCE_SHARP)
     check_command_memory("compare", settings, mesh.n_faces, BYTES_PER_PIXEL)
     output_folder(args.out)
     if args.reference == "mitsuba":

@@ -26,29 +26,34 @@ GROUP = (64,)       # work-items per group; the items beyond the faces are skipp
 
 
 class DeviceSetup:
-    """Runs kernel face_setup for one rasteriser's settings and grid on `queue` (needs cl_khr_fp64),
-    with buffers from `pool`; `real` is the records' dtype."""
+    """Runs kernel face_setup for one rasteriser's grid on `queue` (needs cl_khr_fp64), with
+    buffers from `pool`; `real` is the records' dtype. Each call passes the settings it draws
+    with (sigma and the depth range change the footprints and which faces are drawable)."""
 
-    def __init__(self, ctx: cl.Context, queue: cl.CommandQueue, pool: BufferPool, settings: RasterSettings,
-                 grid: Grid, real: np.dtype):
+    def __init__(self, ctx: cl.Context, queue: cl.CommandQueue, pool: BufferPool, grid: Grid, real: np.dtype):
         self.ctx, self.queue, self.pool = ctx, queue, pool
         self.real = np.dtype(real)
         self._defines = dict(SR_DOUBLE=self.real == np.float64, SR_LANES=grid.tile_w)   # tiles: SR_VEC wide
         self._kernel: cl.Kernel | None = None
-        s = settings
-        grow, factor, margin = box_growth(s)
-        inv_ps, half_w, top = pixel_scale(s)
-        i32, f64 = np.int32, np.float64
-        self._args = [i32(s.width), i32(s.height), i32(s.double_sided), f64(s.near),
-                      f64(s.far), i32(grow), f64(factor), f64(margin), f64(half_w), f64(top), f64(inv_ps)]
+        self._args_of: tuple | None = None      # (settings, their kernel arguments): the last ones
         self._scratch = ScratchArrays()
         self._faces_key: tuple | None = None
         self._faces_buf: cl.Buffer | None = None
 
-    def run(self, mesh: MeshInputs) -> tuple[cl.Buffer, np.ndarray]:
-        """(records, ranges) of mesh's B*F faces (B*F >= 1): a pooled (B*F, FACE_STRIDE) `real`
-        buffer of the records, and the (B*F, 4) int32 (tx0, ty0, nx, ny) tile ranges
-        (binning.face_tiles; a scratch array that the next call overwrites)."""
+    def _settings_args(self, s: RasterSettings) -> list:
+        """The kernel's arguments after the face count for settings s (kept for the last settings)."""
+        if self._args_of is None or self._args_of[0] != s:
+            grow, factor, margin = box_growth(s)
+            inv_ps, half_w, top = pixel_scale(s)
+            i32, f64 = np.int32, np.float64
+            self._args_of = (s, [i32(s.width), i32(s.height), i32(s.double_sided), f64(s.near), f64(s.far),
+                                 i32(grow), f64(factor), f64(margin), f64(half_w), f64(top), f64(inv_ps)])
+        return self._args_of[1]
+
+    def run(self, mesh: MeshInputs, settings: RasterSettings) -> tuple[cl.Buffer, np.ndarray]:
+        """(records, ranges) of mesh's B*F faces (B*F >= 1) drawn with `settings`: a pooled
+        (B*F, FACE_STRIDE) `real` buffer of the records, and the (B*F, 4) int32 (tx0, ty0, nx,
+        ny) tile ranges (binning.face_tiles; a scratch array that the next call overwrites)."""
         n = mesh.batch * mesh.n_faces
         vertices = self.pool.take(mesh.vertices.nbytes)
         geom = self.pool.take(n * FACE_STRIDE * self.real.itemsize)
@@ -56,7 +61,7 @@ class DeviceSetup:
         if self._kernel is None:
             self._kernel = build_kernel(self.ctx, "face_setup.cl", "face_setup", self._defines)
         upload = cl.enqueue_copy(self.queue, vertices, np.ascontiguousarray(mesh.vertices), is_blocking=False)
-        launch(self._kernel, self.queue, (-(-n // GROUP[0]) * GROUP[0],), GROUP, np.int32(n), *self._args,
+        launch(self._kernel, self.queue, (-(-n // GROUP[0]) * GROUP[0],), GROUP, np.int32(n), *self._settings_args(settings),
                vertices, self._faces(mesh.faces, mesh.n_vertices), geom, ranges_buf)
         ranges = self._scratch.get("ranges", (n, 4), np.int32)
         cl.enqueue_copy(self.queue, ranges, ranges_buf, is_blocking=True)

@@ -3,6 +3,9 @@
 Maths: docs/conventions.md. Usage: docs/api.md. The heavy per-(pixel, face) work runs in
 kernels/soft_raster.cl; face set-up and tile binning (numpy) live in softras_cl.raster.binning.
 What a forward keeps for its backward is a `RasterContext`.
+
+One rasteriser serves every sigma, gamma and depth range: those run-time settings can be given to
+each forward (RUN_FIELDS), which keeps them in its output for the backward.
 """
 from __future__ import annotations
 
@@ -22,9 +25,13 @@ from softras_cl.raster.inputs import MeshInputs, check_cotangent, check_inputs
 from softras_cl.raster.memory import check_forward_memory
 from softras_cl.raster.pool import BufferPool, ScratchArrays
 from softras_cl.raster.reduce import GradSums
-from softras_cl.raster.settings import RasterSettings
+from softras_cl.raster.settings import RasterSettings, check_float32_gradients
 
 GRAD_NAMES = ("vertices", "colors")
+# run-time settings that forward() takes per call (None: the rasteriser's settings' value)
+RUN_FIELDS = ("sigma", "gamma", "near", "far")
+# distinct per-call settings kept made (validated) per rasteriser: a fit's schedule has a handful
+RUN_SETTINGS_KEPT = 64
 # B*F faces from which the face set-up runs on the device (where it can): below, the host's numpy
 # costs less than the device's upload, launch and wait (PoCL, 2 cores: about equal at 1000 faces)
 DEVICE_SETUP_FACES = 1024
@@ -84,12 +91,17 @@ class PixelState:
 class RasterContext:
     """What one forward keeps for its backward.
 
-    mesh: the checked inputs. grads: the gradient names forward was asked for (non-empty).
-    bins: the (tile, face) lists (host). buffers: the device inputs. images: the forward's
-    outputs as device buffers of (planes, B, Hp, Wp) reals, keyed "rgb" (3 planes), "alpha",
-    "depth" (1 plane each), requested outputs only. state: the per-pixel device state.
-    The device buffers go back to the rasteriser's pool when the context is garbage collected.
+    rasterizer: the SoftRasterizer whose forward made it (only its backward takes it: the device
+    buffers belong to its pool). settings: the settings the forward drew with (the rasteriser's,
+    with the call's sigma, gamma, near and far). mesh: the checked inputs. grads: the gradient
+    names forward was asked for (non-empty). bins: the (tile, face) lists (host). buffers: the
+    device inputs. images: the forward's outputs as device buffers of (planes, B, Hp, Wp) reals,
+    keyed "rgb" (3 planes), "alpha", "depth" (1 plane each), requested outputs only. state: the
+    per-pixel device state. The device buffers go back to the rasteriser's pool when the context
+    is garbage collected.
     """
+    rasterizer: "SoftRasterizer"
+    settings: RasterSettings
     mesh: MeshInputs
     grads: tuple[str, ...]
     bins: Bins
@@ -135,6 +147,9 @@ class SoftRasterizer:
     (and tile width), one of softras_cl.cl.layout.LANES[settings.dtype]; None picks the device's
     (softras_cl.cl.device.vector_lanes). Images are the same at any width; gradient sums are
     grouped by tile, so their last bits depend on it.
+
+    One rasteriser renders at any sigma, gamma, near and far (forward's RUN_FIELDS arguments);
+    the other settings are fixed: they select the kernel variant, the tiling and the buffers.
     """
 
     def __init__(self, settings: RasterSettings, device: cl.Device | None = None,
@@ -157,7 +172,7 @@ class SoftRasterizer:
         self.pool = BufferPool(self.ctx)
         self.scratch = ScratchArrays()
         self.sums = GradSums(self.ctx, self.queue, self.pool, self.real, self.lanes, has_fp64(self.device))
-        self.setup = (DeviceSetup(self.ctx, self.queue, self.pool, settings, self.grid, self.real)
+        self.setup = (DeviceSetup(self.ctx, self.queue, self.pool, self.grid, self.real)
                       if has_fp64(self.device) else None)
         self.device_setup_faces = DEVICE_SETUP_FACES
         # events of transfers in flight: pyopencl's transfer events wait for their transfer when
@@ -170,6 +185,7 @@ class SoftRasterizer:
         # Kernel stages then end with a queue.finish(); for profiling (softras-cl bench raster).
         self.stage_ms: dict | None = None
         self._kernels: dict = {}
+        self._run_settings: dict = {}      # RUN_FIELDS values -> the settings made with them
 
     def _stage(self, name: str, start: float, finish: bool = False) -> float:
         """Add the time since `start` to stage_ms[name] (when profiling); returns the new start."""
@@ -183,8 +199,12 @@ class SoftRasterizer:
 
     # ---- public API ------------------------------------------------------------------------
     def forward(self, vertices, faces, colors=None, face_textures=None, texture_image=None,
-                uvs=None, normals=None, light=None, grads=(), roi=None) -> RasterOutput:
+                uvs=None, normals=None, light=None, grads=(), roi=None, sigma=None, gamma=None,
+                near=None, far=None) -> RasterOutput:
         """Render. Shapes in docs/api.md; images come back as (B, H, W[, 3]) arrays.
+
+        sigma, gamma, near, far: this call's values of those settings (None: the rasteriser's
+        settings' own), checked as RasterSettings checks them; the output keeps them for backward.
 
         roi: None, or an (H, W) / (B, H, W) bool mask of the pixels wanted: only the tiles
         (binning.Grid) holding one of them are rasterised; every other pixel comes back as
@@ -196,28 +216,30 @@ class SoftRasterizer:
         grads: the gradients backward() will be asked for, subset of ("vertices", "colors");
         with per-pixel lighting "colors" also gives "normals" and "light".
         """
-        s = self.settings
         t = time.perf_counter()
+        s = self.call_settings(sigma=sigma, gamma=gamma, near=near, far=far)
         grads = _check_grads(grads, s)
+        if grads:
+            check_float32_gradients(s)
         mesh = check_inputs(s, vertices, faces, colors, face_textures, texture_image, uvs, normals, light)
         if "colors" in grads and s.texture == "uv" and not has_int64_atomics(self.device):
             raise ValueError(f"uv-texture gradients need cl_khr_int64_base_atomics, which device "
                              f"{self.device.name!r} lacks")
         check_forward_memory(s, self.device, mesh.batch, mesh.n_faces, grads, mesh.tex_res, mesh.tex_shape)
         tiles = self.roi_tiles(roi, mesh.batch)
-        geom, ranges = self._face_setup(mesh)
+        geom, ranges = self._face_setup(mesh, s)
         t = self._stage("setup", t)
         bins = bin_tiles(ranges, mesh.batch, mesh.n_faces, self.grid, tiles)
         t = self._stage("binning", t)
         buffers = self._upload(mesh, geom, bins, bool(grads))
         state = self._state_buffers(mesh.batch) if grads else None
         t = self._stage("upload", t, finish=True)
-        images = self._run_forward(mesh, buffers, state)
+        images = self._run_forward(s, mesh, buffers, state)
         hosts, packed = self._download(images, mesh.batch, state is not None)
         self._sync()
         self.pool.give(packed.values())
         crops = [hosts.get(n) for n in ("rgb", "alpha", "depth")]
-        saved = RasterContext(mesh, grads, bins, buffers, images, state) if grads else None
+        saved = RasterContext(self, s, mesh, grads, bins, buffers, images, state) if grads else None
         if saved is not None:
             self.pool.give_when_dead(saved, saved.device_buffers())
         else:
@@ -225,17 +247,34 @@ class SoftRasterizer:
         self._stage("forward", t, finish=True)
         return RasterOutput(*crops, saved)
 
+    def call_settings(self, **run) -> RasterSettings:
+        """The settings of one forward: these settings with the RUN_FIELDS values given in `run`
+        (None: unchanged), validated as RasterSettings validates them (ValueError naming the
+        field). Each distinct set is made once (up to RUN_SETTINGS_KEPT of them)."""
+        unknown = set(run) - set(RUN_FIELDS)
+        if unknown:
+            raise TypeError(f"call_settings takes only {RUN_FIELDS}, got {sorted(unknown)}")
+        key = tuple(run.get(name) for name in RUN_FIELDS)
+        made = self._run_settings.get(key)
+        if made is None:
+            changes = {name: value for name, value in zip(RUN_FIELDS, key) if value is not None}
+            made = self.settings.replace(**changes) if changes else self.settings
+            if len(self._run_settings) >= RUN_SETTINGS_KEPT:
+                self._run_settings.clear()
+            self._run_settings[key] = made
+        return made
+
     def backward(self, output: RasterOutput, grad_rgb=None, grad_alpha=None, grad_depth=None) -> dict:
         """Gradients of a scalar loss given its cotangents dL/d(rgb, alpha, depth).
 
         Each cotangent has the shape of the matching output (None = zero). Returns a dict with
         the names given as `grads` to forward: "vertices" (shape of the vertices given, float64)
         and "colors" (shape of the colour input given: colors, face_textures or texture_image).
+        output: what this rasteriser's forward returned, with grads (ValueError for another's:
+        its buffers, sizes, dtype and settings are that rasteriser's).
         """
-        saved = output.saved
-        if saved is None:
-            raise ValueError("output: forward() was called without grads=...; nothing to differentiate")
-        s, mesh = self.settings, saved.mesh
+        saved = _own_context(self, output)
+        s, mesh = saved.settings, saved.mesh
         t = time.perf_counter()
         cot = {name: check_cotangent(name, g, _cot_shape(name, mesh.batch, s), name[len("grad_"):] in s.outputs)
                for name, g in (("grad_rgb", grad_rgb), ("grad_alpha", grad_alpha), ("grad_depth", grad_depth))}
@@ -272,9 +311,9 @@ class SoftRasterizer:
             SR_GRAD_COLOR="colors" in grads and "rgb" in s.outputs)
         return build_kernel(self.ctx, "soft_raster.cl", name, defines, s.fast_math)
 
-    def _geometry_args(self, mesh: MeshInputs, bufs: FaceBuffers) -> list:
-        """The GEOMETRY_ARGS shared by both kernels (kernels/soft_raster.cl)."""
-        s, real = self.settings, self.real.type
+    def _geometry_args(self, s: RasterSettings, mesh: MeshInputs, bufs: FaceBuffers) -> list:
+        """The GEOMETRY_ARGS shared by both kernels (kernels/soft_raster.cl) for the call's settings s."""
+        real = self.real.type
         g = self.grid
         x_cut = -np.finfo(self.real).max if s.dist_eps == 0 else math.log(s.dist_eps / (1 - s.dist_eps))
         i32 = np.int32
@@ -284,9 +323,11 @@ class SoftRasterizer:
                 i32(mesh.tex_res), i32(mesh.tex_shape[0]), i32(mesh.tex_shape[1]),
                 bufs.geom, bufs.attr, bufs.tex_image, bufs.light, bufs.tile_start, bufs.tile_faces]
 
-    def _run_forward(self, mesh: MeshInputs, bufs: FaceBuffers, state: PixelState | None) -> dict:
-        """Run the forward kernel (writing `state` too, if given): {output name: (planes, B, Hp, Wp)}."""
-        s, real = self.settings, self.real
+    def _run_forward(self, s: RasterSettings, mesh: MeshInputs, bufs: FaceBuffers,
+                     state: PixelState | None) -> dict:
+        """Run the forward kernel at the call's settings s (writing `state` too, if given):
+        {output name: (planes, B, Hp, Wp)}."""
+        real = self.real
         g = self.grid
         npix = mesh.batch * g.hp * g.wp
         planes = dict(rgb=3 if "rgb" in s.outputs else 0, alpha=int("alpha" in s.outputs),
@@ -295,7 +336,7 @@ class SoftRasterizer:
         dummy = self._dummy()
         knl = self._kernel("soft_raster_fwd", (), state is not None)
         launch(knl, self.queue, (_round_up(g.ntx), g.hp // FWD_ROWS, mesh.batch), GROUP,
-               *self._geometry_args(mesh, bufs),
+               *self._geometry_args(s, mesh, bufs),
                *(real.type(c) for c in s.background),
                *(out.get(n, dummy) for n in ("rgb", "alpha", "depth")), *self._state_args(state))
         return out
@@ -322,7 +363,7 @@ class SoftRasterizer:
         per-(tile, face) slot sums (the caller gives them back), "tex": uv texel sums (host
         staging that the next backward overwrites), None where not computed; "scale": the uv
         fixed-point scale}. t: perf_counter at the start of backward (stage timing)."""
-        s, real, mesh, bins = self.settings, self.real, saved.mesh, saved.bins
+        s, real, mesh, bins = saved.settings, self.real, saved.mesh, saved.bins
         g = self.grid
         shapes, scale = self._slot_shapes(mesh, saved.grads, max(len(bins.tile_faces), 1), cot["grad_rgb"])
         kernel_grads = tuple(x for x in saved.grads if x != "colors" or {"attr", "tex"} & set(shapes))
@@ -342,7 +383,7 @@ class SoftRasterizer:
         knl = self._kernel("soft_raster_bwd", kernel_grads, True)
         t = self._stage("backward_prep", t, finish=True)
         dummy = self._dummy()
-        launch(knl, self.queue, (_round_up(g.ntx), g.nty, mesh.batch), GROUP, *self._geometry_args(mesh, saved.buffers),
+        launch(knl, self.queue, (_round_up(g.ntx), g.nty, mesh.batch), GROUP, *self._geometry_args(s, mesh, saved.buffers),
                *(cot_bufs.get(n, dummy) for n in ("grad_rgb", "grad_alpha", "grad_depth")),
                dummy if g_dot is None else g_dot, *self._state_args(saved.state), real.type(scale),
                *(out_bufs.get(k, dummy) for k in ("pos", "attr", "light", "tex")))
@@ -446,15 +487,15 @@ class SoftRasterizer:
         return out
 
     # ---- buffers ---------------------------------------------------------------------------
-    def _face_setup(self, mesh: MeshInputs) -> tuple:
-        """(records, tile ranges) of every face: on the device where it has cl_khr_fp64 and there
+    def _face_setup(self, mesh: MeshInputs, s: RasterSettings) -> tuple:
+        """(records, tile ranges) of every face at the call's settings s: on the device where it has cl_khr_fp64 and there
         are at least device_setup_faces (softras_cl.raster.device_setup: a pooled buffer), else on
         the host (binning.face_setup: a (B*F, FACE_STRIDE) float64 array); the ranges are
         (B*F, 4) ints (binning.face_tiles). Both give the same bits."""
         if self.setup is not None and mesh.n_faces and mesh.batch * mesh.n_faces >= self.device_setup_faces:
-            return self.setup.run(mesh)
-        geom, drawable = face_setup(mesh, self.settings)
-        return geom, face_tiles(geom, drawable, self.settings, self.grid)
+            return self.setup.run(mesh, s)
+        geom, drawable = face_setup(mesh, s)
+        return geom, face_tiles(geom, drawable, s, self.grid)
 
     def _upload(self, mesh: MeshInputs, geom, bins: Bins, grads: bool) -> FaceBuffers:
         """Device copies of the face records (unless `geom` is already a device buffer), colour
@@ -555,6 +596,23 @@ class SoftRasterizer:
                saved.images.get("rgb", dummy), saved.images.get("depth", dummy),
                *(planes.get(n) or dummy for n in (*all_names, "g_dot")))
         return planes, uploaded
+
+
+def _own_context(raster: SoftRasterizer, output) -> RasterContext:
+    """output.saved, checked to be what `raster`'s own forward kept (ValueError otherwise: the
+    context's buffers, sizes, dtype and settings belong to the rasteriser that made it)."""
+    if not isinstance(output, RasterOutput):
+        raise TypeError(f"output must be the RasterOutput of this rasteriser's forward, got {type(output).__name__}")
+    saved = output.saved
+    if saved is None:
+        raise ValueError("output: forward() was called without grads=...; nothing to differentiate")
+    if saved.rasterizer is not raster:
+        made, mine = saved.settings, raster.settings
+        raise ValueError(f"output was made by another SoftRasterizer (image_size={made.image_size}, "
+                         f"dtype={made.dtype!r}, sigma={made.sigma:g}, gamma={made.gamma:g}) than this one "
+                         f"(image_size={mine.image_size}, dtype={mine.dtype!r}): call backward on the "
+                         "rasteriser whose forward made it")
+    return saved
 
 
 def _round_up(n: int) -> int:

@@ -9,23 +9,28 @@ gradients for exactly the groups asked for in `forward(grads=...)`: "vertices" (
 "albedo" (or the unlit colour input), "camera" (rotation, translation, focal per view),
 "focal" (the focal lengths alone, for a caller that needs no other camera gradient) and
 "light" (its parameters). Conventions: docs/scene.md and docs/conventions.md.
+
+A renderer draws with one rasteriser per kernel variant its inputs need (texture mode, lighting,
+projection; a fit uses one), at any sigma, gamma, near and far given per call.
 """
 from __future__ import annotations
 
-import dataclasses
-import functools
 from dataclasses import dataclass
 
 import numpy as np
 
+from softras_cl.checks import check_finite, float_array
 from softras_cl.scene import shading
 from softras_cl.scene.camera import Camera, ProjectionContext
 from softras_cl.scene.rotation import rodrigues_vjp
 from softras_cl.raster.corners import scatter_corners
-from softras_cl.raster.rasterizer import RasterOutput, SoftRasterizer
+from softras_cl.raster.rasterizer import RUN_FIELDS, RasterOutput, SoftRasterizer
 from softras_cl.raster.settings import RasterSettings
 
 SHADINGS = ("vertex", "face", "pixel", "none")
+# (sigma, gamma) of a sharp render, e.g. a fit's result drawn for its metrics and reports: D falls
+# below 1e-4 within 0.003 NDC of an edge (0.4 pixel at 256 x 256), and the nearest surface wins.
+SHARP = (1e-6, 1e-4)
 GRAD_GROUPS = ("vertices", "albedo", "camera", "light", "focal")
 
 
@@ -33,6 +38,7 @@ GRAD_GROUPS = ("vertices", "albedo", "camera", "light", "focal")
 class RenderContext:
     """What Renderer.backward needs from one forward call.
 
+    renderer: the Renderer whose forward made it (only its backward takes it);
     raster: the SoftRasterizer drawn with and raster_out its RasterOutput (with its own context);
     cameras: the B Cameras, one per view, and cam_ctx their ProjectionContexts; shade_ctx:
     shading.ShadeContext (vertex or face shading), shading.NormalsContext (pixel shading) or
@@ -50,6 +56,7 @@ class RenderContext:
     batched: bool
     single_camera: bool
     albedo_shape: tuple | None
+    renderer: "Renderer"
 
 
 @dataclass
@@ -75,19 +82,29 @@ class Renderer:
     drawn as it is, with any texture mode); device: a pyopencl.Device or None for the default;
     context, queue: a user's own pyopencl Context / in-order CommandQueue, checked as
     SoftRasterizer checks them (softras_cl.cl.device.resolve_context).
+
+    The settings are fixed for the renderer's life (read-only `settings`); sigma, gamma, near
+    and far can be given to each forward instead.
     """
 
     def __init__(self, settings: RasterSettings, shading: str = "vertex", device=None, context=None,
                  queue=None):
         if shading not in SHADINGS:
             raise ValueError(f"shading must be one of {SHADINGS}, got {shading!r}")
-        self.settings, self.shading = settings, shading
+        if not isinstance(settings, RasterSettings):
+            raise TypeError(f"settings must be a RasterSettings, got {type(settings).__name__}")
+        self._base_settings, self.shading = settings, shading
         self.device, self.context, self.queue = device, context, queue
-        self._rasterizers: dict = {}
-        self._settings: dict = {}       # (settings, texture, lighting, projection) -> drawn with
+        self._rasterizers: dict = {}    # (texture, lighting, projection) -> SoftRasterizer
+
+    @property
+    def settings(self) -> RasterSettings:
+        """The settings given (read-only: per-call sigma, gamma, near and far go to forward)."""
+        return self._base_settings
 
     def forward(self, vertices, faces, cameras, albedo=None, light=None, face_textures=None,
-                texture_image=None, uvs=None, grads=(), roi=None) -> RenderOutput:
+                texture_image=None, uvs=None, grads=(), roi=None, sigma=None, gamma=None,
+                near=None, far=None) -> RenderOutput:
         """Render B views.
 
         vertices (V, 3) or (B, V, 3) world; faces (F, 3) int; cameras: a Camera or a list of B;
@@ -96,7 +113,9 @@ class Renderer:
         face_textures / texture_image + uvs: unlit textures (shading="none");
         grads: subset of GRAD_GROUPS that backward() will return;
         roi: None or an (H, W) / (B, H, W) bool mask: only the screen tiles holding its pixels
-        are rasterised (SoftRasterizer.forward), the rest is background without gradients.
+        are rasterised (SoftRasterizer.forward), the rest is background without gradients;
+        sigma, gamma, near, far: this call's values of those settings (None: the settings'
+        own), checked as RasterSettings checks them.
         """
         grads = _check_grad_groups(grads, self.shading)
         single_camera = isinstance(cameras, Camera)
@@ -104,15 +123,17 @@ class Renderer:
         faces = np.asarray(faces)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
             raise ValueError(f"faces must be a non-empty (F, 3) array: the mesh has no faces (got shape {faces.shape})")
+        _check_albedo(albedo, verts.shape)
         light = light if light is not None else shading.LambertLight()
         screen, cam_ctx = zip(*(cam.project(v) for cam, v in zip(cameras, verts)))
         screen = np.concatenate(screen, 0)
         color_args, shade_ctx = self._colors(verts, faces, cameras, albedo, light, face_textures,
                                                texture_image, uvs)
         raster = self._rasterizer(cameras[0].projection, color_args, light)
-        out = raster.forward(screen, faces, grads=_raster_grads(grads, self.shading), roi=roi, **color_args)
+        run = dict(zip(RUN_FIELDS, (sigma, gamma, near, far)))
+        out = raster.forward(screen, faces, grads=_raster_grads(grads, self.shading), roi=roi, **color_args, **run)
         saved = RenderContext(raster, out, cameras, cam_ctx, shade_ctx, light, grads, batched,
-                              single_camera, np.shape(albedo) if albedo is not None else None)
+                              single_camera, np.shape(albedo) if albedo is not None else None, self)
         return RenderOutput(out.rgb, out.alpha, out.depth, saved)
 
     def backward(self, output: RenderOutput, grad_rgb=None, grad_alpha=None, grad_depth=None) -> dict:
@@ -121,10 +142,9 @@ class Renderer:
         vertices (shape given), albedo (shape given; for unlit textures the texture's shape),
         camera (a dict of rotation (3,), translation (3,), focal (2,) per view: a list when a
         list of cameras was given), focal ((2,) [dL/dfx, dL/dfy] per view, likewise: camera's
-        focal without the rest of camera), light (dict of the light's parameters)."""
-        saved = output.saved
-        if saved is None or not saved.grads:
-            raise ValueError("output: forward() was called without grads=...; nothing to differentiate")
+        focal without the rest of camera), light (dict of the light's parameters). output:
+        what this renderer's forward returned, with grads (ValueError for another's)."""
+        saved = self._own_context(output)
         g_raster = saved.raster.backward(saved.raster_out, grad_rgb, grad_alpha, grad_depth)
         g_shade = self._shading_vjp(saved, g_raster)
         camera = "camera" in saved.grads or ("focal" if "focal" in saved.grads else False)
@@ -132,6 +152,20 @@ class Renderer:
                   if "vertices" in g_raster else None
                   for b, (cam, ctx) in enumerate(zip(saved.cameras, saved.cam_ctx))]
         return self._collect(saved, g_raster, g_shade, g_cams)
+
+    def _own_context(self, output) -> RenderContext:
+        """output.saved, checked to come from this renderer's forward with grads."""
+        if not isinstance(output, RenderOutput):
+            raise TypeError(f"output must be the RenderOutput of this renderer's forward, got {type(output).__name__}")
+        saved = output.saved
+        if saved is None or not saved.grads:
+            raise ValueError("output: forward() was called without grads=...; nothing to differentiate")
+        if saved.renderer is not self:
+            made = saved.raster.settings
+            raise ValueError(f"output was made by another Renderer (shading={saved.renderer.shading!r}, "
+                             f"image_size={made.image_size}, dtype={made.dtype!r}): call backward on the "
+                             "renderer whose forward made it")
+        return saved
 
     # ---- stages ----------------------------------------------------------------------------
     def _colors(self, verts, faces, cameras, albedo, light, face_textures, texture_image, uvs):
@@ -159,16 +193,13 @@ class Renderer:
                    "uv" if "texture_image" in color_args else "vertex")
         lighting = ("none" if self.shading != "pixel" else
                     "sh" if isinstance(light, shading.SHLight) else "lambert")
-        # a fit draws with the same settings every evaluation: made (and validated) once
-        key = (self.settings, texture, lighting, projection)
-        s = self._settings.get(key)
-        if s is None:
-            s = self._settings[key] = self.settings.replace(
-                texture=texture, lighting=lighting, perspective_correct=projection == "perspective")
-        if s not in self._rasterizers:
-            self._rasterizers[s] = SoftRasterizer(s, device=self.device, context=self.context,
-                                                   queue=self.queue)
-        return self._rasterizers[s]
+        key = (texture, lighting, projection)
+        if key not in self._rasterizers:
+            s = self.settings.replace(texture=texture, lighting=lighting,
+                                      perspective_correct=projection == "perspective")
+            self._rasterizers[key] = SoftRasterizer(s, device=self.device, context=self.context,
+                                                     queue=self.queue)
+        return self._rasterizers[key]
 
     def _shading_vjp(self, saved: RenderContext, g_raster: dict) -> dict:
         """Shading vjp (vertices, albedo, camera_center, light parameters), or {} when unlit."""
@@ -212,13 +243,6 @@ class Renderer:
             per_corner = np.repeat(g[:, :, None, :] / 3.0, 3, axis=2)
             g = scatter_corners(per_corner, mesh.faces, mesh.n_vertices)
         return g if len(saved.albedo_shape) == 3 else g.sum(0)
-
-
-@functools.lru_cache(maxsize=32)
-def settings_with(settings: RasterSettings, **changes) -> RasterSettings:
-    """``dataclasses.replace(settings, **changes)``, made (and validated) once for each
-    settings and changes: a fit sets the same sigma and gamma for every evaluation of a stage."""
-    return dataclasses.replace(settings, **changes)
 
 
 def _light_vector(light) -> np.ndarray:
@@ -271,6 +295,22 @@ def _views(cameras, vertices, image_size: tuple):
     if sizes != {tuple(image_size)}:
         raise ValueError(f"cameras have image_size {sorted(sizes)} but settings.image_size is {image_size}")
     return cams, np.broadcast_to(verts, (batch, *verts.shape[-2:])), batched
+
+
+def _check_albedo(albedo, verts_shape: tuple) -> None:
+    """ValueError naming albedo unless it is None or a finite float (V, 3) or (B, V, 3) array
+    (B = 1 or the batch of verts_shape (B, V, 3)), before any shading or kernel runs."""
+    if albedo is None:
+        return
+    batch, n_vertices = verts_shape[:2]
+    arr = float_array("albedo", albedo)
+    per_vertex = (n_vertices, 3)
+    if not (arr.shape == per_vertex or (arr.ndim == 3 and arr.shape[1:] == per_vertex
+                                        and arr.shape[0] in (1, batch))):
+        batches = "1" if batch == 1 else f"1 or {batch}"
+        raise ValueError(f"albedo must have shape ({n_vertices}, 3) or (B, {n_vertices}, 3) with B = "
+                         f"{batches} (one RGB colour per vertex), got {arr.shape}")
+    check_finite("albedo", arr)
 
 
 def _check_grad_groups(grads, shading_mode: str) -> tuple:

@@ -21,7 +21,9 @@ from softras_cl.scene.renderer import Renderer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.shading import LambertLight, shade_vertices
 
-SHARP = dict(sigma=1e-7, gamma=1e-6)
+# softras-cl's sigma and gamma against the independent references (ray cast, Mitsuba): sharper
+# than the fits' sharp render (softras_cl.scene.renderer.SHARP; sigma 10x, gamma 100x smaller)
+REFERENCE_SHARP = dict(sigma=1e-7, gamma=1e-6)
 GREY = 0.7
 
 
@@ -51,7 +53,7 @@ def compare_mesh(mesh: Mesh, camera: Camera, background=(1.0, 1.0, 1.0), dtype: 
     light = light or LambertLight()
     settings = RasterSettings(image_size=tuple(camera.image_size), outputs=("rgb", "alpha", "depth"),
                               double_sided=True, background=tuple(background), dtype=dtype,
-                              near=0.1, far=100.0, dist_eps=dist_eps, **SHARP)
+                              near=0.1, far=100.0, dist_eps=dist_eps, **REFERENCE_SHARP)
     ref = raycast(mesh.vertices, mesh.faces, camera)
     if mesh.texture is not None and mesh.uvs is not None:
         out = Renderer(settings, shading="none").forward(

@@ -50,7 +50,7 @@ import numpy as np
 
 from softras_cl.errors import InputError
 from softras_cl.scene.camera import Camera
-from softras_cl.validate.compare import GREY, SHARP, Comparison, metrics
+from softras_cl.validate.compare import GREY, REFERENCE_SHARP, Comparison, metrics
 from softras_cl.io.meshes import Mesh
 
 VARIANT = "scalar_rgb"
@@ -262,7 +262,7 @@ def default_light_direction(camera: Camera) -> np.ndarray:
 def compare_mitsuba(mesh: Mesh, camera: Camera, background=(0.0, 0.0, 0.0), dtype: str = "float32",
                     light_direction=None, irradiance=(1.0, 1.0, 1.0), shading: str = "face",
                     dist_eps: float = 0.49) -> Comparison:
-    """softras-cl at sharp settings (compare.SHARP, dist_eps) against Mitsuba 3, same camera,
+    """softras-cl at sharp settings (compare.REFERENCE_SHARP, dist_eps) against Mitsuba 3, same camera,
     same shading.
 
     Untextured meshes: albedo = mesh.colors or grey 0.7, lit by LambertLight(ambient=0,
@@ -288,7 +288,7 @@ def compare_mitsuba(mesh: Mesh, camera: Camera, background=(0.0, 0.0, 0.0), dtyp
 
     settings = RasterSettings(image_size=tuple(camera.image_size), outputs=("rgb", "alpha", "depth"),
                               double_sided=True, background=tuple(background), dtype=dtype,
-                              near=0.1, far=100.0, dist_eps=dist_eps, **SHARP)
+                              near=0.1, far=100.0, dist_eps=dist_eps, **REFERENCE_SHARP)
     textured = mesh.texture is not None and mesh.uvs is not None
     if textured:
         ref = render_mitsuba(mesh.vertices, mesh.faces, camera, texture_image=mesh.texture, uvs=mesh.uvs)

@@ -199,3 +199,18 @@ def test_prepare_target_names_a_nan_joint_as_such():
                                                    "finite pixel coordinates")):
         body.prepare_target(mask, 32, joints=joints, n_joints=3)
     body.prepare_target(mask, 32, joints=joints, joint_weights=[1.0, 0.0, 1.0], n_joints=3)  # unseen: fine
+
+
+def test_scene_draws_every_sigma_with_one_rasteriser_and_other_settings_with_their_own(model):
+    """Renders at several (sigma, gamma) share the scene's renderer and its one rasteriser;
+    render(**changes) (e.g. hard aggregation for targets) uses a renderer of its own, made once."""
+    scene = body.BodyScene(model, (32, 32), body.BodyFitConfig(size=32))
+    state, _ = scene.pose(body.rest_values(model))
+    for sigma, gamma in ((1e-4, 1e-2), (1e-5, 1e-3), (1e-6, 1e-4)):
+        out = scene.render(state.vertices, sigma, gamma, grads=("vertices",))
+        drawn = out.saved.raster_out.saved.settings
+        assert (drawn.sigma, drawn.gamma) == (sigma, gamma) and out.saved.renderer is scene.renderer
+    hard = [scene.render(state.vertices, 1e-6, 1e-4, color_agg="hard", alpha_agg="hard") for _ in range(2)]
+    assert set(np.unique(hard[0].alpha)) <= {0.0, 1.0}
+    assert len(scene.renderer._rasterizers) == 1 and len(scene._variants) == 1
+    assert scene.renderer.settings.color_agg == "softmax"

@@ -419,3 +419,28 @@ def test_scene_camera_of_each_focal_is_the_opencv_camera_of_it(toy):
         assert (cam.fx, cam.fy, cam.cx, cam.cy, cam.image_size) == (focal, focal, 14.0, 21.5, (40, 30))
         np.testing.assert_array_equal(cam.project_pixels(points)[0], expected.project_pixels(points)[0])
     assert scene.camera(90.0) is cam                     # the last one is kept
+
+
+def test_stages_draw_with_one_rasteriser_per_scene_at_their_depth_range(toy):
+    """A coarse and two full-resolution stages of other sigma, gamma and depth range: each scene
+    keeps one renderer with one rasteriser, whose outputs carry the stage's settings; a stage
+    start fits the depth range of both scenes to the face."""
+    rng = np.random.default_rng(5)
+    scene = face.FaceScene(toy, (64, 64))
+    values = toy_values(toy, rng)
+    objective = face.FaceObjective(scene, rng.random((64, 64, 3)) * 0.5, _spread_landmarks(64))
+    stages = [Stage("photo-1", ("id",), dict(photo=1.0), sigma=1e-3, gamma=1e-2),
+              Stage("photo-2", ("id",), dict(photo=1.0), sigma=3e-5, gamma=1e-3),
+              Stage("photo-3", ("id",), dict(photo=1.0), sigma=1e-5, gamma=3e-3)]
+    for k, stage in enumerate(stages):
+        moved = dict(values, translation=values["translation"] * (1 + 0.1 * k))
+        objective(moved, stage)
+        near, far = face.depth_range(moved["translation"])
+        level = objective.photo_level(stage.sigma)
+        out = level.scene.render(moved, stage.sigma, stage.gamma, grads=("vertices",))
+        drawn = out.saved.raster_out.saved.settings
+        assert (drawn.sigma, drawn.gamma, drawn.near, drawn.far) == (stage.sigma, stage.gamma, near, far)
+        for s in (scene, objective.photo_level(1.0).scene):
+            assert (s.settings.near, s.settings.far) == (near, far)
+    for s in (scene, objective.photo_level(1.0).scene):
+        assert len(s.renderer._rasterizers) == 1

@@ -276,3 +276,34 @@ def test_bench_interop_quick_runs_every_bridge(tmp_path):
         assert row["numpy_ms"] > 0 and row["torch_ms"] > 0 and row["jax_ms"] > 0
         assert row["torch_overhead"] == pytest.approx(row["torch_ms"] / row["numpy_ms"] - 1)
     assert "provenance" in result and set(result["versions"]) == {"torch", "jax"}
+
+
+@pytest.mark.parametrize("which", ["rasterize", "render"])
+def test_double_backward_is_refused_naming_the_function(which):
+    """create_graph=True gives the first-order gradients unchanged; differentiating them again
+    raises InputError naming the bridge's function (before: torch's generic error)."""
+    torch = _torch()
+    from softras_cl.errors import InputError
+    from softras_cl.torch import Renderer, SoftRasterizer
+
+    if which == "rasterize":
+        scene = raster_scene(2)
+        module, vertices = SoftRasterizer(raster_settings()), scene["vertices"]
+        arguments = dict(faces=scene["faces"], colors=scene["colors"])
+    else:
+        vertices, f, albedo = render_scene(2)
+        module = Renderer(render_settings(), shading="vertex")
+        arguments = dict(faces=f, cameras=cameras(), albedo=albedo, light=LIGHTS["sh"])
+    v = torch.tensor(vertices, requires_grad=True)
+
+    def loss():
+        images = module(v, **arguments)
+        return (images.rgb ** 2).sum() + images.alpha.sum()
+
+    plain, = torch.autograd.grad(loss(), v)
+    first, = torch.autograd.grad(loss(), v, create_graph=True)
+    assert torch.equal(first.detach(), plain) and first.requires_grad
+    with pytest.raises(InputError, match=rf"^softras_cl\.torch\.{which}: double backward is not supported"):
+        torch.autograd.grad((first ** 2).sum(), v)
+    with pytest.raises(InputError, match=rf"^softras_cl\.torch\.{which}: double backward"):
+        (first ** 2).sum().backward()

@@ -11,6 +11,8 @@ import pytest
 from softras_cl import RasterSettings, SoftRasterizer
 from softras_cl.raster import rasterizer as raster_module
 from softras_cl.raster import device_setup
+from softras_cl.raster import settings as settings_module
+from softras_cl.raster.settings import FLOAT32_GRAD_SIGMA
 
 VERTS = np.array([[-0.5, -0.5, 2.0], [0.5, -0.5, 2.0], [0.0, 0.5, 2.0], [0.5, 0.5, 3.0]])
 FACES = np.array([[0, 1, 2], [1, 3, 2]])
@@ -364,6 +366,42 @@ def test_float32_settings_range(field, value, says):
     with pytest.raises(ValueError, match=re.escape(says)):
         RasterSettings(**{field: value})
     RasterSettings(**{field: value}, dtype="float64")      # float64 takes them
+
+
+def test_float32_gradients_need_sigma_of_at_least_the_bound(no_kernels):
+    """float32 gradients below FLOAT32_GRAD_SIGMA are refused, per call too; renders without
+    gradients and float64 take the small sigma."""
+    r = rasterizer()
+    for call in (dict(), dict(sigma=FLOAT32_GRAD_SIGMA / 10)):
+        raster = rasterizer(sigma=FLOAT32_GRAD_SIGMA / 10) if not call else r
+        with raises(ValueError, "sigma", "float32", "float64"):
+            raster.forward(VERTS, FACES, colors=COLORS, grads=("vertices",), **call)
+
+
+def test_float32_gradients_hold_at_the_bound_on_pixels_on_an_edge():
+    """At FLOAT32_GRAD_SIGMA the float32 vertex gradients stay within 5% (of the largest) of
+    float64's for an edge through a column of pixel centres; at a tenth of it (forced past the
+    check) they do not: the bound is where the kernels' float32 rounding starts to show."""
+    x = (8 - 7.5) / 8                              # NDC x of pixel column 8's centres, 16 x 16
+    verts = np.array([[x, 0.6875, 2.0], [-0.7, 0.0, 2.0], [x, -0.6875, 2.0]])   # CCW
+    colors = COLORS[:3]
+    rng = np.random.default_rng(0)
+    cot = dict(grad_rgb=rng.normal(size=(1, 16, 16, 3)), grad_alpha=rng.normal(size=(1, 16, 16)))
+
+    def error(sigma):
+        grads = {}
+        for dtype in ("float32", "float64"):
+            r = SoftRasterizer(RasterSettings(image_size=(16, 16), sigma=sigma, outputs=("rgb", "alpha"), dtype=dtype))
+            out = r.forward(verts, [[0, 1, 2]], colors=colors, grads=("vertices",))
+            grads[dtype] = r.backward(out, **cot)["vertices"]
+        return np.abs(grads["float32"] - grads["float64"]).max() / np.abs(grads["float64"]).max()
+
+    assert error(FLOAT32_GRAD_SIGMA) < 0.05
+    settings_module.FLOAT32_GRAD_SIGMA, bound = 0.0, FLOAT32_GRAD_SIGMA
+    try:
+        assert error(bound / 10) > 0.2
+    finally:
+        settings_module.FLOAT32_GRAD_SIGMA = bound
 
 
 # ---- memory ------------------------------------------------------------------------------------

@@ -46,7 +46,7 @@ def test_device_records_and_ranges_equal_the_host_setup_to_the_bit(name):
     geom, drawable = face_setup(mesh, s)
     want_ranges = face_tiles(geom, drawable, s, raster.grid)
     assert 0 < drawable.sum() < len(drawable) and (want_ranges[:, 2] > 1).any()
-    buf, ranges = raster.setup.run(mesh)
+    buf, ranges = raster.setup.run(mesh, s)
     records = np.empty((batch * n_faces, geom.shape[1]), raster.real)
     cl.enqueue_copy(raster.queue, records, buf)
     want = np.ascontiguousarray(geom, raster.real)

@@ -16,6 +16,7 @@ import pytest
 
 from softras_cl import RasterSettings, SoftRasterizer
 from softras_cl.raster import reference
+from softras_cl.raster.settings import FLOAT32_GRAD_SIGMA
 from softras_cl.cl.device import has_fp64, select_device
 from softras_cl.scene.meshes import screen_space_sphere
 
@@ -51,21 +52,29 @@ def overlap_scene(seed=0, n_faces=6, z_range=(2.0, 8.0)):
 
 
 def run(verts, faces, colors=None, seed=1, **settings):
-    """Forward and backward with random cotangents; every array checked for NaN/Inf.
+    """Forward and backward with random cotangents; every array checked for NaN/Inf. float32
+    below FLOAT32_GRAD_SIGMA gives no gradients (forward with grads must refuse): forward only.
 
-    Returns (settings, output, gradients)."""
+    Returns (settings, output, gradients or None)."""
     settings.setdefault("outputs", ALL)
     s = RasterSettings(**settings)
     raster = SoftRasterizer(s)
     grads = ("vertices", "colors") if "rgb" in s.outputs else ("vertices",)
-    out = raster.forward(verts, faces, colors=colors if "rgb" in s.outputs else None, grads=grads)
-    rng = np.random.default_rng(seed)
-    cot = {f"grad_{n}": rng.standard_normal(getattr(out, n).shape) for n in s.outputs}
-    g = raster.backward(out, **cot)
+    colors = colors if "rgb" in s.outputs else None
+    if s.dtype == "float32" and s.sigma < FLOAT32_GRAD_SIGMA:
+        with pytest.raises(ValueError, match="too small for gradients"):
+            raster.forward(verts, faces, colors=colors, grads=grads)
+        grads = ()
+    out = raster.forward(verts, faces, colors=colors, grads=grads)
     for n in s.outputs:
         img = getattr(out, n)
         assert img.dtype == np.dtype(s.dtype), n
         assert np.isfinite(img).all(), f"{n}: {np.argwhere(~np.isfinite(img))[:5]}"
+    if not grads:
+        return s, out, None
+    rng = np.random.default_rng(seed)
+    cot = {f"grad_{n}": rng.standard_normal(getattr(out, n).shape) for n in s.outputs}
+    g = raster.backward(out, **cot)
     assert set(g) == set(grads)
     assert g["vertices"].shape == np.shape(verts)
     assert np.isfinite(g["vertices"]).all(), f"vertex grads: {np.argwhere(~np.isfinite(g['vertices']))[:5]}"
@@ -235,7 +244,8 @@ def test_pixel_on_edge_and_vertex(dtype, metric):
     verts = np.array([[x, y, z] for (x, y), z in zip(corners, [2.0, 3.0, 4.0, 3.0])])
     faces = np.array([[0, 1, 2], [0, 2, 3]])   # share the diagonal (1, 6)-(6, 1)
     colors = np.random.default_rng(6).uniform(0, 1, (4, 3))
-    s, out, g = run(verts, faces, colors, image_size=(h, w), sigma=1e-8, gamma=1e-3, dist_eps=0.0,
+    sigma = 1e-8 if dtype == "float64" else FLOAT32_GRAD_SIGMA     # float32 gradients need sigma >= 1e-7
+    s, out, g = run(verts, faces, colors, image_size=(h, w), sigma=sigma, gamma=1e-3, dist_eps=0.0,
                     metric=metric, background=BG, dtype=dtype)
     check_ranges(s, out, colors)
     a = out.alpha[0]

@@ -1,6 +1,7 @@
 """The whole render path (camera -> normals -> lighting -> soft raster) against central finite
 differences in float64: gradients of an image loss for vertices, albedo, camera and light."""
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -8,7 +9,7 @@ import pytest
 from softras_cl import RasterSettings
 from softras_cl.scene.camera import Camera
 from softras_cl.scene.meshes import icosphere
-from softras_cl.scene.renderer import Renderer, settings_with
+from softras_cl.scene.renderer import Renderer
 from softras_cl.scene.shading import LambertLight, PhongLight, SHLight
 
 H, W = 18, 22
@@ -161,14 +162,50 @@ def test_focal_group_is_the_camera_groups_focal_to_the_bit(single):
         assert g.shape == (2,) and np.array_equal(g, w)
 
 
-def test_settings_with_is_replace_made_once():
-    base = settings()
-    made = settings_with(base, sigma=2e-4, gamma=3e-3)
-    assert made == dataclasses.replace(base, sigma=2e-4, gamma=3e-3)
-    assert settings_with(base, sigma=2e-4, gamma=3e-3) is made
-    assert settings_with(base, sigma=2e-4, gamma=4e-3).gamma == 4e-3
-    with pytest.raises(ValueError, match="sigma"):
-        settings_with(base, sigma=-1.0)
+def test_per_call_sigma_gamma_and_depth_equal_a_renderer_of_those_settings():
+    """forward(sigma=, gamma=, near=, far=) gives the images and gradients, to the bit, of a
+    renderer made with those settings, and draws with the renderer's one rasteriser."""
+    v, f, albedo = scene()
+    run = dict(sigma=2e-4, gamma=3e-3, near=0.8, far=7.0)
+    cot = _cot(1, seed=4)
+    renders = []
+    renderer = Renderer(settings())
+    for r, kw in ((Renderer(settings(**run)), {}), (renderer, run)):
+        out = r.forward(v, f, cameras()[0], albedo=albedo, grads=("vertices", "albedo"), **kw)
+        g = r.backward(out, grad_rgb=cot["rgb"], grad_alpha=cot["alpha"], grad_depth=cot["depth"])
+        renders.append(dict(rgb=out.rgb, alpha=out.alpha, depth=out.depth, **g))
+    for name, value in renders[0].items():
+        np.testing.assert_array_equal(renders[1][name], value, err_msg=name)
+    renderer.forward(v, f, cameras()[0], albedo=albedo, sigma=1e-5)
+    assert len(renderer._rasterizers) == 1 and renderer.settings == settings()
+
+
+def test_settings_are_read_only():
+    renderer = Renderer(settings())
+    with pytest.raises(AttributeError):
+        renderer.settings = settings(sigma=1e-4)
+
+
+def test_backward_refuses_the_output_of_another_renderer():
+    v, f, albedo = scene()
+    other = Renderer(settings(), shading="face")
+    out = other.forward(v, f, cameras()[0], albedo=albedo, grads=("vertices",))
+    with pytest.raises(ValueError, match=r"^output was made by another Renderer \(shading='face'"):
+        Renderer(settings()).backward(out, grad_alpha=np.ones(out.alpha.shape))
+
+
+@pytest.mark.parametrize("shading", ["vertex", "face", "pixel", "none"])
+@pytest.mark.parametrize("shape", [(5, 3), (3, 12, 3), (3, 42, 3), (42, 4), (42,)])
+def test_albedo_of_the_wrong_shape_is_named_before_any_kernel(monkeypatch, shading, shape):
+    """Before, numpy's broadcast error (or the rasteriser's, naming colors) came out."""
+    from softras_cl.raster import rasterizer as raster_module
+
+    monkeypatch.setattr(raster_module, "build_kernel", lambda *a, **k: pytest.fail("kernel built"))
+    v, f = icosphere(1, radius=0.6)      # 42 vertices
+    verts = np.stack([v, v + 0.01])
+    with pytest.raises(ValueError, match=re.escape(f"albedo must have shape ({len(v)}, 3) or (B, {len(v)}, 3) "
+                                                   f"with B = 1 or 2 (one RGB colour per vertex), got {shape}")):
+        Renderer(settings(), shading=shading).forward(verts, f, cameras()[0], albedo=np.ones(shape))
 
 
 def test_own_context_and_queue_reach_the_rasterizer_and_change_nothing():

@@ -162,7 +162,7 @@ FACE_SETUP = textwrap.dedent("""
         assert raster.setup is not None, "no cl_khr_fp64: the device set-up does not run"
         vertices, faces, _ = sweep.raster_scene(2, "vertex")
         mesh = check_inputs(s, vertices, faces)
-        buf, ranges = raster.setup.run(mesh)
+        buf, ranges = raster.setup.run(mesh, s)
         records = np.empty((mesh.batch * mesh.n_faces, 28), raster.real)
         cl.enqueue_copy(raster.queue, records, buf)
         geom, drawable = face_setup(mesh, s)
