@@ -78,6 +78,8 @@ import math
 import os
 import sys
 import time
+import zipfile
+import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
@@ -168,13 +170,30 @@ class FitError(ResultError):
 
 def load_checkpoint(path) -> tuple[dict, dict]:
     """Read ``checkpoint.npz`` -> (values: name -> array, meta: dict(stage, iter, loss, evals,
-    completed)); ``completed`` (stages finished) is 0 in checkpoints that predate it."""
-    with np.load(path, allow_pickle=False) as z:
-        values = {k: np.array(z[k]) for k in z.files if k not in _META_KEYS}
-        meta = {"stage": str(z["__stage__"]), "iter": int(z["__iter__"]),
-                "loss": float(z["__loss__"]), "evals": int(z["__evals__"]),
-                "completed": int(z["__completed__"]) if "__completed__" in z.files else 0}
+    completed)); ``completed`` (stages finished) is 0 in checkpoints that predate it.
+    InputError naming the file when it cannot be read or is corrupt (truncated, not an .npz,
+    metadata missing)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            values = {k: np.array(z[k]) for k in z.files if k not in _META_KEYS}
+            meta = {"stage": str(z["__stage__"]), "iter": int(z["__iter__"]),
+                    "loss": float(z["__loss__"]), "evals": int(z["__evals__"]),
+                    "completed": int(z["__completed__"]) if "__completed__" in z.files else 0}
+    except OSError as e:
+        raise InputError(f"cannot read checkpoint {path}: {e}") from e
+    except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, KeyError) as e:
+        raise InputError(f"checkpoint {path} is corrupt ({_what_is_wrong(e)}); remove it, or fit "
+                         f"without resuming (no --resume) to start again") from e
     return values, meta
+
+
+def _what_is_wrong(error: Exception) -> str:
+    """What np.load's ``error`` says about a checkpoint file, in a few words."""
+    if isinstance(error, KeyError):
+        return f"no {error.args[0].split()[0]} entry: not the checkpoint of a fit"
+    if isinstance(error, ValueError):
+        return "not an .npz archive"
+    return f"truncated or damaged: {type(error).__name__}: {error}"
 
 
 def _new_opt(n: int):
@@ -385,10 +404,7 @@ class _Fit:
         path = self.out / "checkpoint.npz"
         if not path.is_file():
             raise InputError(f"cannot resume: {path} does not exist (no fit was started there)")
-        try:
-            values, meta = load_checkpoint(path)
-        except (OSError, ValueError, KeyError) as e:
-            raise InputError(f"cannot resume from {path}: not a readable checkpoint ({e})") from e
+        values, meta = load_checkpoint(path)
         expected = {n: self.params.shape(n) for n in self.params.names}
         found = {n: tuple(v.shape) for n, v in values.items()}
         names = [st.name for st in self.stages]
