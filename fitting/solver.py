@@ -182,8 +182,8 @@ def load_checkpoint(path) -> tuple[dict, dict]:
     except OSError as e:
         raise InputError(f"cannot read checkpoint {path}: {e}") from e
     except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, KeyError) as e:
-        raise InputError(f"checkpoint {path} is corrupt ({_what_is_wrong(e)}); remove it, or fit "
-                         f"without resuming (no --resume) to start again") from e
+        raise InputError(f"checkpoint {path} is corrupt ({_what_is_wrong(e)}); it cannot be resumed: "
+                         f"start the fit again without --resume (that replaces it)") from e
     return values, meta
 
 

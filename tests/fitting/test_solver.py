@@ -356,8 +356,8 @@ def test_a_corrupt_checkpoint_is_an_input_error_naming_the_file(tmp_path, damage
     with pytest.raises(InputError) as caught:
         fit(quad_params(), Quadratic(), QUAD_STAGES, out_dir=tmp_path, progress=False, resume=True)
     message = str(caught.value)
-    assert f"checkpoint {path} is corrupt" in message and "remove it" in message
-    assert "--resume" in message
+    assert f"checkpoint {path} is corrupt" in message
+    assert "start the fit again without --resume" in message
 
 
 def test_resume_refuses_a_missing_or_foreign_checkpoint(tmp_path):
