@@ -3,8 +3,8 @@
 Before the fit, :func:`check_landmark_layout` refuses 68 landmarks whose order does not fit the
 iBUG 300-W layout (0-16 jaw line from the face's right to its left, 17-21 and 22-26 brows, 27-35
 nose, 36-41 and 42-47 eyes, 48-67 mouth; the face's right is the photo's left). Each test is made
-in the face's own frame, set by the landmarks themselves (across: jaw point 0 to jaw point 16;
-up: across turned a quarter turn), so a face at any roll passes, and so does the photo of a
+in the face's own frame, set by the landmarks themselves (across: from the right half of the jaw
+line to its left half; up: across turned a quarter turn), so a face at any roll passes, and so does the photo of a
 mirrored face with its landmarks detected on it. :func:`check_distinct_landmarks` refuses
 landmarks that are (nearly) all one point.
 
@@ -123,7 +123,7 @@ def check_landmark_layout(points) -> None:
         return
     if not layout_faults(points * [-1.0, 1.0]):
         cause = ("they are mirrored: the face's left and right points are swapped (landmarks "
-                 "flipped without renumbering them, or upside down)")
+                 "flipped left-right or top-bottom without renumbering them)")
     else:
         cause = ("they are not in the iBUG 300-W 68-point order (shuffled, written in another "
                  "point order, or the points of another face)")
