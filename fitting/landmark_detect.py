@@ -258,8 +258,8 @@ def _detect_dlib(img: np.ndarray, upsample: int, min_score: float) -> list[Detec
 
 
 def _mediapipe_meshes(img: np.ndarray, max_faces: int) -> list[np.ndarray]:
-    """MediaPipe Face Mesh: one (468, 3) float64 array per face (x, y 0-based pixel centres,
-    z relative depth in the same pixel scale), in MediaPipe's order."""
+    """MediaPipe Face Mesh: one (468, 2) float64 array per face (x, y 0-based pixel centres),
+    in MediaPipe's order."""
     try:
         from mediapipe.python.solutions import face_mesh
     except ImportError as e:
@@ -270,25 +270,13 @@ def _mediapipe_meshes(img: np.ndarray, max_faces: int) -> list[np.ndarray]:
         result = fm.process(img)
     # MediaPipe's normalised coordinates span the image: 0 and 1 are the outer edges of the
     # first and last pixel, so pixel i's centre is at (i + 0.5) / W. Shift to 0-based centres.
-    return [np.array([[p.x * w - 0.5, p.y * h - 0.5, p.z * w] for p in face.landmark], dtype=np.float64)
+    return [np.array([[p.x * w - 0.5, p.y * h - 0.5] for p in face.landmark], dtype=np.float64)
             for face in (result.multi_face_landmarks or [])]
-
-
-def detect_mesh468(image) -> np.ndarray:
-    """MediaPipe Face Mesh on an (H, W, 3) uint8 RGB image: (468, 3) float64 for the face
-    MediaPipe reports first, x, y in pixels (0-based pixel centres, x right, y down), z in the
-    same pixel scale (relative depth). Raises DetectorUnavailableError (an ImportError, with the
-    install hint) without mediapipe and NoFaceError (a ValueError) when no face is found."""
-    meshes = _mediapipe_meshes(_uint8_rgb(image), 1)
-    if not meshes:
-        raise NoFaceError("no face found in the image (MediaPipe Face Mesh)")
-    return meshes[0]
 
 
 def _detect_mediapipe(img: np.ndarray, max_faces: int) -> list[DetectedFace]:
     faces = []
-    for mesh in _mediapipe_meshes(img, max_faces):
-        xy = mesh[:, :2]
+    for xy in _mediapipe_meshes(img, max_faces):
         box = np.concatenate([xy.min(0), xy.max(0)])
         faces.append(DetectedFace(xy[MP468_TO_IBUG68].copy(), box, float("nan"), "mediapipe"))
     return faces

@@ -78,6 +78,8 @@ import math
 import os
 import sys
 import time
+import zipfile
+import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
@@ -166,19 +168,32 @@ class FitError(ResultError):
         self.stage, self.blocks, self.iter = stage, tuple(blocks), iter
 
 
-class _NonFinite(Exception):
-    pass
-
-
 def load_checkpoint(path) -> tuple[dict, dict]:
     """Read ``checkpoint.npz`` -> (values: name -> array, meta: dict(stage, iter, loss, evals,
-    completed)); ``completed`` (stages finished) is 0 in checkpoints that predate it."""
-    with np.load(path, allow_pickle=False) as z:
-        values = {k: np.array(z[k]) for k in z.files if k not in _META_KEYS}
-        meta = {"stage": str(z["__stage__"]), "iter": int(z["__iter__"]),
-                "loss": float(z["__loss__"]), "evals": int(z["__evals__"]),
-                "completed": int(z["__completed__"]) if "__completed__" in z.files else 0}
+    completed)); ``completed`` (stages finished) is 0 in checkpoints that predate it.
+    InputError naming the file when it cannot be read or is corrupt (truncated, not an .npz,
+    metadata missing)."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            values = {k: np.array(z[k]) for k in z.files if k not in _META_KEYS}
+            meta = {"stage": str(z["__stage__"]), "iter": int(z["__iter__"]),
+                    "loss": float(z["__loss__"]), "evals": int(z["__evals__"]),
+                    "completed": int(z["__completed__"]) if "__completed__" in z.files else 0}
+    except OSError as e:
+        raise InputError(f"cannot read checkpoint {path}: {e}") from e
+    except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, KeyError) as e:
+        raise InputError(f"checkpoint {path} is corrupt ({_what_is_wrong(e)}); it cannot be resumed: "
+                         f"start the fit again without --resume (that replaces it)") from e
     return values, meta
+
+
+def _what_is_wrong(error: Exception) -> str:
+    """What np.load's ``error`` says about a checkpoint file, in a few words."""
+    if isinstance(error, KeyError):
+        return f"no {error.args[0].split()[0]} entry: not the checkpoint of a fit"
+    if isinstance(error, ValueError):
+        return "not an .npz archive"
+    return f"truncated or damaged: {type(error).__name__}: {error}"
 
 
 def _new_opt(n: int):
@@ -310,130 +325,72 @@ class _Fit:
 
     # ---- one stage -------------------------------------------------------------------------
     def run_stage(self, stage: Stage):
-        p = self.params
-        free = p._free(stage.free)
-        base = self.current
-        x0 = p.pack(base, free)
-        lo, hi = p.bounds(free)
-        best = {"loss": math.inf, "values": None, "iter": 0}
-        abort: list[BaseException] = []
-        k = [0]
-        budget, over_budget = int(stage.max_iters), [False]
-        bests: list[float] = [math.inf]      # bests[j]: lowest loss of the first j evaluations
-        stalled = [False]
+        """One nlopt run over the stage's free blocks; the stage's best point becomes
+        ``self.current``. Raises the objective's error, or FitError when nlopt failed before any
+        finite evaluation (both after writing the files)."""
         self.boundaries.append((len(self.history) + 1, stage.name))
+        free = self.params._free(stage.free)
+        x0 = self.params.pack(self.current, free)
+        bounds = self.params.bounds(free)
         opt = _new_opt(x0.size)
         self.state.opt = opt
-
-        def f(x, grad):
-            # Everything inside try: an exception escaping to nlopt's wrapper would be turned
-            # into a bare ForcedStop and its cause lost.
-            try:
-                if k[0] >= budget:          # nlopt may overshoot maxeval inside a line search
-                    over_budget[0] = True
-                if abort or self.state.interrupt or over_budget[0] or stalled[0]:
-                    opt.force_stop()
-                    if grad.size:
-                        grad[:] = 0.0
-                    return best["loss"] if math.isfinite(best["loss"]) else 0.0
-                k[0] += 1
-                self.evals += 1
-                values = p.unpack(x, free, base)
-                loss, grads, terms = self.objective(values, stage)
-                grads = {} if grads is None else grads
-                terms = {} if terms is None else {str(t): float(v) for t, v in dict(terms).items()}
-                loss = float(loss)
-                g = p.pack_grad(grads, free)
-                bad_blocks = [n for n, sl in p.slices(free).items()
-                              if not np.all(np.isfinite(g[sl]))]
-                if not math.isfinite(loss) or bad_blocks:
-                    bad_terms = [t for t, v in terms.items() if not math.isfinite(v)]
-                    msg = (f"stage {stage.name!r}, evaluation {k[0]}: "
-                           + (f"loss is {loss}" if not math.isfinite(loss) else "loss is finite")
-                           + "; " + (f"gradient not finite in block(s) "
-                                     f"{', '.join(repr(b) for b in bad_blocks)}" if bad_blocks
-                                     else "gradients of all free blocks are finite")
-                           + (f"; non-finite term(s): {', '.join(bad_terms)}" if bad_terms else ""))
-                    raise FitError(msg, stage=stage.name, blocks=bad_blocks, iter=k[0])
-                self.history.append({"stage": stage.name, "iter": k[0], "loss": loss,
-                                     "terms": terms})
-                if loss < best["loss"]:
-                    best["loss"], best["iter"] = loss, k[0]
-                    best["values"] = {n: values[n].copy() for n in free}
-                    if time.monotonic() - self.last_write >= CHECKPOINT_INTERVAL:
-                        self.write_checkpoint({**base, **best["values"]}, stage.name, k[0], loss)
-                bests.append(best["loss"])
-                if _stalled(stage, bests):
-                    stalled[0] = True
-                    opt.force_stop()
-                if self.bar is not None:
-                    self.bar.set_description(stage.name, refresh=False)
-                    self.bar.set_postfix(iter=k[0], loss=f"{loss:.6g}",
-                                         best=f"{best['loss']:.6g}", refresh=False)
-                    self.bar.update(1)
-                if grad.size:
-                    grad[:] = g
-                return loss
-            except nlopt.ForcedStop:
-                abort.append(_ForcedStopRequest())
-            except KeyboardInterrupt:
-                self.state.interrupt = True
-            except BaseException as exc:     # FitError or a bug in the objective
-                abort.append(exc)
-            opt.force_stop()
-            if grad.size:
-                grad[:] = 0.0
-            return best["loss"] if math.isfinite(best["loss"]) else 0.0
-
-        outcome = None
-        error = None
+        objective = _StageObjective(self, stage, opt)
         try:
-            opt.set_lower_bounds(lo)
-            opt.set_upper_bounds(hi)
-            opt.set_min_objective(f)
+            outcome, error = self._optimize(opt, stage, objective, x0, bounds)
+        finally:
+            self.state.opt = None
+        self.outcomes[stage.name] = objective.outcome(outcome)
+        self._keep_best(objective)
+        if self.bar is not None:      # keep the bar's total consistent with an early stop
+            self.bar.update(max(0, int(stage.max_iters) - objective.evals))
+        self._end_stage(stage, objective, error)
+
+    def _optimize(self, opt, stage: Stage, objective, x0, bounds) -> tuple[str | None, Exception | None]:
+        """Run nlopt from x0 (scaled free values) within bounds (lower, upper) -> (nlopt's
+        result name, or None on Ctrl-C; the exception of a generic nlopt failure, else None)."""
+        try:
+            opt.set_lower_bounds(bounds[0])
+            opt.set_upper_bounds(bounds[1])
+            opt.set_min_objective(objective)
             opt.set_maxeval(int(stage.max_iters))
             opt.set_ftol_rel(float(stage.ftol_rel))
             opt.set_xtol_rel(float(stage.xtol_rel))
             opt.optimize(x0)
-            outcome = _RESULT_NAMES.get(opt.last_optimize_result(), str(opt.last_optimize_result()))
+            code = opt.last_optimize_result()
+            return _RESULT_NAMES.get(code, str(code)), None
         except nlopt.RoundoffLimited:
-            outcome = "ROUNDOFF_LIMITED"
+            return "ROUNDOFF_LIMITED", None
         except nlopt.ForcedStop:
-            outcome = "FORCED_STOP"
+            return "FORCED_STOP", None
         except KeyboardInterrupt:
             self.state.interrupt = True
+            return None, None
         except MemoryError as exc:
-            outcome, error = "OUT_OF_MEMORY", exc
+            return "OUT_OF_MEMORY", exc
         except ValueError as exc:
-            outcome, error = "INVALID_ARGS", exc
+            return "INVALID_ARGS", exc
         except Exception as exc:            # nlopt's runtime_error / RuntimeError: FAILURE
-            outcome, error = "FAILURE", exc
-        finally:
-            self.state.opt = None
+            return "FAILURE", exc
 
-        if self.state.interrupt:
-            outcome = "INTERRUPTED"
-        elif outcome == "FORCED_STOP" and not abort and (over_budget[0] or stalled[0]):
-            outcome = "STALLED" if stalled[0] else "MAXEVAL_REACHED"
-        self.outcomes[stage.name] = outcome
-        # Carry the stage's best point on, whatever happened.
-        if best["values"] is not None:
-            self.current = {**base, **best["values"]}
-            self.current_loss = best["loss"]
-            self.ckpt_meta = (stage.name, best["iter"], best["loss"])
-            self.params.set(best["values"])
-        if self.bar is not None:      # keep the bar's total consistent with an early stop
-            self.bar.update(max(0, int(stage.max_iters) - k[0]))
+    def _keep_best(self, objective: "_StageObjective") -> None:
+        """Carry the stage's best point on, whatever happened."""
+        if objective.best_values is None:
+            return
+        self.current = {**objective.base, **objective.best_values}
+        self.current_loss = objective.best_loss
+        self.ckpt_meta = (objective.stage.name, objective.best_iter, objective.best_loss)
+        self.params.set(objective.best_values)
 
-        real = [e for e in abort if not isinstance(e, _ForcedStopRequest)]
-        if real:
+    def _end_stage(self, stage: Stage, objective: "_StageObjective", error) -> None:
+        """Re-raise what stopped the stage, or count it finished; write the checkpoint."""
+        if objective.errors:
             self.write_all(False)
-            raise real[0]
-        if abort:
-            self.outcomes[stage.name] = outcome = "FORCED_STOP"
-        if error is not None and best["values"] is None and not self.state.interrupt:
+            raise objective.errors[0]
+        if objective.forced_stop:
+            self.outcomes[stage.name] = "FORCED_STOP"
+        if error is not None and objective.best_values is None and not self.state.interrupt:
             self.write_all(False)
-            raise FitError(f"stage {stage.name!r}: nlopt stopped with {outcome} "
+            raise FitError(f"stage {stage.name!r}: nlopt stopped with {self.outcomes[stage.name]} "
                            f"({type(error).__name__}: {error}) before any finite evaluation",
                            stage=stage.name) from error
         if not self.state.interrupt:
@@ -447,10 +404,7 @@ class _Fit:
         path = self.out / "checkpoint.npz"
         if not path.is_file():
             raise InputError(f"cannot resume: {path} does not exist (no fit was started there)")
-        try:
-            values, meta = load_checkpoint(path)
-        except (OSError, ValueError, KeyError) as e:
-            raise InputError(f"cannot resume from {path}: not a readable checkpoint ({e})") from e
+        values, meta = load_checkpoint(path)
         expected = {n: self.params.shape(n) for n in self.params.names}
         found = {n: tuple(v.shape) for n, v in values.items()}
         names = [st.name for st in self.stages]
@@ -505,16 +459,129 @@ class _Fit:
                          interrupted=self.state.interrupt)
 
 
+class _StageObjective:
+    """nlopt's objective function for one stage: ``(x, grad) -> loss``.
+
+    Each call evaluates the fit's objective at x (scaled, free blocks only), checks the loss and
+    gradient are finite, records the evaluation in the history, keeps the best point (and
+    checkpoints it), and stops nlopt (``force_stop``) at the stage's budget, at a stall, on
+    Ctrl-C, or when the objective raised. Nothing may escape to nlopt's wrapper, which would
+    turn any exception into a bare ForcedStop and lose its cause: errors are kept in ``errors``
+    for the stage to re-raise, an nlopt.ForcedStop from the objective sets ``forced_stop``.
+    """
+
+    def __init__(self, run: _Fit, stage: Stage, opt):
+        self.run, self.stage, self.opt = run, stage, opt
+        self.params = run.params
+        self.free = self.params._free(stage.free)
+        self.base = run.current                 # values of the blocks this stage leaves alone
+        self.budget = int(stage.max_iters)
+        self.evals = 0                          # evaluations of this stage
+        self.best_loss, self.best_iter, self.best_values = math.inf, 0, None
+        self.bests = [math.inf]                 # bests[j]: lowest loss of the first j evaluations
+        self.over_budget = False                # nlopt may overshoot maxeval inside a line search
+        self.stalled = False                    # Stage.stall_window's stop
+        self.forced_stop = False                # the objective raised nlopt.ForcedStop
+        self.errors: list[BaseException] = []   # FitError or a bug in the objective
+
+    def __call__(self, x, grad) -> float:
+        try:
+            if self.evals >= self.budget:
+                self.over_budget = True
+            if (self.errors or self.forced_stop or self.run.state.interrupt or self.over_budget
+                    or self.stalled):
+                return self.stop(grad)
+            return self.evaluate(x, grad)
+        except nlopt.ForcedStop:
+            self.forced_stop = True
+        except KeyboardInterrupt:
+            self.run.state.interrupt = True
+        except BaseException as exc:
+            self.errors.append(exc)
+        return self.stop(grad)
+
+    def stop(self, grad) -> float:
+        """Ask nlopt to stop; a zero gradient and the best loss so far for this call."""
+        self.opt.force_stop()
+        if grad.size:
+            grad[:] = 0.0
+        return self.best_loss if math.isfinite(self.best_loss) else 0.0
+
+    def evaluate(self, x, grad) -> float:
+        """The objective at x: loss returned, its gradient written into ``grad``."""
+        self.evals += 1
+        self.run.evals += 1
+        values = self.params.unpack(x, self.free, self.base)
+        loss, grads, terms = self.run.objective(values, self.stage)
+        grads = {} if grads is None else grads
+        terms = {} if terms is None else {str(t): float(v) for t, v in dict(terms).items()}
+        loss = float(loss)
+        g = self.params.pack_grad(grads, self.free)
+        self.check_finite(loss, g, terms)
+        self.run.history.append({"stage": self.stage.name, "iter": self.evals, "loss": loss,
+                                 "terms": terms})
+        self.keep_if_best(loss, values)
+        self.show(loss)
+        if grad.size:
+            grad[:] = g
+        return loss
+
+    def check_finite(self, loss: float, g, terms: dict) -> None:
+        """FitError naming the stage, the evaluation, the blocks whose gradient is not finite
+        and the non-finite terms, when the loss or a free block's gradient is not finite."""
+        bad_blocks = [n for n, sl in self.params.slices(self.free).items()
+                      if not np.all(np.isfinite(g[sl]))]
+        if math.isfinite(loss) and not bad_blocks:
+            return
+        bad_terms = [t for t, v in terms.items() if not math.isfinite(v)]
+        msg = (f"stage {self.stage.name!r}, evaluation {self.evals}: "
+               + (f"loss is {loss}" if not math.isfinite(loss) else "loss is finite")
+               + "; " + (f"gradient not finite in block(s) "
+                         f"{', '.join(repr(b) for b in bad_blocks)}" if bad_blocks
+                         else "gradients of all free blocks are finite")
+               + (f"; non-finite term(s): {', '.join(bad_terms)}" if bad_terms else ""))
+        raise FitError(msg, stage=self.stage.name, blocks=bad_blocks, iter=self.evals)
+
+    def keep_if_best(self, loss: float, values: dict) -> None:
+        """Keep (and checkpoint, at most every CHECKPOINT_INTERVAL) a new best point; stop
+        nlopt when the stage has stalled."""
+        if loss < self.best_loss:
+            self.best_loss, self.best_iter = loss, self.evals
+            self.best_values = {n: values[n].copy() for n in self.free}
+            if time.monotonic() - self.run.last_write >= CHECKPOINT_INTERVAL:
+                self.run.write_checkpoint({**self.base, **self.best_values}, self.stage.name,
+                                          self.evals, loss)
+        self.bests.append(self.best_loss)
+        if _stalled(self.stage, self.bests):
+            self.stalled = True
+            self.opt.force_stop()
+
+    def show(self, loss: float) -> None:
+        """Advance the progress bar, if any."""
+        bar = self.run.bar
+        if bar is not None:
+            bar.set_description(self.stage.name, refresh=False)
+            bar.set_postfix(iter=self.evals, loss=f"{loss:.6g}", best=f"{self.best_loss:.6g}",
+                            refresh=False)
+            bar.update(1)
+
+    def outcome(self, nlopt_outcome: str | None) -> str | None:
+        """The stage's outcome: INTERRUPTED on Ctrl-C, STALLED or MAXEVAL_REACHED when the
+        solver's own stop ended it, else what nlopt returned."""
+        if self.run.state.interrupt:
+            return "INTERRUPTED"
+        if (nlopt_outcome == "FORCED_STOP" and not self.errors and not self.forced_stop
+                and (self.over_budget or self.stalled)):
+            return "STALLED" if self.stalled else "MAXEVAL_REACHED"
+        return nlopt_outcome
+
+
 def _stalled(stage: Stage, bests: list) -> bool:
     """Stage.stall_window's test on bests[j], the best loss after j evaluations."""
     w = int(stage.stall_window)
     if w < 1 or len(bests) <= w:
         return False
     return bests[-1 - w] - bests[-1] <= stage.stall_rel * abs(bests[-1])
-
-
-class _ForcedStopRequest(Exception):
-    """The objective raised nlopt.ForcedStop: end the stage, keep the best, go on."""
 
 
 def _check_stages(params: ParamSet, stages) -> list[Stage]:

@@ -3,7 +3,7 @@ shared by several folders live in tests/support/ (this folder is on sys.path for
 
 Markers (registered in pyproject.toml, which also sets --strict-markers):
   slow                          more than about 5 s; the default run includes these.
-  mitsuba, landmarks (dlib), mediapipe, torch, jax
+  mitsuba, landmarks (dlib), torch, jax
                                 the test needs that optional dependency: it is skipped, saying
                                 which extra to install, only when the module cannot be found.
                                 Installed but broken, it runs and fails.
@@ -39,7 +39,6 @@ deliverable_sigint()
 OPTIONAL = {
     "mitsuba": ("mitsuba", "pip install 'softras-cl[validate]'"),
     "landmarks": ("dlib", "pip install 'softras-cl[landmarks]'"),
-    "mediapipe": ("mediapipe", "pip install 'softras-cl[landmarks-mediapipe]'"),
     "torch": ("torch", "pip install torch"),
     "jax": ("jax", "pip install jax"),
 }

@@ -1,5 +1,7 @@
 """The shared fixtures and the optional-dependency skip of tests/conftest.py do what they say."""
 import importlib.util
+import re
+import tomllib
 from types import SimpleNamespace
 
 import numpy as np
@@ -20,6 +22,17 @@ def test_optional_marker_skips_only_when_the_module_is_missing(monkeypatch, mark
         conftest.pytest_runtest_setup(_item("slow", marker))
     monkeypatch.setattr(importlib.util, "find_spec", lambda name: object() if name == module else real(name))
     assert conftest.pytest_runtest_setup(_item("slow", marker)) is None      # present: it runs
+
+
+def test_every_registered_marker_is_used_and_every_optional_one_registered():
+    """pyproject.toml registers the markers the tests use, no more; OPTIONAL's are among them."""
+    pyproject = tomllib.loads((conftest.REPO / "pyproject.toml").read_text())
+    registered = {line.split(":")[0] for line in pyproject["tool"]["pytest"]["ini_options"]["markers"]}
+    builtin = {"parametrize", "filterwarnings", "skipif", "skip", "xfail", "usefixtures"}
+    used = {name for path in (conftest.REPO / "tests").rglob("*.py")
+            for name in re.findall(r"pytest\.mark\.(\w+)", path.read_text())} - builtin
+    assert used == registered
+    assert set(conftest.OPTIONAL) <= registered
 
 
 def test_unmarked_and_slow_tests_never_skip(monkeypatch):

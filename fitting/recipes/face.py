@@ -72,6 +72,7 @@ from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.models.face_model import LinearContext
 from softras_cl.fitting.models.mesh_lod import coarse_faces
 from softras_cl.fitting.params import Block, ParamSet
+from softras_cl.fitting.plausibility import check_distinct_landmarks, check_landmark_layout
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
 __all__ = ["FaceFitConfig", "Crop", "FaceScene", "FaceFit", "BUDGETS", "landmark_weights", "default_stages",
@@ -267,8 +268,8 @@ class Crop:
 
 def _check_inputs(photo, landmarks) -> tuple[np.ndarray, np.ndarray]:
     """Checked (photo (H, W, 3) float64, landmarks (68, 2) float64); InputError naming what is
-    wrong: shape, non-finite values, a landmark outside the photo, or landmarks that span no
-    area (collinear or coincident) or less than MIN_SIZE / 2 pixels."""
+    wrong: shape, non-finite values, a landmark outside the photo, landmarks that are (nearly)
+    all one point, or that span no area (collinear) or less than MIN_SIZE / 2 pixels."""
     img = np.asarray(photo, np.float64)
     if img.ndim != 3 or img.shape[2] != 3:
         raise InputError(f"photo must be an (H, W, 3) RGB image, got shape {img.shape}")
@@ -283,6 +284,7 @@ def _check_inputs(photo, landmarks) -> tuple[np.ndarray, np.ndarray]:
         i = int(np.argmax(outside))
         raise InputError(f"landmark {i} at {pts[i].tolist()} is outside the {w}x{h} photo "
                          "(do the landmarks belong to this photo?)")
+    check_distinct_landmarks(pts)
     extent = float(np.ptp(pts, axis=0).max())
     if extent < MIN_SIZE / 2:
         raise InputError(f"the landmarks span {extent:.3g} pixels of the {w}x{h} photo; fitting needs "
@@ -777,6 +779,7 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
                          f"{N_LANDMARKS} iBUG points (pass a landmark mapping file with the model)")
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
     objective, crop, params = prepare_fit(photo, landmarks, model, config)
+    check_landmark_layout(landmarks)
     stages = default_stages(config, fit_focal=config.focal is None)
     result = fit(params, objective, stages, out_dir=out_dir, progress=progress, resume=resume)
     if objective.mask is None:      # no photometric stage ran here (e.g. resuming a finished fit)

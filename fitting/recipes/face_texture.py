@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.io.images import to_srgb, write_image
+from softras_cl.io.images import write_image
 from softras_cl.io.outputs import write_text
 from softras_cl.raster.rasterizer import SoftRasterizer
 from softras_cl.raster.settings import RasterSettings
@@ -310,9 +310,3 @@ def save_textured_obj(path, vertices, faces, uvs, texture) -> None:
 def _rows(line: str, table: np.ndarray) -> str:
     """``line`` (a %-format of one row) applied to every row of table (N, C), in one format."""
     return (line * len(table)) % tuple(table.ravel().tolist())
-
-
-def texture_preview(texture: FaceTexture) -> np.ndarray:
-    """(S, S, 3) sRGB picture of the texture with unseen texels darkened (for figures)."""
-    shade = 0.4 + 0.6 * np.clip(texture.confidence / 0.3, 0.0, 1.0)
-    return to_srgb(np.clip(texture.albedo, 0.0, 1.0)) * shade[..., None]

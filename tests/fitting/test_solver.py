@@ -11,6 +11,7 @@ import nlopt
 import numpy as np
 import pytest
 
+from softras_cl.errors import InputError
 from softras_cl.fitting import solver as solver_module
 from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.solver import FitError, FitResult, Stage, fit, load_checkpoint
@@ -338,6 +339,27 @@ def test_resume_of_a_finished_fit_runs_nothing(tmp_path):
         np.testing.assert_array_equal(again.values[name], done.values[name])
 
 
+@pytest.mark.parametrize("damage", ["truncated", "bit flipped", "empty", "no metadata"])
+def test_a_corrupt_checkpoint_is_an_input_error_naming_the_file(tmp_path, damage):
+    """Resuming from a damaged checkpoint.npz says which file is corrupt and what to do."""
+    fit(quad_params(), Quadratic(), QUAD_STAGES, out_dir=tmp_path, progress=False)
+    path = tmp_path / "checkpoint.npz"
+    data = path.read_bytes()
+    if damage == "truncated":
+        path.write_bytes(data[:len(data) // 2])
+    elif damage == "bit flipped":                 # inside the first array's data: a CRC error
+        path.write_bytes(data[:120] + bytes([data[120] ^ 0xFF]) + data[121:])
+    elif damage == "empty":
+        path.write_bytes(b"")
+    else:
+        np.savez(path, **load_checkpoint(path)[0])
+    with pytest.raises(InputError) as caught:
+        fit(quad_params(), Quadratic(), QUAD_STAGES, out_dir=tmp_path, progress=False, resume=True)
+    message = str(caught.value)
+    assert f"checkpoint {path} is corrupt" in message
+    assert "start the fit again without --resume" in message
+
+
 def test_resume_refuses_a_missing_or_foreign_checkpoint(tmp_path):
     with pytest.raises(ValueError, match="does not exist"):
         fit(quad_params(), Quadratic(), QUAD_STAGES, out_dir=tmp_path, progress=False, resume=True)
@@ -345,7 +367,7 @@ def test_resume_refuses_a_missing_or_foreign_checkpoint(tmp_path):
     with pytest.raises(ValueError, match="checkpoint of another fit"):
         fit(quad_params(), Quadratic(), QUAD_STAGES, out_dir=tmp_path, progress=False, resume=True)
     (tmp_path / "checkpoint.npz").write_bytes(b"not an npz")
-    with pytest.raises(ValueError, match="not a readable checkpoint"):
+    with pytest.raises(InputError, match="is corrupt .not an .npz archive"):
         fit(quad_params(), Quadratic(), QUAD_STAGES, out_dir=tmp_path, progress=False, resume=True)
     with pytest.raises(ValueError, match="needs out_dir"):
         fit(quad_params(), Quadratic(), QUAD_STAGES, progress=False, resume=True)
