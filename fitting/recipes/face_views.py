@@ -31,6 +31,7 @@ import numpy as np
 
 from softras_cl.errors import InputError
 from softras_cl.fitting.params import Block, ParamSet
+from softras_cl.fitting.plausibility import check_landmark_layout
 from softras_cl.fitting.recipes.face import (N_LANDMARKS, FaceFit, FaceFitConfig, FaceObjective,
                                              default_stages, prepare_fit)
 from softras_cl.fitting.solver import FitResult, Stage, fit
@@ -153,7 +154,9 @@ class View:
 
 def prepare_view(photo, landmarks, model, config: FaceFitConfig) -> View:
     """Photo (H, W, 3) linear RGB and its landmarks (68, 2) pixels -> the View fit_face would
-    start from (working image, camera, initial pose and light)."""
+    start from (working image, camera, initial pose and light). ResultError when the landmarks
+    cannot be a face's (fitting.plausibility.check_landmark_layout)."""
+    check_landmark_layout(landmarks)
     return View(*prepare_fit(photo, landmarks, model, config))
 
 

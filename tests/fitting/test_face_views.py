@@ -175,3 +175,13 @@ def test_same_camera_needs_one_photo_size_and_a_fitted_focal(demo):
     with pytest.raises(InputError, match="same_camera fits one focal length .* config.focal gives it"):
         face_views.fit_face_views(photos[:1] * 2, landmarks, demo, face.FaceFitConfig(focal=100.0), progress=False,
                                   same_camera=True)
+
+
+def test_a_photo_whose_landmarks_cannot_be_a_face_is_refused(demo):
+    from softras_cl.errors import ResultError
+    from support.landmark_layouts import shuffled
+
+    sample = synthetic_face(demo, np.random.default_rng(9), size=64)
+    landmarks = [sample["landmarks"], shuffled(sample["landmarks"], 0)]
+    with pytest.raises(ResultError, match="not in the iBUG 300-W 68-point order"):
+        face_views.fit_face_views([sample["photo"]] * 2, landmarks, demo, progress=False)
