@@ -94,6 +94,9 @@ def read_manifest(path, kind: str = "face") -> list[dict]:
 
 
 def _manifest_row(path: Path, line: int, row: dict, kind: str) -> dict:
+    if None in row:                     # csv.DictReader's key of the cells beyond the header's
+        raise InputError(f"manifest {path} line {line}: more cells than the header has columns "
+                         "(quote a cell that holds a comma)")
     row = {(k or "").strip().lower(): (v or "").strip() for k, v in row.items()}
     photo = row.pop("photo", "") or row.pop("target", "")
     if not photo:

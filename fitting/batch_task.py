@@ -25,11 +25,11 @@ from softras_cl.errors import InputError, ResultError, SoftrasError
 from softras_cl.fitting.batch_items import Item
 from softras_cl.fitting.metrics import finite_metrics
 from softras_cl.fitting.model_cache import load_model
-from softras_cl.fitting.run_options import BODY, FACE
+from softras_cl.fitting.run_options import BODY, FITS
 from softras_cl.fitting.run_records import body_record, completed, face_landmarks_source, face_record
 from softras_cl.io.outputs import LOCK_NAME, OutputFolder, json_safe
 
-__all__ = ["run_item", "item_record", "make_row", "describe", "count_faces", "body_inputs", "publish",
+__all__ = ["run_item", "item_record", "item_config", "make_row", "describe", "count_faces", "body_inputs", "publish",
            "fit_into"]
 
 logger = logging.getLogger(__name__)
@@ -45,6 +45,12 @@ def item_record(item: Item) -> dict:
         return face_record(item.photo, face_landmarks_source(item.photo, item.landmarks, item.face),
                            item.opts)
     return body_record(item.photo, item.landmarks, item.opts)
+
+
+def item_config(item: Item):
+    """The fit's config of an item (FaceFitConfig, BodyFitConfig): the same as the single-photo
+    command makes of the same options."""
+    return FITS[item.kind].config(item.opts)
 
 
 def face_points(item: Item):
@@ -68,7 +74,7 @@ def _fit_face(item: Item, folder: Path) -> tuple[dict, float]:
     photo = read_image(item.photo)[..., :3]
     landmarks = face_points(item)
     model = load_model("face", options.get("model"), options.get("model_landmarks"))
-    config = FACE.config(options)
+    config = item_config(item)
     start = time.perf_counter()
     fit = fit_face(photo, landmarks, model, config, out_dir=folder, progress=False)
     seconds = time.perf_counter() - start
@@ -87,7 +93,7 @@ def body_inputs(item: Item):
     model = load_model("body", values["model"])
     target = read_target(item.photo, values["silhouette"])
     joints, weights = (None, None) if item.landmarks is None else read_joints(item.landmarks, model.n_joints)
-    return target, joints, weights, model, BODY.config(values)
+    return target, joints, weights, model, item_config(item)
 
 
 def _fit_body(item: Item, folder: Path) -> tuple[dict, float]:
