@@ -130,13 +130,19 @@ def _sigint_blocked():
     """SIGINT blocked in the calling (main) thread, and so in the threads it starts meanwhile and
     in the processes those threads spawn (the signal mask is inherited): a local cluster's
     workers never see a terminal's Ctrl-C, from their first instruction on. Unblocked on the
-    way out, when a Ctrl-C that came meanwhile raises KeyboardInterrupt."""
+    way out, when a Ctrl-C that came meanwhile raises KeyboardInterrupt.
+
+    multiprocessing's resource tracker is started first: starting it later, from a thread of
+    the cluster, would unblock SIGINT in that thread."""
     import signal
     import threading
 
     if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
         yield
         return
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
     signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
