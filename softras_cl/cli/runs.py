@@ -47,16 +47,6 @@ def finishing_outputs() -> Iterator[Caught]:
         yield caught
 
 
-def say_summary(command: str, run: FitRun, details: str) -> None:
-    """Print the run's summary line: "COMMAND done in S s: DETAILS; outputs in FOLDER/" on
-    stdout, or, when the run was interrupted, that its outputs are from the best values so far,
-    on stderr (with the other notices of the interrupt)."""
-    state = ("interrupted; outputs are from the best values so far (--resume continues the fit)"
-             if run.interrupted else "done")
-    print(f"{command} {state} in {run.seconds:.1f} s: {details}; outputs in {run.folder}/",
-          file=sys.stderr if run.interrupted else sys.stdout)
-
-
 @dataclass
 class FitRun:
     """What `run_fit` reports: the metrics written, the fit's seconds, whether it was stopped
@@ -85,3 +75,13 @@ def run_fit(args, command: str, record: dict, fit: Callable, required: tuple[str
             if not interrupted:
                 out.finish(dict(status="done", metrics=metrics, seconds=seconds))
     return FitRun(metrics, seconds, interrupted, out.path)
+
+
+def say_summary(command: str, run: FitRun, details: str) -> None:
+    """Print the run's summary line: "COMMAND done in S s: DETAILS; outputs in FOLDER/" on
+    stdout, or, when the run was interrupted, that its outputs are from the best values so far,
+    on stderr (with the other notices of the interrupt)."""
+    state = ("interrupted; outputs are from the best values so far (--resume continues the fit)"
+             if run.interrupted else "done")
+    print(f"{command} {state} in {run.seconds:.1f} s: {details}; outputs in {run.folder}/",
+          file=sys.stderr if run.interrupted else sys.stdout)
