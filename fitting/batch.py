@@ -172,13 +172,14 @@ def local_cluster(workers: int, threads: int, startup_seconds: float = STARTUP_S
                if k != "MALLOC_TRIM_THRESHOLD_"}
     cluster = None
     try:
-        with dask.config.set({"distributed.worker.daemon": False,
-                              "distributed.nanny.pre-spawn-environ": environ}), _sigint_blocked():
-            cluster = LocalCluster(n_workers=0, threads_per_worker=1, processes=True,
-                                   env=worker_env(threads), dashboard_address=None,
-                                   silence_logs=logging.CRITICAL)
-        cluster.scale(workers)
-        cluster.wait_for_workers(workers, timeout=startup_seconds)
+        with dask.config.set({"distributed.worker.daemon": False,       # read as each worker spawns
+                              "distributed.nanny.pre-spawn-environ": environ}):
+            with _sigint_blocked():
+                cluster = LocalCluster(n_workers=0, threads_per_worker=1, processes=True,
+                                       env=worker_env(threads), dashboard_address=None,
+                                       silence_logs=logging.CRITICAL)
+            cluster.scale(workers)
+            cluster.wait_for_workers(workers, timeout=startup_seconds)
     except BaseException as error:
         if cluster is not None:
             cluster.close(timeout=30)
