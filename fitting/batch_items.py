@@ -153,10 +153,8 @@ def collect_items(inputs=(), kind: str = "face", options: dict | None = None, ma
 
 
 def _checked_options(kind: str, options: dict) -> dict:
-    names = FITS[kind].names
-    unknown = sorted(set(options) - set(names))
-    if unknown:
-        raise InputError(f"unknown fit-{kind} options {unknown} (options: {', '.join(sorted(names))})")
+    """The options given (not None) of an item; InputError for a name that is not an option."""
+    FITS[kind].values(options)
     return {k: v for k, v in options.items() if v is not None}
 
 

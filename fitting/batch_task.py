@@ -29,8 +29,8 @@ from softras_cl.fitting.run_options import BODY, FITS
 from softras_cl.fitting.run_records import body_record, completed, face_landmarks_source, face_record
 from softras_cl.io.outputs import LOCK_NAME, OutputFolder, json_safe
 
-__all__ = ["run_item", "item_record", "item_config", "make_row", "describe", "count_faces", "body_inputs", "publish",
-           "fit_into"]
+__all__ = ["run_item", "item_record", "item_config", "make_row", "describe", "count_faces", "body_inputs",
+           "publish", "fit_into"]
 
 logger = logging.getLogger(__name__)
 

@@ -92,10 +92,11 @@ class FitOptions:
 
     def values(self, given: dict) -> dict:
         """Every option's value: ``given``'s where it holds one that is not None, else the
-        default. KeyError for a name that is not an option."""
-        unknown = set(given) - set(self.names)
+        default. InputError for a name that is not an option."""
+        unknown = sorted(set(given) - set(self.names))
         if unknown:
-            raise KeyError(sorted(unknown))
+            raise InputError(f"unknown {self.command} options {unknown} "
+                             f"(options: {', '.join(sorted(self.names))})")
         return {o.name: o.default if given.get(o.name) is None else given[o.name] for o in self.options}
 
     def config(self, given: dict):

@@ -48,6 +48,11 @@ def test_every_option_has_a_sample():
     assert set(FACE_SAMPLES) == set(FACE.names) and set(BODY_SAMPLES) == set(BODY.names)
 
 
+def test_an_unknown_option_is_named():
+    with pytest.raises(InputError, match=r"unknown fit-body options \['colour'\] \(options: background, budget"):
+        collect_items([str(DATA / "astronaut.png")], "body", dict(colour="red"))
+
+
 @pytest.mark.parametrize("kind, fit, cli, samples, photo", CASES, ids=["face", "body"])
 def test_each_option_reaches_the_batch_config_and_the_record_as_the_single_fit(kind, fit, cli, samples,
                                                                                  photo):
