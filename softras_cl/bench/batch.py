@@ -68,7 +68,7 @@ def one_at_a_time(model, samples, options: dict, progress: bool) -> list[dict]:
     """fit_face per photo in this process (read from the same files): (values, metrics, seconds)."""
     from tqdm import tqdm
 
-    from softras_cl.fitting.batch import face_config
+    from softras_cl.fitting.run_options import FACE
     from softras_cl.fitting.recipes.face import fit_face
     from softras_cl.io.images import read_image
 
@@ -77,7 +77,7 @@ def one_at_a_time(model, samples, options: dict, progress: bool) -> list[dict]:
         photo = read_image(s["photo_path"])[..., :3]
         landmarks = np.load(s["photo_path"].with_suffix(".npy"))
         start = time.perf_counter()
-        fit = fit_face(photo, landmarks, model, face_config(options), progress=False)
+        fit = fit_face(photo, landmarks, model, FACE.config(options), progress=False)
         rows.append(dict(values=fit.values, metrics=fit.metrics(), seconds=time.perf_counter() - start))
     return rows
 
@@ -143,13 +143,13 @@ def _reference_row(model, samples, reference) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from softras_cl.fitting.batch import _import_distributed
+    from softras_cl.fitting.batch import import_distributed
     from softras_cl.fitting.models.face_loaders import load_demo_face_model
 
     configs = parse_configs(args.configs)
     if args.faces < 1 or args.size < 16:
         raise InputError(f"--faces must be >= 1 and --size >= 16, got {args.faces} and {args.size}")
-    _import_distributed()
+    import_distributed()
     options = dict(size=args.size, budget=args.budget)
     with OutputFolder(args.out, "bench batch", "--out") as folder:
         out, model = folder.path, load_demo_face_model()

@@ -63,7 +63,9 @@ def check_batch_args(args: argparse.Namespace) -> None:
 def run_batch(args: argparse.Namespace, kind: str, inputs: list[str], options: dict,
               side_file: str | None) -> int:
     """Fit every item (softras_cl.fitting.batch), print one summary line; the exit code."""
-    from softras_cl.fitting.batch import collect_items, fit_many, load_model
+    from softras_cl.fitting.batch import fit_many
+    from softras_cl.fitting.batch_items import collect_items
+    from softras_cl.fitting.model_cache import load_model
 
     check_batch_args(args)
     items = collect_items(inputs, kind, options, manifest=args.manifest, landmarks=side_file)

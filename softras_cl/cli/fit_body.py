@@ -4,9 +4,8 @@ from __future__ import annotations
 import argparse
 
 from softras_cl.cli.batch import BATCH_EPILOG, add_batch_options, is_batch, run_batch
-from softras_cl.cli.runs import named_as_options, run_fit, run_state
+from softras_cl.cli.runs import add_fit_options, fit_values, run_fit, say_summary
 from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
-from softras_cl.fitting.body_files import parse_background, read_joints, read_target  # noqa: F401 (re-exported)
 
 DESCRIPTION = """\
 Fit an SMPL-like body model (shape betas, joint rotations, global rotation, translation) to one
@@ -30,45 +29,20 @@ facing +z and standing near the origin), --fov degrees across the shorter image 
 
 def register(sub) -> None:
     """Add `fit-body` to the `softras-cl` subparsers `sub`."""
-    from softras_cl.fitting.recipes.body import BUDGETS, BodyFitConfig
+    from softras_cl.fitting.run_options import BODY
 
-    d = BodyFitConfig()
     p = sub.add_parser("fit-body", help="fit a body model to a part-coloured image or silhouette",
                        description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("targets", nargs="*", metavar="TARGET",
                    help="target image (PNG/JPEG/..., or .npy of linear values): part colours on "
                         "--background, RGBA, or a mask with --silhouette; several targets, folders or "
                         "glob patterns fit each into its own folder under --out")
-    p.add_argument("--model", default=None,
-                   help="body model file: SMPL .pkl/.npz or the project's .npz "
-                        "(default: the demo model shipped with softras-cl)")
+    add_fit_options(p, BODY, files=True)
     p.add_argument("--out", required=True, help="output directory (created if missing)")
     p.add_argument("--joints", default=None,
                    help="2D joints of the target, one row per model joint in the model's order: "
                         ".txt rows 'x y' or 'x y weight' (0-based pixels; weight 0 = unseen) or .npy")
-    p.add_argument("--silhouette", action="store_true",
-                   help="the target is a mask of the body (alpha channel, or mean of the channels)")
-    p.add_argument("--background", default="0,0,0",
-                   help="background colour of a part-coloured target, linear RGB 'r,g,b' (default 0,0,0)")
-    p.add_argument("--budget", choices=sorted(BUDGETS), default="default",
-                   help="schedule: evaluations and sigma/gamma steps (default: default); "
-                        "`softras-cl bench body` shows what each costs and gains")
-    p.add_argument("--size", type=int, default=d.size,
-                   help=f"longest side in pixels of the working image (default {d.size})")
-    p.add_argument("--distance", type=float, default=d.distance,
-                   help=f"camera distance from the body in metres (default {d.distance})")
-    p.add_argument("--height", type=float, default=d.height,
-                   help=f"camera and aim height in metres (default {d.height})")
-    p.add_argument("--fov", type=float, default=d.fov_deg,
-                   help=f"field of view in degrees across the shorter image side (default {d.fov_deg})")
-    p.add_argument("--coarse-mesh", type=float, default=d.coarse_mesh, metavar="EDGES",
-                   help="the image stages draw the model's faces merged into cubes of EDGES median "
-                        "edge lengths of its template: most of the full mesh's triangles cover less "
-                        f"than a pixel at the working size (default {d.coarse_mesh:g}; 0: the "
-                        "model's own faces; the fitted body, its joints and every output use the "
-                        "full mesh; docs/body_fitting.md shows what the choices cost and gain)")
-    p.add_argument("--robust-joints", type=float, default=None, metavar="PX",
-                   help="Geman-McClure scale in pixels for the joint term (default: plain squares)")
+    add_fit_options(p, BODY, files=False)
     p.add_argument("--resume", action="store_true",
                    help="continue the interrupted fit in --out from its checkpoint.npz (same target, "
                         "model, joints and options, else refused); finished stages are skipped")
@@ -84,42 +58,34 @@ def register(sub) -> None:
 def _load_inputs(args):
     """(target, joints (J, 2) or None, joint weights or None, model, config); ValueError/OSError
     on bad input."""
-    from softras_cl.fitting.models.body_loaders import load_body_model, load_demo_body_model
+    from softras_cl.fitting.body_files import read_joints, read_target
+    from softras_cl.fitting.model_cache import load_model
 
-    model = load_demo_body_model() if args.model is None else load_body_model(args.model)
+    model = load_model("body", args.model)
     target = read_target(args.target, args.silhouette)
     joints, weights = (None, None) if args.joints is None else read_joints(args.joints, model.n_joints)
     return target, joints, weights, model, _config(args)
 
 
-CONFIG_OPTIONS = {"size": "--size", "distance": "--distance", "height": "--height", "fov_deg": "--fov",
-                  "background": "--background", "robust_px": "--robust-joints",
-                  "coarse_mesh": "--coarse-mesh"}
-
-
 def _config(args: argparse.Namespace):
     """The BodyFitConfig of the options; InputError naming the option that is out of range."""
-    from softras_cl.fitting.recipes.body import BodyFitConfig
+    from softras_cl.fitting.run_options import BODY
 
-    with named_as_options(CONFIG_OPTIONS):
-        return BodyFitConfig.from_budget(args.budget, size=args.size, distance=args.distance,
-                                         height=args.height, fov_deg=args.fov,
-                                         background=parse_background(args.background),
-                                         robust_px=args.robust_joints, coarse_mesh=args.coarse_mesh or None)
+    return BODY.config(_options(args))
 
 
 def _run_record(args: argparse.Namespace) -> dict:
     """What makes a run of this command: the inputs' digests and the options that change the fit."""
-    from softras_cl.fitting.batch import body_record
+    from softras_cl.fitting.run_records import body_record
 
     return body_record(args.target, args.joints, _options(args))
 
 
 def _options(args: argparse.Namespace) -> dict:
-    """The options of a fit (softras_cl.fitting.batch.BODY_OPTIONS) from the command line."""
-    from softras_cl.fitting.batch import BODY_OPTIONS
+    """The options of a fit (softras_cl.fitting.run_options.BODY) from the command line."""
+    from softras_cl.fitting.run_options import BODY
 
-    return {k: getattr(args, k) for k in BODY_OPTIONS}
+    return fit_values(args, BODY)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -152,6 +118,5 @@ def run_one(args: argparse.Namespace) -> int:
     metrics = run.metrics
     joints_msg = (f", joint error {metrics['joint_error_px_full']:.1f} px" if "joint_error_px_full" in metrics
                   else "")
-    print(f"fit-body {run_state(run.interrupted)} in {run.seconds:.1f} s: silhouette IoU "
-          f"{metrics['silhouette_iou']:.3f}{joints_msg}; outputs in {run.folder}/")
+    say_summary("fit-body", run, f"silhouette IoU {metrics['silhouette_iou']:.3f}{joints_msg}")
     return EXIT_INTERRUPTED if run.interrupted else EXIT_OK

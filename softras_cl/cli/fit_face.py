@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 
 from softras_cl.cli.batch import BATCH_EPILOG, add_batch_options, is_batch, run_batch
-from softras_cl.cli.runs import named_as_options, run_fit, run_state
+from softras_cl.cli.runs import add_fit_options, fit_values, run_fit, say_summary
 from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
 
 DESCRIPTION = """\
@@ -45,7 +45,7 @@ Without --same-person several photos are independent fits (above)."""
 
 def register(sub) -> None:
     """Add `fit-face` to the `softras-cl` subparsers `sub`."""
-    from softras_cl.fitting.recipes.face import BUDGETS, COARSE_MESH
+    from softras_cl.fitting.run_options import FACE
 
     p = sub.add_parser("fit-face", help="fit a face model to a photo and its 68 landmarks",
                        description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -66,33 +66,9 @@ def register(sub) -> None:
     p.add_argument("--all-faces", action="store_true",
                    help="fit every face the detector finds, each into its own folder under --out "
                         "(NAME-face0 for the largest, NAME-face1, ...); without it, the largest")
-    p.add_argument("--model", default=None,
-                   help="face model file: the project's .npz, BFM 2009 .mat, BFM 2017 .h5 or FLAME "
-                        ".pkl (default: the demo model shipped with softras-cl)")
-    p.add_argument("--model-landmarks", default=None,
-                   help="landmark mapping for a model without the 68 iBUG landmarks: vertex indices "
-                        "or 'face b0 b1 b2' rows (.txt/.npy), or a FLAME landmark embedding")
+    add_fit_options(p, FACE, files=True)
     p.add_argument("--out", required=True, help="output directory (created if missing)")
-    p.add_argument("--budget", choices=sorted(BUDGETS), default="default",
-                   help="schedule: evaluations and sigma/gamma steps (default: default); "
-                        "`softras-cl bench face` shows what each costs and gains")
-    p.add_argument("--size", type=int, default=256,
-                   help="longest side in pixels of the working image the fit runs at (default 256)")
-    p.add_argument("--photo-weight", type=float, default=None,
-                   help="weight of the photometric term (default 100, i.e. pixel noise ~0.1, with a "
-                        "robust kernel that caps what hair, glasses or shadows can pull; higher "
-                        "trusts the photo more; see docs/face_fitting.md and `softras-cl bench face`)")
-    p.add_argument("--coarse-mesh", type=float, default=COARSE_MESH, metavar="EDGES",
-                   help="the first, half-resolution photometric stage draws the model's faces "
-                        "merged into cubes of EDGES median edge lengths: most of the full mesh's "
-                        f"triangles cover less than a pixel there (default {COARSE_MESH:g}; 0: "
-                        "the model's own faces; docs/face_fitting.md shows what the choices "
-                        "cost and gain)")
-    p.add_argument("--focal", type=float, default=None,
-                   help="focal length in pixels of the photo, if known (default: fitted)")
-    p.add_argument("--n-id", type=int, default=None, help="identity components to use (default: all)")
-    p.add_argument("--n-exp", type=int, default=None, help="expression components to use (default: all)")
-    p.add_argument("--n-albedo", type=int, default=None, help="albedo components to use (default: all)")
+    add_fit_options(p, FACE, files=False)
     p.add_argument("--resume", action="store_true",
                    help="continue the interrupted fit in --out from its checkpoint.npz (same photo, "
                         "landmarks, model and options, else refused); finished stages are skipped")
@@ -106,10 +82,10 @@ def register(sub) -> None:
 
 
 def _options(args: argparse.Namespace) -> dict:
-    """The options of a fit (softras_cl.fitting.batch.FACE_OPTIONS) from the command line."""
-    from softras_cl.fitting.batch import FACE_OPTIONS
+    """The options of a fit (softras_cl.fitting.run_options.FACE) from the command line."""
+    from softras_cl.fitting.run_options import FACE
 
-    return {k: getattr(args, k) for k in FACE_OPTIONS}
+    return fit_values(args, FACE)
 
 
 def _load_inputs(args):
@@ -124,7 +100,7 @@ def _load_inputs(args):
 
 def _load_model(args):
     """The face model of --model (and --model-landmarks), else the demo model."""
-    from softras_cl.fitting.batch import load_model
+    from softras_cl.fitting.model_cache import load_model
 
     if args.model is None and args.model_landmarks is not None:
         raise ValueError("--model-landmarks needs --model (the demo model has its landmarks)")
@@ -134,7 +110,7 @@ def _load_model(args):
 def _run_record(args: argparse.Namespace) -> dict:
     """What makes a run of this command: the inputs' digests and the options that change the fit
     (the same record a batch item of this photo has)."""
-    from softras_cl.fitting.batch import face_landmarks_source, face_record
+    from softras_cl.fitting.run_records import face_landmarks_source, face_record
 
     return face_record(args.photo, face_landmarks_source(args.photo, args.landmarks), _options(args))
 
@@ -164,19 +140,11 @@ def _single_landmarks(files: list[str] | None) -> str | None:
     return None if files is None else files[0]
 
 
-CONFIG_OPTIONS = {"size": "--size", "focal": "--focal", "photo_weight": "--photo-weight",
-                  "n_id": "--n-id", "n_exp": "--n-exp", "n_albedo": "--n-albedo",
-                  "coarse_mesh": "--coarse-mesh"}
-
-
 def _config(args: argparse.Namespace):
     """The FaceFitConfig of the options; InputError naming the option that is out of range."""
-    from softras_cl.fitting.recipes.face import FaceFitConfig
+    from softras_cl.fitting.run_options import FACE
 
-    with named_as_options(CONFIG_OPTIONS):
-        return FaceFitConfig.from_budget(args.budget, photo_weight=args.photo_weight, size=args.size,
-                                         focal=args.focal, n_id=args.n_id, n_exp=args.n_exp,
-                                         n_albedo=args.n_albedo, coarse_mesh=args.coarse_mesh or None)
+    return FACE.config(_options(args))
 
 
 def run_one(args: argparse.Namespace) -> int:
@@ -196,17 +164,16 @@ def run_one(args: argparse.Namespace) -> int:
     run = run_fit(args, "fit-face", _run_record(args), fit, ("landmark_error_px_full", "psnr_face_db"), write,
                   [args.photo])
     metrics = run.metrics
-    print(f"fit-face {run_state(run.interrupted)} in {run.seconds:.1f} s: landmark error "
-          f"{metrics['landmark_error_px_full']:.2f} px, face-region PSNR {metrics['psnr_face_db']:.1f} dB "
-          f"(model), {metrics['psnr_face_db_textured']:.1f} dB (with the detail texture; sRGB); "
-          f"outputs in {run.folder}/")
+    say_summary("fit-face", run, f"landmark error {metrics['landmark_error_px_full']:.2f} px, face-region "
+                f"PSNR {metrics['psnr_face_db']:.1f} dB (model), {metrics['psnr_face_db_textured']:.1f} dB "
+                "(with the detail texture; sRGB)")
     return EXIT_INTERRUPTED if run.interrupted else EXIT_OK
 
 
 def _check_same_person(args: argparse.Namespace) -> list:
     """The photos of a --same-person run (files, folders, globs expanded, in order); InputError
     naming the options that do not go with it, before any photo is read."""
-    from softras_cl.fitting.batch import expand_paths
+    from softras_cl.fitting.batch_items import expand_paths
 
     if args.same_camera and args.focal is not None:
         raise InputError("--same-camera fits one focal length for all the photos; --focal gives it already: "
@@ -231,9 +198,9 @@ def _check_same_person(args: argparse.Namespace) -> list:
 
 def _same_person_inputs(args: argparse.Namespace, photos: list) -> tuple[list, list, list]:
     """(photos (H, W, 3) linear RGB, landmarks (68, 2) each, input records for params.json)."""
-    from softras_cl.fitting.batch import face_landmarks_source
     from softras_cl.fitting.landmark_detect import resolve_landmarks
     from softras_cl.io.images import read_image
+    from softras_cl.fitting.run_records import face_landmarks_source
     from softras_cl.io.outputs import file_sha256
 
     files = args.landmarks or [None] * len(photos)
@@ -246,7 +213,8 @@ def _same_person_inputs(args: argparse.Namespace, photos: list) -> tuple[list, l
 
 def run_same_person(args: argparse.Namespace) -> int:
     """Several photos of one person into --out (fitting.recipes.face_views)."""
-    from softras_cl.fitting.batch import face_record, stable_names
+    from softras_cl.fitting.batch_items import stable_names
+    from softras_cl.fitting.run_records import face_record
     from softras_cl.fitting.recipes.face_views import fit_face_views, joint_config
     from softras_cl.fitting.reports.face_views import write_views_outputs
 
@@ -268,7 +236,7 @@ def run_same_person(args: argparse.Namespace) -> int:
                                    extra=dict(seconds=seconds, budget=args.budget))
 
     run = run_fit(args, "fit-face", record, fit, ("landmark_error_px_full", "psnr_face_db"), write, paths)
-    print(f"fit-face --same-person {run_state(run.interrupted)} in {run.seconds:.1f} s: {len(paths)} photos, "
-          f"mean landmark error {run.metrics['landmark_error_px_full']:.2f} px, mean face-region PSNR "
-          f"{run.metrics['psnr_face_db']:.1f} dB (model, sRGB); outputs in {run.folder}/")
+    say_summary("fit-face --same-person", run, f"{len(paths)} photos, mean landmark error "
+                f"{run.metrics['landmark_error_px_full']:.2f} px, mean face-region PSNR "
+                f"{run.metrics['psnr_face_db']:.1f} dB (model, sRGB)")
     return EXIT_INTERRUPTED if run.interrupted else EXIT_OK

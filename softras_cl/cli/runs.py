@@ -1,30 +1,37 @@
-"""What the fitting commands share around a fit: option names in errors, late interrupts, the summary."""
+"""What the fitting commands share around a fit: their options' arguments (from
+fitting.run_options), late interrupts, the summary line."""
 from __future__ import annotations
 
+import argparse
 import contextlib
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import TYPE_CHECKING, Callable, Iterator
 
-from softras_cl.errors import InputError
 from softras_cl.fitting.metrics import finite_metrics
 from softras_cl.io.outputs import INPUT_FILES, OutputFolder
 from softras_cl.interrupts import Caught, first_interrupt_calls
 
+if TYPE_CHECKING:
+    from softras_cl.fitting.run_options import FitOptions
 
-@contextlib.contextmanager
-def named_as_options(options: dict[str, str]) -> Iterator[None]:
-    """Reword a configuration's InputError ("fov_deg must be ...") with the command's option for
-    that field ("--fov must be ..."); ``options`` maps field names to option names."""
-    try:
-        yield
-    except InputError as e:
-        field, _, rest = str(e).partition(" ")
-        if field not in options:
-            raise
-        raise InputError(f"{options[field]} {rest}") from None
+
+def add_fit_options(p: argparse.ArgumentParser, fit: FitOptions, files: bool) -> None:
+    """Add the options of ``fit`` (fitting.run_options: FACE, BODY) to a command's parser, each
+    with its flag, type, default and help: its model files (``files``) or all the others."""
+    for option in (o for o in fit.options if o.file == files):
+        if option.switch:
+            p.add_argument(option.flag, action="store_true", help=option.help)
+        else:
+            p.add_argument(option.flag, type=option.parse, default=option.default, choices=option.choices,
+                           metavar=option.metavar, help=option.help)
+
+
+def fit_values(args: argparse.Namespace, fit: FitOptions) -> dict:
+    """The values of ``fit``'s options on the command line (option name -> value)."""
+    return {name: getattr(args, name) for name in fit.names}
 
 
 def _say_finishing(signum: int) -> None:
@@ -38,13 +45,6 @@ def finishing_outputs() -> Iterator[Caught]:
     writing goes on; a second one stops at once."""
     with first_interrupt_calls(_say_finishing) as caught:
         yield caught
-
-
-def run_state(interrupted: bool) -> str:
-    """How the summary line describes the run."""
-    if interrupted:
-        return "interrupted; outputs are from the best values so far (--resume continues the fit)"
-    return "done"
 
 
 @dataclass
@@ -79,3 +79,13 @@ def run_fit(args, command: str, record: dict, fit: Callable, required: tuple[str
                 out.finish({"status": "done", INPUT_FILES: [str(f) for f in files], "metrics": metrics,
                             "seconds": seconds})
     return FitRun(metrics, seconds, interrupted, out.path)
+
+
+def say_summary(command: str, run: FitRun, details: str) -> None:
+    """Print the run's summary line: "COMMAND done in S s: DETAILS; outputs in FOLDER/" on
+    stdout, or, when the run was interrupted, that its outputs are from the best values so far,
+    on stderr (with the other notices of the interrupt)."""
+    state = ("interrupted; outputs are from the best values so far (--resume continues the fit)"
+             if run.interrupted else "done")
+    print(f"{command} {state} in {run.seconds:.1f} s: {details}; outputs in {run.folder}/",
+          file=sys.stderr if run.interrupted else sys.stdout)

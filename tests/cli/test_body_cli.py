@@ -76,12 +76,14 @@ def test_bad_input_is_reported_before_fitting(tmp_path, run_cli, target, case, m
     assert not (tmp_path / "o").exists()
 
 
-def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path, target):
+def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path, target, capsys):
     out = tmp_path / "fit"
     with sigint_once_written(out / "checkpoint.npz"):
         code = main(["fit-body", str(target[0]), "--out", str(out), "--size", "48", "--budget", "thorough",
                      "--no-progress"])
     assert code == 130
+    said = capsys.readouterr()
+    assert said.out == "" and "fit-body interrupted; outputs are from the best values so far" in said.err
     doc = json.loads((out / "params.json").read_text())
     assert doc["interrupted"] is True
     values, _ = load_checkpoint(out / "checkpoint.npz")

@@ -64,12 +64,14 @@ def test_bad_input_is_reported_before_fitting(tmp_path, run_cli, case, match):
     assert not (tmp_path / "o").exists()
 
 
-def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path):
+def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path, capsys):
     out = tmp_path / "fit"
     with sigint_once_written(out / "checkpoint.npz"):
         code = main(["fit-face", str(PHOTO), "--landmarks", str(LANDMARKS), "--out", str(out),
                      "--size", "96", "--budget", "thorough", "--no-progress"])
     assert code == 130
+    said = capsys.readouterr()
+    assert said.out == "" and "fit-face interrupted; outputs are from the best values so far" in said.err
     doc = json.loads((out / "params.json").read_text())
     assert doc["interrupted"] is True
     values, meta = load_checkpoint(out / "checkpoint.npz")

@@ -1,4 +1,4 @@
-"""softras_cl.fitting.batch: items, names, manifests and run records (fast), then fit_many on a
+"""softras_cl.fitting.batch and its parts: items, names, manifests and run records (fast), then fit_many on a
 real distributed.LocalCluster of worker processes with small synthetic photos: the results
 table, skipping on a re-run, a corrupt photo recorded as failed while the others finish, and a
 worker killed with SIGKILL mid-fit whose item is retried elsewhere."""
@@ -17,7 +17,9 @@ import pytest
 
 from softras_cl.errors import InputError
 from softras_cl.fitting import batch
-from softras_cl.fitting.batch import Item, collect_items, completed, fit_many, split_cores, stable_names
+from softras_cl.fitting.batch import fit_many, split_cores
+from softras_cl.fitting.batch_items import collect_items, stable_names
+from softras_cl.fitting.run_records import completed
 from softras_cl.io.outputs import LOCK_NAME
 
 distributed = pytest.importorskip("distributed")
@@ -116,7 +118,7 @@ def test_split_cores():
 @pytest.fixture(scope="module")
 def client():
     with batch.local_cluster(2, 1) as cluster, distributed.Client(cluster) as c:
-        c.register_plugin(batch._worker_plugin())
+        c.register_plugin(batch.worker_plugin())
         yield c
 
 

@@ -1,0 +1,226 @@
+"""The options of each fit, declared once (:data:`FACE`, :data:`BODY`, :data:`FITS`).
+
+An :class:`Option` says everything the rest of the package needs about one option of
+`softras-cl fit-face` or `fit-body`: its flag and help (softras_cl.cli builds the argparse
+arguments from it), how a manifest cell is read (fitting.batch_items), which field of the fit's
+config it sets (:meth:`FitOptions.config`, used by the single-photo command and by a batch
+item alike), and what the run record holds of it (fitting.run_records). A new option of a fit,
+or a new fit, is one entry here.
+
+``values`` below is a dict option name -> value with every option of the fit
+(:meth:`FitOptions.values` fills the defaults).
+"""
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+from typing import Any, Callable, Iterator
+
+from softras_cl.errors import InputError
+
+__all__ = ["Option", "FitOptions", "FACE", "BODY", "FITS", "yes_no"]
+
+
+def yes_no(text: str) -> bool:
+    """A switch's manifest cell: 1/0, true/false, yes/no (any case) -> bool; ValueError otherwise."""
+    word = str(text).strip().lower()
+    if word not in ("1", "0", "true", "false", "yes", "no"):
+        raise ValueError(f"expected true/false, got {text!r}")
+    return word in ("1", "true", "yes")
+
+
+def _same(value):
+    return value
+
+
+@dataclass(frozen=True)
+class Option:
+    """One option of a fit.
+
+    name: its key in batch items, manifest columns and run records; the flag is ``--name``
+        with dashes.
+    parse: text -> value (argparse's type and a manifest cell's reader); :func:`yes_no` makes
+        a switch (``action="store_true"``).
+    default, help, choices, metavar: as argparse has them.
+    field: the keyword of the config's ``from_budget`` the option sets (None: it is not a
+        config knob); to_config: option value -> that keyword's value.
+    recorded: the run record's "options" hold it (it changes the fit).
+    record_default: the record holds it at its default too; False for an option added after
+        records were first written, so the complete.json files written before it still match
+        a run at its default.
+    file: a model file: the record's "inputs" hold its SHA-256, and a manifest cell is relative
+        to the manifest's folder.
+    """
+    name: str
+    parse: Callable[[str], Any]
+    default: Any
+    help: str
+    field: str | None = None
+    to_config: Callable[[Any], Any] = _same
+    recorded: bool = True
+    record_default: bool = True
+    file: bool = False
+    choices: tuple | None = None
+    metavar: str | None = None
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.name.replace("_", "-")
+
+    @property
+    def switch(self) -> bool:
+        return self.parse is yes_no
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """The options of one fit (every fit has a ``budget``) and how its config is made:
+    ``make_config(budget, **changes)``, the config class's ``from_budget``."""
+    command: str
+    options: tuple[Option, ...]
+    make_config: Callable[..., Any]
+
+    def __getitem__(self, name: str) -> Option:
+        for option in self.options:
+            if option.name == name:
+                return option
+        raise KeyError(name)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(o.name for o in self.options)
+
+    def values(self, given: dict) -> dict:
+        """Every option's value: ``given``'s where it holds one that is not None, else the
+        default. InputError for a name that is not an option."""
+        unknown = sorted(set(given) - set(self.names))
+        if unknown:
+            raise InputError(f"unknown {self.command} options {unknown} "
+                             f"(options: {', '.join(sorted(self.names))})")
+        return {o.name: o.default if given.get(o.name) is None else given[o.name] for o in self.options}
+
+    def config(self, given: dict):
+        """The fit's config (FaceFitConfig, BodyFitConfig) of the options ``given`` (the
+        defaults for the rest); InputError naming the option whose value is out of range."""
+        values = self.values(given)
+        changes = {o.field: o.to_config(values[o.name]) for o in self.options
+                   if o.field is not None and values[o.name] is not None}
+        with self.named_as_options():
+            return self.make_config(values["budget"], **changes)
+
+    @contextlib.contextmanager
+    def named_as_options(self) -> Iterator[None]:
+        """Reword a config's InputError ("fov_deg must be ...") with the option's flag ("--fov
+        must be ...")."""
+        flags = {o.field: o.flag for o in self.options if o.field is not None}
+        try:
+            yield
+        except InputError as e:
+            field, _, rest = str(e).partition(" ")
+            if field not in flags:
+                raise
+            raise InputError(f"{flags[field]} {rest}") from None
+
+    def parse_cell(self, column: str, text: str) -> tuple[str, Any]:
+        """(option name, value) of a manifest cell; InputError naming the column."""
+        name = column.strip().replace("-", "_")
+        if name not in self.names:
+            raise InputError(f"manifest column {column!r} is not an option of {self.command} "
+                             f"(options: {', '.join(sorted(self.names))})")
+        parse = self[name].parse
+        try:
+            return name, parse(text.strip())
+        except ValueError as e:
+            reason = str(e) if parse is yes_no else f"{text!r} is not a {parse.__name__}"
+            raise InputError(f"manifest column {column!r}: {reason}") from None
+
+    def record_options(self, values: dict) -> dict:
+        """The run record's "options": the recorded options (see Option.record_default)."""
+        return {o.name: values[o.name] for o in self.options
+                if o.recorded and (o.record_default or values[o.name] != o.default)}
+
+
+def _coarse_mesh(edges: float) -> float | None:
+    """--coarse-mesh 0 means the model's own faces (the config's None)."""
+    return edges or None
+
+
+def _face_config(budget: str, **changes):
+    from softras_cl.fitting.recipes.face import FaceFitConfig
+    return FaceFitConfig.from_budget(budget, **changes)
+
+
+def _body_config(budget: str, **changes):
+    from softras_cl.fitting.recipes.body import BodyFitConfig
+    return BodyFitConfig.from_budget(budget, **changes)
+
+
+def _background(text: str) -> tuple[float, float, float]:
+    from softras_cl.fitting.body_files import parse_background
+    return parse_background(text)
+
+
+def _face_options() -> tuple[Option, ...]:
+    from softras_cl.fitting.recipes.face import BUDGETS, COARSE_MESH
+
+    return (
+        Option("model", str, None, "face model file: the project's .npz, BFM 2009 .mat, BFM 2017 .h5 or "
+               "FLAME .pkl (default: the demo model shipped with softras-cl)", recorded=False, file=True),
+        Option("model_landmarks", str, None, "landmark mapping for a model without the 68 iBUG landmarks: "
+               "vertex indices or 'face b0 b1 b2' rows (.txt/.npy), or a FLAME landmark embedding",
+               recorded=False, file=True),
+        Option("budget", str, "default", "schedule: evaluations and sigma/gamma steps (default: default); "
+               "`softras-cl bench face` shows what each costs and gains", choices=tuple(sorted(BUDGETS))),
+        Option("size", int, 256, "longest side in pixels of the working image the fit runs at (default 256)",
+               field="size"),
+        Option("photo_weight", float, None, "weight of the photometric term (default 100, i.e. pixel noise "
+               "~0.1, with a robust kernel that caps what hair, glasses or shadows can pull; higher trusts "
+               "the photo more; see docs/face_fitting.md and `softras-cl bench face`)", field="photo_weight"),
+        Option("coarse_mesh", float, COARSE_MESH, "the first, half-resolution photometric stage draws the "
+               "model's faces merged into cubes of EDGES median edge lengths: most of the full mesh's "
+               f"triangles cover less than a pixel there (default {COARSE_MESH:g}; 0: the model's own "
+               "faces; docs/face_fitting.md shows what the choices cost and gain)",
+               field="coarse_mesh", to_config=_coarse_mesh, record_default=False, metavar="EDGES"),
+        Option("focal", float, None, "focal length in pixels of the photo, if known (default: fitted)",
+               field="focal"),
+        Option("n_id", int, None, "identity components to use (default: all)", field="n_id"),
+        Option("n_exp", int, None, "expression components to use (default: all)", field="n_exp"),
+        Option("n_albedo", int, None, "albedo components to use (default: all)", field="n_albedo"),
+    )
+
+
+def _body_options() -> tuple[Option, ...]:
+    from softras_cl.fitting.recipes.body import BUDGETS, BodyFitConfig
+
+    d = BodyFitConfig()
+    return (
+        Option("model", str, None, "body model file: SMPL .pkl/.npz or the project's .npz "
+               "(default: the demo model shipped with softras-cl)", recorded=False, file=True),
+        Option("silhouette", yes_no, False, "the target is a mask of the body (alpha channel, or mean of "
+               "the channels)"),
+        Option("background", str, "0,0,0", "background colour of a part-coloured target, linear RGB "
+               "'r,g,b' (default 0,0,0)", field="background", to_config=_background),
+        Option("budget", str, "default", "schedule: evaluations and sigma/gamma steps (default: default); "
+               "`softras-cl bench body` shows what each costs and gains", choices=tuple(sorted(BUDGETS))),
+        Option("size", int, d.size, f"longest side in pixels of the working image (default {d.size})",
+               field="size"),
+        Option("distance", float, d.distance, f"camera distance from the body in metres (default "
+               f"{d.distance})", field="distance"),
+        Option("height", float, d.height, f"camera and aim height in metres (default {d.height})",
+               field="height"),
+        Option("fov", float, d.fov_deg, f"field of view in degrees across the shorter image side (default "
+               f"{d.fov_deg})", field="fov_deg"),
+        Option("coarse_mesh", float, d.coarse_mesh, "the image stages draw the model's faces merged into "
+               "cubes of EDGES median edge lengths of its template: most of the full mesh's triangles cover "
+               f"less than a pixel at the working size (default {d.coarse_mesh:g}; 0: the model's own "
+               "faces; the fitted body, its joints and every output use the full mesh; "
+               "docs/body_fitting.md shows what the choices cost and gain)",
+               field="coarse_mesh", to_config=_coarse_mesh, record_default=False, metavar="EDGES"),
+        Option("robust_joints", float, None, "Geman-McClure scale in pixels for the joint term (default: "
+               "plain squares)", field="robust_px", metavar="PX"),
+    )
+
+
+FACE = FitOptions("fit-face", _face_options(), _face_config)
+BODY = FitOptions("fit-body", _body_options(), _body_config)
+FITS = {"face": FACE, "body": BODY}      # batch item kind -> its fit's options

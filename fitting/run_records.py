@@ -1,0 +1,61 @@
+"""Run records: what makes a fit (a SHA-256 of each input file and the options that change it),
+the same for `softras-cl fit-face`/`fit-body` (run.json, complete.json, ``--resume``) and for a
+batch item (its skip when finished). The options come from fitting.run_options."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from softras_cl.fitting.run_options import BODY, FACE, FitOptions
+from softras_cl.io.outputs import COMPLETE_RECORD, file_sha256, json_safe
+
+__all__ = ["face_landmarks_source", "face_record", "body_record", "completed"]
+
+
+def _model_inputs(fit: FitOptions, values: dict) -> dict:
+    """The record's digest of each model file option (None: not given)."""
+    return {o.name: None if values[o.name] is None else file_sha256(values[o.name])
+            for o in fit.options if o.file}
+
+
+def face_landmarks_source(photo, landmarks=None, face: int | None = None) -> str | None:
+    """What the run record says about a face's landmarks: the SHA-256 of the file (given, or
+    beside the photo), else which detector and face found them."""
+    from softras_cl.fitting import landmark_detect as detect
+
+    if landmarks is not None:
+        return file_sha256(landmarks)
+    beside = detect.landmarks_beside(photo)
+    if beside is not None:
+        return file_sha256(beside)
+    return f"detected by {detect.default_backend() or 'no detector'}, face {face or 0}"
+
+
+def face_record(photo, landmarks: str | None, options: dict) -> dict:
+    """The run record of a face fit: dict(command, inputs (SHA-256 per file), options).
+    ``landmarks``: what face_landmarks_source returned; ``options``: fit-face's (FACE), the
+    defaults for those missing or None."""
+    values = FACE.values(options)
+    inputs = dict(photo=file_sha256(photo), landmarks=landmarks, **_model_inputs(FACE, values))
+    return dict(command=FACE.command, inputs=inputs, options=FACE.record_options(values))
+
+
+def body_record(target, joints, options: dict) -> dict:
+    """The run record of a body fit: dict(command, inputs (SHA-256 per file), options);
+    ``options``: fit-body's (BODY), the defaults for those missing or None."""
+    values = BODY.values(options)
+    inputs = dict(target=file_sha256(target), **_model_inputs(BODY, values),
+                  joints=None if joints is None else file_sha256(joints))
+    return dict(command=BODY.command, inputs=inputs, options=BODY.record_options(values))
+
+
+def completed(folder: Path, record: dict) -> dict | None:
+    """folder/complete.json when it holds ``record`` (and is a finished run), else None."""
+    try:
+        doc = json.loads((Path(folder) / COMPLETE_RECORD).read_text())
+    except (OSError, ValueError):
+        return None
+    want = json.loads(json.dumps(json_safe(record), default=str))
+    if isinstance(doc, dict) and doc.get("status") == "done" and all(doc.get(k) == v for k, v in want.items()):
+        return doc
+    return None

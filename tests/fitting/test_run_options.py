@@ -1,0 +1,144 @@
+"""fitting.run_options: every option of fit-face/fit-body reaches a batch item's config and run
+record exactly as it reaches the single-photo fit's, a manifest column reads like the flag, and
+a batch rerun with another --coarse-mesh refits instead of skipping. Then: the single-photo
+commands do not import the Dask cluster module."""
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from softras_cl.cli import build_parser
+from softras_cl.cli import fit_body as body_cli
+from softras_cl.cli import fit_face as face_cli
+from softras_cl.errors import InputError
+from softras_cl.fitting.batch_items import collect_items
+from softras_cl.fitting.batch_task import item_config, item_record, run_item
+from softras_cl.fitting.run_options import BODY, FACE
+
+REPO = Path(__file__).resolve().parents[2]
+DATA = REPO / "examples" / "data"
+FILE = str(DATA / "astronaut.pts")          # any file: a model option's record is its digest
+
+# a value other than the default for every option of each fit, as typed on the command line
+# (None: a switch); a new option needs its entry here
+FACE_SAMPLES = dict(model=FILE, model_landmarks=FILE, budget="fast", size="128", photo_weight="30",
+                    coarse_mesh="0.5", focal="900", n_id="5", n_exp="6", n_albedo="7")
+BODY_SAMPLES = dict(model=FILE, silhouette=None, background="0.5,0.5,0.5", budget="thorough", size="64",
+                    distance="4.5", height="1.1", fov="40", coarse_mesh="0", robust_joints="3")
+CASES = [("face", FACE, face_cli, FACE_SAMPLES, str(DATA / "astronaut.png")),
+         ("body", BODY, body_cli, BODY_SAMPLES, str(DATA / "astronaut.png"))]
+
+
+def _cli_args(command: str, photo: str, option=None, text=None):
+    argv = [command, photo, "--out", "unused"]
+    if option is not None:
+        argv += [option.flag] if option.switch else [option.flag, text]
+    args = build_parser(command).parse_args(argv)
+    args.photo = args.target = photo
+    args.landmarks = args.joints = None
+    return args
+
+
+def test_every_option_has_a_sample():
+    assert set(FACE_SAMPLES) == set(FACE.names) and set(BODY_SAMPLES) == set(BODY.names)
+
+
+def test_an_unknown_option_is_named():
+    with pytest.raises(InputError, match=r"unknown fit-body options \['colour'\] \(options: background, budget"):
+        collect_items([str(DATA / "astronaut.png")], "body", dict(colour="red"))
+
+
+@pytest.mark.parametrize("kind, fit, cli, samples, photo", CASES, ids=["face", "body"])
+def test_each_option_reaches_the_batch_config_and_the_record_as_the_single_fit(kind, fit, cli, samples,
+                                                                                 photo):
+    base_args = _cli_args(fit.command, photo)
+    base_item = collect_items([photo], kind, cli._options(base_args))[0]
+    base_config, base_record = cli._config(base_args), item_record(base_item)
+    assert item_config(base_item) == base_config and cli._run_record(base_args) == base_record
+    for option in fit.options:
+        args = _cli_args(fit.command, photo, option, samples[option.name])
+        item = collect_items([photo], kind, cli._options(args))[0]       # what run_batch makes of it
+        config, record = cli._config(args), cli._run_record(args)
+        assert item_config(item) == config, option.name                  # the batch fits the same
+        assert item_record(item) == record, option.name                  # and skips on the same record
+        if option.field is not None or option.name == "budget":
+            assert config != base_config, f"{option.flag} does not change the config"
+        if option.recorded or option.file:
+            assert record != base_record, f"{option.flag} is missing from the run record"
+
+
+@pytest.mark.parametrize("kind, fit, cli, samples, photo", CASES, ids=["face", "body"])
+def test_a_manifest_column_reads_like_the_flag(tmp_path, kind, fit, cli, samples, photo):
+    columns = {o.name.replace("_", "-"): "true" if o.switch else samples[o.name] for o in fit.options
+               if not o.file}                    # a file cell is relative to the manifest: below
+    manifest = tmp_path / "items.csv"
+    with open(manifest, "w", newline="") as f:
+        csv.writer(f).writerows([["photo", *columns], [photo, *columns.values()]])
+    item = collect_items([], kind, manifest=manifest)[0]
+    for name, value in item.opts.items():
+        args = _cli_args(fit.command, photo, fit[name], samples[name])
+        assert value == getattr(args, name), name
+    manifest.write_text("photo,size\n" + photo + ",big\n")
+    with pytest.raises(InputError, match="manifest column 'size': 'big' is not a int"):
+        collect_items([], kind, manifest=manifest)
+    manifest.write_text("photo,background\n" + photo + ",1,1,1\n")      # an unquoted comma
+    with pytest.raises(InputError, match="line 2: more cells than the header"):
+        collect_items([], kind, manifest=manifest)
+
+
+def test_coarse_mesh_of_a_batch_item_and_its_rerun(tmp_path):
+    """--coarse-mesh 0.5 fits with 0.5 and says so; the same again is skipped; another value
+    (0: the model's own faces) refits."""
+    import shutil
+
+    photo = tmp_path / "in" / "face.png"
+    photo.parent.mkdir()
+    shutil.copy(DATA / "astronaut.png", photo)
+    shutil.copy(DATA / "astronaut.pts", photo.with_suffix(".pts"))
+    small = dict(size=40, budget="fast", n_id=4, n_exp=4, n_albedo=2)
+    out = tmp_path / "out"
+    out.mkdir()
+
+    def run(coarse_mesh):
+        return run_item(collect_items([photo], "face", dict(small, coarse_mesh=coarse_mesh))[0], str(out))
+
+    first = run(0.5)
+    assert first["status"] == "ok", first["error"]
+    assert json.loads((out / "face" / "complete.json").read_text())["options"]["coarse_mesh"] == 0.5
+    fitted = json.loads((out / "face" / "params.json").read_text())["provenance"]["config"]["fit"]
+    assert fitted["coarse_mesh"] == 0.5
+    assert run(0.5)["status"] == "skipped"
+    assert run(0.0)["status"] == "ok"
+    assert json.loads((out / "face" / "complete.json").read_text())["options"]["coarse_mesh"] == 0.0
+    assert run(None)["status"] == "ok"             # the default (not in the record) differs from 0 too
+    assert "coarse_mesh" not in json.loads((out / "face" / "complete.json").read_text())["options"]
+    assert run(FACE["coarse_mesh"].default)["status"] == "skipped"
+
+
+SINGLE_FIT = """
+import sys
+from softras_cl.cli import build_parser
+from softras_cl.cli import fit_body, fit_face
+from softras_cl.fitting.model_cache import load_model
+
+face = build_parser("fit-face").parse_args(["fit-face", PHOTO, "--out", "o", "--coarse-mesh", "1"])
+face.photo, face.landmarks = PHOTO, None
+fit_face._config(face), fit_face._run_record(face), fit_face._load_inputs(face)
+body = build_parser("fit-body").parse_args(["fit-body", PHOTO, "--out", "o", "--size", "64"])
+body.target = PHOTO
+fit_body._config(body), fit_body._run_record(body), load_model("body")
+print(sorted(m for m in sys.modules if m == "softras_cl.fitting.batch" or m.split(".")[0] == "distributed"))
+"""
+
+
+def test_single_photo_commands_do_not_import_the_cluster_module():
+    pytest.importorskip("distributed")          # else it could not be imported anyway
+    script = SINGLE_FIT.replace("PHOTO", repr(str(DATA / "astronaut.png")))
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
