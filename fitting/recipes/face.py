@@ -778,8 +778,8 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
         raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
                          f"{N_LANDMARKS} iBUG points (pass a landmark mapping file with the model)")
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
-    check_landmark_layout(landmarks)
     objective, crop, params = prepare_fit(photo, landmarks, model, config)
+    check_landmark_layout(landmarks)      # after prepare_fit's input checks (shape, area, size)
     stages = default_stages(config, fit_focal=config.focal is None)
     result = fit(params, objective, stages, out_dir=out_dir, progress=progress, resume=resume)
     if objective.mask is None:      # no photometric stage ran here (e.g. resuming a finished fit)

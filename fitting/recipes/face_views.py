@@ -156,8 +156,9 @@ def prepare_view(photo, landmarks, model, config: FaceFitConfig) -> View:
     """Photo (H, W, 3) linear RGB and its landmarks (68, 2) pixels -> the View fit_face would
     start from (working image, camera, initial pose and light). ResultError when the landmarks
     cannot be a face's (fitting.plausibility.check_landmark_layout)."""
-    check_landmark_layout(landmarks)
-    return View(*prepare_fit(photo, landmarks, model, config))
+    view = View(*prepare_fit(photo, landmarks, model, config))
+    check_landmark_layout(landmarks)      # after prepare_fit's input checks (shape, area, size)
+    return view
 
 
 @dataclass
