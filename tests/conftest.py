@@ -42,6 +42,7 @@ OPTIONAL = {
     "mediapipe": ("mediapipe", "pip install 'softras-cl[landmarks-mediapipe]'"),
     "torch": ("torch", "pip install torch"),
     "jax": ("jax", "pip install jax"),
+    "detect": ("mediapipe", "pip install 'softras-cl[detect]'"),
 }
 
 

@@ -152,8 +152,9 @@ def choose_face(candidates, face: int | None = None, face_box=None) -> tuple[int
         return 0, f"the largest of {len(candidates)} faces (the default; --face N or --face-box X,Y,W,H choose another)" \
             if len(candidates) > 1 else "the only face found"
     if int(face) != face or not 0 <= face < len(candidates):
-        raise InputError(f"--face {face}: {len(candidates)} face(s) found, numbered 0-{len(candidates) - 1} "
-                         f"({ORDER})")
+        found = "1 face was found (face 0)" if len(candidates) == 1 else \
+            f"{len(candidates)} faces were found, numbered 0-{len(candidates) - 1}, {ORDER}"
+        raise InputError(f"--face {face}: only {found}")
     return int(face), f"--face {face}: number {face} of {len(candidates)}, {ORDER}"
 
 

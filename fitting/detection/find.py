@@ -90,15 +90,17 @@ class Detection:
     def chosen(self) -> FaceCandidate:
         return self.candidates[self.index]
 
-    def describe(self) -> list[str]:
-        """Lines for people: how many faces, then one line per candidate (the chosen one marked
-        with "*" and followed by why)."""
-        lines = [f"{len(self.candidates)} face(s) found by {self.backend}, numbered {ORDER}:"]
+    def describe(self, written=None) -> list[str]:
+        """Lines for people: how many faces, then one per candidate, the chosen one marked "*"
+        and followed by why (written: the numbers to mark instead, e.g. every face written)."""
+        marked = [self.index] if written is None else list(written)
+        count = len(self.candidates)
+        lines = [f"{count} face{'s' if count != 1 else ''} found by {self.backend}, numbered {ORDER}:"]
         for i, c in enumerate(self.candidates):
             x, y, w, h = c.box
-            mark = "*" if i == self.index else " "
-            lines.append(f"{mark} face {i}: box {x:.0f},{y:.0f},{w:.0f},{h:.0f} (x,y,w,h), score "
-                         f"{c.score:.2f}, {c.found_by}" + (f"; chosen: {self.reason}" if i == self.index else ""))
+            why = f"; chosen: {self.reason}" if written is None and i == self.index else ""
+            lines.append(f"{'*' if i in marked else ' '} face {i}: box {x:.0f},{y:.0f},{w:.0f},{h:.0f} "
+                         f"(x,y,w,h), score {c.score:.2f}, {c.found_by}{why}")
         return lines
 
     def to_json(self) -> dict:

@@ -31,7 +31,10 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import os
+import sys
 import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -73,29 +76,57 @@ def available() -> bool:
 
 
 class _Locked:
-    """A MediaPipe solution object and a lock: a graph runs one image at a time."""
+    """A MediaPipe solution object and a lock (a graph runs one image at a time). Its C++ side
+    logs a dozen lines to stderr (TensorFlow Lite's delegate, feedback tensors, the landmark
+    projection) when it starts and on its first face: stderr is silenced until then."""
 
     def __init__(self, solution):
-        self.solution, self.lock = solution, threading.Lock()
+        self.solution, self.lock, self.quiet = solution, threading.Lock(), True
 
     def process(self, image: np.ndarray):
         with self.lock:
-            return self.solution.process(np.ascontiguousarray(image))
+            if not self.quiet:
+                return self.solution.process(np.ascontiguousarray(image))
+            with _quiet_stderr():
+                result = self.solution.process(np.ascontiguousarray(image))
+            self.quiet = not (getattr(result, "detections", None) or getattr(result, "multi_face_landmarks", None))
+            return result
+
+
+@contextmanager
+def _quiet_stderr():
+    """Send file descriptor 2 to /dev/null (not only sys.stderr: the C++ side writes to it)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _started(make) -> _Locked:
+    """A solution made by make() with stderr silenced (it logs when its graph starts)."""
+    with _quiet_stderr():
+        return _Locked(make())
 
 
 @lru_cache(maxsize=None)
 def _detector(model: int) -> _Locked:
     from mediapipe.python.solutions import face_detection
 
-    return _Locked(face_detection.FaceDetection(model_selection=model, min_detection_confidence=MIN_SCORE))
+    return _started(lambda: face_detection.FaceDetection(model_selection=model,
+                                                         min_detection_confidence=MIN_SCORE))
 
 
 @lru_cache(maxsize=None)
 def _mesher() -> _Locked:
     from mediapipe.python.solutions import face_mesh
 
-    return _Locked(face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1, refine_landmarks=True,
-                                      min_detection_confidence=MIN_SCORE))
+    return _started(lambda: face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1, refine_landmarks=True,
+                                               min_detection_confidence=MIN_SCORE))
 
 
 @dataclass(frozen=True)
