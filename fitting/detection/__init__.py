@@ -1,9 +1,8 @@
 """Faces in photos: find them, choose one and say why, and their 68 iBUG landmarks.
 
 Backends (find.py): "mediapipe" (the default; MediaPipe's short- and full-range face detectors
-on the whole image, on a pyramid of tiles and, when nothing is upright, on the image turned by
-quarter turns; then Face Mesh, 478 points, on each face's upright crop, and 68 of its points for
-the iBUG ones, ibug68.py), "dlib" (opt-in, non-commercial 68-point model), and the user's own
+on the whole image and on a pyramid of tiles; then Face Mesh, 478 points, on each face's
+upright crop, and 68 of its points for the iBUG ones, ibug68.py), "dlib" (opt-in, non-commercial 68-point model), and the user's own
 files (files.py). Every face is a FaceCandidate (faces.py); faces are listed and numbered
 largest box first; detect_face chooses one (the largest, --face N, --face-box X,Y,W,H) and says
 why, and refuses landmarks that do not form a face. docs/landmarks.md is the guide.

@@ -21,7 +21,7 @@ BACKENDS = ("mediapipe", "dlib")
 DEFAULT_BACKEND = "mediapipe"
 _MODULES = {"mediapipe": mediapipe_backend, "dlib": dlib_backend}
 #: the options each backend's find() takes
-OPTIONS = {"mediapipe": ("tiles", "turns"), "dlib": ("upsample", "min_score")}
+OPTIONS = {"mediapipe": ("tiles",), "dlib": ("upsample", "min_score")}
 
 
 def available_backends() -> list[str]:
@@ -57,8 +57,7 @@ def find_faces(image, backend: str | None = None, **options) -> list[FaceCandida
     """Every face in an (H, W, 3) uint8 RGB image, in the stated ORDER (largest box first).
 
     backend: "mediapipe" (None: the default) or "dlib".
-    options, mediapipe: tiles (True: the tile pyramid for small faces), turns (True: try the
-        image turned by 90/270/180 degrees when no face is upright); dlib: upsample (1),
+    options, mediapipe: tiles (True: the tile pyramid for small faces); dlib: upsample (1),
         min_score (0.5) (mediapipe_backend / dlib_backend have the details).
     Returns [] when there is no face. Raises ValueError for a bad image, backend or option and
     DetectorUnavailableError (an ImportError) when the backend is not installed.
@@ -143,7 +142,7 @@ def no_face_error(name: str, backend: str | None = None) -> NoFaceError:
         how = ("dlib HOG detector: a frontal, upright face at least about 40 px across; a lower "
                "--min-score or a higher --upsample finds more")
     else:
-        how = ("MediaPipe short- and full-range detectors, on the whole image, on tiles down to "
-               f"{mediapipe_backend.MIN_TILE} px and turned by 90/180/270 degrees: faces from about 32 px")
+        how = ("MediaPipe short- and full-range detectors, on the whole image and on tiles down to "
+               f"{mediapipe_backend.MIN_TILE} px: faces from about 32 px, at any in-plane rotation")
     return NoFaceError(f"no face found in {name} ({how}); give --face-box X,Y,W,H around it, or the "
                        "68 points as a file")

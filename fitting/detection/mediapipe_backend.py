@@ -14,18 +14,21 @@ Finding faces (find), so that small, tilted and profile faces in large frames ar
    short-range detector. Both detectors find faces down to about 1/8 of their input's side, so a
    tile of side s finds faces of s/8 to s/4 (larger ones are found whole in the next level up):
    MIN_TILE 256 reaches faces of about 32 px, in any image size;
-3. only when no face was found upright: the same passes on the image turned by 90, 270 and 180
-   degrees (the first turn that finds a face ends the search). The detectors take in-plane
-   tilts up to about 45 degrees themselves;
-4. non-maximum suppression across all passes (IoU > DETECT_IOU: the higher score stays).
+3. non-maximum suppression across all passes (IoU > DETECT_IOU: the higher score stays).
 
-Then, per face: a square crop around the detector's box (CROP_MARGIN times its side), turned so
-that the detector's eye line is level, resized to CROP_SIZE px, goes through Face Mesh
-(refine_landmarks: 468 mesh + 10 iris points); the points are mapped back to the image. A
-detection in whose crop Face Mesh finds no face is dropped (Face Mesh re-detects the face in the
-crop, so it also weeds out the detectors' false faces). Meshes of one face found twice (IoU of
-the meshes' boxes > MESH_IOU) are merged. Face Mesh reports no confidence of its own in this
-API, so the score is the detector's.
+In-plane rotation: the detectors find faces at any roll (the astronaut turned in steps of 30
+degrees, and by quarter turns, is found upright), but on a face far from upright they may place
+the eyes wrongly and score lower. So, per face, a square crop around the detector's box
+(CROP_MARGIN times its side) is turned so that the detector's eye line is level, then by the
+quarter turn under which the short-range detector scores the crop highest (upright_roll). A
+face whose best score there is below MIN_UPRIGHT_SCORE is dropped: real faces score 0.9-0.95
+on their upright crop, the false faces the tiles bring up 0-0.71 (measured on the test
+pictures of tests/support/face_scenes.py, turned). That score is the candidate's score.
+
+Then the crop, CROP_SIZE px, goes through Face Mesh (refine_landmarks: 468 mesh + 10 iris
+points), and the points are mapped back to the image. A face in whose crop Face Mesh finds no
+face is dropped too. Meshes of one face found twice (IoU of the meshes' boxes > MESH_IOU) are
+merged. Face Mesh reports no confidence of its own in this API.
 """
 from __future__ import annotations
 
@@ -51,14 +54,13 @@ INSTALL_HINT = ('the "mediapipe" face detector (the default) needs the optional 
 
 SHORT_RANGE, FULL_RANGE = 0, 1          # FaceDetection(model_selection=...)
 MIN_SCORE = 0.5                         # the detectors' confidence threshold
+MIN_UPRIGHT_SCORE = 0.8                 # the same on the face's upright crop (upright_roll)
 MIN_TILE = 256                          # side of the pyramid's smallest tiles, px
 TILE_STEP = 0.75                        # tile stride / tile side: overlap a quarter
 DETECT_IOU = 0.3                        # detections of one face across passes
 MESH_IOU = 0.5                          # meshes of one face
 CROP_MARGIN = 2.0                       # crop side / detector box side
 CROP_SIZE = 256                         # crop side fed to Face Mesh, px
-TURNS = (1, 3, 2)                       # quarter turns (np.rot90's k) tried when none upright
-TURN_NAMES = {0: "upright", 1: "turned 90 deg", 2: "turned 180 deg", 3: "turned 270 deg"}
 RIGHT_EYE, LEFT_EYE = 0, 1              # BlazeFace keypoints (the subject's eyes)
 
 
@@ -142,19 +144,15 @@ class _Detection:
 # ---------------------------------------------------------------------------------------------
 # Detection passes
 
-def _run_detector(image: np.ndarray, model: int, to_image: np.ndarray, found_by: str) -> list[_Detection]:
-    """One detector on one (h, w, 3) image; `to_image` (2, 3) maps its grid to the photo's."""
+def _run_detector(image: np.ndarray, model: int, offset, found_by: str) -> list[_Detection]:
+    """One detector on one (h, w, 3) image that lies at `offset` (x, y) in the photo."""
     h, w = image.shape[:2]
     found = []
     for d in _detector(model).process(image).detections or []:
         rel = d.location_data.relative_bounding_box
-        corners = np.array([[rel.xmin * w, rel.ymin * h],
-                            [(rel.xmin + rel.width) * w, (rel.ymin + rel.height) * h]])
-        keypoints = np.array([[k.x * w, k.y * h] for k in d.location_data.relative_keypoints])
-        corners = _apply(to_image, corners)
-        lo, hi = corners.min(0), corners.max(0)
-        found.append(_Detection(np.concatenate([lo, hi - lo]), _apply(to_image, keypoints),
-                                float(d.score[0]), found_by))
+        box = np.array([rel.xmin * w + offset[0], rel.ymin * h + offset[1], rel.width * w, rel.height * h])
+        keypoints = np.array([[k.x * w, k.y * h] for k in d.location_data.relative_keypoints]) + offset
+        found.append(_Detection(box, keypoints, float(d.score[0]), found_by))
     return found
 
 
@@ -181,37 +179,16 @@ def pyramid_tiles(height: int, width: int) -> list[tuple[int, int, int]]:
     return tiles
 
 
-def _passes(image: np.ndarray, to_image: np.ndarray, tiles: bool, turn: str) -> list[_Detection]:
-    """Every detection of the whole-image passes and (tiles) the pyramid's, before suppression."""
+def detect(image: np.ndarray, tiles: bool = True) -> list[_Detection]:
+    """The detectors' faces in an (H, W, 3) uint8 RGB image (steps 1-3 of the module docstring;
+    tiles False leaves out the pyramid), one per face, highest score first."""
     found = []
     for model, name in ((SHORT_RANGE, "short-range"), (FULL_RANGE, "full-range")):
-        found += _run_detector(image, model, to_image, f"{name} detector, whole image, {turn}")
+        found += _run_detector(image, model, (0, 0), f"{name} detector, whole image")
     if tiles:
-        h, w = image.shape[:2]
-        for x, y, side in pyramid_tiles(h, w):
-            shift = to_image.copy()
-            shift[:, 2] += to_image[:, :2] @ [x, y]
-            found += _run_detector(image[y:y + side, x:x + side], SHORT_RANGE, shift,
-                                   f"short-range detector, {side} px tile at ({x}, {y}), {turn}")
-    return found
-
-
-def quarter_turn_to_image(k: int, height: int, width: int) -> np.ndarray:
-    """(2, 3) matrix from the grid of np.rot90(image, k) to the grid of the (height, width) image."""
-    matrices = {0: [[1, 0, 0], [0, 1, 0]], 1: [[0, -1, width], [1, 0, 0]],
-                2: [[-1, 0, width], [0, -1, height]], 3: [[0, 1, 0], [-1, 0, height]]}
-    return np.array(matrices[k % 4], dtype=np.float64)
-
-
-def detect(image: np.ndarray, tiles: bool = True, turns: bool = True) -> list[_Detection]:
-    """The detectors' faces in an (H, W, 3) uint8 RGB image, one per face (steps 1-4 of the
-    module docstring; tiles/turns False leave out steps 2/3), highest score first."""
-    h, w = image.shape[:2]
-    found = []
-    for k in (0,) + (TURNS if turns else ()):
-        found = _passes(np.rot90(image, k), quarter_turn_to_image(k, h, w), tiles, TURN_NAMES[k])
-        if found:
-            break
+        for x, y, side in pyramid_tiles(*image.shape[:2]):
+            found += _run_detector(image[y:y + side, x:x + side], SHORT_RANGE, (x, y),
+                                   f"short-range detector, {side} px tile at ({x}, {y})")
     kept = suppress_overlaps(np.array([d.box for d in found]).reshape(-1, 4),
                              np.array([d.score for d in found]), DETECT_IOU)
     return [found[i] for i in kept]
@@ -233,12 +210,8 @@ def crop_to_image(center, side: float, roll: float) -> np.ndarray:
 def mesh_in_crop(image: np.ndarray, center, side: float, roll: float = 0.0) -> np.ndarray | None:
     """Face Mesh on the crop (crop_to_image): (478, 2) float64 0-based pixel centres in the
     image, or None when Face Mesh finds no face in it."""
-    from PIL import Image
-
     to_image = crop_to_image(center, side, roll)
-    crop = Image.fromarray(image).transform((CROP_SIZE, CROP_SIZE), Image.AFFINE,
-                                            data=tuple(to_image.ravel()), resample=Image.BILINEAR)
-    faces = _mesher().process(np.asarray(crop)).multi_face_landmarks
+    faces = _mesher().process(crop(image, to_image)).multi_face_landmarks
     if not faces:
         return None
     grid = np.array([[p.x * CROP_SIZE, p.y * CROP_SIZE] for p in faces[0].landmark], dtype=np.float64)
@@ -251,14 +224,42 @@ def _candidate(box, score, dense, found_by, roll_deg) -> FaceCandidate:
                          found_by, float(roll_deg))
 
 
+def crop(image: np.ndarray, to_image: np.ndarray) -> np.ndarray:
+    """The CROP_SIZE-px crop whose grid maps to the image's by `to_image` (crop_to_image),
+    (CROP_SIZE, CROP_SIZE, 3) uint8, black outside the image."""
+    from PIL import Image
+
+    return np.asarray(Image.fromarray(image).transform((CROP_SIZE, CROP_SIZE), Image.AFFINE,
+                                                       data=tuple(to_image.ravel()), resample=Image.BILINEAR))
+
+
+def upright_roll(image: np.ndarray, center, side: float, roll: float) -> tuple[float, float]:
+    """(roll, score): the roll (radians) of the detector's eye line, corrected by the quarter
+    turn under which the short-range detector scores the face's crop highest, and that score
+    (0 when it finds no face in any). On a face upside down or on its side the detectors may
+    place the eyes wrongly, and score it lower than upright."""
+    def score(turn: int) -> float:
+        to_image = crop_to_image(center, side, roll + turn * math.pi / 2)
+        found = _detector(SHORT_RANGE).process(crop(image, to_image)).detections
+        return max((d.score[0] for d in found or []), default=0.0)
+
+    scores = [score(turn) for turn in range(4)]
+    best = int(np.argmax(scores))
+    return roll + best * math.pi / 2, float(scores[best])
+
+
 def _meshed(image: np.ndarray, detection: _Detection) -> FaceCandidate | None:
     x, y, w, h = detection.box
+    center, side = (x + w / 2, y + h / 2), CROP_MARGIN * max(w, h)
     eyes = detection.keypoints[LEFT_EYE] - detection.keypoints[RIGHT_EYE]
-    roll = math.atan2(eyes[1], eyes[0])
-    dense = mesh_in_crop(image, (x + w / 2, y + h / 2), CROP_MARGIN * max(w, h), roll)
+    roll, upright_score = upright_roll(image, center, side, math.atan2(eyes[1], eyes[0]))
+    if upright_score < MIN_UPRIGHT_SCORE:
+        return None
+    dense = mesh_in_crop(image, center, side, roll)
     if dense is None:
         return None
-    return _candidate(detection.box, detection.score, dense, detection.found_by, math.degrees(roll))
+    roll_deg = (math.degrees(roll) + 180.0) % 360.0 - 180.0
+    return _candidate(detection.box, upright_score, dense, detection.found_by, roll_deg)
 
 
 def _mesh_box(candidate: FaceCandidate) -> np.ndarray:
@@ -266,9 +267,9 @@ def _mesh_box(candidate: FaceCandidate) -> np.ndarray:
     return np.concatenate([lo, hi - lo])
 
 
-def find(image: np.ndarray, tiles: bool = True, turns: bool = True) -> list[FaceCandidate]:
+def find(image: np.ndarray, tiles: bool = True) -> list[FaceCandidate]:
     """Every face with its Face Mesh points (module docstring), unordered. image: (H, W, 3) uint8."""
-    meshed = [c for c in (_meshed(image, d) for d in detect(image, tiles, turns)) if c is not None]
+    meshed = [c for c in (_meshed(image, d) for d in detect(image, tiles)) if c is not None]
     kept = suppress_overlaps(np.array([_mesh_box(c) for c in meshed]).reshape(-1, 4),
                              np.array([c.score for c in meshed]), MESH_IOU)
     return [meshed[i] for i in kept]
