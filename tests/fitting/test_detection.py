@@ -255,6 +255,19 @@ def test_false_faces_of_the_tiles_are_dropped(monkeypatch):
 
 
 @pytest.mark.detect
+def test_face_turned_away():
+    """skimage's cameraman: a face in three-quarter view, about 65 px, looking down."""
+    import skimage.data
+
+    image = np.ascontiguousarray(np.repeat(skimage.data.camera()[..., None], 3, axis=2))
+    found = det.find_faces(image)
+    assert len(found) == 1 and found[0].score > mp.MIN_UPRIGHT_SCORE
+    head = np.array([235.0, 165.0])                      # the middle of his face, by eye
+    assert np.linalg.norm(found[0].landmarks.mean(0) - head) < 20
+    assert det.implausible_landmarks(found[0].landmarks) is None
+
+
+@pytest.mark.detect
 def test_small_face_in_large_frame_needs_the_tiles():
     picture, points = small_face_in_large_frame()
     assert det.find_faces(picture, tiles=False) == []
