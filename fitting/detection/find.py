@@ -7,6 +7,7 @@ landmarks do not form a face. Backends: "mediapipe" (the default; mediapipe_back
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -98,8 +99,9 @@ class Detection:
         for i, c in enumerate(self.candidates):
             x, y, w, h = c.box
             why = f"; chosen: {self.reason}" if written is None and i == self.index else ""
+            score = f"score {c.score:.2f}" if math.isfinite(c.score) else "no score"
             lines.append(f"{'*' if i in marked else ' '} face {i}: box {x:.0f},{y:.0f},{w:.0f},{h:.0f} "
-                         f"(x,y,w,h), score {c.score:.2f}, {c.found_by}{why}")
+                         f"(x,y,w,h), {score}, {c.found_by}{why}")
         return lines
 
     def to_json(self) -> dict:
@@ -130,7 +132,8 @@ def detect_face(image, backend: str | None = None, *, face: int | None = None, f
     if index is None:
         in_box = _MODULES[backend].find_in_box(img, face_box)
         if in_box is None:
-            raise NoFaceError(f"no face found in {name}'s --face-box, nor by the detector in it ({reason})")
+            raise NoFaceError(f"no face found in {name} inside {reason.split(':')[0]}: the detector found "
+                              "none there, nor did the landmark stage on the box itself")
         candidates, index = candidates + [in_box], len(candidates)
     check_plausible(candidates[index], index)
     return Detection(tuple(candidates), index, reason, backend)

@@ -104,6 +104,20 @@ def _check_output_files(args: argparse.Namespace) -> None:
         check_output_file(args.overlay, "--overlay")
 
 
+def add_face_choice(parser) -> argparse._MutuallyExclusiveGroup:
+    """Add --face N and --face-box X,Y,W,H (dest face, face_box: an int and a string, None when
+    not given; parse_face_box reads the string) to `parser` as a mutually exclusive group, and
+    return the group (detect-landmarks adds --all-faces to it)."""
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument("--face", type=int, default=None, metavar="N",
+                       help=f"use face N (0 = the first; faces are numbered {ORDER}; the default "
+                            "is the largest; detect-landmarks lists them)")
+    which.add_argument("--face-box", default=None, metavar="X,Y,W,H",
+                       help="use the face in this box (pixels: top-left corner, width, height): the "
+                            "detected face that overlaps it best, else the landmarks found in the box itself")
+    return which
+
+
 def register(sub) -> None:
     p = sub.add_parser(
         "detect-landmarks", help="find the faces of a photo and write one's 68 iBUG landmarks (.pts)",
@@ -130,13 +144,7 @@ def register(sub) -> None:
                    help="scale of the overlay image relative to the photo (default 1)")
     p.add_argument("--backend", choices=BACKENDS, default=None,
                    help="face detector: mediapipe (the default) or dlib (non-commercial 68-point model)")
-    which = p.add_mutually_exclusive_group()
-    which.add_argument("--face", type=int, default=None, metavar="N",
-                       help=f"write face N (0 = the first; faces are numbered {ORDER}; the default "
-                            "is the largest)")
-    which.add_argument("--face-box", default=None, metavar="X,Y,W,H",
-                       help="write the face in this box (pixels: top-left corner, width, height): the "
-                            "detected face that overlaps it best, else the landmarks found in the box itself")
+    which = add_face_choice(p)
     which.add_argument("--all-faces", action="store_true",
                        help="write every face whose landmarks form a face, FILE_N.pts for face N")
     p.add_argument("--upsample", type=int, default=None, metavar="N",

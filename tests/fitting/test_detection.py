@@ -308,7 +308,8 @@ def test_face_box_without_a_detection_runs_face_mesh_on_it(monkeypatch):
     assert len(detection.candidates) == 1 and "sought in the box itself" in detection.reason
     assert detection.chosen.found_by == "Face Mesh on the given box" and math.isnan(detection.chosen.score)
     assert nme(detection.chosen.landmarks, large) < MAX_NME_PASTED
-    with pytest.raises(det.NoFaceError, match="--face-box"):
+    assert "no score, Face Mesh on the given box; chosen: --face-box 90,100,180,200" in detection.describe()[1]
+    with pytest.raises(det.NoFaceError, match=r"no face found in the image inside --face-box 700,20,150,150: "):
         det.detect_face(picture, face_box=[700, 20, 150, 150])      # background only
 
 
