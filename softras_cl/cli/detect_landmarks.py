@@ -125,8 +125,8 @@ def register(sub) -> None:
                     "which and why, and write its 68 iBUG 300-W landmarks as an iBUG .pts file (1-based "
                     "pixel coordinates), the input of `softras-cl fit-face --landmarks`, plus a JSON of "
                     f"every face found. Faces are numbered {ORDER}. Backends: mediapipe (the default: "
-                    "MediaPipe's face detectors on the whole image, on tiles for small faces and turned "
-                    "for rotated photos, then Face Mesh, 478 points, 68 of them standing for the iBUG "
+                    "MediaPipe's face detectors on the whole image and on tiles for small faces, then "
+                    "Face Mesh on each face's crop turned upright, 478 points, 68 of them standing for the iBUG "
                     'points; Apache-2.0; pip install "softras-cl[detect]") and dlib (opt-in: HOG '
                     "detector + the iBUG-trained 68-point predictor; its 68-point model is for "
                     'non-commercial use only; pip install "softras-cl[landmarks]").')
