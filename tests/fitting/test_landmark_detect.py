@@ -11,7 +11,7 @@ from PIL import Image
 from softras_cl import cli
 from softras_cl.fitting import detection as ld
 from softras_cl.fitting import landmark_detect
-from softras_cl.fitting.detection import dlib_backend, mediapipe_backend
+from softras_cl.fitting.detection import mediapipe_backend
 
 DATA = Path(__file__).resolve().parents[2] / "examples" / "data"
 PHOTOS = {"astronaut": "astronaut.png", "grace_hopper": "grace_hopper.jpg"}
