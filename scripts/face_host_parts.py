@@ -25,7 +25,7 @@ import numpy as np
 
 from softras_cl.fitting import losses
 from softras_cl.fitting.model_cache import load_model
-from softras_cl.fitting.landmark_detect import resolve_landmarks
+from softras_cl.fitting.detection import resolve_landmarks
 from softras_cl.fitting.recipes import face
 from softras_cl.io.images import read_image
 from softras_cl.raster.rasterizer import SoftRasterizer

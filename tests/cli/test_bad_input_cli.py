@@ -342,12 +342,12 @@ def test_detect_landmarks_checks_its_outputs_before_detecting(run_cli, examples_
     """/proc takes no new files on every Linux, for root too; the read-only mount is the sweep's
     case (it was exit 2 with a raw [Errno 30], after the detection ran)."""
     from softras_cl.errors import EXIT_OUTPUT
-    from softras_cl.fitting import landmark_detect
+    from softras_cl.fitting.detection import mediapipe_backend
 
     if not Path("/proc/self").exists():
         pytest.skip("needs Linux's /proc")
     folder = Path("/proc") if where == "proc" else request.getfixturevalue("read_only_folder")
-    monkeypatch.setattr(landmark_detect, "detect_faces", lambda *a, **k: pytest.fail("detected before the check"))
+    monkeypatch.setattr(mediapipe_backend, "find", lambda *a, **k: pytest.fail("detected before the check"))
     unwritable = folder / ("a.pts" if option == "--out" else "a.png")
     outputs = (["--out", unwritable] if option == "--out"
                else ["--out", tmp_path / "a.pts", "--overlay", unwritable])

@@ -126,7 +126,7 @@ def dask_processes(tmp_path):
 
 @pytest.mark.slow
 def test_scheduler_and_worker_processes(tmp_path, dask_processes, capsys):
-    pytest.importorskip("dlib")
+    pytest.importorskip("mediapipe")
     folder = tmp_path / "in"
     make_photos(folder, 1, seed=3)
     shutil.copy(DATA / "astronaut.png", folder / "astronaut.png")      # no landmark file: detected
@@ -137,12 +137,12 @@ def test_scheduler_and_worker_processes(tmp_path, dask_processes, capsys):
     assert code == 1 and "1 of 3 items failed" in err and "broken.jpg" in err
     assert _statuses(out) == {"astronaut": "ok", "broken": "failed", "face0": "ok"}
     doc = json.loads((out / "astronaut" / "complete.json").read_text())
-    assert doc["inputs"]["landmarks"].startswith("detected by dlib")
+    assert doc["inputs"]["landmarks"].startswith("detected by mediapipe")
     assert doc["metrics"]["landmark_error_px_full"] < 30
 
 
 @pytest.mark.slow
-@pytest.mark.landmarks
+@pytest.mark.detect
 def test_all_faces_fits_each_detected_face_largest_first(tmp_path):
     from PIL import Image
 

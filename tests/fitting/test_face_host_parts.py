@@ -11,7 +11,7 @@ SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "face_host_parts.py"
 
 def test_face_host_parts_times_every_part_of_both_stages(tmp_path):
     from softras_cl.fitting.model_cache import load_model
-    from softras_cl.fitting.landmark_detect import resolve_landmarks
+    from softras_cl.fitting.detection import resolve_landmarks
     from softras_cl.fitting.recipes import face
     from softras_cl.io.images import read_image
 

