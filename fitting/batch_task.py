@@ -56,7 +56,7 @@ def item_config(item: Item):
 def face_points(item: Item):
     """(68, 2) float64 landmarks of the item's face: its file, a file beside the photo, or the
     detector (face ``item.face``)."""
-    from softras_cl.fitting.landmark_detect import resolve_landmarks
+    from softras_cl.fitting.detection import resolve_landmarks
 
     found = resolve_landmarks(item.photo, item.landmarks, all_faces=item.face is not None)
     k = item.face or 0
@@ -193,7 +193,7 @@ def run_item(item: Item, out_dir: str) -> dict:
 def count_faces(item: Item) -> int:
     """How many faces the detector finds for an item whose landmarks are detected; 0 when its
     landmarks come from a file (or the photo cannot be read: its fit then reports why)."""
-    from softras_cl.fitting.landmark_detect import landmarks_beside, resolve_landmarks
+    from softras_cl.fitting.detection import landmarks_beside, resolve_landmarks
 
     if item.landmarks is not None or landmarks_beside(item.photo) is not None:
         return 0

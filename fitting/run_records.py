@@ -21,7 +21,7 @@ def _model_inputs(fit: FitOptions, values: dict) -> dict:
 def face_landmarks_source(photo, landmarks=None, face: int | None = None) -> str | None:
     """What the run record says about a face's landmarks: the SHA-256 of the file (given, or
     beside the photo), else which detector and face found them."""
-    from softras_cl.fitting import landmark_detect as detect
+    from softras_cl.fitting import detection as detect
 
     if landmarks is not None:
         return file_sha256(landmarks)

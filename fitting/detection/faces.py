@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from softras_cl.errors import InputError, ResultError
+from softras_cl.fitting.plausibility import layout_faults
 
 #: the order candidates are listed, numbered and chosen in (``--face N`` is the N-th)
 ORDER = "largest box first (ties: higher score first)"
@@ -174,33 +175,18 @@ def _choose_in_box(candidates, box) -> tuple[int | None, str]:
 # Is it a face?
 
 def implausible_landmarks(points) -> str | None:
-    """Why (68, 2) iBUG points do not form a plausible face, or None when they do.
-
-    The minimal checks, valid at any in-plane rotation and for yaw up to profile: finite points;
-    the eyes apart (outer-corner distance at least 2 % of the face's extent); and, measured along
-    the "down" direction (perpendicular to the line from the subject's right eye to the left
-    eye, so a mirror-image point order points it the wrong way): brows above the eyes, eyes above
-    the nose tip, nose tip above the mouth, mouth above the chin. A landmark fit's own
-    plausibility check and this one are meant to become one.
-    """
+    """Why (68, 2) iBUG points do not form a plausible face, or None when they do: not 68 finite
+    points, the two eyes' outer corners together (closer than 2 % of the face's extent), or a
+    layout no face has (fitting.plausibility.layout_faults, the check a fit makes of its
+    landmarks: valid at any in-plane rotation, catches mirror-image and shuffled point orders)."""
     p = np.asarray(points, dtype=np.float64)
     if p.shape != (68, 2) or not np.isfinite(p).all():
         return "the landmarks are not 68 finite points"
-    right_eye, left_eye = p[36:42].mean(0), p[42:48].mean(0)
     extent = float(np.linalg.norm(p.max(0) - p.min(0)))
-    across = left_eye - right_eye
     if extent <= 0 or np.linalg.norm(p[45] - p[36]) < 0.02 * extent:
         return "the two eyes' landmarks coincide"
-    down = np.array([-across[1], across[0]]) / np.linalg.norm(across)
-    level = {name: float(np.mean(p[idx] @ down)) for name, idx in
-             (("brows", slice(17, 27)), ("eyes", slice(36, 48)), ("nose tip", [30, 33]),
-              ("mouth", slice(48, 68)), ("chin", [8]))}
-    names = list(level)
-    for upper, lower in zip(names, names[1:]):
-        if not level[upper] < level[lower]:
-            return (f"{upper} not above {lower} (in the face's own frame, from its eye line): "
-                    "the points do not form a face")
-    return None
+    faults = layout_faults(p)
+    return "; ".join(faults) + ": the points do not form a face" if faults else None
 
 
 def check_plausible(candidate: FaceCandidate, index: int) -> None:

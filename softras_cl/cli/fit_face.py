@@ -91,7 +91,7 @@ def _options(args: argparse.Namespace) -> dict:
 def _load_inputs(args):
     """(photo (H, W, 3) linear RGB, landmarks (68, 2), model); ValueError/OSError on bad input."""
     from softras_cl.io.images import read_image
-    from softras_cl.fitting.landmark_detect import resolve_landmarks
+    from softras_cl.fitting.detection import resolve_landmarks
 
     photo = read_image(args.photo)[..., :3]
     landmarks = resolve_landmarks(args.photo, args.landmarks)[0].points
@@ -198,7 +198,7 @@ def _check_same_person(args: argparse.Namespace) -> list:
 
 def _same_person_inputs(args: argparse.Namespace, photos: list) -> tuple[list, list, list]:
     """(photos (H, W, 3) linear RGB, landmarks (68, 2) each, input records for params.json)."""
-    from softras_cl.fitting.landmark_detect import resolve_landmarks
+    from softras_cl.fitting.detection import resolve_landmarks
     from softras_cl.io.images import read_image
     from softras_cl.fitting.run_records import face_landmarks_source
     from softras_cl.io.outputs import file_sha256

@@ -10,7 +10,6 @@ from PIL import Image
 
 from softras_cl import cli
 from softras_cl.fitting import detection as ld
-from softras_cl.fitting import landmark_detect
 from softras_cl.fitting.detection import mediapipe_backend
 
 DATA = Path(__file__).resolve().parents[2] / "examples" / "data"
@@ -136,13 +135,6 @@ def test_detect_without_detector_says_how_to_install(no_detector):
     with pytest.raises(ImportError, match=r'pip install "softras-cl\[landmarks\]"') as e:
         ld.find_faces(img, backend="dlib")
     assert "non-commercial" in str(e.value)
-
-
-def test_old_module_path_still_resolves():
-    """fitting/landmark_detect.py, the former home, hands out the same functions."""
-    assert landmark_detect.resolve_landmarks is ld.resolve_landmarks
-    assert landmark_detect.landmarks_beside is ld.landmarks_beside
-    assert landmark_detect.default_backend is ld.default_backend
 
 
 def test_detect_rejects_bad_image_and_options():
