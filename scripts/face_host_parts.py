@@ -1,6 +1,6 @@
 """Per-evaluation cost of the face objective's parts (docs/notes/face_host.md), one tree.
 
-    .venv/bin/softras-cl -q fit-face examples/data/astronaut.png --landmarks examples/data/astronaut.pts --out /tmp/fit
+    .venv/bin/softras-cl -q fit-face examples/data/astronaut.png --landmarks examples/data/landmarks/astronaut.pts --out /tmp/fit
     .venv/bin/python scripts/face_host_parts.py /tmp/fit/params.npz --evals 100 > after.json
 
 Builds the astronaut's objective as fit-face does and evaluates it at the fitted values of a
@@ -62,7 +62,7 @@ def main() -> None:
     parser.add_argument("--evals", type=int, default=100, help="evaluations per stage (default 100)")
     args = parser.parse_args()
     photo = read_image(DATA / "astronaut.png")[..., :3]
-    points = resolve_landmarks(str(DATA / "astronaut.png"), str(DATA / "astronaut.pts"))[0].points
+    points = resolve_landmarks(str(DATA / "astronaut.png"), str(DATA / "landmarks" / "astronaut.pts"))[0].points
     config = face.FaceFitConfig()
     objective, _, _ = face.prepare_fit(photo, points, load_model("face", None, None), config)
     stages = {s.name: s for s in face.default_stages(config, fit_focal=True)}

@@ -84,8 +84,8 @@ def report(rows: dict, names: list) -> None:
                   + f"; median CPU ratio {ratio:.3f}")
 
 
-PHOTOS = {"astronaut": ("examples/data/astronaut.png", "examples/data/astronaut.pts"),
-          "grace_hopper": ("examples/data/grace_hopper.jpg", "examples/data/grace_hopper.pts")}
+PHOTOS = {"astronaut": ("examples/data/astronaut.png", "examples/data/landmarks/astronaut.pts"),
+          "grace_hopper": ("examples/data/grace_hopper.jpg", "examples/data/landmarks/grace_hopper.pts")}
 
 
 def run_photos(names: list, out_dir: str) -> list:

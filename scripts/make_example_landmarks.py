@@ -1,4 +1,4 @@
-"""Make examples/data/*.pts and *_landmarks.png with MediaPipe Face Mesh (run once; outputs are committed).
+"""Make examples/data/landmarks/*.pts and examples/data/*_landmarks.png with MediaPipe Face Mesh (run once; outputs are committed).
 
     .venv/bin/python scripts/make_example_landmarks.py
 
@@ -20,7 +20,7 @@ for photo in ["astronaut.png", "grace_hopper.jpg"]:
     stem = photo.rsplit(".", 1)[0]
     image = read_photo_rgb8(DATA / photo)
     points = detect_face(image, name=photo).chosen.landmarks
-    (DATA / f"{stem}.pts").write_text(format_pts(points))
+    (DATA / "landmarks" / f"{stem}.pts").write_text(format_pts(points))
     # overlay: the face region (landmark box + 25 % margin), scaled to 640 px wide
     lo, hi = points.min(0), points.max(0)
     m = 0.25 * (hi - lo)

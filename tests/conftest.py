@@ -8,7 +8,7 @@ Markers (registered in pyproject.toml, which also sets --strict-markers):
                                 which extra to install, only when the module cannot be found.
                                 Installed but broken, it runs and fails.
 
-Fixtures: examples_data, demo_face_model / demo_body_model (loaded once per session, arrays
+Fixtures: examples_data (and examples_landmarks, its landmarks/ folder), demo_face_model / demo_body_model (loaded once per session, arrays
 read-only so no test can change another's model), run_cli (the `softras-cl` main() in process,
 with its exit code and output) and fp64_device (the OpenCL device, or a skip if it has no fp64).
 """
@@ -63,8 +63,17 @@ def pytest_runtest_setup(item):
 
 @pytest.fixture(scope="session")
 def examples_data() -> Path:
-    """examples/data: the shipped photos and their landmark files."""
+    """examples/data: the shipped photos."""
     path = REPO / "examples" / "data"
+    assert path.is_dir(), path
+    return path
+
+
+@pytest.fixture(scope="session")
+def examples_landmarks(examples_data) -> Path:
+    """examples/data/landmarks: the shipped photos' 68-point .pts files (not beside the photos,
+    where fit-face would take them before the detector)."""
+    path = examples_data / "landmarks"
     assert path.is_dir(), path
     return path
 

@@ -59,8 +59,8 @@ def test_demo_models_are_shared_read_only(demo_face_model, demo_body_model):
             arrays[0][...] = 0
 
 
-def test_examples_data(examples_data):
-    assert (examples_data / "astronaut.png").is_file() and (examples_data / "astronaut.pts").is_file()
+def test_examples_data(examples_data, examples_landmarks):
+    assert (examples_data / "astronaut.png").is_file() and (examples_landmarks / "astronaut.pts").is_file()
 
 
 def test_fp64_device_has_fp64(fp64_device):

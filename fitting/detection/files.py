@@ -133,7 +133,7 @@ def _every_face(img: np.ndarray, name: str, backend: str, options: dict) -> list
 def format_pts(points) -> str:
     """iBUG .pts text for (N, 2) 0-based pixel coordinates, 3 decimals. The .pts convention is
     1-based (the top-left pixel's centre is (1, 1)), so 1 is added to each coordinate; the
-    shipped examples/data/*.pts are written with it."""
+    shipped examples/data/landmarks/*.pts are written with it."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2 or not np.isfinite(pts).all():
         raise ValueError(f"expected finite (N, 2) points, got shape {pts.shape}")

@@ -70,10 +70,10 @@ def test_fit_body_params_json_records_provenance(tmp_path):
 @pytest.mark.slow
 def test_fit_face_params_json_records_provenance(tmp_path):
     out = tmp_path / "fit"
-    assert main(["fit-face", str(DATA / "astronaut.png"), "--landmarks", str(DATA / "astronaut.pts"),
+    assert main(["fit-face", str(DATA / "astronaut.png"), "--landmarks", str(DATA / "landmarks" / "astronaut.pts"),
                  "--out", str(out), "--size", "48", "--budget", "fast", "--n-id", "2", "--n-exp", "2",
                  "--n-albedo", "1", "--no-progress"]) == 0
     config = assert_provenance(json.loads((out / "params.json").read_text()))
     assert config["fit"]["size"] == 48 and config["fit"]["n_id"] == 2
     assert isinstance(config["fit"]["photo_stages"][0], list)
-    assert config["options"]["landmarks"] == str(DATA / "astronaut.pts")
+    assert config["options"]["landmarks"] == str(DATA / "landmarks" / "astronaut.pts")

@@ -240,7 +240,7 @@ def test_compare_bad_option(run_cli, sphere, tmp_path):
 ])
 def test_fit_face_refuses_bad_options(run_cli, examples_data, tmp_path, option, value, says):
     result = run_cli("fit-face", examples_data / "astronaut.png", "--landmarks",
-                     examples_data / "astronaut.pts", "--out", tmp_path / "f", option, value, "--no-progress")
+                     examples_data / "landmarks" / "astronaut.pts", "--out", tmp_path / "f", option, value, "--no-progress")
     assert result.code == EXIT_INPUT
     assert says in one_line(result)
 
@@ -380,7 +380,7 @@ def _argv(name, sphere, examples_data, tmp_path):
     disc[8:24, 12:20] = 1.0
     np.save(tmp_path / "disc.npy", disc)
     values = dict(sphere=sphere, disc=tmp_path / "disc.npy", photo=examples_data / "astronaut.png",
-                  landmarks=examples_data / "astronaut.pts")
+                  landmarks=examples_data / "landmarks" / "astronaut.pts")
     argv = [a.format(**values) for a in COMMANDS[name]]
     if name in ("demo", "render", "compare"):
         argv += ["--out", str(tmp_path / "x.png")]

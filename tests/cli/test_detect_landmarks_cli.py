@@ -93,8 +93,8 @@ def test_bad_choice_options_before_detecting(tmp_path, run_cli, examples_data, m
     assert list(tmp_path.iterdir()) == []
 
 
-def test_implausible_landmarks_exit_1(tmp_path, run_cli, examples_data, monkeypatch):
-    mirrored = read_pts(examples_data / "astronaut.pts") * [-1, 1] + [600, 0]
+def test_implausible_landmarks_exit_1(tmp_path, run_cli, examples_data, examples_landmarks, monkeypatch):
+    mirrored = read_pts(examples_landmarks / "astronaut.pts") * [-1, 1] + [600, 0]
     face = FaceCandidate(np.array([100.0, 50.0, 200.0, 200.0]), 0.9, mirrored, None, "mediapipe", "fake")
     monkeypatch.setattr(mediapipe_backend, "available", lambda: True)
     monkeypatch.setattr(mediapipe_backend, "find", lambda image: [face])

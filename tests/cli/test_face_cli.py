@@ -11,7 +11,7 @@ from softras_cl.cli import main
 from softras_cl.fitting.solver import load_checkpoint
 
 DATA = Path(__file__).resolve().parents[2] / "examples" / "data"
-PHOTO, LANDMARKS = DATA / "astronaut.png", DATA / "astronaut.pts"
+PHOTO, LANDMARKS = DATA / "astronaut.png", DATA / "landmarks" / "astronaut.pts"
 SMALL = ["--size", "80", "--budget", "fast", "--n-id", "4", "--n-exp", "4", "--n-albedo", "2",
          "--no-progress"]
 

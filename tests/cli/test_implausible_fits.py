@@ -15,8 +15,8 @@ def one_line(result) -> str:
     return " ".join(result.err.split())
 
 
-def test_shuffled_landmarks_exit_1_naming_the_cause(run_cli, examples_data, tmp_path):
-    write_pts(tmp_path / "shuffled.pts", shuffled(read_landmarks(examples_data / "astronaut.pts"), 0))
+def test_shuffled_landmarks_exit_1_naming_the_cause(run_cli, examples_data, examples_landmarks, tmp_path):
+    write_pts(tmp_path / "shuffled.pts", shuffled(read_landmarks(examples_landmarks / "astronaut.pts"), 0))
     result = run_cli("fit-face", examples_data / "astronaut.png", "--landmarks", tmp_path / "shuffled.pts",
                      "--out", tmp_path / "fit", *FAST)
     assert result.code == EXIT_RESULT
@@ -36,9 +36,9 @@ def _roll_90(photo, points):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("turn", [_mirror, _roll_90], ids=["mirrored", "roll 90"])
-def test_a_mirrored_or_rolled_photo_with_its_landmarks_fits(run_cli, examples_data, tmp_path, turn):
+def test_a_mirrored_or_rolled_photo_with_its_landmarks_fits(run_cli, examples_data, examples_landmarks, tmp_path, turn):
     photo, points = turn(read_image(examples_data / "astronaut.png")[..., :3],
-                         read_landmarks(examples_data / "astronaut.pts"))
+                         read_landmarks(examples_landmarks / "astronaut.pts"))
     write_image(tmp_path / "photo.png", np.ascontiguousarray(photo))
     write_pts(tmp_path / "photo.pts", points)
     result = run_cli("fit-face", tmp_path / "photo.png", "--landmarks", tmp_path / "photo.pts",
@@ -48,8 +48,8 @@ def test_a_mirrored_or_rolled_photo_with_its_landmarks_fits(run_cli, examples_da
 
 
 @pytest.mark.slow
-def test_resume_from_a_corrupt_checkpoint_names_the_file(run_cli, examples_data, tmp_path):
-    args = ("fit-face", examples_data / "astronaut.png", "--landmarks", examples_data / "astronaut.pts",
+def test_resume_from_a_corrupt_checkpoint_names_the_file(run_cli, examples_data, examples_landmarks, tmp_path):
+    args = ("fit-face", examples_data / "astronaut.png", "--landmarks", examples_landmarks / "astronaut.pts",
             "--out", tmp_path / "fit", *FAST)
     assert run_cli(*args).code == EXIT_OK
     checkpoint = tmp_path / "fit" / "checkpoint.npz"

@@ -50,7 +50,7 @@ def test_a_fit_with_non_finite_metrics_fails_with_exit_1(tmp_path, run_cli, monk
     real = FaceFit.metrics
     monkeypatch.setattr(FaceFit, "metrics", lambda self: {**real(self), "psnr_face_db": math.nan})
     out = tmp_path / "fit"
-    result = run_cli("fit-face", EXAMPLES / "astronaut.png", "--landmarks", EXAMPLES / "astronaut.pts",
+    result = run_cli("fit-face", EXAMPLES / "astronaut.png", "--landmarks", EXAMPLES / "landmarks" / "astronaut.pts",
                      "--size", "64", "--budget", "fast", "--no-progress", "--out", out)
     assert result.code == EXIT_RESULT
     assert "the fit failed: psnr_face_db is nan" in result.err and "Traceback" not in result.err

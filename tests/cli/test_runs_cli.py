@@ -21,7 +21,7 @@ from softras_cl.fitting.reports import face as face_report
 from softras_cl.io.outputs import COMPLETE_RECORD, LOCK_NAME, RUN_RECORD
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples" / "data"
-PHOTO, LANDMARKS = EXAMPLES / "astronaut.png", EXAMPLES / "astronaut.pts"
+PHOTO, LANDMARKS = EXAMPLES / "astronaut.png", EXAMPLES / "landmarks" / "astronaut.pts"
 SCRIPT = Path(sys.executable).with_name("softras-cl")
 FIT = ["fit-face", str(PHOTO), "--landmarks", str(LANDMARKS), "--size", "96", "--no-progress"]
 REPORT_FILES = ("face.ply", "overlay.png", "figure.png", "params.json", "params.npz",

@@ -202,7 +202,7 @@ def test_bad_image_backend_and_options(monkeypatch):
 @pytest.mark.parametrize("name, file", [("astronaut", "astronaut.png"), ("grace_hopper", "grace_hopper.jpg")])
 def test_shipped_photos(name, file):
     image = det.read_photo_rgb8(DATA / file)
-    reference = read_pts(DATA / f"{name}.pts")
+    reference = read_pts(DATA / "landmarks" / f"{name}.pts")
     found = det.find_faces(image)
     assert len(found) == 1
     face = found[0]
@@ -335,4 +335,4 @@ def test_resolve_detects_without_a_file(tmp_path):
     got = det.resolve_landmarks(photo)
     assert len(got) == 1 and got[0].source == "mediapipe" and got[0].index == 0
     assert got[0].detection.reason == "the only face found"
-    assert nme(got[0].points, read_pts(DATA / "astronaut.pts")) < MAX_NME
+    assert nme(got[0].points, read_pts(DATA / "landmarks" / "astronaut.pts")) < MAX_NME

@@ -17,7 +17,7 @@ def test_face_host_parts_times_every_part_of_both_stages(tmp_path):
 
     data = SCRIPT.parents[1] / "examples" / "data"
     photo = read_image(data / "astronaut.png")[..., :3]
-    points = resolve_landmarks(str(data / "astronaut.png"), str(data / "astronaut.pts"))[0].points
+    points = resolve_landmarks(str(data / "astronaut.png"), str(data / "landmarks" / "astronaut.pts"))[0].points
     _, _, params = face.prepare_fit(photo, points, load_model("face", None, None), face.FaceFitConfig())
     np.savez(tmp_path / "params.npz", **params.values())
     run = subprocess.run([sys.executable, str(SCRIPT), str(tmp_path / "params.npz"), "--evals", "2"],

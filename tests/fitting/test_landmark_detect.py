@@ -32,7 +32,7 @@ def face(request):
     name = request.param
     with Image.open(DATA / PHOTOS[name]) as im:
         size = im.size  # (W, H)
-    return name, _read_pts(DATA / f"{name}.pts"), size
+    return name, _read_pts(DATA / "landmarks" / f"{name}.pts"), size
 
 
 def test_points_inside_photo(face):
@@ -82,7 +82,7 @@ def test_order_and_handedness(face):
 def test_shipped_pts_match_writer_format(face):
     """The committed files are what format_pts writes (1-based, 3 decimals)."""
     name, p, _ = face
-    assert (DATA / f"{name}.pts").read_text() == ld.format_pts(p)
+    assert (DATA / "landmarks" / f"{name}.pts").read_text() == ld.format_pts(p)
 
 
 def test_shipped_pts_read_by_fitting_reader(face):
@@ -90,7 +90,7 @@ def test_shipped_pts_read_by_fitting_reader(face):
     from softras_cl.io.landmarks import read_landmarks
 
     name, p, (w, h) = face
-    np.testing.assert_allclose(read_landmarks(DATA / f"{name}.pts", image_size=(h, w)), p, atol=1e-9)
+    np.testing.assert_allclose(read_landmarks(DATA / "landmarks" / f"{name}.pts", image_size=(h, w)), p, atol=1e-9)
 
 
 def test_mapping_table():
@@ -185,7 +185,7 @@ def fake_detector(monkeypatch):
     """A stand-in for the default detector with two faces (the larger second, to check the
     sorting): the shipped points, and a copy at a quarter size; records the options of each call."""
     calls = []
-    points = _read_pts(DATA / "astronaut.pts")
+    points = _read_pts(DATA / "landmarks" / "astronaut.pts")
     small = ld.FaceCandidate(np.array([0.0, 0.0, 50.0, 50.0]), 0.99, points / 4, None, "mediapipe", "fake")
     large = ld.FaceCandidate(np.array([100.0, 100.0, 200.0, 200.0]), 0.9, points, None, "mediapipe", "fake")
 
@@ -202,7 +202,7 @@ def test_resolve_precedence(tmp_path, fake_detector):
     from softras_cl.io.landmarks import read_landmarks
 
     photo = _photo_copy(tmp_path)
-    shipped = read_landmarks(DATA / "astronaut.pts")
+    shipped = read_landmarks(DATA / "landmarks" / "astronaut.pts")
     # no file: the detector, largest face first; all_faces gives both
     got = ld.resolve_landmarks(photo)
     assert [g.source for g in got] == ["mediapipe"] and got[0].path is None and got[0].index == 0
@@ -222,8 +222,8 @@ def test_resolve_precedence(tmp_path, fake_detector):
     assert len(fake_detector) == calls and got[0].index is None
     assert ld.resolve_landmarks(photo, beside=False)[0].source == "mediapipe"
     # an explicit file wins over both
-    got = ld.resolve_landmarks(photo, DATA / "astronaut.pts")
-    assert got[0].source == "file" and got[0].path == DATA / "astronaut.pts"
+    got = ld.resolve_landmarks(photo, DATA / "landmarks" / "astronaut.pts")
+    assert got[0].source == "file" and got[0].path == DATA / "landmarks" / "astronaut.pts"
     np.testing.assert_allclose(got[0].points, shipped)
     with pytest.raises(FileNotFoundError, match="no-such.pts"):
         ld.resolve_landmarks(photo, tmp_path / "no-such.pts")
@@ -231,7 +231,7 @@ def test_resolve_precedence(tmp_path, fake_detector):
 
 def test_resolve_all_faces_leaves_out_implausible_ones(tmp_path, fake_detector, monkeypatch):
     photo = _photo_copy(tmp_path)
-    points = _read_pts(DATA / "astronaut.pts")
+    points = _read_pts(DATA / "landmarks" / "astronaut.pts")
     mirrored = points * [-1, 1] + [600, 0]
     faces = [ld.FaceCandidate(np.array([0.0, 0.0, 90.0, 90.0]), 0.9, mirrored, None, "mediapipe", "fake"),
              ld.FaceCandidate(np.array([0.0, 0.0, 50.0, 50.0]), 0.9, points, None, "mediapipe", "fake")]
@@ -262,7 +262,7 @@ def test_resolve_without_file_or_detector(tmp_path, no_detector):
     with pytest.raises(ld.DetectorUnavailableError) as e:
         ld.resolve_landmarks(photo)
     assert str(e.value) == mediapipe_backend.INSTALL_HINT
-    (tmp_path / "face.pts").write_text((DATA / "astronaut.pts").read_text())
+    (tmp_path / "face.pts").write_text((DATA / "landmarks" / "astronaut.pts").read_text())
     assert ld.resolve_landmarks(photo)[0].source == "beside"      # no detector needed
     with pytest.raises(FileNotFoundError, match="image file not found"):
         ld.resolve_landmarks(tmp_path / "missing.png")
@@ -334,7 +334,7 @@ def _two_faces():
 @pytest.mark.landmarks
 def test_dlib_two_faces_largest_first():
     canvas, placements = _two_faces()
-    reference = _read_pts(DATA / "astronaut.pts")
+    reference = _read_pts(DATA / "landmarks" / "astronaut.pts")
     faces = ld.find_faces(canvas, backend="dlib")
     assert len(faces) == 2 and faces[0].area > 2 * faces[1].area
     (o_big, _), (o_small, s_small) = placements
@@ -368,7 +368,7 @@ def test_dlib_resolve_detects_without_a_file(tmp_path):
     photo = _photo_copy(tmp_path, "astro.png")
     got = ld.resolve_landmarks(photo, backend="dlib")
     assert len(got) == 1 and got[0].source == "dlib" and got[0].face is not None
-    assert normalised_errors(got[0].points, _read_pts(DATA / "astronaut.pts")).mean() < MAX_MEAN_ERROR
+    assert normalised_errors(got[0].points, _read_pts(DATA / "landmarks" / "astronaut.pts")).mean() < MAX_MEAN_ERROR
 
 
 @pytest.mark.landmarks

@@ -16,9 +16,9 @@ PHOTOS = {"astronaut": 512, "grace_hopper": 512}       # name -> photo width
 
 
 @pytest.fixture(scope="module", params=sorted(PHOTOS))
-def shipped(request, examples_data):
+def shipped(request, examples_landmarks):
     """(landmarks (68, 2) of a shipped photo, the photo's width)."""
-    return read_landmarks(examples_data / f"{request.param}.pts"), PHOTOS[request.param]
+    return read_landmarks(examples_landmarks / f"{request.param}.pts"), PHOTOS[request.param]
 
 
 def test_shipped_faces_pass_at_every_roll_and_mirrored(shipped):
@@ -118,10 +118,10 @@ def test_a_face_result_at_the_limits_passes(face_pixels, error_fraction):
 
 
 @pytest.fixture(scope="module")
-def astronaut(examples_data):
+def astronaut(examples_data, examples_landmarks):
     from softras_cl.io.images import read_image
 
-    return read_image(examples_data / "astronaut.png")[..., :3], read_landmarks(examples_data / "astronaut.pts")
+    return read_image(examples_data / "astronaut.png")[..., :3], read_landmarks(examples_landmarks / "astronaut.pts")
 
 
 def _fit(photo, points, model, size):

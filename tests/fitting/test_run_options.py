@@ -22,7 +22,7 @@ from softras_cl.fitting.run_options import BODY, FACE
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "examples" / "data"
-FILE = str(DATA / "astronaut.pts")          # any file: a model option's record is its digest
+FILE = str(DATA / "landmarks" / "astronaut.pts")          # any file: a model option's record is its digest
 
 # a value other than the default for every option of each fit, as typed on the command line
 # (None: a switch); a new option needs its entry here
@@ -99,7 +99,7 @@ def test_coarse_mesh_of_a_batch_item_and_its_rerun(tmp_path):
     photo = tmp_path / "in" / "face.png"
     photo.parent.mkdir()
     shutil.copy(DATA / "astronaut.png", photo)
-    shutil.copy(DATA / "astronaut.pts", photo.with_suffix(".pts"))
+    shutil.copy(DATA / "landmarks" / "astronaut.pts", photo.with_suffix(".pts"))
     small = dict(size=40, budget="fast", n_id=4, n_exp=4, n_albedo=2)
     out = tmp_path / "out"
     out.mkdir()

@@ -25,7 +25,7 @@ def read_pts(path: Path) -> np.ndarray:
 def astronaut() -> tuple[np.ndarray, np.ndarray]:
     """(the photo (512, 512, 3) uint8, its shipped (68, 2) points)."""
     image = np.asarray(Image.open(DATA / "astronaut.png").convert("RGB"))
-    return image, read_pts(DATA / "astronaut.pts")
+    return image, read_pts(DATA / "landmarks" / "astronaut.pts")
 
 
 def nme(points, reference) -> float:
