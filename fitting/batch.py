@@ -30,7 +30,7 @@ from pathlib import Path
 
 from softras_cl.errors import InputError, ResourceError
 from softras_cl.fitting.batch_items import Item, check_names, collect_items
-from softras_cl.fitting.batch_task import count_faces, describe, make_row, run_item
+from softras_cl.fitting.batch_task import describe, face_numbers, make_row, run_item
 from softras_cl.io.outputs import OutputFolder
 
 __all__ = ["BatchResult", "fit_many", "run_items", "expand_faces", "worker_env", "local_cluster",
@@ -54,15 +54,16 @@ class BatchResult:
 
 
 def expand_faces(client, items: list[Item]) -> list[Item]:
-    """With all faces: each face item with detected landmarks -> one item per face found,
-    named NAME-face0 (largest), NAME-face1, ...; counted on the workers."""
+    """With all faces: each face item with detected landmarks -> one item per face found whose
+    landmarks form a face, named NAME-faceN by the face's number N (0: the largest); found on
+    the workers."""
     face_items = [it for it in items if it.kind == "face"]
-    counts = dict(zip(face_items, client.gather(client.map(count_faces, face_items, pure=False))))
+    numbers = dict(zip(face_items, client.gather(client.map(face_numbers, face_items, pure=False))))
     out = []
     for item in items:
-        n = counts.get(item, 0)
-        out += ([item] if n == 0 else
-                [replace(item, name=f"{item.name}-face{k}", face=k) for k in range(n)])
+        found = numbers.get(item, [])
+        out += ([item] if not found else
+                [replace(item, name=f"{item.name}-face{k}", face=k, all_faces=True) for k in found])
     check_names(out)
     return out
 

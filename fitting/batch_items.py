@@ -27,7 +27,9 @@ class Item:
     kind: "face" or "body"; photo: the photo (face) or target image (body) path, str; name:
     the output folder's name under the batch's folder; landmarks: the face's 68-landmark file
     or the body's 2D joints file, or None (face: a file beside the photo, else the detector);
-    face: with all faces, the index of the detected face (0 = largest), else None; options:
+    face: which detected face to fit, its number (0 = largest; fitting.detection.ORDER), or None
+    for the largest; all_faces: the item is one of a photo's faces under --all-faces (face is
+    then its number among the faces whose landmarks form a face); options:
     (name, value) pairs of the fit's options (fitting.run_options.FITS[kind]; missing: the
     default).
     """
@@ -37,6 +39,7 @@ class Item:
     landmarks: str | None = None
     face: int | None = None
     options: tuple = ()
+    all_faces: bool = False
 
     @property
     def opts(self) -> dict:
@@ -126,10 +129,11 @@ def stable_names(photos: list[Path]) -> list[str]:
 
 
 def collect_items(inputs=(), kind: str = "face", options: dict | None = None, manifest=None,
-                  landmarks=None) -> list[Item]:
+                  landmarks=None, face: int | None = None) -> list[Item]:
     """Items from photos, folders and globs (``inputs``) and/or a CSV ``manifest``; ``options``
     apply to every item (a manifest's cells override them); ``landmarks``: one landmark/joints
-    file, allowed with a single photo only. InputError on an empty or inconsistent list."""
+    file, allowed with a single photo only; ``face``: the detected face to fit in every photo
+    (None: the largest). InputError on an empty or inconsistent list."""
     if kind not in KINDS:
         raise InputError(f"kind must be one of {KINDS}, got {kind!r}")
     base = _checked_options(kind, options or {})
@@ -145,7 +149,7 @@ def collect_items(inputs=(), kind: str = "face", options: dict | None = None, ma
         rows[0]["landmarks"] = Path(landmarks)
     names = stable_names([r["photo"] for r in rows])
     items = [Item(kind, os.path.abspath(r["photo"]), r["name"] or n,
-                  None if r["landmarks"] is None else os.path.abspath(r["landmarks"]),
+                  None if r["landmarks"] is None else os.path.abspath(r["landmarks"]), face,
                   options=tuple(sorted({**base, **r["options"]}.items())))
              for r, n in zip(rows, names)]
     check_names(items)

@@ -29,7 +29,7 @@ from softras_cl.fitting.run_options import BODY, FITS
 from softras_cl.fitting.run_records import body_record, completed, face_landmarks_source, face_record
 from softras_cl.io.outputs import LOCK_NAME, OutputFolder, json_safe
 
-__all__ = ["run_item", "item_record", "item_config", "make_row", "describe", "count_faces", "body_inputs",
+__all__ = ["run_item", "item_record", "item_config", "make_row", "describe", "face_numbers", "body_inputs",
            "publish", "fit_into"]
 
 logger = logging.getLogger(__name__)
@@ -54,15 +54,18 @@ def item_config(item: Item):
 
 
 def face_points(item: Item):
-    """(68, 2) float64 landmarks of the item's face: its file, a file beside the photo, or the
-    detector (face ``item.face``)."""
+    """The item's face landmarks, a fitting.detection.PhotoLandmarks ((68, 2) float64 .points):
+    its file, a file beside the photo, or the detector's face number ``item.face`` (the
+    largest when None)."""
     from softras_cl.fitting.detection import resolve_landmarks
 
-    found = resolve_landmarks(item.photo, item.landmarks, all_faces=item.face is not None)
-    k = item.face or 0
-    if k >= len(found):
-        raise InputError(f"face {k} of {item.photo} is no longer found ({len(found)} faces now)")
-    return found[k].points
+    if not item.all_faces:
+        return resolve_landmarks(item.photo, item.landmarks, face=item.face)[0]
+    found = [f for f in resolve_landmarks(item.photo, item.landmarks, all_faces=True) if f.index == item.face]
+    if not found:
+        raise InputError(f"face {item.face} of {item.photo} is no longer found among the faces whose "
+                         "landmarks form a face")
+    return found[0]
 
 
 def _fit_face(item: Item, folder: Path) -> tuple[dict, float]:
@@ -76,12 +79,11 @@ def _fit_face(item: Item, folder: Path) -> tuple[dict, float]:
     model = load_model("face", options.get("model"), options.get("model_landmarks"))
     config = item_config(item)
     start = time.perf_counter()
-    fit = fit_face(photo, landmarks, model, config, out_dir=folder, progress=False)
+    fit = fit_face(photo, landmarks.points, model, config, out_dir=folder, progress=False)
     seconds = time.perf_counter() - start
     metrics = finite_metrics(fit, folder, FACE_REQUIRED)
-    write_outputs(fit, photo, folder, metrics=metrics, run_config=dict(fit=config, options=options),
-                  extra=dict(photo=item.photo, face=item.face, seconds=seconds,
-                             budget=options.get("budget", "default")))
+    write_outputs(fit, photo, landmarks, folder, metrics=metrics, run_config=dict(fit=config, options=options),
+                  extra=dict(photo=item.photo, seconds=seconds, budget=options.get("budget", "default")))
     return metrics, seconds
 
 
@@ -190,14 +192,15 @@ def run_item(item: Item, out_dir: str) -> dict:
         return make_row(item, "failed", seconds=time.perf_counter() - start, error=describe(error))
 
 
-def count_faces(item: Item) -> int:
-    """How many faces the detector finds for an item whose landmarks are detected; 0 when its
+def face_numbers(item: Item) -> list[int]:
+    """The numbers of the faces the detector finds in an item whose landmarks are detected,
+    those whose landmarks form a face (fitting.detection.ORDER: largest first); [] when its
     landmarks come from a file (or the photo cannot be read: its fit then reports why)."""
     from softras_cl.fitting.detection import landmarks_beside, resolve_landmarks
 
     if item.landmarks is not None or landmarks_beside(item.photo) is not None:
-        return 0
+        return []
     try:
-        return len(resolve_landmarks(item.photo, None, all_faces=True))
+        return [f.index for f in resolve_landmarks(item.photo, None, all_faces=True)]
     except Exception:           # no detector, no face, bad photo: the item's own fit says so
-        return 0
+        return []

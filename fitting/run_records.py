@@ -6,10 +6,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from softras_cl.errors import InputError
 from softras_cl.fitting.run_options import BODY, FACE, FitOptions
 from softras_cl.io.outputs import COMPLETE_RECORD, file_sha256, json_safe
 
-__all__ = ["face_landmarks_source", "face_record", "body_record", "completed"]
+__all__ = ["face_landmarks_source", "refuse_face_choice", "face_record", "body_record", "completed"]
 
 
 def _model_inputs(fit: FitOptions, values: dict) -> dict:
@@ -18,17 +19,34 @@ def _model_inputs(fit: FitOptions, values: dict) -> dict:
             for o in fit.options if o.file}
 
 
-def face_landmarks_source(photo, landmarks=None, face: int | None = None) -> str | None:
+def face_landmarks_source(photo, landmarks=None, face: int | None = None, face_box=None) -> str:
     """What the run record says about a face's landmarks: the SHA-256 of the file (given, or
-    beside the photo), else which detector and face found them."""
+    beside the photo), else which detector and which face (``face``: the N-th, ``face_box``:
+    (x, y, w, h) the face in that box; neither: the largest, face 0). InputError when a face is
+    chosen but the landmarks come from a file (a file holds one face: nothing to choose)."""
     from softras_cl.fitting import detection as detect
 
-    if landmarks is not None:
-        return file_sha256(landmarks)
-    beside = detect.landmarks_beside(photo)
-    if beside is not None:
-        return file_sha256(beside)
-    return f"detected by {detect.default_backend() or 'no detector'}, face {face or 0}"
+    file = landmarks if landmarks is not None else detect.landmarks_beside(photo)
+    if file is not None:
+        refuse_face_choice(file, landmarks is None, face, face_box)
+        return file_sha256(file)
+    if face_box is not None:
+        chosen = "the face in box " + ",".join(f"{v:g}" for v in face_box)
+    else:
+        chosen = f"face {face or 0}"
+    return f"detected by {detect.default_backend() or 'no detector'}, {chosen}"
+
+
+def refuse_face_choice(file, beside: bool, face: int | None, face_box) -> None:
+    """InputError naming --face/--face-box when one is given for landmarks read from ``file``
+    (``beside``: found beside the photo, else given as --landmarks)."""
+    if face is None and face_box is None:
+        return
+    option = "--face" if face is not None else "--face-box"
+    where = f"the file beside the photo, {file}" if beside else f"--landmarks {file}"
+    raise InputError(f"{option} chooses among the faces the detector finds, but the landmarks come from "
+                     f"{where} (one face, no detection): leave {option} out, or "
+                     + ("move that file away" if beside else "leave --landmarks out") + " to detect")
 
 
 def face_record(photo, landmarks: str | None, options: dict) -> dict:

@@ -10,7 +10,14 @@
   detail texture / error maps in the face region / model and detail albedo / shading;
 - ``params.json`` and ``params.npz``: every fitted block, the camera of the full-size photo
   (K, R, t), the metrics (``psnr_face_db``: the model alone, what the fit optimises;
-  ``psnr_face_db_textured``: with the detail texture) and the settings used;
+  ``psnr_face_db_textured``: with the detail texture), where the landmarks came from
+  (``landmarks_input``: a file, or the detected face's number, box, score and why it was chosen)
+  and the settings used;
+- ``landmarks_detected.pts``: the 68 points the fit was given (from the file or the detector) and
+  ``landmarks_fitted.pts``: the fitted model's 68 landmarks projected into the photo (both iBUG
+  .pts, 1-based pixel coordinates of the full photo);
+- ``detection.json`` (detected landmarks only): every face found, which one was fitted and why
+  (fitting.detection.Detection.to_json);
 - ``loss_curve.png``, ``history.json``, ``checkpoint.npz``: written by the solver.
 """
 from __future__ import annotations
@@ -29,6 +36,8 @@ from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.recipes.face import CAMERA_ROTATION, FaceFit, FaceScene
 from softras_cl.fitting.recipes.face_texture import (FaceTexture, estimate_texture, full_photo_scene,
                                                      render_textured, save_textured_obj)
+from softras_cl.fitting.detection import PhotoLandmarks
+from softras_cl.io.landmarks import write_pts
 from softras_cl.provenance import provenance
 
 OVERLAY_MAX = 1024       # longest side of overlay.png (the photo's own size when smaller)
@@ -278,14 +287,42 @@ def camera_matrices(fit: FaceFit, photo_size) -> dict:
                 t=CAMERA_ROTATION @ values["translation"])
 
 
-def write_outputs(fit: FaceFit, photo: np.ndarray, out_dir, extra: dict | None = None,
-                  run_config=None, metrics: dict | None = None) -> dict:
+def fitted_photo_landmarks(fit: FaceFit) -> np.ndarray:
+    """(68, 2) float64: the fitted model's landmarks projected into the full photo (0-based
+    pixel centres), where camera_matrices' K, R, t put them."""
+    return fit.crop.to_full(fit.fitted_landmarks())
+
+
+def landmarks_input(found: PhotoLandmarks) -> dict:
+    """JSON-ready: where the fit's landmarks came from (source "file", "beside" or the detector's
+    name, the file read) and, when detected, the face fitted (its number, box (x, y, w, h),
+    the detector's score) and why it was chosen."""
+    doc = dict(source=found.source, file=None if found.path is None else str(found.path))
+    if found.detection is not None:
+        chosen = found.face.to_json()
+        doc.update(face=found.index, box=chosen["box"], score=chosen["score"], reason=found.detection.reason,
+                   faces_found=len(found.detection.candidates), detection="detection.json")
+    return doc
+
+
+def write_landmarks(fit: FaceFit, found: PhotoLandmarks, out: Path) -> None:
+    """landmarks_detected.pts (the points the fit was given), landmarks_fitted.pts and, for
+    detected landmarks, detection.json (every face found and the choice) into ``out``."""
+    write_pts(out / "landmarks_detected.pts", found.points)
+    write_pts(out / "landmarks_fitted.pts", fitted_photo_landmarks(fit))
+    if found.detection is not None:
+        write_json(out / "detection.json", found.detection.to_json())
+
+
+def write_outputs(fit: FaceFit, photo: np.ndarray, landmarks: PhotoLandmarks, out_dir,
+                  extra: dict | None = None, run_config=None, metrics: dict | None = None) -> dict:
     """Write every output of a fit into ``out_dir`` (each file replaced atomically); returns the
     metrics written (``metrics``: those of ``fit.metrics()`` if the caller has them already).
 
-    photo (H, W, 3) linear RGB at full size; extra: more JSON-able facts for params.json;
-    run_config: the run's effective configuration (e.g. its FaceFitConfig), recorded with the
-    versions, device and command line under "provenance".
+    photo (H, W, 3) linear RGB at full size; landmarks: the photo's landmarks the fit was given
+    (fitting.detection.resolve_landmarks), with where they came from; extra: more JSON-able
+    facts for params.json; run_config: the run's effective configuration (e.g. its
+    FaceFitConfig), recorded with the versions, device and command line under "provenance".
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -300,13 +337,14 @@ def write_outputs(fit: FaceFit, photo: np.ndarray, out_dir, extra: dict | None =
     write_image(out / "overlay.png", np.clip(render_over(fit, photo, texture=texture), 0.0, 1.0))
     write_image(out / "overlay_model.png", np.clip(render_over(fit, photo), 0.0, 1.0))
     save_figure(fit, out / "figure.png", metrics, texture)
+    write_landmarks(fit, landmarks, out)
     cam = camera_matrices(fit, photo.shape[:2])
     arrays = {**{k: np.asarray(v) for k, v in values.items()}, **cam}
     with atomic_path(out / "params.npz") as tmp:
         np.savez(tmp, **arrays)
     doc = dict(metrics=metrics, interrupted=fit.result.interrupted, outcomes=fit.result.outcomes,
                model=model.name, photo_size=list(photo.shape[:2]),
-               working_size=list(fit.image.shape[:2]),
+               working_size=list(fit.image.shape[:2]), landmarks_input=landmarks_input(landmarks),
                params={k: np.asarray(v).tolist() for k, v in arrays.items()},
                provenance=provenance(run_config), **(extra or {}))
     write_json(out / "params.json", doc)

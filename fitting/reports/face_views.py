@@ -4,7 +4,8 @@
   albedo as vertex colours;
 - ``photos/NAME/``: per photo, everything a single-photo fit writes
   (fitting.reports.face.write_outputs: face.ply with that photo's expression, the detail
-  texture, overlay.png, overlay_model.png, figure.png, params.json/.npz with its camera);
+  texture, overlay.png, overlay_model.png, figure.png, params.json/.npz with its camera,
+  landmarks_detected.pts and landmarks_fitted.pts, detection.json for detected landmarks);
 - ``figure.png``: one row per photo: the photo with its landmarks, the model fit over it;
 - ``params.json`` and ``params.npz``: every fitted block of the joint fit (``id``, ``albedo``;
   ``exp.k``, ``sh.k``, ``rotation.k``, ``translation.k``, ``focal.k`` of photo k), each photo's
@@ -61,20 +62,22 @@ def save_figure(fit: FaceViewsFit, names: list[str], path: Path, metrics: dict) 
     write_figure(fig, path, dpi=110)
 
 
-def write_views_outputs(fit: FaceViewsFit, photos: list[np.ndarray], names: list[str], inputs: list[dict],
-                        out_dir, metrics: dict, run_config=None, extra: dict | None = None) -> dict:
+def write_views_outputs(fit: FaceViewsFit, photos: list[np.ndarray], landmarks: list, names: list[str],
+                        inputs: list[dict], out_dir, metrics: dict, run_config=None, extra: dict | None = None) -> dict:
     """Write every output of a joint fit into ``out_dir`` (each file replaced atomically);
     returns the metrics written (each photo's with its detail-texture PSNR).
 
-    photos: the full-size photos (H_k, W_k, 3) linear RGB; names: one folder name per photo;
+    photos: the full-size photos (H_k, W_k, 3) linear RGB; landmarks: each photo's
+    fitting.detection.PhotoLandmarks (the points fitted, where they came from); names: one
+    folder name per photo;
     inputs: one JSON-able dict per photo (its path and digests) for params.json; metrics: what
     fit.metrics() returned; run_config, extra: as for fitting.reports.face.write_outputs.
     """
     out = Path(out_dir)
     save_identity_mesh(fit, out / "face.ply")
     per_view = []
-    for view, photo, name, m, source in zip(fit.views, photos, names, metrics["views"], inputs):
-        per_view.append(write_outputs(view, photo, out / PHOTOS / name, metrics=m, run_config=run_config,
+    for view, photo, found, name, m, source in zip(fit.views, photos, landmarks, names, metrics["views"], inputs):
+        per_view.append(write_outputs(view, photo, found, out / PHOTOS / name, metrics=m, run_config=run_config,
                                       extra=dict(source, same_person=True)))
     metrics = dict(metrics, views=per_view)
     save_figure(fit, names, out / "figure.png", metrics)

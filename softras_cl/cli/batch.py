@@ -12,8 +12,9 @@ BATCH_EPILOG = """\
 Many photos: give several photos, folders (their image files, not subfolders; X_landmarks.png
 drawings beside a photo X are left out) or quoted glob patterns, and/or --manifest CSV. Each
 item is fitted into its own folder under --out, named after the photo's file name (a hash of
-the path is appended when two share a name; --all-faces appends -face0, -face1, ... largest
-first); --out also gets results.csv, results.jsonl and summary.png. Items run on a Dask
+the path is appended when two share a name; --all-faces appends -faceN, N the face's number,
+largest first; --face N fits face N of each photo); --out also gets results.csv, results.jsonl
+and summary.png. Items run on a Dask
 cluster: a LocalCluster of --workers processes on this machine by default, or --scheduler.
 Running the same command again skips every item whose folder holds a complete.json with the
 same inputs and options, and redoes the others. Exit code 0 when every item succeeded, 1 when
@@ -51,6 +52,9 @@ def is_batch(args: argparse.Namespace, inputs: list[str]) -> bool:
 
 def check_batch_args(args: argparse.Namespace) -> None:
     """InputError for options that do not apply to a batch."""
+    if getattr(args, "face_box", None) is not None:
+        raise InputError("--face-box names a box in one photo: give a single photo (without --manifest, "
+                         "--all-faces or cluster options), or --face N to fit face N of each photo")
     if args.resume:
         raise InputError("--resume continues the fit of one photo; run the batch again instead: it "
                          "skips the finished items and redoes the others")
@@ -68,7 +72,8 @@ def run_batch(args: argparse.Namespace, kind: str, inputs: list[str], options: d
     from softras_cl.fitting.model_cache import load_model
 
     check_batch_args(args)
-    items = collect_items(inputs, kind, options, manifest=args.manifest, landmarks=side_file)
+    items = collect_items(inputs, kind, options, manifest=args.manifest, landmarks=side_file,
+                          face=getattr(args, "face", None))
     load_model(kind, options.get("model"), options.get("model_landmarks"))   # a bad model: exit 2 now
     result = fit_many(items, args.out, kind, scheduler=args.scheduler, workers=args.workers,
                       threads_per_worker=args.threads_per_worker,

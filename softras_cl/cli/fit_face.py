@@ -27,12 +27,18 @@ Ctrl-C or SIGTERM stops the fit and still writes every output from the best valu
 far (exit 130; --resume continues it).
 
 Landmarks: --landmarks FILE, else a file beside the photo (PHOTO.pts/.txt/.npy, i.e. the photo's
-name with that suffix), else the landmark detector (the "landmarks" extra), largest face first.
+name with that suffix), else the face detector (MediaPipe, the "detect" extra): the largest face,
+or --face N (faces numbered largest box first), or --face-box X,Y,W,H; the faces found, the one
+fitted and why are printed and written to detection.json. A detected face whose landmarks do not
+form a face stops the run (exit 1) before fitting. Every fit also writes landmarks_detected.pts
+(the 68 points it was given) and landmarks_fitted.pts (the fitted model's, projected into the
+photo; both iBUG .pts, 1-based).
 
 """ + BATCH_EPILOG + """
 
 One person in several photos: --same-person fits one identity (shape) and one albedo to all the
-photos given (files, folders or glob patterns, at least two), each photo with its own pose,
+photos given (files, folders or glob patterns, at least two; the largest face of each when
+detected), each photo with its own pose,
 focal length, expression and light: `fit-face A.jpg B.jpg C.jpg --same-person --landmarks A.pts
 B.pts C.pts --out DIR` (one landmark file per photo in the same order, or none: each photo's file
 beside it, else the detector). Writes into --out: face.ply (the shared identity, neutral
@@ -45,6 +51,7 @@ Without --same-person several photos are independent fits (above)."""
 
 def register(sub) -> None:
     """Add `fit-face` to the `softras-cl` subparsers `sub`."""
+    from softras_cl.cli.detect_landmarks import add_face_choice
     from softras_cl.fitting.run_options import FACE
 
     p = sub.add_parser("fit-face", help="fit a face model to a photo and its 68 landmarks",
@@ -63,9 +70,11 @@ def register(sub) -> None:
     p.add_argument("--same-camera", action="store_true",
                    help="with --same-person: the photos (all of one size) were taken with one camera "
                         "and zoom, so they share one fitted focal length (default: one per photo)")
-    p.add_argument("--all-faces", action="store_true",
-                   help="fit every face the detector finds, each into its own folder under --out "
-                        "(NAME-face0 for the largest, NAME-face1, ...); without it, the largest")
+    which = add_face_choice(p)
+    which.add_argument("--all-faces", action="store_true",
+                       help="fit every face the detector finds whose landmarks form a face, each into its "
+                            "own folder under --out, NAME-faceN for face N (0: the largest); without it, "
+                            "the largest (or --face / --face-box)")
     add_fit_options(p, FACE, files=True)
     p.add_argument("--out", required=True, help="output directory (created if missing)")
     add_fit_options(p, FACE, files=False)
@@ -89,13 +98,32 @@ def _options(args: argparse.Namespace) -> dict:
 
 
 def _load_inputs(args):
-    """(photo (H, W, 3) linear RGB, landmarks (68, 2), model); ValueError/OSError on bad input."""
+    """(photo (H, W, 3) linear RGB, its landmarks (fitting.detection.PhotoLandmarks), model);
+    the detection, when the landmarks are detected, printed. ValueError/OSError on bad input,
+    ImplausibleFaceError (exit 1) for a detected face that is no face."""
     from softras_cl.io.images import read_image
     from softras_cl.fitting.detection import resolve_landmarks
 
     photo = read_image(args.photo)[..., :3]
-    landmarks = resolve_landmarks(args.photo, args.landmarks)[0].points
-    return photo, landmarks, _load_model(args)
+    found = resolve_landmarks(args.photo, args.landmarks, face=args.face, face_box=_face_box(args))[0]
+    say_detection(found)
+    return photo, found, _load_model(args)
+
+
+def say_detection(found, name: str | None = None) -> None:
+    """Print, for detected landmarks (fitting.detection.PhotoLandmarks), every face found, the
+    one fitted ("*") and why; ``name``: the photo's, before the lines (several photos)."""
+    if found.detection is None:
+        return
+    for line in found.detection.describe():
+        print(line if name is None else f"{name}: {line}")
+
+
+def _face_box(args: argparse.Namespace):
+    """--face-box as a (4,) float64 box (x, y, w, h), or None."""
+    from softras_cl.fitting.detection import parse_face_box
+
+    return None if args.face_box is None else parse_face_box(args.face_box)
 
 
 def _load_model(args):
@@ -112,7 +140,8 @@ def _run_record(args: argparse.Namespace) -> dict:
     (the same record a batch item of this photo has)."""
     from softras_cl.fitting.run_records import face_landmarks_source, face_record
 
-    return face_record(args.photo, face_landmarks_source(args.photo, args.landmarks), _options(args))
+    source = face_landmarks_source(args.photo, args.landmarks, args.face, _face_box(args))
+    return face_record(args.photo, source, _options(args))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -121,11 +150,15 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("give a photo (or several, folders, glob patterns, or --manifest CSV)"
                          + (" before --landmarks, which takes the files after it" if args.landmarks else ""))
     _config(args)                       # options checked before any photo is read
+    _face_box(args)                     # --face-box's X,Y,W,H too
     if args.same_person:
         return run_same_person(args)
     if args.same_camera:
         raise InputError("--same-camera goes with --same-person (one person's photos fitted together)")
     args.landmarks = _single_landmarks(args.landmarks)
+    if args.landmarks is not None:
+        from softras_cl.fitting.run_records import refuse_face_choice
+        refuse_face_choice(args.landmarks, False, args.face, args.face_box)
     if is_batch(args, args.photos):
         return run_batch(args, "face", args.photos, _options(args), args.landmarks)
     args.photo = args.photos[0]
@@ -152,16 +185,18 @@ def run_one(args: argparse.Namespace) -> int:
     from softras_cl.fitting.reports.face import write_outputs
 
     photo, landmarks, model = _load_inputs(args)
+    record = _run_record(args)          # refuses a --face/--face-box that a landmark file makes moot
     config = _config(args)
     def fit(folder):
-        return fit_face(photo, landmarks, model, config, out_dir=folder, progress=not args.no_progress,
+        return fit_face(photo, landmarks.points, model, config, out_dir=folder, progress=not args.no_progress,
                         resume=args.resume)
 
     def write(fit, folder, metrics, seconds):
-        return write_outputs(fit, photo, folder, metrics=metrics, run_config=dict(fit=config, options=args),
+        return write_outputs(fit, photo, landmarks, folder, metrics=metrics,
+                             run_config=dict(fit=config, options=args),
                              extra=dict(photo=str(args.photo), seconds=seconds, budget=args.budget))
 
-    run = run_fit(args, "fit-face", _run_record(args), fit, ("landmark_error_px_full", "psnr_face_db"), write,
+    run = run_fit(args, "fit-face", record, fit, ("landmark_error_px_full", "psnr_face_db"), write,
                   [args.photo])
     metrics = run.metrics
     say_summary("fit-face", run, f"landmark error {metrics['landmark_error_px_full']:.2f} px, face-region "
@@ -179,12 +214,13 @@ def _check_same_person(args: argparse.Namespace) -> list:
         raise InputError("--same-camera fits one focal length for all the photos; --focal gives it already: "
                          "use one or the other")
     clashes = [option for option, given in (
-        ("--all-faces", args.all_faces), ("--manifest", args.manifest is not None),
+        ("--all-faces", args.all_faces), ("--face", args.face is not None),
+        ("--face-box", args.face_box is not None), ("--manifest", args.manifest is not None),
         ("--workers", args.workers is not None), ("--threads-per-worker", args.threads_per_worker is not None),
         ("--scheduler", args.scheduler is not None)) if given]
     if clashes:
         raise InputError(f"--same-person fits the photos together in this process, as one person with "
-                         f"one face each; it does not go with {', '.join(clashes)}")
+                         f"one face each (the largest when detected); it does not go with {', '.join(clashes)}")
     photos = expand_paths(args.photos, "face")
     if len(photos) < 2:
         raise InputError(f"--same-person needs at least two photos of the person, got {len(photos)} "
@@ -197,7 +233,8 @@ def _check_same_person(args: argparse.Namespace) -> list:
 
 
 def _same_person_inputs(args: argparse.Namespace, photos: list) -> tuple[list, list, list]:
-    """(photos (H, W, 3) linear RGB, landmarks (68, 2) each, input records for params.json)."""
+    """(photos (H, W, 3) linear RGB, their landmarks (fitting.detection.PhotoLandmarks; the
+    detections printed), input records for params.json)."""
     from softras_cl.fitting.detection import resolve_landmarks
     from softras_cl.io.images import read_image
     from softras_cl.fitting.run_records import face_landmarks_source
@@ -205,10 +242,12 @@ def _same_person_inputs(args: argparse.Namespace, photos: list) -> tuple[list, l
 
     files = args.landmarks or [None] * len(photos)
     images = [read_image(p)[..., :3] for p in photos]
-    points = [resolve_landmarks(p, f)[0].points for p, f in zip(photos, files)]
+    found = [resolve_landmarks(p, f)[0] for p, f in zip(photos, files)]
+    for photo, landmarks in zip(photos, found):
+        say_detection(landmarks, str(photo))
     inputs = [dict(photo=str(p), photo_sha256=file_sha256(p), landmarks=None if f is None else str(f),
                    landmarks_source=face_landmarks_source(p, f)) for p, f in zip(photos, files)]
-    return images, points, inputs
+    return images, found, inputs
 
 
 def run_same_person(args: argparse.Namespace) -> int:
@@ -220,18 +259,18 @@ def run_same_person(args: argparse.Namespace) -> int:
 
     paths = _check_same_person(args)
     config = joint_config(_config(args))
-    images, points, inputs = _same_person_inputs(args, paths)
+    images, landmarks, inputs = _same_person_inputs(args, paths)
     model = _load_model(args)
     records = [face_record(p, i["landmarks_source"], _options(args)) for p, i in zip(paths, inputs)]
     record = dict(command="fit-face --same-person", inputs=[r["inputs"] for r in records],
                   options=dict(records[0]["options"], same_camera=args.same_camera))
 
     def fit(folder):
-        return fit_face_views(images, points, model, config, out_dir=folder, progress=not args.no_progress,
+        return fit_face_views(images, [f.points for f in landmarks], model, config, out_dir=folder, progress=not args.no_progress,
                               resume=args.resume, same_camera=args.same_camera)
 
     def write(fit, folder, metrics, seconds):
-        return write_views_outputs(fit, images, stable_names(paths), inputs, folder, metrics,
+        return write_views_outputs(fit, images, landmarks, stable_names(paths), inputs, folder, metrics,
                                    run_config=dict(fit=config, options=args),
                                    extra=dict(seconds=seconds, budget=args.budget))
 
