@@ -36,11 +36,14 @@ def _statuses(out: Path) -> dict:
 
 
 @pytest.mark.slow
+@pytest.mark.detect
 def test_shipped_folder_then_skipped(tmp_path, capsys):
+    """The shipped photos, their landmarks detected (the .pts files are not beside them)."""
     out = tmp_path / "batch"
     assert main(["fit-face", str(DATA), "--out", str(out), "--workers", "2", *SMALL]) == 0
     assert _statuses(out) == {"astronaut": "ok", "grace_hopper": "ok"}
     assert (out / "summary.png").exists() and (out / "astronaut" / "overlay.png").exists()
+    assert json.loads((out / "grace_hopper" / "detection.json").read_text())["chosen"] == 0
     assert "2 ok" in capsys.readouterr().out
     assert main(["fit-face", str(DATA), "--out", str(out), "--workers", "2", *SMALL]) == 0
     assert _statuses(out) == {"astronaut": "skipped", "grace_hopper": "skipped"}
@@ -160,6 +163,10 @@ def test_all_faces_fits_each_detected_face_largest_first(tmp_path):
         doc = json.loads((out / name / "params.json").read_text())
         assert json.loads((out / name / "complete.json").read_text())["status"] == "done"
         assert doc["metrics"]["landmark_error_px_full"] < 10          # fitted to its own landmarks
+        index = int(name[-1])
+        assert doc["landmarks_input"]["face"] == index and doc["landmarks_input"]["reason"] == f"--all-faces: face {index}"
+        assert json.loads((out / name / "detection.json").read_text())["chosen"] == index
+        assert (out / name / "landmarks_fitted.pts").is_file()
         K, t = np.array(doc["params"]["K"]), np.array(doc["params"]["t"])
         u, v, w = K @ t                                               # the head's origin in the photo
         head[name] = (u / w, K[0, 0] / t[2])                          # its x, and pixels per metre

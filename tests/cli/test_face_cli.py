@@ -6,6 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from support.face_outputs import check_landmark_files
+from support.face_scenes import read_pts
 from support.interrupt import sigint_once_written
 from softras_cl.cli import main
 from softras_cl.fitting.solver import load_checkpoint
@@ -17,11 +19,11 @@ SMALL = ["--size", "80", "--budget", "fast", "--n-id", "4", "--n-exp", "4", "--n
 
 
 @pytest.mark.slow
-def test_fit_face_writes_every_output(tmp_path, capsys):
+def test_fit_face_writes_every_output(tmp_path, capsys, demo_face_model):
     out = tmp_path / "fit"
     assert main(["fit-face", str(PHOTO), "--landmarks", str(LANDMARKS), "--out", str(out), *SMALL]) == 0
     for name in ("face.ply", "overlay.png", "figure.png", "params.json", "params.npz", "loss_curve.png",
-                 "history.json", "checkpoint.npz"):
+                 "history.json", "checkpoint.npz", "landmarks_detected.pts", "landmarks_fitted.pts"):
         assert (out / name).stat().st_size > 0, name
     doc = json.loads((out / "params.json").read_text())
     assert doc["interrupted"] is False and doc["photo_size"] == [512, 512]
@@ -29,7 +31,11 @@ def test_fit_face_writes_every_output(tmp_path, capsys):
     assert doc["metrics"]["landmark_error_px_full"] < 25.0       # 80 px working image of a 512 px photo
     params = np.load(out / "params.npz")
     assert params["K"].shape == (3, 3) and params["id"].shape == (4,)
-    assert "landmark error" in capsys.readouterr().out
+    assert doc["landmarks_input"] == dict(source="file", file=str(LANDMARKS))
+    check_landmark_files(out, demo_face_model, read_pts(LANDMARKS))
+    assert not (out / "detection.json").exists()
+    said = capsys.readouterr().out
+    assert said.startswith("fit-face done in ") and "landmark error" in said      # no detection to print
 
 
 def _lines(path: Path, points) -> None:

@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from support.face_outputs import check_landmark_files
 
 from softras_cl.bench.face_views import subject
 from softras_cl.fitting.recipes import face, face_views
@@ -31,7 +32,8 @@ def _sha256(path) -> str:
 
 
 @pytest.mark.slow
-def test_same_person_writes_the_shared_face_and_every_photos_outputs(person, tmp_path, run_cli, monkeypatch):
+def test_same_person_writes_the_shared_face_and_every_photos_outputs(person, tmp_path, run_cli, monkeypatch,
+                                                                     demo_face_model):
     monkeypatch.setitem(face.BUDGETS, "fast", TINY)          # seconds, not a real fit
     (a, a_lmk), (b, b_lmk) = person
     out = tmp_path / "fit"
@@ -55,13 +57,38 @@ def test_same_person_writes_the_shared_face_and_every_photos_outputs(person, tmp
         per_photo = np.load(out / "photos" / name / "params.npz")
         np.testing.assert_array_equal(per_photo["id"], joint["id"])
         np.testing.assert_array_equal(per_photo["exp"], joint[f"exp.{k}"])
+    for name, landmarks in (("A", a_lmk), ("B", b_lmk)):
+        check_landmark_files(out / "photos" / name, demo_face_model, np.load(landmarks))
     last = (out / "complete.json").stat().st_mtime_ns
     assert all(p.stat().st_mtime_ns <= last for p in out.rglob("*") if p.is_file())
 
 
+@pytest.mark.slow
+@pytest.mark.detect
+def test_same_person_prints_and_writes_each_photos_detection(tmp_path, run_cli, monkeypatch, examples_data):
+    monkeypatch.setitem(face.BUDGETS, "fast", TINY)
+    photos = [tmp_path / "in" / name for name in ("astronaut.png", "grace_hopper.jpg")]
+    photos[0].parent.mkdir()
+    for photo in photos:
+        photo.write_bytes((examples_data / photo.name).read_bytes())
+    out = tmp_path / "fit"
+    result = run_cli("fit-face", *photos, "--same-person", "--budget", "fast", "--out", out, *SMALL)
+    assert result.code == 0, result.err
+    for photo in photos:
+        assert f"{photo}: 1 face found by mediapipe" in result.out
+        assert f"{photo}: * face 0: box " in result.out
+        folder = out / "photos" / photo.stem
+        detection = json.loads((folder / "detection.json").read_text())
+        assert detection["chosen"] == 0 and detection["reason"] == "the only face found"
+        source = json.loads((folder / "params.json").read_text())["landmarks_input"]
+        assert source["source"] == "mediapipe" and source["face"] == 0 and source["box"] == detection["candidates"][0]["box"]
+        assert (folder / "landmarks_detected.pts").is_file() and (folder / "landmarks_fitted.pts").is_file()
+
+
 @pytest.mark.parametrize("extra, says", [
     (["--all-faces"], "--same-person fits the photos together in this process, as one person with one face "
-                      "each; it does not go with --all-faces"),
+                      "each (the largest when detected); it does not go with --all-faces"),
+    (["--face-box", "1,1,9,9"], "it does not go with --face-box"),
     (["--workers", "2"], "it does not go with --workers"),
     (["--landmarks", "{a_lmk}"], "--landmarks gives 1 files for 2 photos: with --same-person give one per photo"),
 ])

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from support.face_outputs import check_landmark_files
+
 from softras_cl.errors import InputError
 from softras_cl.fitting import batch
 from softras_cl.fitting.batch import fit_many, split_cores
@@ -148,7 +150,7 @@ def _table(out: Path) -> list[dict]:
 
 
 @pytest.mark.slow
-def test_table_failed_photo_and_skip_on_rerun(tmp_path, client):
+def test_table_failed_photo_and_skip_on_rerun(tmp_path, client, demo_face_model):
     photos = make_photos(tmp_path / "in", 2)
     bad = tmp_path / "in" / "broken.png"
     bad.write_bytes(b"not an image")
@@ -164,9 +166,10 @@ def test_table_failed_photo_and_skip_on_rerun(tmp_path, client):
     lines = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
     assert [r["status"] for r in lines] == ["failed", "ok", "ok"]
     assert (out / "summary.png").stat().st_size > 0
-    for name in ("face0", "face1"):
+    for name, photo in zip(("face0", "face1"), photos):
         assert json.loads((out / name / "complete.json").read_text())["status"] == "done"
         assert (out / name / "overlay.png").exists() and not (out / name / LOCK_NAME).exists()
+        check_landmark_files(out / name, demo_face_model, np.load(photo.with_suffix(".npy")))
     assert not [p for p in out.iterdir() if p.name.startswith(".") and p.name != LOCK_NAME]
     stamp = (out / "face0" / "params.npz").stat().st_mtime_ns
     again = fit_many([tmp_path / "in"], out, options=OPTIONS, client=client, progress=False)

@@ -1,0 +1,33 @@
+"""Checks of a face fit's landmark outputs (landmarks_detected.pts, landmarks_fitted.pts) against
+the fit's own numbers: the points it was given, and the model's landmarks projected with the
+camera params.npz holds."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from support.face_scenes import read_pts
+
+
+def projected_model_landmarks(folder: Path, model) -> np.ndarray:
+    """(68, 2) the face model's landmarks of the shape in folder/params.npz (id, exp), projected
+    into the full photo with its K, R, t: pixel = K (R X + t) / Z, 0-based pixel centres."""
+    params = np.load(folder / "params.npz")
+    model = model.truncated(len(params["id"]), len(params["exp"]))
+    points = model.landmarks(model.shape(params["id"], params["exp"])[0])[0]
+    camera = points @ params["R"].T + params["t"]
+    pixels = camera @ params["K"].T
+    return pixels[:, :2] / pixels[:, 2:]
+
+
+def check_landmark_files(folder: Path, model, given: np.ndarray) -> None:
+    """landmarks_detected.pts holds ``given`` (68, 2), the points the fit was given; and
+    landmarks_fitted.pts the model's landmarks projected with the fitted camera, at the mean
+    distance from the given points that params.json reports as the landmark error."""
+    detected, fitted = read_pts(folder / "landmarks_detected.pts"), read_pts(folder / "landmarks_fitted.pts")
+    np.testing.assert_allclose(detected, given, atol=1e-9)
+    np.testing.assert_allclose(fitted, projected_model_landmarks(folder, model), atol=1e-6)
+    error = json.loads((folder / "params.json").read_text())["metrics"]["landmark_error_px_full"]
+    assert abs(np.linalg.norm(fitted - given, axis=1).mean() - error) < 1e-6 * max(error, 1.0)
