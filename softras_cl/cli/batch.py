@@ -13,9 +13,8 @@ Many photos: give several photos, folders (their image files, not subfolders; X_
 drawings beside a photo X are left out) or quoted glob patterns, and/or --manifest CSV. Each
 item is fitted into its own folder under --out, named after the photo's file name (a hash of
 the path is appended when two share a name; --all-faces appends -faceN, N the face's number,
-largest first; --face N fits face N of each photo); --out also gets results.csv, results.jsonl
-and summary.png. Items run on a Dask
-cluster: a LocalCluster of --workers processes on this machine by default, or --scheduler.
+largest first); --out also gets results.csv, results.jsonl and summary.png. Items run on a
+Dask cluster: a LocalCluster of --workers processes on this machine by default, or --scheduler.
 Running the same command again skips every item whose folder holds a complete.json with the
 same inputs and options, and redoes the others. Exit code 0 when every item succeeded, 1 when
 some failed (results.csv says which and why), 130 on Ctrl-C (finished items and the table are

@@ -13,7 +13,7 @@ from support.face_scenes import nme, read_pts, two_faces
 
 from softras_cl.fitting.batch import expand_faces
 from softras_cl.fitting.batch_items import collect_items
-from softras_cl.fitting.batch_task import face_points
+from softras_cl.fitting.batch_task import face_points, item_record, run_item
 from softras_cl.fitting.detection import FaceCandidate, mediapipe_backend
 
 SMALL = ["--size", "64", "--budget", "fast", "--n-id", "4", "--n-exp", "4", "--n-albedo", "2", "--no-progress"]
@@ -129,3 +129,20 @@ def test_all_faces_items_are_named_and_fitted_by_the_detections_numbers(tmp_path
     found = face_points(items[1])
     assert found.index == 2 and found.detection.reason == "--all-faces: face 2"
     np.testing.assert_array_equal(found.points, faces[2].landmarks)
+
+
+def test_batch_face_n_fits_that_face_of_each_photo_and_records_it(tmp_path, examples_data, examples_landmarks,
+                                                                   monkeypatch):
+    faces = _fake_faces(read_pts(examples_landmarks / "astronaut.pts") * 0.3, monkeypatch)
+    photos = [tmp_path / "a.png", tmp_path / "b.png"]
+    for photo in photos:
+        photo.write_bytes((examples_data / "astronaut.png").read_bytes())
+    photos[1].with_suffix(".pts").write_text((examples_landmarks / "astronaut.pts").read_text())
+    detected, beside = collect_items(photos, "face", {}, face=2)
+    found = face_points(detected)
+    assert found.index == 2 and found.detection.reason.startswith("--face 2: number 2 of 3")
+    np.testing.assert_array_equal(found.points, faces[2].landmarks)
+    assert item_record(detected)["inputs"]["landmarks"] == "detected by mediapipe, face 2"
+    row = run_item(beside, str(tmp_path / "out"))
+    assert row["status"] == "failed" and row["error"].startswith("--face chooses among the faces the detector finds, "
+                                                                 "but the landmarks come from the file beside the photo")
