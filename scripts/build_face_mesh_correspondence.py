@@ -9,7 +9,8 @@ Where on the model's mean face each of Face Mesh's 468 mesh points lies (the 10 
 left out):
 
 1. the mean shape with the mean albedo is rendered by softras-cl (grey background, ambient plus
-   one directional light) at the poses in ``POSES`` (yaw and pitch, degrees);
+   one directional light) from the views in ``POSES`` (the camera's yaw and pitch about the
+   face, degrees);
 2. Face Mesh (``static_image_mode=True, refine_landmarks=True``) runs on each render;
 3. each detected point is cast back onto the surface in front of its pixel (the triangle under
    it and perspective-correct barycentric weights): one candidate surface point per point and
@@ -42,28 +43,24 @@ N_MESH_POINTS = 468
 POSES = ((0, 0), (15, 0), (-15, 0), (30, 0), (-30, 0), (0, 12), (0, -12), (20, 10), (-20, -10))
 IMAGE_SIZE = 512
 LIGHT = LambertLight(ambient=0.45, directional=0.55, direction=(0.2, 0.4, 1.0))
-EYE, TARGET, FOV_DEG = (0.0, 0.0, 0.6), (0.0, -0.015, 0.0), 22.0
+TARGET, DISTANCE, FOV_DEG = np.array([0.0, -0.015, 0.0]), 0.6, 22.0
 MAX_MEDIAN_ERROR_PX = 6.0
 
 
-def rotation(yaw_deg: float, pitch_deg: float) -> np.ndarray:
-    """(3, 3) rotation about y by yaw, then about x by pitch (the model turns, the camera stays)."""
+def camera(yaw_deg: float, pitch_deg: float) -> Camera:
+    """The camera DISTANCE from TARGET, turned by yaw about the model's y axis (positive: towards
+    +x, the subject's left) and pitch above the x-z plane (positive: from above), looking at it."""
     a, b = np.radians(yaw_deg), np.radians(pitch_deg)
-    ry = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
-    rx = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
-    return rx @ ry
-
-
-def camera() -> Camera:
-    return Camera.look_at(eye=EYE, target=TARGET, fov_deg=FOV_DEG,
+    direction = np.array([np.sin(a) * np.cos(b), np.sin(b), np.cos(a) * np.cos(b)])
+    return Camera.look_at(eye=TARGET + DISTANCE * direction, target=TARGET, fov_deg=FOV_DEG,
                           image_size=(IMAGE_SIZE, IMAGE_SIZE))
 
 
-def render(vertices, faces, albedo) -> np.ndarray:
-    """(H, W, 3) uint8 sRGB render of the mesh (V, 3) (already posed) seen by camera()."""
+def render(vertices, faces, albedo, cam: Camera) -> np.ndarray:
+    """(H, W, 3) uint8 sRGB render of the mesh (V, 3) with albedo (V, 3) seen by cam."""
     settings = RasterSettings(image_size=(IMAGE_SIZE, IMAGE_SIZE), sigma=1e-7, gamma=1e-5,
                               near=0.05, far=10.0, background=(0.5, 0.5, 0.5), outputs=("rgb",))
-    out = Renderer(settings, shading="vertex").forward(vertices, faces, camera(), albedo=albedo,
+    out = Renderer(settings, shading="vertex").forward(vertices, faces, cam, albedo=albedo,
                                                        light=LIGHT)
     c = np.clip(out.rgb[0], 0.0, 1.0)
     srgb = np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
@@ -122,12 +119,12 @@ def surface_points(vertices, faces, face_idx, bary) -> np.ndarray:
     return np.einsum("nk,nkd->nd", bary, vertices[faces[face_idx]])
 
 
-def reprojection_errors(points, detections, cam: Camera) -> np.ndarray:
-    """Pixel distance (n_views, N) between model points (N, 3) posed by each of POSES and
-    projected, and the detections (n_views, N, 2) (NaN where a view found no face)."""
+def reprojection_errors(points, detections) -> np.ndarray:
+    """Pixel distance (n_views, N) between model points (N, 3) projected by the camera of each
+    of POSES and the detections (n_views, N, 2) (NaN where a view found no face)."""
     errors = np.full(detections.shape[:2], np.nan)
-    for v, (yaw, pitch) in enumerate(POSES):
-        uv, _ = cam.project_pixels(points @ rotation(yaw, pitch).T)
+    for v, pose in enumerate(POSES):
+        uv, _ = camera(*pose).project_pixels(points)
         errors[v] = np.linalg.norm(uv - detections[v], axis=1)
     return errors
 
@@ -145,19 +142,18 @@ def correspondence(mean_shape, faces, albedo) -> dict:
     """Run steps 1-5 of the module docstring: dense_faces (468,) int32, dense_bary (468, 3),
     dense_use (468,) bool; errors (n_views, 468) px of the chosen points, detections
     (n_views, 468, 2) (NaN for a view without a face) and unused: {reason: (468,) bool}."""
-    cam = camera()
     detections = np.full((len(POSES), N_MESH_POINTS, 2), np.nan)
     candidates = []                                   # (face_idx, bary) per view
     mesh = face_mesh()
     try:
-        for v, (yaw, pitch) in enumerate(POSES):
-            posed = mean_shape @ rotation(yaw, pitch).T
-            found = detect(mesh, render(posed, faces, albedo))
+        for v, pose in enumerate(POSES):
+            cam = camera(*pose)
+            found = detect(mesh, render(mean_shape, faces, albedo, cam))
             if found is None:
-                print(f"pose yaw {yaw} pitch {pitch}: Face Mesh found no face; view skipped")
+                print(f"view yaw {pose[0]} pitch {pose[1]}: Face Mesh found no face; skipped")
                 continue
             detections[v] = found
-            candidates.append(cast_pixels(posed, faces, cam, found))
+            candidates.append(cast_pixels(mean_shape, faces, cam, found))
     finally:
         mesh.close()
     if not candidates:
@@ -168,13 +164,13 @@ def correspondence(mean_shape, faces, albedo) -> dict:
     for face_idx, bary in candidates:
         hit = face_idx >= 0
         pts = surface_points(mean_shape, faces, np.where(hit, face_idx, 0), bary)
-        score = np.nanmedian(reprojection_errors(pts, detections, cam), axis=0)
+        score = np.nanmedian(reprojection_errors(pts, detections), axis=0)
         better = hit & (score < best_score)
         best_face[better], best_bary[better], best_score[better] = face_idx[better], bary[better], score[better]
     hit = best_face >= 0
     best_face[~hit], best_bary[~hit] = 0, (1.0, 0.0, 0.0)      # placeholders, marked unused
     errors = reprojection_errors(surface_points(mean_shape, faces, best_face, best_bary),
-                                 detections, cam)
+                                 detections)
     on_outline = hit & outline_faces(faces)[best_face]
     too_far = hit & ~on_outline & (best_score > MAX_MEDIAN_ERROR_PX)
     return dict(dense_faces=best_face.astype(np.int32), dense_bary=best_bary,
@@ -187,7 +183,7 @@ def summary(result: dict) -> str:
     """Residuals and the unused points' counts by reason, as printed (and quoted in the docs)."""
     err, use = result["errors"], result["dense_use"]
     lines = [f"{use.sum()} of {N_MESH_POINTS} points used; views: {len(POSES)} "
-             f"({IMAGE_SIZE} px, poses yaw/pitch {POSES})"]
+             f"({IMAGE_SIZE} px, camera yaw/pitch {POSES})"]
     for name, sel in (("used", use), ("all", np.ones_like(use))):
         e = err[:, sel]
         e = e[np.isfinite(e)]

@@ -152,7 +152,7 @@ def test_dense_correspondence_layout(model):
     assert 0 <= model["dense_faces"].min() and model["dense_faces"].max() < len(model["faces"])
     assert model["dense_bary"].min() >= -1e-9
     np.testing.assert_allclose(model["dense_bary"].sum(1), 1.0, atol=1e-12)
-    assert 440 <= model["dense_use"].sum() < 468        # a few outline points are left out
+    assert 440 <= model["dense_use"].sum() < 468        # a few outline points left out (13)
 
 
 def test_dense_points_sit_on_the_features_the_68_landmarks_mark(model):
@@ -160,7 +160,8 @@ def test_dense_points_sit_on_the_features_the_68_landmarks_mark(model):
     for mesh_index, ibug in FACE_MESH_AT_IBUG.items():
         assert model["dense_use"][mesh_index]
         dist = np.linalg.norm(dense[mesh_index] - lm[ibug])
-        assert dist < 6e-3, f"Face Mesh {mesh_index} is {dist * 1e3:.1f} mm from iBUG {ibug}"
+        # measured: 0.2 (lip middle) to 5.7 mm (inner eye corner: the two models' corners differ)
+        assert dist < 7e-3, f"Face Mesh {mesh_index} is {dist * 1e3:.1f} mm from iBUG {ibug}"
 
 
 def test_dense_points_are_left_right_symmetric(model):

@@ -30,8 +30,8 @@ def script():
 def test_face_mesh_finds_the_dense_points_where_the_model_puts_them(script, yaw, pitch):
     assert (yaw, pitch) not in script.POSES
     model = load_demo_face_model()
-    rotation = script.rotation(yaw, pitch)
-    image = script.render(model.mean_shape @ rotation.T, model.faces, model.albedo_mean)
+    cam = script.camera(yaw, pitch)
+    image = script.render(model.mean_shape, model.faces, model.albedo_mean, cam)
     mesh = script.face_mesh()
     try:
         detected = script.detect(mesh, image)
@@ -39,6 +39,6 @@ def test_face_mesh_finds_the_dense_points_where_the_model_puts_them(script, yaw,
         mesh.close()
     assert detected is not None and detected.shape == (468, 2)
     points, _ = model.dense_points(model.mean_shape)
-    projected, _ = script.camera().project_pixels(points @ rotation.T)
+    projected, _ = cam.project_pixels(points)
     errors = np.linalg.norm(projected - detected, axis=1)[model.dense_use]
     assert np.median(errors) < MEDIAN_BOUND_PX, np.median(errors)
