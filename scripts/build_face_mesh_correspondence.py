@@ -19,8 +19,10 @@ left out):
    (lowest median reprojection error) is kept;
 5. a point is marked unused (``dense_use`` False) when no view's ray hits the mesh, when its
    triangle touches the mesh's outline (the crop edge: the point sits on the silhouette of the
-   cropped face, not on a feature) or when its median reprojection error exceeds
-   ``MAX_MEDIAN_ERROR_PX``.
+   cropped face, not on a feature), when its triangle is part of the lip seam (its area grows
+   more than ``SEAM_STRETCH`` times when one expression component goes to +-2 std: the strip
+   closing the mouth, which opens with the jaw, so a point on it would end up inside the open
+   mouth) or when its median reprojection error exceeds ``MAX_MEDIAN_ERROR_PX``.
 
 Every existing array of the file is kept bit-identical; ``dense_faces`` (468,) int32,
 ``dense_bary`` (468, 3) float64 and ``dense_use`` (468,) bool are added (replaced on a rerun).
@@ -45,6 +47,9 @@ IMAGE_SIZE = 512
 LIGHT = LambertLight(ambient=0.45, directional=0.55, direction=(0.2, 0.4, 1.0))
 TARGET, DISTANCE, FOV_DEG = np.array([0.0, -0.015, 0.0]), 0.6, 22.0
 MAX_MEDIAN_ERROR_PX = 6.0
+# Triangles stretch at most 2.4x (99th percentile) under one expression component at +-2 std;
+# the few dozen of the lip seam stretch 4.6x to 50x.
+SEAM_STRETCH = 4.0
 
 
 def camera(yaw_deg: float, pitch_deg: float) -> Camera:
@@ -138,8 +143,24 @@ def outline_faces(faces) -> np.ndarray:
     return boundary[faces].any(1)
 
 
-def correspondence(mean_shape, faces, albedo) -> dict:
-    """Run steps 1-5 of the module docstring: dense_faces (468,) int32, dense_bary (468, 3),
+def seam_faces(mean_shape, faces, exp_basis, exp_std) -> np.ndarray:
+    """(F,) bool: triangles whose area grows more than SEAM_STRETCH times when one expression
+    component (basis (K, V, 3), std (K,)) is at +-2 std."""
+    def areas(v):
+        a, b, c = (v[faces[:, k]] for k in range(3))
+        return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+    neutral = areas(mean_shape)
+    stretch = np.ones(len(faces))
+    for basis, std in zip(exp_basis, exp_std):
+        for sign in (-2.0, 2.0):
+            stretch = np.maximum(stretch, areas(mean_shape + sign * std * basis) / neutral)
+    return stretch > SEAM_STRETCH
+
+
+def correspondence(mean_shape, faces, albedo, seam) -> dict:
+    """Run steps 1-5 of the module docstring (seam: seam_faces()): dense_faces (468,) int32,
+    dense_bary (468, 3),
     dense_use (468,) bool; errors (n_views, 468) px of the chosen points, detections
     (n_views, 468, 2) (NaN for a view without a face) and unused: {reason: (468,) bool}."""
     detections = np.full((len(POSES), N_MESH_POINTS, 2), np.nan)
@@ -172,10 +193,13 @@ def correspondence(mean_shape, faces, albedo) -> dict:
     errors = reprojection_errors(surface_points(mean_shape, faces, best_face, best_bary),
                                  detections)
     on_outline = hit & outline_faces(faces)[best_face]
-    too_far = hit & ~on_outline & (best_score > MAX_MEDIAN_ERROR_PX)
+    on_seam = hit & ~on_outline & seam[best_face]
+    too_far = hit & ~on_outline & ~on_seam & (best_score > MAX_MEDIAN_ERROR_PX)
     return dict(dense_faces=best_face.astype(np.int32), dense_bary=best_bary,
-                dense_use=hit & ~on_outline & ~too_far, errors=errors, detections=detections,
+                dense_use=hit & ~on_outline & ~on_seam & ~too_far, errors=errors,
+                detections=detections,
                 unused={"missed the mesh": ~hit, "on the outline": on_outline,
+                        "on the lip seam": on_seam,
                         f"median error > {MAX_MEDIAN_ERROR_PX} px": too_far})
 
 
@@ -201,8 +225,11 @@ def add_correspondence(model_path: Path) -> dict:
     every existing array unchanged. Returns correspondence()'s dict."""
     with np.load(model_path, allow_pickle=False) as f:
         arrays = {k: f[k] for k in f.files}
-    result = correspondence(arrays["mean_shape"].astype(np.float64), arrays["faces"],
-                            arrays["albedo_mean"].astype(np.float64))
+    mean_shape = arrays["mean_shape"].astype(np.float64)
+    seam = seam_faces(mean_shape, arrays["faces"], arrays["exp_basis"].astype(np.float64),
+                      arrays["exp_std"].astype(np.float64))
+    result = correspondence(mean_shape, arrays["faces"], arrays["albedo_mean"].astype(np.float64),
+                            seam)
     arrays.update({k: result[k] for k in ("dense_faces", "dense_bary", "dense_use")})
     np.savez_compressed(model_path, **arrays)
     return result

@@ -152,7 +152,7 @@ def test_dense_correspondence_layout(model):
     assert 0 <= model["dense_faces"].min() and model["dense_faces"].max() < len(model["faces"])
     assert model["dense_bary"].min() >= -1e-9
     np.testing.assert_allclose(model["dense_bary"].sum(1), 1.0, atol=1e-12)
-    assert 440 <= model["dense_use"].sum() < 468        # a few outline points left out (13)
+    assert 440 <= model["dense_use"].sum() < 468        # a few points left out (17)
 
 
 def test_dense_points_sit_on_the_features_the_68_landmarks_mark(model):
@@ -169,3 +169,18 @@ def test_dense_points_are_left_right_symmetric(model):
     p = dense_points(model)[model["dense_use"]]
     nearest = np.linalg.norm((p * [-1, 1, 1])[:, None] - p[None], axis=2).min(1)
     assert np.median(nearest) < 2e-3 and np.percentile(nearest, 90) < 4e-3
+
+
+def test_used_dense_points_stay_on_the_skin_when_the_mouth_opens(model):
+    """No used point lies on a triangle that one expression component (+-2 std) stretches more
+    than 4 times: the lip seam, which opens into the mouth."""
+    v0, f = model["mean_shape"].astype(np.float64), model["faces"]
+
+    def areas(v):
+        return np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+
+    used_faces = model["dense_faces"][model["dense_use"]]
+    for basis, std in zip(model["exp_basis"].astype(np.float64), model["exp_std"]):
+        for sign in (-2.0, 2.0):
+            stretch = areas(v0 + sign * std * basis)[used_faces] / areas(v0)[used_faces]
+            assert stretch.max() < 4.0
