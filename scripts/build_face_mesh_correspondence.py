@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.io.images import to_srgb
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.camera import Camera
 from softras_cl.scene.renderer import Renderer
@@ -67,9 +68,12 @@ def render(vertices, faces, albedo, cam: Camera) -> np.ndarray:
                               near=0.05, far=10.0, background=(0.5, 0.5, 0.5), outputs=("rgb",))
     out = Renderer(settings, shading="vertex").forward(vertices, faces, cam, albedo=albedo,
                                                        light=LIGHT)
-    c = np.clip(out.rgb[0], 0.0, 1.0)
-    srgb = np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
-    return np.round(255 * srgb).astype(np.uint8)
+    return to_srgb8(out.rgb[0])
+
+
+def to_srgb8(rgb) -> np.ndarray:
+    """Linear RGB (H, W, 3) -> sRGB uint8, clipped to [0, 1] first (what Face Mesh reads)."""
+    return np.round(255 * to_srgb(np.clip(rgb, 0.0, 1.0))).astype(np.uint8)
 
 
 def face_mesh():

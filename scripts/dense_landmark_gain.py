@@ -43,15 +43,10 @@ from softras_cl.fitting.models.face_model import FaceModel
 from softras_cl.scene.rotation import axis_angle_to_matrix
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from build_face_mesh_correspondence import detect, face_mesh  # noqa: E402
+from build_face_mesh_correspondence import detect, face_mesh, to_srgb8  # noqa: E402
 
 LANDMARK_WEIGHT = 1.0 / 4.0            # the recipe's: 1 / (2 px)^2
 POSE_SCALE = {"rotation": 0.05, "translation": 0.01}      # optimiser units, as the recipe's
-
-
-def to_srgb8(rgb: np.ndarray) -> np.ndarray:
-    c = np.clip(rgb, 0.0, 1.0)
-    return np.round(255 * np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)).astype(np.uint8)
 
 
 def point_term(camera, points3d, vjp, target, weights):
