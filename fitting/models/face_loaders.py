@@ -120,8 +120,21 @@ def _read_project_npz(path: Path) -> FaceModel:
         if missing:
             raise ValueError(f"{path}: {FORMAT} file lacks {', '.join(missing)}")
         fields = {k: data[k] for k in needed}
+        fields |= _dense_fields(data, keys, path)
         text = {k: str(data[k]) if k in keys else "" for k in ("name", "attribution")}
     return FaceModel(**fields, **text)
+
+
+def _dense_fields(data, keys: set, path: Path) -> dict:
+    """The optional dense correspondence of a project .npz: dense_faces and dense_bary together
+    (dense_use optional), or nothing (files written before it existed load without it)."""
+    present = [k for k in ("dense_faces", "dense_bary", "dense_use") if k in keys]
+    if present and not {"dense_faces", "dense_bary"} <= set(present):
+        missing = sorted({"dense_faces", "dense_bary"} - set(present))
+        raise ValueError(f"{path}: {FORMAT} file has {', '.join(present)} but lacks "
+                         f"{', '.join(missing)} (the dense correspondence needs dense_faces and "
+                         "dense_bary)")
+    return {k: data[k] for k in present}
 
 
 # -- BFM 2009 ----------------------------------------------------------------------------------

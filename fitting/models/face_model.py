@@ -13,7 +13,7 @@ A ``FaceModel`` holds float64 numpy arrays in one convention whatever file it ca
 Every map from coefficients is linear and comes with its exact vector-Jacobian product in the
 project's convention: ``vertices, ctx = model.shape(c_id, c_exp)`` and
 ``model.shape_vjp(ctx, grad)`` -> a dict by argument name (likewise ``albedo`` and
-``landmarks``). Bases are used through (K, 3V) views of the
+``landmarks``, ``dense_points``). Bases are used through (K, 3V) views of the
 (K, V, 3) arrays, with the standard deviations applied to the K-vector: the same BLAS matvec as a
 pre-scaled matrix, without a second copy of bases that reach hundreds of megabytes.
 
@@ -28,12 +28,15 @@ from pathlib import Path
 import numpy as np
 
 from softras_cl.checks import check_shape, index_array, nonnegative, real_array
+from softras_cl.errors import InputError
 
 FORMAT = "softras-cl-face-1"
 
 _ARRAY_FIELDS = ("mean_shape", "id_basis", "id_std", "exp_basis", "exp_std", "albedo_mean",
                  "albedo_basis", "albedo_std", "faces", "landmark_faces", "landmark_bary")
 _INT_FIELDS = ("faces", "landmark_faces")
+# The optional dense correspondence (MediaPipe Face Mesh's 468 points on the demo face)
+_DENSE_FIELDS = ("dense_faces", "dense_bary", "dense_use")
 
 
 def _as_float(name: str, value, shape: tuple, expected: str) -> np.ndarray:
@@ -54,6 +57,32 @@ def _basis_and_std(prefix: str, basis, std, n_vertices: int) -> tuple[np.ndarray
     k = basis.shape[0]
     std = _as_float(f"{prefix}_std", std, (k,), f"({k},) to match {prefix}_basis")
     return basis, nonnegative(f"{prefix}_std", std)
+
+
+def _surface_map(prefix: str, faces_idx, bary, n_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """Validated points on a mesh's surface: ``{prefix}_faces`` (N,) int32 triangle per point and
+    ``{prefix}_bary`` (N, 3) float64 barycentric weights in it, each row summing to 1."""
+    faces_idx = _as_index(f"{prefix}_faces", faces_idx, (None,), "(N,)", n_faces, "faces")
+    n = faces_idx.shape[0]
+    bary = _as_float(f"{prefix}_bary", bary, (n, 3), f"({n}, 3) to match {prefix}_faces")
+    sums = bary.sum(axis=1)
+    if n and not np.allclose(sums, 1.0, atol=1e-4):
+        bad = int(np.argmax(np.abs(sums - 1.0)))
+        raise ValueError(f"FaceModel: {prefix}_bary row {bad} sums to {sums[bad]:.6g}, "
+                         "expected 1 (barycentric weights)")
+    return faces_idx, bary
+
+
+def _interpolate(bary: np.ndarray, corners: np.ndarray, verts: np.ndarray) -> np.ndarray:
+    """Points (N, 3): barycentric weights bary (N, 3) of the corner vertices corners (N, 3)."""
+    return np.einsum("lj,ljc->lc", bary, verts[corners])
+
+
+def _interpolate_vjp(bary: np.ndarray, corners: np.ndarray, grad: np.ndarray, n_vertices: int):
+    """The adjoint of _interpolate: grad (N, 3) -> dL/d(vertices) (n_vertices, 3)."""
+    out = np.zeros((n_vertices, 3))
+    np.add.at(out, corners.reshape(-1), (bary[:, :, None] * grad[:, None, :]).reshape(-1, 3))
+    return out
 
 
 def _coeffs(name: str, value, k: int) -> np.ndarray:
@@ -80,13 +109,17 @@ class FaceModel:
         faces (F, 3) int32, counter-clockwise from outside;
         landmark_faces (L,) int32 face index per landmark; landmark_bary (L, 3) barycentric
         weights in that face (L may be 0; 68 in iBUG 300-W order when known);
+        dense_faces (N,) int32, dense_bary (N, 3), dense_use (N,) bool: optional dense points
+        on the surface (the demo face: MediaPipe Face Mesh's 468 points in its order) and which
+        of them a fit should use; None when the model has none (``has_dense``);
         name, attribution: free text, kept through ``save``/``load_face_model``.
     Every field is validated here; a ValueError names the field and the expected shape.
     """
 
     def __init__(self, mean_shape, id_basis, id_std, exp_basis, exp_std, albedo_mean,
                  albedo_basis, albedo_std, faces, landmark_faces=None, landmark_bary=None,
-                 name: str = "", attribution: str = ""):
+                 name: str = "", attribution: str = "", dense_faces=None, dense_bary=None,
+                 dense_use=None):
         self.mean_shape = _as_float("mean_shape", mean_shape, (None, 3), "(V, 3)")
         v = self.mean_shape.shape[0]
         if v == 0:
@@ -102,16 +135,9 @@ class FaceModel:
             landmark_faces = np.zeros(0, np.int32)
         if landmark_bary is None:
             landmark_bary = np.zeros((0, 3))
-        self.landmark_faces = _as_index("landmark_faces", landmark_faces, (None,), "(L,)",
-                                        self.faces.shape[0], "faces")
-        n_lmk = self.landmark_faces.shape[0]
-        self.landmark_bary = _as_float("landmark_bary", landmark_bary, (n_lmk, 3),
-                                       f"({n_lmk}, 3) to match landmark_faces")
-        sums = self.landmark_bary.sum(axis=1)
-        if n_lmk and not np.allclose(sums, 1.0, atol=1e-4):
-            bad = int(np.argmax(np.abs(sums - 1.0)))
-            raise ValueError(f"FaceModel: landmark_bary row {bad} sums to {sums[bad]:.6g}, "
-                             "expected 1 (barycentric weights)")
+        self.landmark_faces, self.landmark_bary = _surface_map(
+            "landmark", landmark_faces, landmark_bary, self.faces.shape[0])
+        self._set_dense(dense_faces, dense_bary, dense_use)
         self.name, self.attribution = str(name), str(attribution)
         self._id_flat = self.id_basis.reshape(self.n_id, 3 * v)          # (K, 3V) views
         self._exp_flat = self.exp_basis.reshape(self.n_exp, 3 * v)
@@ -184,21 +210,77 @@ class FaceModel:
         """3D landmarks (L, 3) float64, barycentric interpolation of vertices (V, 3) in each
         face; and the context for landmarks_vjp."""
         verts = _as_float("vertices", vertices, (self.n_vertices, 3), f"({self.n_vertices}, 3)")
-        points = np.einsum("lj,ljc->lc", self.landmark_bary, verts[self._lmk_vertices])
+        points = _interpolate(self.landmark_bary, self._lmk_vertices, verts)
         return points, LinearContext((self.n_landmarks, 3))
 
     def landmarks_vjp(self, ctx: LinearContext, grad) -> dict:
         """grad (L, 3) = dL/d(landmarks) -> {"vertices": (V, 3)} float64, J^T grad."""
         g = self._cotangent("grad", grad, ctx).reshape(-1, 3)
-        out = np.zeros((self.n_vertices, 3))
-        np.add.at(out, self._lmk_vertices.reshape(-1),
-                  (self.landmark_bary[:, :, None] * g[:, None, :]).reshape(-1, 3))
-        return {"vertices": out}
+        return {"vertices": _interpolate_vjp(self.landmark_bary, self._lmk_vertices, g,
+                                             self.n_vertices)}
+
+    # -- dense points -----------------------------------------------------------------------
+    def _set_dense(self, dense_faces, dense_bary, dense_use) -> None:
+        """Validate and store the optional dense correspondence (all None: the model has none;
+        dense_use None: every point is used)."""
+        if dense_faces is None and dense_bary is None:
+            if dense_use is not None:
+                raise ValueError("FaceModel: dense_use given without dense_faces and dense_bary")
+            self.dense_faces = self.dense_bary = self.dense_use = None
+            return
+        if dense_faces is None or dense_bary is None:
+            missing = "dense_faces" if dense_faces is None else "dense_bary"
+            raise ValueError(f"FaceModel: {missing} is missing; dense_faces and dense_bary "
+                             "come together")
+        self.dense_faces, self.dense_bary = _surface_map("dense", dense_faces, dense_bary,
+                                                         self.faces.shape[0])
+        n = self.dense_faces.shape[0]
+        if dense_use is None:
+            dense_use = np.ones(n, bool)
+        use = np.asarray(dense_use)
+        if use.shape != (n,) or use.dtype != np.bool_:
+            raise ValueError(f"FaceModel: dense_use must be a bool array of shape ({n},) to match "
+                             f"dense_faces, got {use.dtype} {use.shape}")
+        self.dense_use = np.ascontiguousarray(use)
+        self._dense_vertices = self.faces[self.dense_faces]               # (N, 3) vertex indices
+
+    @property
+    def has_dense(self) -> bool:
+        """Whether the model carries dense points (dense_faces / dense_bary)."""
+        return self.dense_faces is not None
+
+    @property
+    def n_dense(self) -> int:
+        """Number of dense points (0 without them)."""
+        return self.dense_faces.shape[0] if self.has_dense else 0
+
+    def _require_dense(self) -> None:
+        if not self.has_dense:
+            raise InputError(
+                f"face model {self.name or '(unnamed)'} has no dense landmark correspondence "
+                "(dense_faces / dense_bary): the dense landmark term needs one; the shipped demo "
+                "face model has MediaPipe Face Mesh's 468 points "
+                "(scripts/build_face_mesh_correspondence.py adds them to a softras-cl-face-1 file)")
+
+    def dense_points(self, vertices) -> tuple[np.ndarray, LinearContext]:
+        """3D dense points (N, 3) float64 (every point, used or not: select with dense_use) on
+        vertices (V, 3); and the context for dense_points_vjp. InputError if the model has none."""
+        self._require_dense()
+        verts = _as_float("vertices", vertices, (self.n_vertices, 3), f"({self.n_vertices}, 3)")
+        return (_interpolate(self.dense_bary, self._dense_vertices, verts),
+                LinearContext((self.n_dense, 3)))
+
+    def dense_points_vjp(self, ctx: LinearContext, grad) -> dict:
+        """grad (N, 3) = dL/d(dense points) -> {"vertices": (V, 3)} float64, J^T grad."""
+        self._require_dense()
+        g = self._cotangent("grad", grad, ctx).reshape(-1, 3)
+        return {"vertices": _interpolate_vjp(self.dense_bary, self._dense_vertices, g,
+                                             self.n_vertices)}
 
     # -- derived models ---------------------------------------------------------------------
     def _fields(self) -> dict:
-        return {k: getattr(self, k) for k in _ARRAY_FIELDS} | {"name": self.name,
-                                                               "attribution": self.attribution}
+        return ({k: getattr(self, k) for k in _ARRAY_FIELDS + _DENSE_FIELDS}
+                | {"name": self.name, "attribution": self.attribution})
 
     def truncated(self, n_id: int | None = None, n_exp: int | None = None,
                   n_albedo: int | None = None) -> "FaceModel":
@@ -220,7 +302,10 @@ class FaceModel:
 
     # -- file -------------------------------------------------------------------------------
     def save(self, path) -> None:
-        """Write the project's .npz (key 'format' = 'softras-cl-face-1' plus one key per field)."""
+        """Write the project's .npz (key 'format' = 'softras-cl-face-1' plus one key per field;
+        the dense fields only when the model has them)."""
         arrays = {k: getattr(self, k) for k in _ARRAY_FIELDS}
+        if self.has_dense:
+            arrays |= {k: getattr(self, k) for k in _DENSE_FIELDS}
         np.savez_compressed(Path(path), format=np.str_(FORMAT), name=np.str_(self.name),
                             attribution=np.str_(self.attribution), **arrays)

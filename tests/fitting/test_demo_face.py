@@ -133,3 +133,54 @@ def test_the_package_loader_reads_the_shipped_file():
     with np.load(PATH) as f:
         np.testing.assert_allclose(np.asarray(fm.mean_shape, dtype=np.float64),
                                    f["mean_shape"].astype(np.float64))
+
+
+# MediaPipe Face Mesh index -> the iBUG landmark at the same feature (outer and inner eye
+# corners, mouth corners, nose tip, upper and lower lip middle)
+FACE_MESH_AT_IBUG = {33: 36, 263: 45, 133: 39, 362: 42, 61: 48, 291: 54, 1: 30, 0: 51, 17: 57}
+
+
+def dense_points(m):
+    tri = m["faces"][m["dense_faces"]]
+    return np.einsum("nk,nkd->nd", m["dense_bary"], m["mean_shape"][tri].astype(np.float64))
+
+
+def test_dense_correspondence_layout(model):
+    assert model["dense_faces"].shape == (468,) and model["dense_faces"].dtype == np.int32
+    assert model["dense_bary"].shape == (468, 3) and model["dense_bary"].dtype == np.float64
+    assert model["dense_use"].shape == (468,) and model["dense_use"].dtype == np.bool_
+    assert 0 <= model["dense_faces"].min() and model["dense_faces"].max() < len(model["faces"])
+    assert model["dense_bary"].min() >= -1e-9
+    np.testing.assert_allclose(model["dense_bary"].sum(1), 1.0, atol=1e-12)
+    assert 440 <= model["dense_use"].sum() < 468        # a few points left out (17)
+
+
+def test_dense_points_sit_on_the_features_the_68_landmarks_mark(model):
+    dense, lm = dense_points(model), landmarks(model)
+    for mesh_index, ibug in FACE_MESH_AT_IBUG.items():
+        assert model["dense_use"][mesh_index]
+        dist = np.linalg.norm(dense[mesh_index] - lm[ibug])
+        # measured: 0.2 (lip middle) to 5.7 mm (inner eye corner: the two models' corners differ)
+        assert dist < 7e-3, f"Face Mesh {mesh_index} is {dist * 1e3:.1f} mm from iBUG {ibug}"
+
+
+def test_dense_points_are_left_right_symmetric(model):
+    """Face Mesh is a symmetric mesh: each used point's mirror image lies near another one."""
+    p = dense_points(model)[model["dense_use"]]
+    nearest = np.linalg.norm((p * [-1, 1, 1])[:, None] - p[None], axis=2).min(1)
+    assert np.median(nearest) < 2e-3 and np.percentile(nearest, 90) < 4e-3
+
+
+def test_used_dense_points_stay_on_the_skin_when_the_mouth_opens(model):
+    """No used point lies on a triangle that one expression component (+-2 std) stretches more
+    than 4 times: the lip seam, which opens into the mouth."""
+    v0, f = model["mean_shape"].astype(np.float64), model["faces"]
+
+    def areas(v):
+        return np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+
+    used_faces = model["dense_faces"][model["dense_use"]]
+    for basis, std in zip(model["exp_basis"].astype(np.float64), model["exp_std"]):
+        for sign in (-2.0, 2.0):
+            stretch = areas(v0 + sign * std * basis)[used_faces] / areas(v0)[used_faces]
+            assert stretch.max() < 4.0

@@ -1,4 +1,5 @@
 import pickle
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -9,6 +10,8 @@ from support.face_files import (N_V, face_normals, grid_face, write_bfm2009, wri
                         write_deca_embedding, write_flame, write_flame_static_embedding)
 from softras_cl.fitting.models.face_loaders import read_landmark_mapping
 from softras_cl.fitting.models.face_loaders import load_face_model
+
+DEMO = Path(__file__).resolve().parents[2] / "fitting" / "models" / "data" / "demo_face.npz"
 
 
 def one_std(model, prefix):
@@ -36,7 +39,7 @@ def test_bfm2009_units_colors_and_winding(tmp_path, v73):
     np.testing.assert_allclose(one_std(m, "albedo"), tex, rtol=1e-12, atol=1e-20)
     np.testing.assert_array_equal(m.faces, faces)  # 1-based clockwise -> 0-based CCW
     assert_front_faces_toward_plus_z(m)
-    assert (m.n_exp, m.n_landmarks) == (0, 0)
+    assert (m.n_exp, m.n_landmarks, m.n_dense) == (0, 0, 0)
     assert "Basel Face Model 2009" in m.attribution
 
 
@@ -104,7 +107,7 @@ def test_flame_splits_300_shape_100_expression_unit_std(tmp_path):
     src = write_flame(path)
     m = load_face_model(path)
     np.testing.assert_array_equal(m.mean_shape, src["v_template"])
-    assert (m.n_id, m.n_exp, m.n_albedo, m.n_landmarks) == (300, 100, 0, 0)
+    assert (m.n_id, m.n_exp, m.n_albedo, m.n_landmarks, m.n_dense) == (300, 100, 0, 0, 0)
     np.testing.assert_array_equal(m.id_std, np.ones(300))
     np.testing.assert_array_equal(m.exp_std, np.ones(100))
     np.testing.assert_array_equal(m.id_basis[7], src["shapedirs"][:, :, 7])
@@ -183,6 +186,33 @@ def test_project_npz_of_another_version(tmp_path):
     path = tmp_path / "face.npz"
     np.savez(path, format=np.str_("softras-cl-face-9"))
     with pytest.raises(ValueError, match="'softras-cl-face-9' is not supported"):
+        load_face_model(path)
+
+
+def test_project_npz_written_before_the_dense_fields_loads_without_them(tmp_path):
+    """The demo file with its dense (Face Mesh) arrays taken out, as files written before they
+    existed: every other field loads the same, the dense term is unavailable."""
+    from softras_cl.fitting.models.face_loaders import load_demo_face_model
+
+    demo = load_demo_face_model()
+    with np.load(DEMO) as data:
+        old = {k: data[k] for k in data.files if not k.startswith("dense_")}
+    np.savez_compressed(tmp_path / "old.npz", **old)
+    model = load_face_model(tmp_path / "old.npz")
+    assert not model.has_dense and model.n_dense == 0
+    for key in ("mean_shape", "id_basis", "exp_basis", "albedo_mean", "faces", "landmark_bary"):
+        np.testing.assert_array_equal(getattr(model, key), getattr(demo, key), err_msg=key)
+
+
+def test_project_npz_with_half_a_dense_correspondence(tmp_path):
+    from test_face_model import make_model
+    path = tmp_path / "half.npz"
+    make_model().save(path)
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    np.savez(path, **arrays, dense_faces=np.zeros(3, np.int32), dense_use=np.ones(3, bool))
+    with pytest.raises(ValueError, match=r"half.npz: softras-cl-face-1 file has dense_faces, "
+                                         r"dense_use but lacks dense_bary"):
         load_face_model(path)
 
 

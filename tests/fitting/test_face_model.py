@@ -3,6 +3,7 @@ import pytest
 
 from support.face_files import face_normals, grid_face
 from softras_cl.fitting.models.face_loaders import load_demo_face_model, load_face_model
+from softras_cl.errors import InputError
 from softras_cl.fitting.models.face_model import FaceModel
 
 
@@ -88,6 +89,91 @@ def test_landmarks_interpolate_in_their_faces_and_vjp_is_exact():
     np.testing.assert_allclose(g_verts.reshape(-1), jac.T @ g.reshape(-1), rtol=1e-7, atol=1e-10)
     dv = rng.normal(size=verts.shape)
     assert np.isclose(np.sum(g * m.landmarks(dv)[0]), np.sum(g_verts * dv), rtol=1e-12)
+
+
+def with_dense(m: FaceModel, n=7, seed=4) -> FaceModel:
+    """The model with n random dense points, every other one unused."""
+    rng = np.random.default_rng(seed)
+    bary = rng.uniform(0.1, 1.0, size=(n, 3))
+    return FaceModel(**(m._fields() | {"dense_faces": rng.integers(0, len(m.faces), n),
+                                       "dense_bary": bary / bary.sum(axis=1, keepdims=True),
+                                       "dense_use": np.arange(n) % 2 == 0}))
+
+
+def test_dense_points_interpolate_in_their_faces_and_vjp_is_exact():
+    m = with_dense(make_model())
+    rng = np.random.default_rng(5)
+    verts, _ = m.shape(rng.normal(size=4), rng.normal(size=3))
+    points, ctx = m.dense_points(verts)
+    expected = np.einsum("nj,njc->nc", m.dense_bary, verts[m.faces[m.dense_faces]])
+    np.testing.assert_allclose(points, expected, rtol=0, atol=1e-15)
+    jac = central_jacobian(lambda x: m.dense_points(x.reshape(-1, 3))[0], verts.reshape(-1))
+    g = rng.normal(size=(m.n_dense, 3))
+    g_verts = m.dense_points_vjp(ctx, g)["vertices"]
+    np.testing.assert_allclose(g_verts.reshape(-1), jac.T @ g.reshape(-1), rtol=1e-7, atol=1e-10)
+    with pytest.raises(ValueError, match=r"grad must have shape \(7, 3\)"):
+        m.dense_points_vjp(ctx, np.zeros((6, 3)))
+
+
+def test_dense_points_through_the_coefficients_match_finite_differences():
+    """The chain a fit uses: coefficients -> vertices -> dense points, and back."""
+    m = with_dense(make_model())
+    rng = np.random.default_rng(6)
+    x = rng.normal(size=m.n_id + m.n_exp)
+    split = lambda x: (x[:m.n_id], x[m.n_id:])  # noqa: E731
+    jac = central_jacobian(lambda x: m.dense_points(m.shape(*split(x))[0])[0], x)
+    verts, shape_ctx = m.shape(*split(x))
+    _, ctx = m.dense_points(verts)
+    g = rng.normal(size=(m.n_dense, 3))
+    grads = m.shape_vjp(shape_ctx, m.dense_points_vjp(ctx, g)["vertices"])
+    np.testing.assert_allclose(np.concatenate([grads["id_coeffs"], grads["exp_coeffs"]]),
+                               jac.T @ g.reshape(-1), rtol=1e-7, atol=1e-12)
+
+
+def test_dense_fields_kept_by_derived_models_and_saved(tmp_path):
+    m = with_dense(make_model())
+    assert (m.has_dense, m.n_dense) == (True, 7) and m.dense_faces.dtype == np.int32
+    for derived in (m.truncated(n_id=2), m.with_landmarks([0], [[1.0, 0, 0]])):
+        np.testing.assert_array_equal(derived.dense_faces, m.dense_faces)
+        np.testing.assert_array_equal(derived.dense_use, m.dense_use)
+    m.save(tmp_path / "dense.npz")
+    back = load_face_model(tmp_path / "dense.npz")
+    for key in ("dense_faces", "dense_bary", "dense_use"):
+        np.testing.assert_array_equal(getattr(back, key), getattr(m, key), err_msg=key)
+    assert back.dense_use.dtype == np.bool_
+
+
+def test_model_without_dense_points_says_the_term_is_unavailable(tmp_path):
+    m = make_model()
+    assert (m.has_dense, m.n_dense, m.dense_faces, m.dense_use) == (False, 0, None, None)
+    with pytest.raises(InputError, match="test face has no dense landmark correspondence"):
+        m.dense_points(m.mean_shape)
+    m.save(tmp_path / "plain.npz")
+    with np.load(tmp_path / "plain.npz") as data:
+        assert "dense_faces" not in data.files
+
+
+def test_dense_use_defaults_to_every_point():
+    m = make_model()
+    m = FaceModel(**(m._fields() | {"dense_faces": [0, 3], "dense_bary": np.full((2, 3), 1 / 3)}))
+    np.testing.assert_array_equal(m.dense_use, [True, True])
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"dense_faces": [0, 1]}, "dense_bary is missing; dense_faces and dense_bary come together"),
+    ({"dense_bary": np.full((2, 3), 1 / 3)}, "dense_faces is missing"),
+    ({"dense_use": np.ones(2, bool)}, "dense_use given without dense_faces and dense_bary"),
+    ({"dense_faces": [0, 40], "dense_bary": np.full((2, 3), 1 / 3)},
+     r"dense_faces must index faces in \[0, 40\)"),
+    ({"dense_faces": [0, 1], "dense_bary": np.full((3, 3), 1 / 3)},
+     r"dense_bary must have shape \(2, 3\) to match dense_faces"),
+    ({"dense_faces": [0, 1], "dense_bary": np.full((2, 3), 0.5)}, "dense_bary row 0 sums to 1.5"),
+    ({"dense_faces": [0, 1], "dense_bary": np.full((2, 3), 1 / 3), "dense_use": [1, 0]},
+     r"dense_use must be a bool array of shape \(2,\)"),
+])
+def test_invalid_dense_fields_are_named(changes, message):
+    with pytest.raises(ValueError, match=message):
+        FaceModel(**(make_model()._fields() | changes))
 
 
 def test_vertex_landmark_one_hot_row_picks_the_vertex():

@@ -123,7 +123,8 @@ def test_the_check_finds_a_hole_and_back_faces(demo):
     centre = np.argmin(np.linalg.norm(scene.model.mean_shape - [0.03, -0.04, 0.0], axis=1))
     near = np.linalg.norm(scene.model.mean_shape[demo.faces].mean(1) - scene.model.mean_shape[centre], axis=1) < 0.01
     for faces in (demo.faces[~near], np.where(near[:, None], demo.faces[:, ::-1], demo.faces)):
-        model = demo.__class__(**{**demo._fields(), "faces": faces, "landmark_faces": None, "landmark_bary": None})
+        model = demo.__class__(**{**demo._fields(), "faces": faces, "landmark_faces": None, "landmark_bary": None,
+                                     "dense_faces": None, "dense_bary": None, "dense_use": None})
         model.landmarks = demo.landmarks                                # the outline of the intact face
         broken = face.FaceScene(model, (SIZE,) * 2, alpha_agg="hard", depth_range=face.depth_range(values["translation"]))
         with pytest.raises(AssertionError):
