@@ -26,6 +26,15 @@ own renderer did not make. Both photos of a face are fitted one after the other 
 the JSON keeps softras-cl's runs under the budget's name, Mitsuba's under "mitsuba/<budget>",
 with the Mitsuba photos' checks (silhouette IoU against softras-cl's render of the truth, PSNR
 between the two photos, Monte Carlo noise) under "mitsuba".
+
+--yaws 0-15,15-45,45-75 draws --faces faces per bin of |yaw| instead (the sign at random,
+pitch and roll as above), with jaw landmarks as an annotator or a detector places them: where a
+jaw point of the truth is hidden (its depth behind the truth render's depth at its pixel by more
+than OCCLUDED_MM), it moves along its pixel row, towards the side of the face turned away from
+the camera, to the edge of the truth render's silhouette (alpha 0.5); visible jaw points and
+the other 51 stay the projected truth points (:func:`silhouette_jaw`). --contour fixed,sliding
+fits every face with each way of placing the jaw landmarks on the model
+(FaceFitConfig.contour_landmarks) and compares them per yaw bin.
 """
 from __future__ import annotations
 
@@ -46,20 +55,26 @@ LANDMARKS_ONLY = "landmarks-only"    # the baseline row: the default budget with
 RENDERERS = ("softras", "mitsuba")
 DEFAULT_SPP = 256        # Mitsuba rays per pixel: noise ~0.005 RMS linear RGB on the face (0.007 at 128)
 NOISE_FACES = 3          # faces whose Mitsuba noise is measured (two extra renders each)
+CONTOURS = ("fixed", "sliding")
+OCCLUDED_MM = 2.0        # a jaw point this far behind the rendered surface is hidden
 
 
 # ---------------------------------------------------------------------------------------------
 # synthetic faces
 # ---------------------------------------------------------------------------------------------
 
-def random_truth(model, rng: np.random.Generator, size: int) -> dict:
-    """Random known parameters (the fit's blocks, focal in pixels) for a size x size photo."""
+def random_truth(model, rng: np.random.Generator, size: int, yaw_bin=None) -> dict:
+    """Random known parameters (the fit's blocks, focal in pixels) for a size x size photo;
+    yaw_bin (lo, hi) degrees: |yaw| uniform in it (the sign at random) instead of +-30."""
     from softras_cl.scene.rotation import axis_angle_to_matrix, matrix_to_axis_angle
     from softras_cl.scene.shading import sh_ambient
 
     coeffs = {k: np.clip(rng.normal(size=n), -2.5, 2.5)
               for k, n in (("id", model.n_id), ("exp", model.n_exp), ("albedo", model.n_albedo))}
-    yaw, pitch, roll = np.radians([rng.uniform(-30, 30), rng.uniform(-15, 15), rng.uniform(-10, 10)])
+    yaw, pitch, roll = rng.uniform(-30, 30), rng.uniform(-15, 15), rng.uniform(-10, 10)
+    if yaw_bin is not None:
+        yaw = np.sign(yaw) * rng.uniform(*yaw_bin)
+    yaw, pitch, roll = np.radians([yaw, pitch, roll])
     R = axis_angle_to_matrix([0, yaw, 0]) @ axis_angle_to_matrix([pitch, 0, 0]) @ axis_angle_to_matrix([0, 0, roll])
     fov = np.radians(rng.uniform(20, 40))
     focal = 0.5 * size / np.tan(fov / 2)
@@ -84,15 +99,18 @@ def smooth_background(rng: np.random.Generator, size: int) -> np.ndarray:
     return resize(coarse, (size, size), order=3, mode="reflect")
 
 
-def synthetic_face(model, rng: np.random.Generator, size: int = 256) -> dict:
+def synthetic_face(model, rng: np.random.Generator, size: int = 256, yaw_bin=None) -> dict:
     """One synthetic photo: truth, photo (size, size, 3) linear RGB, landmarks (68, 2) noisy and
-    clean, the noise level in px."""
-    return photograph(model, random_truth(model, rng, size), rng, size)
+    clean, the noise level in px; yaw_bin (lo, hi) degrees: a face turned that far, its jaw
+    landmarks on the silhouette (:func:`silhouette_jaw`)."""
+    truth = random_truth(model, rng, size, yaw_bin)
+    return photograph(model, truth, rng, size, silhouette=yaw_bin is not None)
 
 
-def photograph(model, truth: dict, rng: np.random.Generator, size: int = 256) -> dict:
+def photograph(model, truth: dict, rng: np.random.Generator, size: int = 256, silhouette: bool = False) -> dict:
     """The synthetic photo of known parameters ``truth`` (see :func:`random_truth`) over a random
-    background, with noisy landmarks: what :func:`synthetic_face` returns."""
+    background, with noisy landmarks: what :func:`synthetic_face` returns; silhouette: hidden jaw
+    points moved to the silhouette (:func:`silhouette_jaw`)."""
     from softras_cl.fitting.recipes.face import FaceScene, depth_range
     from softras_cl.scene.renderer import SHARP
 
@@ -103,9 +121,63 @@ def photograph(model, truth: dict, rng: np.random.Generator, size: int = 256) ->
     photo = alpha * out.rgb[0] + (1.0 - alpha) * background
     world, _ = scene.geometry(truth)
     clean, _ = scene.camera(truth["focal"][0]).project_pixels(model.landmarks(world)[0])
+    if silhouette:
+        clean = silhouette_jaw(scene, truth, clean)
     noise = rng.uniform(1.0, 2.0)
     return dict(truth=truth, photo=np.clip(photo, 0, 1), landmarks=clean + rng.normal(0, noise, clean.shape),
                 clean_landmarks=clean, noise_px=noise, background=background, alpha=out.alpha[0])
+
+
+def silhouette_jaw(scene, truth: dict, landmarks: np.ndarray) -> np.ndarray:
+    """landmarks (68, 2) pixels, the truth model's points projected, with each hidden jaw point
+    (iBUG 0-16; hidden: its view depth more than OCCLUDED_MM behind the depth of softras-cl's
+    sharp, z-buffered render of the truth at its pixel) moved outwards across the jaw line to the
+    edge of the render's silhouette (the first pixel of alpha <= 0.5, in half-pixel steps),
+    as an annotator marks the outline of the face: outwards is the jaw line's outward normal in
+    the model's frontal view (x, y; along x on the sides, down at the chin), turned by the
+    truth's rotation and projected at the point. scene: a FaceScene of the photo. Uses the
+    render and the truth only, nothing of the fit's own contour code."""
+    from softras_cl.scene.renderer import SHARP, Renderer
+    from softras_cl.scene.rotation import axis_angle_to_matrix
+    from softras_cl.scene.shading import SHLight
+
+    model = scene.model
+    settings = scene.settings.replace(outputs=("rgb", "alpha", "depth"), color_agg="hard")
+    world, _ = scene.geometry(truth)
+    camera = scene.camera(truth["focal"][0])
+    out = Renderer(settings, shading="vertex").forward(
+        world, scene.faces, camera, albedo=model.albedo(truth["albedo"])[0],
+        light=SHLight(truth["sh"]), sigma=SHARP[0], gamma=SHARP[1])
+    alpha, depth = out.alpha[0], out.depth[0]
+    jaw = model.landmarks(world)[0][:17]
+    outward = _jaw_normals(model.landmarks(model.mean_shape)[0][:17, :2])
+    ahead, _ = camera.project_pixels(jaw + 1e-3 * outward @ axis_angle_to_matrix(truth["rotation"]).T)
+    points = landmarks.copy()
+    h, w = alpha.shape
+    for j in range(17):
+        u, v = (int(round(c)) for c in landmarks[j])
+        if not (0 <= u < w and 0 <= v < h) or -jaw[j, 2] <= depth[v, u] + OCCLUDED_MM * 1e-3:
+            continue                     # outside the image or not hidden (the camera looks down -z)
+        step = 0.5 * (ahead[j] - landmarks[j]) / np.linalg.norm(ahead[j] - landmarks[j])
+        p = landmarks[j].copy()
+        while True:
+            u, v = (int(round(c)) for c in p + step)
+            if not (0 <= u < w and 0 <= v < h) or alpha[v, u] <= 0.5:
+                break
+            p = p + step
+        points[j] = p + 0.5 * step
+    return points
+
+
+def _jaw_normals(jaw_xy: np.ndarray) -> np.ndarray:
+    """(17, 3) unit outward normals of the jaw line jaw_xy (17, 2) in the model's frontal view,
+    z = 0: perpendicular to the line through each point's neighbours, away from their centroid."""
+    ahead, behind = np.roll(jaw_xy, -1, 0), np.roll(jaw_xy, 1, 0)
+    ahead[-1], behind[0] = jaw_xy[-1], jaw_xy[0]
+    t = ahead - behind
+    n = np.stack([t[:, 1], -t[:, 0]], 1)
+    n *= np.sign(np.sum(n * (jaw_xy - jaw_xy.mean(0)), axis=1))[:, None]
+    return np.column_stack([n / np.linalg.norm(n, axis=1, keepdims=True), np.zeros(len(n))])
 
 
 def mitsuba_render(model, truth: dict, size: int, spp: int, seed: int) -> dict:
