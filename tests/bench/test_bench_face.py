@@ -63,11 +63,15 @@ def test_bench_face_reports_focal_error_and_baseline(demo_face_model, tmp_path, 
     assert doc["faces"]["fast"][0]["psnr_face_db"] != doc["faces"]["landmarks-only"][0]["psnr_face_db"]
 
 
-def test_renderers_are_checked_before_any_fit(run_cli):
-    result = run_cli("bench", "face", "--renderers", "softras,blender")
-    assert result.code == 2 and "--renderers must name some of softras, mitsuba" in result.err
-    result = run_cli("bench", "face", "--renderers", "softras,softras")
-    assert result.code == 2 and "--renderers" in result.err
+@pytest.mark.parametrize("args, says", [
+    (("--renderers", "softras,blender"), "--renderers must name some of softras, mitsuba"),
+    (("--renderers", "softras,softras"), "--renderers"),
+    (("--contour", "fixed,bent"), "--contour must name some of fixed, sliding"),
+    (("--yaws", "45-30"), "--yaws"),
+])
+def test_options_are_checked_before_any_fit(run_cli, args, says):
+    result = run_cli("bench", "face", *args)
+    assert result.code == 2 and says in result.err
 
 
 def test_mitsuba_lines_only_with_mitsuba():
@@ -148,13 +152,6 @@ def test_yaws_and_contours_parse_and_name_the_runs():
     assert bench.parse_contours("fixed,sliding") == ["fixed", "sliding"] and bench.parse_contours(None) == [None]
     assert bench.run_name("softras", "fast") == "fast"
     assert bench.run_name("mitsuba", "fast", (45.0, 75.0), "sliding") == "mitsuba/yaw 45-75/fast/sliding contour"
-
-
-def test_contours_are_checked_before_any_fit(run_cli):
-    result = run_cli("bench", "face", "--contour", "fixed,bent")
-    assert result.code == 2 and "--contour must name some of fixed, sliding" in result.err
-    result = run_cli("bench", "face", "--yaws", "45-30")
-    assert result.code == 2 and "--yaws" in result.err
 
 
 def test_contour_comparison_pairs_fixed_with_sliding_per_bin_and_budget():
