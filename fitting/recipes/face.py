@@ -70,7 +70,7 @@ from softras_cl.scene.renderer import SHARP, Renderer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.shading import SH_A, SHLight, sh_ambient, sh_basis, vertex_normals
 from softras_cl.fitting import losses
-from softras_cl.fitting.contour import ContourLandmarks, jaw_candidates
+from softras_cl.fitting.contour import ContourChoice, ContourLandmarks, jaw_candidates
 from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.models.face_model import LinearContext
 from softras_cl.fitting.models.mesh_lod import coarse_faces
@@ -557,12 +557,12 @@ def default_stages(config: FaceFitConfig, fit_focal: bool) -> list[Stage]:
 @dataclass(frozen=True)
 class LandmarkContext:
     """What FaceObjective.landmark_term's gradient needs from landmark_points: the Camera and
-    its projection context, the model's landmark context, and the contour's chosen vertices
-    (N,) int (-1: the fixed point; None without a sliding contour)."""
+    its projection context, the model's landmark context, and where the sliding contour points
+    are (None without a sliding contour)."""
     camera: Camera
     camera_ctx: object
     model_ctx: LinearContext
-    chosen: np.ndarray | None
+    choice: ContourChoice | None
 
 
 class FaceObjective:
@@ -667,12 +667,12 @@ class FaceObjective:
         landmark_term's gradient."""
         camera = self.scene.camera(values["focal"][0])
         points_3d, model_ctx = self.scene.model.landmarks(world)
-        chosen = None
-        if self.contour is not None:
-            chosen = self.contour.choose(world, lambda p: camera.project_pixels(p)[0], self.target)
-            points_3d = self.contour.points_3d(world, points_3d, chosen)
+        choice = None
+        if self.contour is not None:      # depth along the optical axis: the camera looks down -z
+            choice = self.contour.choose(world, lambda p: (camera.project_pixels(p)[0], -p[:, 2]), self.target)
+            points_3d = self.contour.points_3d(world, points_3d, choice)
         points, camera_ctx = camera.project_pixels(points_3d)
-        return points, LandmarkContext(camera, camera_ctx, model_ctx, chosen)
+        return points, LandmarkContext(camera, camera_ctx, model_ctx, choice)
 
     def landmark_term(self, values: dict, world: np.ndarray) -> tuple[float, dict]:
         """Sum over the 68 points of weighted squared pixel distances; gradients wrt the world
@@ -682,8 +682,8 @@ class FaceObjective:
         n = len(points)
         g_cam = ctx.camera.project_pixels_vjp(ctx.camera_ctx, g["points"] * n, camera="focal")
         g_points, g_world = g_cam["vertices"], 0.0
-        if ctx.chosen is not None:
-            g_points, g_world = self.contour.points_3d_vjp(g_points, ctx.chosen)
+        if ctx.choice is not None:
+            g_points, g_world = self.contour.points_3d_vjp(g_points, ctx.choice)
         g_world = self.scene.model.landmarks_vjp(ctx.model_ctx, g_points)["vertices"] + g_world
         return value * n, dict(world=g_world, focal=np.array([g_cam["focal"].sum()]))
 

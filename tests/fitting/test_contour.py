@@ -26,13 +26,15 @@ def test_front_facing_is_the_side_of_the_outward_normal_towards_the_eye():
 
 
 @pytest.mark.parametrize("front, on", [
-    ([True, False], [True, True, True, False]),      # the fold 0-2 and face 0's open border
-    ([False, True], [True, False, True, True]),
-    ([False, False], [False, False, False, False]),
+    ([True, False], {(0, 1), (1, 2), (0, 2)}),      # the fold 0-2 and face 0's open border
+    ([False, True], {(0, 2), (2, 3), (0, 3)}),
+    ([True, True], {(0, 1), (1, 2), (2, 3), (0, 3)}),
+    ([False, False], set()),
 ])
 def test_contour_is_where_faces_turn_away_and_the_open_border_of_faces_turned_towards(front, on):
     edges = contour.mesh_edges(np.array([[0, 1, 2], [0, 2, 3]]))
-    assert contour.contour_vertices(np.array(front), edges, 4).tolist() == on
+    found = contour.contour_edges(np.array(front), edges)
+    assert {tuple(v) for v in edges.vertices[found].tolist()} == on
 
 
 def _cylinder(n_around: int = 72, rings: int = 3, radius: float = 0.1):
@@ -57,52 +59,76 @@ def _cylinder_model(landmark_face: int):
     return model, angles
 
 
+def _pinhole(points):
+    """A pinhole camera at the origin looking down -z, focal 100 px: (pixels, depths)."""
+    return 100.0 * points[:, :2] / -points[:, 2:3], -points[:, 2]
+
+
 def test_a_point_turned_away_slides_to_the_silhouette_of_a_cylinder():
-    """Camera at the origin, cylinder (radius r) centred at distance d: the silhouette's
-    vertices are those at the tangent angle acos(r / d) from the direction of the camera."""
+    """Camera at the origin, cylinder (radius r) centred at distance d: the silhouette lies at
+    the tangent angle acos(r / d) from the direction of the camera, and projects to
+    x = f r sin / (d - r cos) pixels."""
     model, angles = _cylinder_model(landmark_face=2 * 36)       # middle of the back (angle pi)
     d, r = 0.5, 0.1
     world = model.mean_shape + [0.0, 0.0, -d]
-    middle_ring = np.arange(72, 144)
-    sliding = contour.ContourLandmarks.of(model, [0], [middle_ring])
-
-    def project(points):                                           # pinhole, focal 100 px
-        return 100.0 * points[:, :2] / -points[:, 2:3]
-
-    right, left = np.array([[60.0, 0.0]]), np.array([[-60.0, 0.0]])
-    tangent = math.acos(r / d)                                    # from +z, the camera's side
-    for target, side in ((right, 1.0), (left, -1.0)):
-        chosen, = sliding.choose(world, project, target)
-        angle = angles[chosen - 72]
-        expected = tangent if side > 0 else 2 * np.pi - tangent
-        # the silhouette edge lies between two vertices: the chosen one is one of them
-        assert abs(angle - expected) <= 2 * np.pi / 72 + 1e-9
-        assert math.copysign(1.0, world[chosen, 0]) == side
+    sliding = contour.ContourLandmarks.of(model, [0], [np.arange(len(world))])
+    tangent = math.acos(r / d)
+    silhouette_x = 100.0 * r * math.sin(tangent) / (d - r * math.cos(tangent))
+    for side in (1.0, -1.0):
+        target = np.array([[side * 60.0, 1.0]])
+        choice = sliding.choose(world, _pinhole, target)
+        fixed, _ = model.landmarks(world)
+        point = sliding.points_3d(world, fixed, choice)[0]
+        angle = math.atan2(abs(point[0]), point[2] + d)
+        assert abs(angle - tangent) <= 2 * np.pi / 72          # on the silhouette's column of edges
+        pixel, _ = _pinhole(point[None])
+        assert pixel[0, 0] == pytest.approx(side * silhouette_x, abs=0.2)
+        assert pixel[0, 1] == pytest.approx(1.0, abs=1e-9)     # the nearest point of a vertical edge
+        assert 0.0 < choice.t[0] < 1.0
 
 
 def test_a_point_turned_towards_the_camera_stays_the_fixed_point():
     model, _ = _cylinder_model(landmark_face=0)                  # front of the cylinder
     world = model.mean_shape + [0.0, 0.0, -0.5]
     sliding = contour.ContourLandmarks.of(model, [0], [np.arange(len(world))])
-    chosen = sliding.choose(world, lambda p: p[:, :2], np.zeros((1, 2)))
-    assert chosen.tolist() == [-1]
+    choice = sliding.choose(world, _pinhole, np.zeros((1, 2)))
+    assert choice.edge.tolist() == [-1]
     fixed, _ = model.landmarks(world)
-    np.testing.assert_array_equal(sliding.points_3d(world, fixed, chosen), fixed)
+    np.testing.assert_array_equal(sliding.points_3d(world, fixed, choice), fixed)
 
 
-def test_points_3d_and_its_vjp_route_each_row_to_its_source():
+def test_points_3d_and_its_vjp_route_each_row_to_its_edge():
     model, _ = _cylinder_model(landmark_face=2 * 36)
     world = model.mean_shape + [0.0, 0.0, -0.5]
     sliding = contour.ContourLandmarks.of(model, [0], [np.arange(72, 144)])
     fixed, _ = model.landmarks(world)
-    chosen = np.array([80])
-    np.testing.assert_array_equal(sliding.points_3d(world, fixed, chosen), world[[80]])
+    edge = 5
+    a, b = sliding.edges.vertices[edge]
+    choice = contour.ContourChoice(np.array([edge]), np.array([0.25]))
+    np.testing.assert_allclose(sliding.points_3d(world, fixed, choice), [0.75 * world[a] + 0.25 * world[b]])
     grad = np.array([[1.0, 2.0, 3.0]])
-    g_fixed, g_world = sliding.points_3d_vjp(grad, chosen)
+    g_fixed, g_world = sliding.points_3d_vjp(grad, choice)
     assert not g_fixed.any()
-    assert g_world[80].tolist() == [1.0, 2.0, 3.0] and np.abs(g_world).sum() == 6.0
-    g_fixed, g_world = sliding.points_3d_vjp(grad, np.array([-1]))
+    np.testing.assert_allclose(g_world[[a, b]], [[0.75, 1.5, 2.25], [0.25, 0.5, 0.75]])
+    assert np.abs(g_world).sum() == pytest.approx(6.0)
+    g_fixed, g_world = sliding.points_3d_vjp(grad, contour.ContourChoice(np.array([-1]), np.zeros(1)))
     assert g_fixed.tolist() == grad.tolist() and not g_world.any()
+
+
+def test_the_point_on_an_edge_projects_to_the_nearest_image_point_under_perspective():
+    """An edge slanted in depth: the chosen t maps to the image point nearest the target,
+    not to the same fraction of the 3D edge."""
+    model, _ = _cylinder_model(landmark_face=2 * 36)
+    world = model.mean_shape + [0.0, 0.0, -0.5]
+    world[[0, 1]] = [[0.0, 0.0, -0.3], [0.1, 0.0, -0.6]]         # an edge from near to far
+    ends = np.array([[0, 1]])
+    target = np.array([10.0, 3.0])
+    k, t = contour._nearest_on_segments(world, ends, _pinhole, target)
+    pixel, _ = _pinhole(((1 - t) * world[0] + t * world[1])[None])
+    a, b = _pinhole(world[[0, 1]])[0]
+    s = np.dot(target - a, b - a) / np.dot(b - a, b - a)
+    np.testing.assert_allclose(pixel[0], a + s * (b - a), atol=1e-9)
+    assert k == 0 and abs(t - s) > 0.05
 
 
 @pytest.mark.parametrize("points, candidates, says", [
