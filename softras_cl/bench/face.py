@@ -30,9 +30,10 @@ between the two photos, Monte Carlo noise) under "mitsuba".
 --yaws 0-15,15-45,45-75 draws --faces faces per bin of |yaw| instead (the sign at random,
 pitch and roll as above), with jaw landmarks as an annotator or a detector places them: where a
 jaw point of the truth is hidden (its depth behind the truth render's depth at its pixel by more
-than OCCLUDED_MM), it moves along its pixel row, towards the side of the face turned away from
-the camera, to the edge of the truth render's silhouette (alpha 0.5); visible jaw points and
-the other 51 stay the projected truth points (:func:`silhouette_jaw`). --contour fixed,sliding
+than OCCLUDED_MM), it moves outwards across the jaw line to the edge of the truth render's
+silhouette (alpha 0.5), in the jaw line's order; visible jaw points and the other 51 stay the
+projected truth points (:func:`silhouette_jaw`); faces the fit would refuse are drawn again
+(:func:`draw_faces`). --contour fixed,sliding
 fits every face with each way of placing the jaw landmarks on the model
 (FaceFitConfig.contour_landmarks) and compares them per yaw bin.
 """
@@ -643,8 +644,10 @@ def register(which) -> None:
                         "per bin, their hidden jaw landmarks on the silhouette as an annotator places them "
                         "(default: the standard faces at yaw +-30, jaw landmarks the model's points)")
     p.add_argument("--contour", default=None,
-                   help="comma-separated ways to place the jaw landmarks on the model to compare: "
-                        f"{', '.join(CONTOURS)} (FaceFitConfig.contour_landmarks; default: the fit's own)")
+                   help="comma-separated ways the fits tie the jaw landmarks to the model, each fitted "
+                        "to every face and compared per yaw bin: fixed (fixed model points), sliding (the "
+                        "fitted mesh's occluding contour where the jaw is turned away); default: the fit's "
+                        "own (FaceFitConfig.contour_landmarks)")
     p.add_argument("--model", default=None, help="face model file (default: the shipped demo model)")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
     p.add_argument("--out", default="out/bench",
