@@ -67,7 +67,8 @@ def front_facing(vertices, faces, eye) -> np.ndarray:
     from outside) points towards the camera centre ``eye`` (3,)."""
     tri = np.asarray(vertices, np.float64)[faces]
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    return np.einsum("fc,fc->f", normal, np.asarray(eye, np.float64) - tri.mean(axis=1)) > 0
+    centroid = (tri[:, 0] + tri[:, 1] + tri[:, 2]) / 3.0
+    return np.einsum("fc,fc->f", normal, np.asarray(eye, np.float64) - centroid) > 0
 
 
 def contour_edges(front: np.ndarray, edges: MeshEdges) -> np.ndarray:
@@ -100,14 +101,14 @@ class ContourLandmarks:
 
     model: the FaceModel (its faces and its landmarks' faces); points (N,) int: which of the
     model's landmarks slide; candidates: N int arrays of vertex indices, one per point; edges:
-    the model's MeshEdges; candidate_edges: N int arrays, the edges with both vertices among a
+    the model's MeshEdges; candidate_edges (N, E) bool: the edges with both vertices among a
     point's candidates.
     """
     model: object
     points: np.ndarray
     candidates: tuple
     edges: MeshEdges
-    candidate_edges: tuple
+    candidate_edges: np.ndarray
 
     @classmethod
     def of(cls, model, points, candidates) -> "ContourLandmarks":
@@ -124,7 +125,7 @@ class ContourLandmarks:
                 raise ValueError(f"candidates[{i}] must be a non-empty set of vertex indices "
                                  f"below {model.n_vertices}")
         edges = mesh_edges(model.faces)
-        within = tuple(np.nonzero(np.isin(edges.vertices, c).all(axis=1))[0] for c in sets)
+        within = np.array([np.isin(edges.vertices, c).all(axis=1) for c in sets]).reshape(len(sets), -1)
         return cls(model, points, sets, edges, within)
 
     def choose(self, world, project, targets) -> ContourChoice:
@@ -143,15 +144,17 @@ class ContourLandmarks:
         world = np.asarray(world, np.float64)
         front = front_facing(world, self.model.faces, np.zeros(3))
         edge, t = np.full(len(self.points), -1, np.int64), np.zeros(len(self.points))
-        turned = ~front[self.model.landmark_faces[self.points]]
-        if turned.any():
-            on_contour = contour_edges(front, self.edges)
-            for i in np.nonzero(turned)[0]:
-                candidates = self.candidate_edges[i][on_contour[self.candidate_edges[i]]]
+        turned = np.nonzero(~front[self.model.landmark_faces[self.points]])[0]
+        on_contour = np.nonzero(contour_edges(front, self.edges))[0] if turned.size else turned
+        if on_contour.size:
+            pixels, depth = project(world[self.edges.vertices[on_contour].reshape(-1)])
+            segments = (pixels[0::2], pixels[1::2], depth[0::2], depth[1::2])
+            for i in turned:
+                candidates = np.nonzero(self.candidate_edges[i, on_contour])[0]
                 if candidates.size:
-                    k, t[i] = _nearest_on_segments(world, self.edges.vertices[candidates], project,
+                    k, t[i] = _nearest_on_segments([part[candidates] for part in segments],
                                                    targets[self.points[i]])
-                    edge[i] = candidates[k]
+                    edge[i] = on_contour[candidates[k]]
         return ContourChoice(edge, t)
 
     def points_3d(self, world, fixed, choice: ContourChoice) -> np.ndarray:
@@ -180,17 +183,17 @@ class ContourLandmarks:
         return fixed, g_world
 
 
-def _nearest_on_segments(world, ends, project, target) -> tuple[int, float]:
-    """(which of the edges ends (K, 2) of world (V, 3), its t): the edge whose projection
-    passes nearest target (2,), and where along it in 3D (t in [0, 1] from its first vertex)."""
-    pixels, depth = project(world[ends.reshape(-1)])
-    a, b = pixels[0::2], pixels[1::2]
+def _nearest_on_segments(segments, target) -> tuple[int, float]:
+    """(which of K edges, its t): the edge whose projection passes nearest target (2,), and
+    where along it in 3D (t in [0, 1] from its first vertex). segments: the edges' first and
+    second ends projected, (K, 2) pixels each, and their depths, (K,) each."""
+    a, b, depth_a, depth_b = segments
     ab = b - a
     s = np.clip(np.einsum("kc,kc->k", target - a, ab) / np.maximum(np.einsum("kc,kc->k", ab, ab), 1e-300), 0, 1)
     k = int(np.argmin(np.sum((a + s[:, None] * ab - target) ** 2, axis=1)))
     # image fraction s -> 3D fraction t: the projection of (1 - t) A + t B lies at
     # s = t w_B / ((1 - t) w_A + t w_B) along the image segment (w the depths)
-    w_a, w_b = depth[2 * k], depth[2 * k + 1]
+    w_a, w_b = depth_a[k], depth_b[k]
     return k, float(s[k] * w_a / (s[k] * w_a + (1.0 - s[k]) * w_b))
 
 

@@ -121,11 +121,10 @@ def test_the_point_on_an_edge_projects_to_the_nearest_image_point_under_perspect
     model, _ = _cylinder_model(landmark_face=2 * 36)
     world = model.mean_shape + [0.0, 0.0, -0.5]
     world[[0, 1]] = [[0.0, 0.0, -0.3], [0.1, 0.0, -0.6]]         # an edge from near to far
-    ends = np.array([[0, 1]])
     target = np.array([10.0, 3.0])
-    k, t = contour._nearest_on_segments(world, ends, _pinhole, target)
+    (a, b), (depth_a, depth_b) = _pinhole(world[[0, 1]])
+    k, t = contour._nearest_on_segments((a[None], b[None], depth_a[None], depth_b[None]), target)
     pixel, _ = _pinhole(((1 - t) * world[0] + t * world[1])[None])
-    a, b = _pinhole(world[[0, 1]])[0]
     s = np.dot(target - a, b - a) / np.dot(b - a, b - a)
     np.testing.assert_allclose(pixel[0], a + s * (b - a), atol=1e-9)
     assert k == 0 and abs(t - s) > 0.05
