@@ -36,7 +36,9 @@ fitting/rigid.py): ``photo`` = sum over face-region pixels of the pixel's square
 e (summed over channels), or with ``robust_scale`` of its Geman-McClure kernel
 ``e / (1 + e / s^2)`` (losses.image_geman_mcclure): the same for errors well below s, at most
 s^2 for what the model cannot explain (cast shadows, highlights, hair strands, glasses),
-``landmarks`` = sum over points of weighted squared pixel distances, priors = sum of squared
+``landmarks`` = sum over points of weighted squared pixel distances (the jaw line's points that
+are turned away from the camera slide on the mesh's occluding contour, FaceFitConfig's
+contour_landmarks, see fitting/contour.py), priors = sum of squared
 coefficients. Read as negative log-likelihoods, ``w_landmarks = 1 / noise_px^2`` (2 px) and
 ``w_photo = 1 / noise_rgb^2``; the priors have weight 1. The defaults, chosen by measurement
 on synthetic faces and the shipped photos (docs/face_fitting.md): photo weight 100 (noise
@@ -68,6 +70,7 @@ from softras_cl.scene.renderer import SHARP, Renderer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.shading import SH_A, SHLight, sh_ambient, sh_basis, vertex_normals
 from softras_cl.fitting import losses
+from softras_cl.fitting.contour import ContourChoice, ContourLandmarks, jaw_candidates
 from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.models.face_model import LinearContext
 from softras_cl.fitting.models.mesh_lod import coarse_faces
@@ -106,6 +109,8 @@ COARSE_MESH = 2.0
 # that small is noise, not something the model cannot explain).
 ROBUST_SCALE = 2.0
 MIN_ROBUST_SCALE = 0.1
+# FaceFitConfig.contour_landmarks: how the jaw-line landmarks find their model points
+CONTOUR_LANDMARKS = ("sliding", "fixed")
 
 # Schedules: (sigma, gamma, evaluations) per photometric stage, and the landmark stage's budget.
 BUDGETS = {
@@ -143,6 +148,10 @@ class FaceFitConfig:
         the working resolution (FaceObjective.photo_level; None: never).
     coarse_mesh: those stages draw the model's faces clustered in cubes of this many median
         edge lengths (fitting.models.mesh_lod.coarse_faces; None: the model's own faces).
+    contour_landmarks: "sliding": each jaw-line landmark (iBUG 0-16) whose fixed model point
+        is turned away from the camera is the model's occluding contour point nearest to it,
+        re-chosen at every evaluation (fitting.contour); "fixed": every landmark is a fixed
+        point of the model.
     n_id / n_exp / n_albedo: use only the first components of the model (None: all).
     dtype: rasteriser precision; float64 keeps line searches clean.
     """
@@ -161,6 +170,7 @@ class FaceFitConfig:
     robust_scale: float | None = ROBUST_SCALE
     mask_erosion: int = 2
     forehead: float = 0.15
+    contour_landmarks: str = "sliding"
     n_id: int | None = None
     n_exp: int | None = None
     n_albedo: int | None = None
@@ -233,13 +243,20 @@ def _check_face_config(c: FaceFitConfig) -> None:
     for name in ("n_id", "n_exp", "n_albedo"):
         if getattr(c, name) is not None:
             _int_at_least(name, getattr(c, name), 0)
+    if c.contour_landmarks not in CONTOUR_LANDMARKS:
+        raise InputError(f"contour_landmarks must be one of {', '.join(map(repr, CONTOUR_LANDMARKS))}, "
+                         f"got {c.contour_landmarks!r}")
     if c.dtype not in ("float32", "float64"):
         raise InputError(f"dtype must be 'float32' or 'float64', got {c.dtype!r}")
 
 
 def landmark_weights() -> np.ndarray:
-    """(68,) per-landmark weights: the jaw line counts half (its 3D points are fixed vertices,
-    while the photo's contour slides over the cheek as the head turns)."""
+    """(68,) per-landmark weights: the jaw line counts half. With fixed jaw points
+    (contour_landmarks "fixed") their 3D points only approximate the photo's outline, which
+    slides over the cheek as the head turns; with the sliding contour they follow it, but the
+    full weight measured no better (landmark stage alone, 6 faces per yaw bin: shape error
+    2.80 / 2.66 mm at half weight against 2.80 / 2.69 mm at full weight for |yaw| 0-15 / 45-75
+    degrees), so the half weight stays for both."""
     w = np.ones(N_LANDMARKS)
     w[JAW] = 0.5
     return w
@@ -537,21 +554,35 @@ def default_stages(config: FaceFitConfig, fit_focal: bool) -> list[Stage]:
 # objective
 # ---------------------------------------------------------------------------------------------
 
+@dataclass(frozen=True)
+class LandmarkContext:
+    """What FaceObjective.landmark_term's gradient needs from landmark_points: the Camera and
+    its projection context, the model's landmark context, and where the sliding contour points
+    are (None without a sliding contour)."""
+    camera: Camera
+    camera_ctx: object
+    model_ctx: LinearContext
+    choice: ContourChoice | None
+
+
 class FaceObjective:
     """``(values, stage) -> (loss, grads, terms)`` for fitting.solver.fit.
 
     image (H, W, 3) linear RGB; landmarks (68, 2) pixels; focal0: the focal length the
     focal prior is centred on; forehead: how far above the brows the face region reaches, in
     chin-to-nose-bridge distances; robust_scale: see :meth:`start_stage` (None: plain squared
-    errors). At the first evaluation of each photometric stage the depth range is fitted to the
-    face and the face-region mask and the robust scale are taken from the render; all stay
-    fixed within the stage (see the module docstring).
+    errors); contour: the landmarks that slide on the occluding contour (fitting.contour; None:
+    every landmark is the model's fixed point). At the first evaluation of each photometric
+    stage the depth range is fitted to the face and the face-region mask and the robust scale
+    are taken from the render; all stay fixed within the stage (see the module docstring).
     """
 
     def __init__(self, scene: FaceScene, image, landmarks, mask_erosion: int = 2, focal0: float = 1.0,
                  forehead: float = 0.15, coarse_sigma: float | None = COARSE_SIGMA,
-                 robust_scale: float | None = ROBUST_SCALE, coarse_mesh: float | None = COARSE_MESH):
+                 robust_scale: float | None = ROBUST_SCALE, coarse_mesh: float | None = COARSE_MESH,
+                 contour: ContourLandmarks | None = None):
         self.scene, self.image, self.target = scene, image, np.asarray(landmarks, np.float64)
+        self.contour = contour
         self.focal0, self.forehead = float(focal0), float(forehead)
         self.landmark_weights = landmark_weights()
         self.mask_erosion = mask_erosion
@@ -586,7 +617,7 @@ class FaceObjective:
         return FaceObjective(self.scene.half_size(faces), image, to_half(self.target),
                              mask_erosion=max(1, self.mask_erosion // 2) if self.mask_erosion else 0,
                              focal0=self.focal0 * 0.5, forehead=self.forehead, coarse_sigma=None,
-                             robust_scale=self.robust_scale)
+                             robust_scale=self.robust_scale, contour=self.contour)
 
     def set_depth_range(self, translation) -> None:
         """Fit near/far to a face at ``translation`` (:func:`depth_range`) in this objective's
@@ -630,18 +661,31 @@ class FaceObjective:
                 grads[name] = grads.get(name, 0.0) + g
         return loss, grads, weighted
 
+    def landmark_points(self, values: dict, world: np.ndarray) -> tuple[np.ndarray, LandmarkContext]:
+        """The model's 68 landmarks projected, (68, 2) working pixels, with the sliding contour
+        points (``contour``) re-chosen for these world vertices (V, 3); and the context for
+        landmark_term's gradient."""
+        camera = self.scene.camera(values["focal"][0])
+        points_3d, model_ctx = self.scene.model.landmarks(world)
+        choice = None
+        if self.contour is not None:      # depth along the optical axis: the camera looks down -z
+            choice = self.contour.choose(world, lambda p: (camera.project_pixels(p)[0], -p[:, 2]), self.target)
+            points_3d = self.contour.points_3d(world, points_3d, choice)
+        points, camera_ctx = camera.project_pixels(points_3d)
+        return points, LandmarkContext(camera, camera_ctx, model_ctx, choice)
+
     def landmark_term(self, values: dict, world: np.ndarray) -> tuple[float, dict]:
         """Sum over the 68 points of weighted squared pixel distances; gradients wrt the world
-        vertices ("world") and focal."""
-        camera = self.scene.camera(values["focal"][0])
-        model = self.scene.model
-        landmarks, landmark_ctx = model.landmarks(world)
-        points, ctx = camera.project_pixels(landmarks)
+        vertices ("world") and focal (a sliding point's gradient goes to its chosen vertex)."""
+        points, ctx = self.landmark_points(values, world)
         value, g = losses.landmarks_2d(points, self.target, self.landmark_weights)
         n = len(points)
-        g_cam = camera.project_pixels_vjp(ctx, g["points"] * n, camera="focal")
-        return value * n, dict(world=model.landmarks_vjp(landmark_ctx, g_cam["vertices"])["vertices"],
-                               focal=np.array([g_cam["focal"].sum()]))
+        g_cam = ctx.camera.project_pixels_vjp(ctx.camera_ctx, g["points"] * n, camera="focal")
+        g_points, g_world = g_cam["vertices"], 0.0
+        if ctx.choice is not None:
+            g_points, g_world = self.contour.points_3d_vjp(g_points, ctx.choice)
+        g_world = self.scene.model.landmarks_vjp(ctx.model_ctx, g_points)["vertices"] + g_world
+        return value * n, dict(world=g_world, focal=np.array([g_cam["focal"].sum()]))
 
     def focal_prior(self, focal) -> tuple[float, dict]:
         """``(ln(f / f0) / ln 2)^2``: halving or doubling the initial focal length f0 costs 1."""
@@ -747,11 +791,10 @@ class FaceFit:
     objective: FaceObjective
 
     def fitted_landmarks(self) -> np.ndarray:
-        """(68, 2) fitted landmarks in working-image pixels."""
+        """(68, 2) fitted landmarks in working-image pixels (the sliding contour points, when the
+        fit has them, chosen for the fitted face)."""
         world, _ = self.scene.geometry(self.values)
-        landmarks, _ = self.scene.model.landmarks(world)
-        points, _ = self.scene.camera(self.values["focal"][0]).project_pixels(landmarks)
-        return points
+        return self.objective.landmark_points(self.values, world)[0]
 
     def metrics(self) -> dict:
         """Landmark error (mean pixel distance, working and full resolution) and the PSNR of
@@ -806,7 +849,8 @@ def prepare_fit(photo, landmarks, model, config: FaceFitConfig) -> tuple[FaceObj
                       principal=principal)
     objective = FaceObjective(scene, image, target, config.mask_erosion, focal0=focal,
                               forehead=config.forehead, coarse_sigma=config.coarse_sigma,
-                              robust_scale=config.robust_scale, coarse_mesh=config.coarse_mesh)
+                              robust_scale=config.robust_scale, coarse_mesh=config.coarse_mesh,
+                              contour=jaw_candidates(model) if config.contour_landmarks == "sliding" else None)
     values = dict(zero, rotation=rotation, translation=translation, focal=np.array([focal]))
     sh = initial_light(scene, values, image)
     return objective, crop, face_params(model, focal, rotation, translation, sh)

@@ -26,6 +26,16 @@ own renderer did not make. Both photos of a face are fitted one after the other 
 the JSON keeps softras-cl's runs under the budget's name, Mitsuba's under "mitsuba/<budget>",
 with the Mitsuba photos' checks (silhouette IoU against softras-cl's render of the truth, PSNR
 between the two photos, Monte Carlo noise) under "mitsuba".
+
+--yaws 0-15,15-45,45-75 draws --faces faces per bin of |yaw| instead (the sign at random,
+pitch and roll as above), with jaw landmarks as an annotator or a detector places them: where a
+jaw point of the truth is hidden (its depth behind the truth render's depth at its pixel by more
+than OCCLUDED_MM), it moves outwards across the jaw line to the edge of the truth render's
+silhouette (alpha 0.5), in the jaw line's order; visible jaw points and the other 51 stay the
+projected truth points (:func:`silhouette_jaw`); faces the fit would refuse are drawn again
+(:func:`draw_faces`). --contour fixed,sliding
+fits every face with each way of placing the jaw landmarks on the model
+(FaceFitConfig.contour_landmarks) and compares them per yaw bin.
 """
 from __future__ import annotations
 
@@ -46,20 +56,26 @@ LANDMARKS_ONLY = "landmarks-only"    # the baseline row: the default budget with
 RENDERERS = ("softras", "mitsuba")
 DEFAULT_SPP = 256        # Mitsuba rays per pixel: noise ~0.005 RMS linear RGB on the face (0.007 at 128)
 NOISE_FACES = 3          # faces whose Mitsuba noise is measured (two extra renders each)
+CONTOURS = ("fixed", "sliding")
+OCCLUDED_MM = 2.0        # a jaw point this far behind the rendered surface is hidden
 
 
 # ---------------------------------------------------------------------------------------------
 # synthetic faces
 # ---------------------------------------------------------------------------------------------
 
-def random_truth(model, rng: np.random.Generator, size: int) -> dict:
-    """Random known parameters (the fit's blocks, focal in pixels) for a size x size photo."""
+def random_truth(model, rng: np.random.Generator, size: int, yaw_bin=None) -> dict:
+    """Random known parameters (the fit's blocks, focal in pixels) for a size x size photo;
+    yaw_bin (lo, hi) degrees: |yaw| uniform in it (the sign at random) instead of +-30."""
     from softras_cl.scene.rotation import axis_angle_to_matrix, matrix_to_axis_angle
     from softras_cl.scene.shading import sh_ambient
 
     coeffs = {k: np.clip(rng.normal(size=n), -2.5, 2.5)
               for k, n in (("id", model.n_id), ("exp", model.n_exp), ("albedo", model.n_albedo))}
-    yaw, pitch, roll = np.radians([rng.uniform(-30, 30), rng.uniform(-15, 15), rng.uniform(-10, 10)])
+    yaw, pitch, roll = rng.uniform(-30, 30), rng.uniform(-15, 15), rng.uniform(-10, 10)
+    if yaw_bin is not None:
+        yaw = np.sign(yaw) * rng.uniform(*yaw_bin)
+    yaw, pitch, roll = np.radians([yaw, pitch, roll])
     R = axis_angle_to_matrix([0, yaw, 0]) @ axis_angle_to_matrix([pitch, 0, 0]) @ axis_angle_to_matrix([0, 0, roll])
     fov = np.radians(rng.uniform(20, 40))
     focal = 0.5 * size / np.tan(fov / 2)
@@ -84,15 +100,18 @@ def smooth_background(rng: np.random.Generator, size: int) -> np.ndarray:
     return resize(coarse, (size, size), order=3, mode="reflect")
 
 
-def synthetic_face(model, rng: np.random.Generator, size: int = 256) -> dict:
+def synthetic_face(model, rng: np.random.Generator, size: int = 256, yaw_bin=None) -> dict:
     """One synthetic photo: truth, photo (size, size, 3) linear RGB, landmarks (68, 2) noisy and
-    clean, the noise level in px."""
-    return photograph(model, random_truth(model, rng, size), rng, size)
+    clean, the noise level in px; yaw_bin (lo, hi) degrees: a face turned that far, its jaw
+    landmarks on the silhouette (:func:`silhouette_jaw`)."""
+    truth = random_truth(model, rng, size, yaw_bin)
+    return photograph(model, truth, rng, size, silhouette=yaw_bin is not None)
 
 
-def photograph(model, truth: dict, rng: np.random.Generator, size: int = 256) -> dict:
+def photograph(model, truth: dict, rng: np.random.Generator, size: int = 256, silhouette: bool = False) -> dict:
     """The synthetic photo of known parameters ``truth`` (see :func:`random_truth`) over a random
-    background, with noisy landmarks: what :func:`synthetic_face` returns."""
+    background, with noisy landmarks: what :func:`synthetic_face` returns; silhouette: hidden jaw
+    points moved to the silhouette (:func:`silhouette_jaw`)."""
     from softras_cl.fitting.recipes.face import FaceScene, depth_range
     from softras_cl.scene.renderer import SHARP
 
@@ -103,9 +122,103 @@ def photograph(model, truth: dict, rng: np.random.Generator, size: int = 256) ->
     photo = alpha * out.rgb[0] + (1.0 - alpha) * background
     world, _ = scene.geometry(truth)
     clean, _ = scene.camera(truth["focal"][0]).project_pixels(model.landmarks(world)[0])
+    if silhouette:
+        clean = silhouette_jaw(scene, truth, clean)
     noise = rng.uniform(1.0, 2.0)
     return dict(truth=truth, photo=np.clip(photo, 0, 1), landmarks=clean + rng.normal(0, noise, clean.shape),
                 clean_landmarks=clean, noise_px=noise, background=background, alpha=out.alpha[0])
+
+
+def draw_faces(model, rng: np.random.Generator, size: int, n: int, yaw_bin=None) -> tuple[list[dict], int]:
+    """(n synthetic faces (:func:`synthetic_face`), how many were drawn again): a yaw bin's
+    face whose noisy landmarks the fit would refuse as no face's (fitting.plausibility: the
+    jaw line crossing itself, where silhouette points lie closer together than the noise) is
+    replaced by the next one drawn."""
+    from softras_cl.fitting.plausibility import layout_faults
+
+    faces, redrawn = [], 0
+    while len(faces) < n:
+        face = synthetic_face(model, rng, size, yaw_bin)
+        if yaw_bin is not None and layout_faults(face["landmarks"]):
+            redrawn += 1
+            continue
+        faces.append(face)
+    return faces, redrawn
+
+
+def silhouette_jaw(scene, truth: dict, landmarks: np.ndarray) -> np.ndarray:
+    """landmarks (68, 2) pixels, the truth model's points projected, with each hidden jaw point
+    (iBUG 0-16; hidden: its view depth more than OCCLUDED_MM behind the depth of softras-cl's
+    sharp, z-buffered render of the truth at its pixel) moved outwards across the jaw line to the
+    edge of the render's silhouette (the first pixel of alpha <= 0.5, in half-pixel steps),
+    as an annotator marks the outline of the face: outwards is the jaw line's outward normal in
+    the model's frontal view (x, y; along x on the sides, down at the chin), turned by the
+    truth's rotation and projected at the point. The moved points keep their order along the
+    jaw (:func:`in_jaw_order`), as an annotator's do. scene: a FaceScene of the photo. Uses
+    the render and the truth only, nothing of the fit's own contour code."""
+    from softras_cl.scene.renderer import SHARP, Renderer
+    from softras_cl.scene.rotation import axis_angle_to_matrix
+    from softras_cl.scene.shading import SHLight
+
+    model = scene.model
+    settings = scene.settings.replace(outputs=("rgb", "alpha", "depth"), color_agg="hard")
+    world, _ = scene.geometry(truth)
+    camera = scene.camera(truth["focal"][0])
+    out = Renderer(settings, shading="vertex").forward(
+        world, scene.faces, camera, albedo=model.albedo(truth["albedo"])[0],
+        light=SHLight(truth["sh"]), sigma=SHARP[0], gamma=SHARP[1])
+    alpha, depth = out.alpha[0], out.depth[0]
+    jaw = model.landmarks(world)[0][:17]
+    outward = _jaw_normals(model.landmarks(model.mean_shape)[0][:17, :2])
+    ahead, _ = camera.project_pixels(jaw + 1e-3 * outward @ axis_angle_to_matrix(truth["rotation"]).T)
+    points, hidden = landmarks.copy(), []
+    h, w = alpha.shape
+    for j in range(17):
+        u, v = (int(round(c)) for c in landmarks[j])
+        if not (0 <= u < w and 0 <= v < h) or -jaw[j, 2] <= depth[v, u] + OCCLUDED_MM * 1e-3:
+            continue                     # outside the image or not hidden (the camera looks down -z)
+        step = 0.5 * (ahead[j] - landmarks[j]) / np.linalg.norm(ahead[j] - landmarks[j])
+        p = landmarks[j].copy()
+        while True:
+            u, v = (int(round(c)) for c in p + step)
+            if not (0 <= u < w and 0 <= v < h) or alpha[v, u] <= 0.5:
+                break
+            p = p + step
+        points[j] = p + 0.5 * step
+        hidden.append(j)
+    return in_jaw_order(points, hidden)
+
+
+def in_jaw_order(points: np.ndarray, moved) -> np.ndarray:
+    """points (68, 2) with the jaw points of indices ``moved`` (on the silhouette) reordered
+    among themselves until the jaw line crosses itself nowhere between them: while segments
+    (i, i+1) and (j, j+1) cross and the points i+1..j were all moved, their order is reversed
+    (each reversal shortens the line, so this ends). Points moved independently of each other
+    may pass one another where the outline turns (the chin), which no annotator's line does."""
+    from softras_cl.fitting.plausibility import _segments_cross
+
+    jaw, moved = points[:17].copy(), set(moved)
+    untangled = False
+    while not untangled:
+        untangled = True
+        for i, j in ((i, j) for i in range(15) for j in range(i + 2, 16)):
+            if set(range(i + 1, j + 1)) <= moved and _segments_cross(jaw[i], jaw[i + 1], jaw[j], jaw[j + 1]):
+                jaw[i + 1:j + 1] = jaw[i + 1:j + 1][::-1].copy()
+                untangled = False
+    out = points.copy()
+    out[:17] = jaw
+    return out
+
+
+def _jaw_normals(jaw_xy: np.ndarray) -> np.ndarray:
+    """(17, 3) unit outward normals of the jaw line jaw_xy (17, 2) in the model's frontal view,
+    z = 0: perpendicular to the line through each point's neighbours, away from their centroid."""
+    ahead, behind = np.roll(jaw_xy, -1, 0), np.roll(jaw_xy, 1, 0)
+    ahead[-1], behind[0] = jaw_xy[-1], jaw_xy[0]
+    t = ahead - behind
+    n = np.stack([t[:, 1], -t[:, 0]], 1)
+    n *= np.sign(np.sum(n * (jaw_xy - jaw_xy.mean(0)), axis=1))[:, None]
+    return np.column_stack([n / np.linalg.norm(n, axis=1, keepdims=True), np.zeros(len(n))])
 
 
 def mitsuba_render(model, truth: dict, size: int, spp: int, seed: int) -> dict:
@@ -217,14 +330,15 @@ def summarise(rows: list[dict]) -> dict:
 # the run
 # ---------------------------------------------------------------------------------------------
 
-def budget_config(budget: str, size: int, photo_weight: float | None = None):
+def budget_config(budget: str, size: int, photo_weight: float | None = None, contour: str | None = None):
     """The FaceFitConfig of a budget name, LANDMARKS_ONLY meaning the default budget's landmark
-    stage alone."""
+    stage alone; contour: its contour_landmarks (None: the config's default)."""
     from softras_cl.fitting.recipes.face import FaceFitConfig
 
+    changes = dict(size=size) if contour is None else dict(size=size, contour_landmarks=contour)
     if budget == LANDMARKS_ONLY:
-        return FaceFitConfig.from_budget("default", photo_weight=photo_weight, size=size, photo_stages=())
-    return FaceFitConfig.from_budget(budget, photo_weight=photo_weight, size=size)
+        return FaceFitConfig.from_budget("default", photo_weight=photo_weight, photo_stages=(), **changes)
+    return FaceFitConfig.from_budget(budget, photo_weight=photo_weight, **changes)
 
 
 def fit_one(model, sample: dict, config) -> dict:
@@ -250,13 +364,13 @@ def run_budget(model, samples: list[dict], budget: str, size: int, progress: boo
 
 
 def run_interleaved(model, photos: dict, budget: str, size: int, progress: bool,
-                    photo_weight: float | None = None) -> dict:
+                    photo_weight: float | None = None, contour: str | None = None) -> dict:
     """photos: renderer -> samples of the same faces. Fits face 0 of every renderer, then face
     1, ... (A B A B: a load change on the shared machine hits every renderer alike); returns
-    renderer -> fit_one() rows."""
+    renderer -> fit_one() rows. contour: the fits' contour_landmarks (None: the default)."""
     from tqdm import tqdm
 
-    config = budget_config(budget, size, photo_weight)
+    config = budget_config(budget, size, photo_weight, contour)
     rows = {renderer: [] for renderer in photos}
     n = len(next(iter(photos.values())))
     for i in tqdm(range(n), desc=f"bench face [{budget}]", disable=not progress):
@@ -312,11 +426,12 @@ def save_strip(rows: list[dict], path: Path, n: int = 4) -> None:
 
 
 def format_table(summary: dict) -> str:
-    head = ("renderer", "budget", "faces", "RMSE mm", "mean-face mm", "ratio", "rigid ratio", "lmk px", "focal err",
+    head = ("renderer", "yaw", "contour", "budget", "faces", "RMSE mm", "mean-face mm", "ratio", "rigid ratio", "lmk px", "focal err",
             "max focal err", "PSNR dB", "min PSNR", "median s/fit", "median CPU s")
     lines = ["  ".join(f"{h:>12}" for h in head)]
     for name, s in summary.items():
-        cells = (s.get("renderer", "softras"), s.get("budget", name), s["faces"], f"{s['rmse_mm']:.3f}", f"{s['mean_face_rmse_mm']:.3f}",
+        cells = (s.get("renderer", "softras"), s.get("yaw_bin") or "+-30", s.get("contour", "-"),
+                 s.get("budget", name), s["faces"], f"{s['rmse_mm']:.3f}", f"{s['mean_face_rmse_mm']:.3f}",
                  f"{s['rmse_ratio']:.3f}", f"{s['rigid_ratio']:.3f}", f"{s['landmark_error_px']:.2f}",
                  f"{100 * s['focal_error_median']:.1f}%", f"{100 * s['focal_error_max']:.1f}%",
                  f"{s['psnr_face_db']:.1f}",
@@ -324,6 +439,73 @@ def format_table(summary: dict) -> str:
                  f"{s.get('median_cpu_seconds', float('nan')):.1f}")
         lines.append("  ".join(f"{c:>12}" for c in cells))
     return "\n".join(lines)
+
+
+def parse_yaws(text: str | None) -> list[tuple[float, float]]:
+    """'0-15,15-45' -> [(0.0, 15.0), (15.0, 45.0)] (|yaw| bins in degrees; None or '' -> []);
+    InputError unless each is lo-hi with 0 <= lo < hi <= 90."""
+    bins = []
+    for part in filter(None, (p.strip() for p in (text or "").split(","))):
+        lo, _, hi = part.partition("-")
+        try:
+            bin_ = (float(lo), float(hi))
+        except ValueError:
+            bin_ = None
+        if bin_ is None or not 0 <= bin_[0] < bin_[1] <= 90:
+            raise InputError(f"--yaws must be comma-separated bins lo-hi of |yaw| in degrees with "
+                             f"0 <= lo < hi <= 90, e.g. 0-15,15-45,45-75; got {part!r}")
+        bins.append(bin_)
+    return bins
+
+
+def parse_contours(text: str | None) -> list[str | None]:
+    """'fixed,sliding' -> ['fixed', 'sliding'] (None or '' -> [None]: the fit's default);
+    InputError unless each is one of CONTOURS, once."""
+    if not text:
+        return [None]
+    names = [c.strip() for c in text.split(",") if c.strip()]
+    if not names or any(c not in CONTOURS for c in names) or len(set(names)) != len(names):
+        raise InputError(f"--contour must name some of {', '.join(CONTOURS)} once each, got {text!r}")
+    return names
+
+
+def yaw_name(yaw_bin) -> str:
+    """(15.0, 45.0) -> 'yaw 15-45' ('' for None: the standard +-30 faces)."""
+    return "" if yaw_bin is None else f"yaw {yaw_bin[0]:g}-{yaw_bin[1]:g}"
+
+
+def contour_comparison(summary: dict) -> list[dict]:
+    """Fixed against sliding jaw points for each (renderer, yaw bin, budget) that has both:
+    landmark and shape error of each, the relative reduction (1 - sliding / fixed) and the
+    median seconds per fit."""
+    runs = {}
+    for s in summary.values():
+        runs.setdefault((s["renderer"], s.get("yaw_bin"), s["budget"]), {})[s.get("contour")] = s
+    rows = []
+    for (renderer, yaw, budget), by in runs.items():
+        if not {"fixed", "sliding"} <= set(by):
+            continue
+        fixed, sliding = by["fixed"], by["sliding"]
+        rows.append(dict(renderer=renderer, yaw_bin=yaw, budget=budget, faces=fixed["faces"],
+                         **{f"{k}_{c}": by[c][k] for k in ("landmark_error_px", "rmse_mm", "median_seconds")
+                            for c in CONTOURS},
+                         landmark_reduction=1.0 - sliding["landmark_error_px"] / fixed["landmark_error_px"],
+                         rmse_reduction=1.0 - sliding["rmse_mm"] / fixed["rmse_mm"]))
+    return rows
+
+
+def format_comparison(rows: list[dict]) -> str:
+    """contour_comparison() rows as a table ("" without any)."""
+    from softras_cl.bench.tools import format_table as columns_table
+
+    if not rows:
+        return ""
+    return "fixed against sliding jaw points:\n" + columns_table(rows, [
+        ("renderer", "renderer", "s"), ("yaw", "yaw_bin", "s"), ("budget", "budget", "s"), ("faces", "faces", "d"),
+        ("lmk px fixed", "landmark_error_px_fixed", ".2f"), ("lmk px sliding", "landmark_error_px_sliding", ".2f"),
+        ("lmk -%", "landmark_reduction", ".0%"), ("RMSE mm fixed", "rmse_mm_fixed", ".3f"),
+        ("RMSE mm sliding", "rmse_mm_sliding", ".3f"), ("RMSE -%", "rmse_reduction", ".0%"),
+        ("s/fit fixed", "median_seconds_fixed", ".1f"), ("s/fit sliding", "median_seconds_sliding", ".1f")])
 
 
 def parse_renderers(text: str) -> list[str]:
@@ -368,6 +550,8 @@ def run(args: argparse.Namespace) -> int:
 
     budgets = parse_budgets(args.budgets, BUDGETS)
     renderers = parse_renderers(args.renderers)
+    yaw_bins = parse_yaws(args.yaws) or [None]
+    contours = parse_contours(args.contour)
     if args.spp < 2:
         raise InputError(f"--spp must be >= 2 (Mitsuba rays per pixel), got {args.spp}")
     if args.faces < 1 or args.size < 16:
@@ -376,35 +560,45 @@ def run(args: argparse.Namespace) -> int:
         out = folder.path
         model = load_demo_face_model() if args.model is None else load_face_model(args.model)
         rng = np.random.default_rng(args.seed)
-        samples = [synthetic_face(model, rng, args.size) for _ in range(args.faces)]
-        photos, checks = photos_by_renderer(model, samples, renderers, args.spp, not args.json)
-        per_run = {}
-        for b in [LANDMARKS_ONLY] + budgets:
-            for renderer, rows in run_interleaved(model, photos, b, args.size, not args.json,
-                                                  args.photo_weight).items():
-                per_run[run_name(renderer, b)] = rows
-        summary = {name: dict(summarise(rows), renderer=name.partition("/")[0] if "/" in name else "softras",
-                              budget=name.rpartition("/")[2]) for name, rows in per_run.items()}
+        per_run, summary, checks = {}, {}, {}
+        redrawn = {}
+        for yaw_bin in yaw_bins:
+            samples, redrawn[yaw_name(yaw_bin)] = draw_faces(model, rng, args.size, args.faces, yaw_bin)
+            photos, checks = photos_by_renderer(model, samples, renderers, args.spp, not args.json)
+            for b, contour in ((b, c) for b in [LANDMARKS_ONLY] + budgets for c in contours):
+                for renderer, rows in run_interleaved(model, photos, b, args.size, not args.json,
+                                                      args.photo_weight, contour).items():
+                    name = run_name(renderer, b, yaw_bin, contour)
+                    per_run[name] = rows
+                    summary[name] = dict(summarise(rows), renderer=renderer, budget=b, yaw_bin=yaw_name(yaw_bin) or None,
+                                         contour=contour or budget_config(b, args.size).contour_landmarks)
+        comparison = contour_comparison(summary)
         doc = dict(size=args.size, seed=args.seed, model=model.name, photo_weight=args.photo_weight,
-                   renderers=renderers, summary=summary, **checks,
+                   renderers=renderers, yaw_bins=yaw_bins if yaw_bins != [None] else None,
+                   redrawn_faces=redrawn if yaw_bins != [None] else None,
+                   summary=summary, contour_comparison=comparison, **checks,
                    faces={name: [{k: v for k, v in r.items() if k != "fit"} for r in rows]
                           for name, rows in per_run.items()},
                    provenance=provenance(dict(options=args)))
         write_json(out / "face.json", doc)
         save_chart(summary, out / "face.png")
         for renderer in renderers:
-            name = run_name(renderer, budgets[-1])
+            name = run_name(renderer, budgets[-1], yaw_bins[-1], contours[-1])
             save_strip(per_run[name], out / ("face_strip.png" if renderer == "softras"
                                              else f"face_{renderer}_strip.png"))
         print(json.dumps(json_safe(doc), indent=2) if args.json
-              else "\n".join(filter(None, (format_table(summary), format_mitsuba(doc)))))
+              else "\n".join(filter(None, (format_table(summary), format_comparison(comparison), format_mitsuba(doc)))))
     return 0
 
 
-def run_name(renderer: str, budget: str) -> str:
-    """The key of a (renderer, budget) run in the JSON: the budget for softras-cl's photos (the
-    keys the bench always had), "mitsuba/<budget>" for Mitsuba's."""
-    return budget if renderer == "softras" else f"{renderer}/{budget}"
+def run_name(renderer: str, budget: str, yaw_bin=None, contour: str | None = None) -> str:
+    """The key of a run in the JSON: the budget for softras-cl's photos of the standard faces
+    with the fit's default contour (the keys the bench always had), preceded by "mitsuba/" for
+    Mitsuba's photos and "yaw lo-hi/" for a yaw bin's faces, followed by "/<contour> contour"
+    when --contour names it."""
+    parts = ("" if renderer == "softras" else renderer, yaw_name(yaw_bin), budget,
+             "" if contour is None else f"{contour} contour")
+    return "/".join(filter(None, parts))
 
 
 def photos_by_renderer(model, samples: list[dict], renderers: list[str], spp: int,
@@ -445,6 +639,15 @@ def register(which) -> None:
                         "sun light, cast shadows, bounces; needs the validate extra); default softras")
     p.add_argument("--spp", type=int, default=DEFAULT_SPP,
                    help=f"Mitsuba samples per pixel (default {DEFAULT_SPP})")
+    p.add_argument("--yaws", default=None,
+                   help="comma-separated bins of |yaw| in degrees, e.g. 0-15,15-45,45-75: --faces faces "
+                        "per bin, their hidden jaw landmarks on the silhouette as an annotator places them "
+                        "(default: the standard faces at yaw +-30, jaw landmarks the model's points)")
+    p.add_argument("--contour", default=None,
+                   help="comma-separated ways the fits tie the jaw landmarks to the model, each fitted "
+                        "to every face and compared per yaw bin: fixed (fixed model points), sliding (the "
+                        "fitted mesh's occluding contour where the jaw is turned away); default: the fit's "
+                        "own (FaceFitConfig.contour_landmarks)")
     p.add_argument("--model", default=None, help="face model file (default: the shipped demo model)")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
     p.add_argument("--out", default="out/bench",

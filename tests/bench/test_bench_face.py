@@ -1,5 +1,6 @@
 """`softras-cl bench face`: the focal-length error and the landmarks-only baseline."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -62,11 +63,15 @@ def test_bench_face_reports_focal_error_and_baseline(demo_face_model, tmp_path, 
     assert doc["faces"]["fast"][0]["psnr_face_db"] != doc["faces"]["landmarks-only"][0]["psnr_face_db"]
 
 
-def test_renderers_are_checked_before_any_fit(run_cli):
-    result = run_cli("bench", "face", "--renderers", "softras,blender")
-    assert result.code == 2 and "--renderers must name some of softras, mitsuba" in result.err
-    result = run_cli("bench", "face", "--renderers", "softras,softras")
-    assert result.code == 2 and "--renderers" in result.err
+@pytest.mark.parametrize("args, says", [
+    (("--renderers", "softras,blender"), "--renderers must name some of softras, mitsuba"),
+    (("--renderers", "softras,softras"), "--renderers"),
+    (("--contour", "fixed,bent"), "--contour must name some of fixed, sliding"),
+    (("--yaws", "45-30"), "--yaws"),
+])
+def test_options_are_checked_before_any_fit(run_cli, args, says):
+    result = run_cli("bench", "face", *args)
+    assert result.code == 2 and says in result.err
 
 
 def test_mitsuba_lines_only_with_mitsuba():
@@ -79,3 +84,112 @@ def test_mitsuba_lines_only_with_mitsuba():
     text = bench.format_mitsuba(doc)
     assert "(8 spp)" in text and "min 0.9800" in text and "0.0100, 0.0200" in text
     assert "residual RMS on mitsuba photos 0.0300" in text       # the baseline's is not the fit's
+
+
+def _jaw_crossings(points) -> int:
+    from softras_cl.fitting.plausibility import _jaw_crossings as crossings
+
+    return crossings(points)
+
+
+def test_silhouette_jaw_moves_hidden_jaw_points_to_the_edge_of_the_render(demo_face_model):
+    """A face turned by 60 degrees: the jaw points the render hides end on the silhouette's
+    edge (a pixel inside it on one side, outside on the other), the visible ones and the other
+    51 points stay the projected truth, and the line does not cross itself."""
+    from scipy.ndimage import binary_erosion
+
+    from softras_cl.fitting.recipes.face import FaceScene, depth_range
+    from softras_cl.scene.renderer import SHARP
+
+    truth = bench.random_truth(demo_face_model, np.random.default_rng(1), 128)
+    truth["rotation"] = np.radians([0.0, 60.0, 0.0])
+    scene = FaceScene(demo_face_model, (128, 128), alpha_agg="hard", depth_range=depth_range(truth["translation"]))
+    world, _ = scene.geometry(truth)
+    projected, _ = scene.camera(truth["focal"][0]).project_pixels(demo_face_model.landmarks(world)[0])
+    moved = bench.silhouette_jaw(scene, truth, projected)
+    changed = np.nonzero(np.any(moved != projected, axis=1))[0]
+    assert 4 <= len(changed) <= 12 and changed.max() < 17
+    np.testing.assert_array_equal(moved[17:], projected[17:])
+    inside = scene.render(truth, *SHARP).alpha[0] > 0.5
+    edge = inside & ~binary_erosion(inside)
+    for u, v in moved[changed]:
+        near = edge[max(int(v) - 1, 0):int(v) + 2, max(int(u) - 1, 0):int(u) + 2]
+        assert near.any(), (u, v)
+    assert _jaw_crossings(moved) == 0
+    frontal = dict(truth, rotation=np.zeros(3))
+    world, _ = scene.geometry(frontal)
+    projected, _ = scene.camera(truth["focal"][0]).project_pixels(demo_face_model.landmarks(world)[0])
+    assert np.abs(bench.silhouette_jaw(scene, frontal, projected) - projected)[:, 0].max() < 5.0
+
+
+def test_in_jaw_order_untangles_moved_points_only():
+    angle = np.linspace(0.0, np.pi, 17)                          # a convex arc, 8 at the bottom
+    jaw = 50.0 * np.column_stack([-np.cos(angle), np.sin(angle)])
+    points = np.vstack([jaw, np.zeros((51, 2))])
+    swapped = points.copy()
+    swapped[[10, 12]] = points[[12, 10]]
+    assert _jaw_crossings(swapped) > 0
+    np.testing.assert_array_equal(bench.in_jaw_order(swapped, [10, 11, 12]), points)
+    # a visible point between them is never moved: the crossing stays
+    np.testing.assert_array_equal(bench.in_jaw_order(swapped, [10, 12]), swapped)
+
+
+@pytest.mark.parametrize("text, says", [
+    ("0-15,45", "--yaws must be comma-separated bins lo-hi"),
+    ("30-15", "0 <= lo < hi <= 90"),
+    ("0-100", "got '0-100'"),
+    ("a-b", "got 'a-b'"),
+])
+def test_yaw_bins_are_checked(text, says):
+    from softras_cl.errors import InputError
+
+    with pytest.raises(InputError, match=re.escape(says)):
+        bench.parse_yaws(text)
+
+
+def test_yaws_and_contours_parse_and_name_the_runs():
+    assert bench.parse_yaws("0-15, 45-75") == [(0.0, 15.0), (45.0, 75.0)] and bench.parse_yaws(None) == []
+    assert bench.parse_contours("fixed,sliding") == ["fixed", "sliding"] and bench.parse_contours(None) == [None]
+    assert bench.run_name("softras", "fast") == "fast"
+    assert bench.run_name("mitsuba", "fast", (45.0, 75.0), "sliding") == "mitsuba/yaw 45-75/fast/sliding contour"
+
+
+def test_contour_comparison_pairs_fixed_with_sliding_per_bin_and_budget():
+    def run(contour, lmk, rmse, yaw="yaw 45-75"):
+        return dict(renderer="softras", yaw_bin=yaw, budget="fast", contour=contour, faces=3,
+                    landmark_error_px=lmk, rmse_mm=rmse, median_seconds=2.0)
+
+    summary = {"a": run("fixed", 4.0, 2.0), "b": run("sliding", 1.0, 1.5), "c": run("sliding", 1.0, 1.0, "yaw 0-15")}
+    row, = bench.contour_comparison(summary)
+    assert row["yaw_bin"] == "yaw 45-75" and row["landmark_reduction"] == 0.75 and row["rmse_reduction"] == 0.25
+    assert "yaw 45-75" in bench.format_comparison([row]) and bench.format_comparison([]) == ""
+
+
+def test_yaw_bin_faces_are_turned_that_far_and_plausible(demo_face_model):
+    from softras_cl.fitting.plausibility import layout_faults
+    from softras_cl.scene.rotation import axis_angle_to_matrix
+
+    faces, redrawn = bench.draw_faces(demo_face_model, np.random.default_rng(0), 96, 3, (45.0, 75.0))
+    assert len(faces) == 3 and redrawn >= 0
+    for face in faces:
+        R = axis_angle_to_matrix(face["truth"]["rotation"])
+        forward = R @ [0.0, 0.0, 1.0]                          # where the face looks
+        assert 40 < np.degrees(np.arctan2(abs(forward[0]), forward[2])) < 80
+        assert not layout_faults(face["landmarks"])
+
+
+@pytest.mark.slow
+def test_bench_face_compares_contours_per_yaw_bin(tmp_path, capsys):
+    out = tmp_path / "bench"
+    assert main(["bench", "face", "--faces", "1", "--size", "96", "--budgets", "fast", "--yaws", "45-75",
+                 "--contour", "fixed,sliding", "--out", str(out), "--seed", "2"]) == 0
+    assert "fixed against sliding jaw points" in capsys.readouterr().out
+    doc = json.loads((out / "face.json").read_text())
+    assert list(doc["summary"]) == [f"yaw 45-75/{b}/{c} contour" for b in ("landmarks-only", "fast")
+                                    for c in ("fixed", "sliding")]
+    assert doc["yaw_bins"] == [[45.0, 75.0]] and set(doc["redrawn_faces"]) == {"yaw 45-75"}
+    assert [(r["yaw_bin"], r["budget"]) for r in doc["contour_comparison"]] == [
+        ("yaw 45-75", "landmarks-only"), ("yaw 45-75", "fast")]
+    fixed, sliding = (doc["summary"][f"yaw 45-75/fast/{c} contour"] for c in ("fixed", "sliding"))
+    assert fixed["contour"] == "fixed" and sliding["contour"] == "sliding"
+    assert fixed["landmark_error_px"] != sliding["landmark_error_px"]
