@@ -1,18 +1,12 @@
 """scripts/speed_profile_chart.py: py-spy stacks summed into the categories of docs/speed.md."""
-import importlib.util
-from pathlib import Path
-
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "speed_profile_chart.py"
+from support.scripts import load_script
 
 
 @pytest.fixture(scope="module")
 def chart():
-    spec = importlib.util.spec_from_file_location("speed_profile_chart", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("scripts/speed_profile_chart.py")
 
 
 ROOT = "<module> (softras-cl:8);main (softras_cl/cli/__init__.py:139)"

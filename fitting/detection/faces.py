@@ -8,8 +8,10 @@ pixel centre c lies at c + 0.5 on the box grid.
 """
 from __future__ import annotations
 
+import importlib.util
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -32,6 +34,16 @@ class NoFaceError(InputError):
 class ImplausibleFaceError(ResultError):
     """The chosen face's landmarks do not form a plausible face (exit 1): fitting them would fit
     something that is not a face."""
+
+
+def package_folders(name: str) -> list[Path]:
+    """The folders of the installed package ``name``, found without importing it (a detector's
+    import can take a second); [] when it is not installed."""
+    try:
+        spec = importlib.util.find_spec(name)
+    except (ImportError, ValueError):
+        return []
+    return [Path(p) for p in (spec.submodule_search_locations or [])] if spec is not None else []
 
 
 @dataclass(frozen=True)

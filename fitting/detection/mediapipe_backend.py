@@ -33,7 +33,6 @@ merged. Face Mesh reports no confidence of its own in this API.
 """
 from __future__ import annotations
 
-import importlib.util
 import math
 import os
 import sys
@@ -41,11 +40,10 @@ import threading
 from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 
-from softras_cl.fitting.detection.faces import FaceCandidate, suppress_overlaps
+from softras_cl.fitting.detection.faces import FaceCandidate, package_folders, suppress_overlaps
 from softras_cl.fitting.detection.ibug68 import MP468_TO_IBUG68
 
 INSTALL_HINT = ('the "mediapipe" face detector (the default) needs the optional "detect" extra: '
@@ -68,13 +66,7 @@ RIGHT_EYE, LEFT_EYE = 0, 1              # BlazeFace keypoints (the subject's eye
 def available() -> bool:
     """mediapipe is installed with its legacy face_detection and face_mesh solutions (found
     without importing it: importing takes about a second)."""
-    try:
-        spec = importlib.util.find_spec("mediapipe")
-    except (ImportError, ValueError):
-        return False
-    if spec is None or not spec.submodule_search_locations:
-        return False
-    solutions = [Path(p) / "python" / "solutions" for p in spec.submodule_search_locations]
+    solutions = [folder / "python" / "solutions" for folder in package_folders("mediapipe")]
     return any((s / "face_detection.py").is_file() and (s / "face_mesh.py").is_file() for s in solutions)
 
 

@@ -1,15 +1,12 @@
 """The demo face's MediaPipe Face Mesh correspondence (dense_faces / dense_bary, added by
 scripts/build_face_mesh_correspondence.py) checked against Face Mesh itself on renders at poses
 the build did not use."""
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from softras_cl.fitting.models.face_loaders import load_demo_face_model
+from support.scripts import load_script
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "build_face_mesh_correspondence.py"
 # Measured when the correspondence was built: median 2.11 px at (10, -6) and 1.87 px at (-8, 5),
 # with 180 px between the outer eye corners (about 0.012 of it); the bound leaves room for
 # another CPU's inference.
@@ -20,10 +17,7 @@ pytestmark = pytest.mark.detect
 
 @pytest.fixture(scope="module")
 def script():
-    spec = importlib.util.spec_from_file_location("build_face_mesh_correspondence", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("scripts/build_face_mesh_correspondence.py")
 
 
 @pytest.mark.parametrize("yaw, pitch", [(10, -6), (-8, 5)])

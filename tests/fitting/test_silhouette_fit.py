@@ -6,8 +6,6 @@ of the full objective (IoU through the renderer, Laplacian, flatten, scale) must
 finite differences in float64; the metrics must be right on known cases; the example script
 must run and write its files.
 """
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,9 +14,9 @@ from softras_cl.scene.rotation import axis_angle_to_matrix
 from softras_cl.fitting.recipes import silhouette as sil
 from softras_cl.fitting.solver import FitResult
 from softras_cl.scene.meshes import icosphere
+from support.scripts import load_script
 
 SIZE, VIEWS = 48, 6
-ROOT = Path(__file__).resolve().parents[2]
 
 
 def ellipsoid():
@@ -141,11 +139,7 @@ def test_metrics_on_known_cases():
 
 
 def _example():
-    spec = importlib.util.spec_from_file_location("fit_silhouettes_example",
-                                                  ROOT / "examples" / "fit_silhouettes.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("examples/fit_silhouettes.py")
 
 
 def test_example_help_lists_every_option(capsys):

@@ -87,7 +87,7 @@ def test_renderer_gradcheck_unlit_textures(texture):
     module = Renderer(render_settings(), shading="none")
     cam = cameras()[0]
     if texture == "face":
-        tex, extra = rng.uniform(0, 1, (1, len(f), 2, 2, 3)), {}
+        tex = rng.uniform(0, 1, (1, len(f), 2, 2, 3))
         fn = lambda vv, t: tuple(module(vv, f, cam, face_textures=t))
     else:
         tex, uvs = rng.uniform(0, 1, (1, 4, 5, 3)), rng.uniform(0, 1, (len(v), 2))
