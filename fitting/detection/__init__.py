@@ -1,0 +1,28 @@
+"""Faces in photos: find them, choose one and say why, and their 68 iBUG landmarks.
+
+Backends (find.py): "mediapipe" (the default; MediaPipe's short- and full-range face detectors
+on the whole image, on a pyramid of tiles and, when nothing is upright, on the image turned by
+quarter turns; then Face Mesh, 478 points, on each face's upright crop, and 68 of its points for
+the iBUG ones, ibug68.py), "dlib" (opt-in, non-commercial 68-point model), and the user's own
+files (files.py). Every face is a FaceCandidate (faces.py); faces are listed and numbered
+largest box first; detect_face chooses one (the largest, --face N, --face-box X,Y,W,H) and says
+why, and refuses landmarks that do not form a face. docs/landmarks.md is the guide.
+
+Coordinates: landmarks (N, 2) float64 (x, y), 0-based pixel centres; boxes (x, y, w, h) on the
+pixel grid, where pixel (i, j) covers [i, i + 1) x [j, j + 1).
+"""
+from softras_cl.fitting.detection.faces import (ORDER, DetectorUnavailableError, FaceCandidate,
+                                                ImplausibleFaceError, NoFaceError, choose_face,
+                                                implausible_landmarks, parse_face_box)
+from softras_cl.fitting.detection.files import (PhotoLandmarks, format_pts, landmarks_beside,
+                                                read_photo_rgb8, resolve_landmarks)
+from softras_cl.fitting.detection.find import (BACKENDS, DEFAULT_BACKEND, Detection, available_backends,
+                                               default_backend, detect_face, find_faces, no_face_error)
+from softras_cl.fitting.detection.ibug68 import IBUG68_NAMES, MP468_TO_IBUG68
+from softras_cl.fitting.detection.overlay import draw_detection, draw_landmarks
+
+__all__ = ["ORDER", "BACKENDS", "DEFAULT_BACKEND", "FaceCandidate", "Detection", "PhotoLandmarks",
+           "DetectorUnavailableError", "NoFaceError", "ImplausibleFaceError", "find_faces", "detect_face",
+           "choose_face", "implausible_landmarks", "parse_face_box", "resolve_landmarks", "landmarks_beside",
+           "read_photo_rgb8", "available_backends", "default_backend", "no_face_error", "format_pts",
+           "draw_landmarks", "draw_detection", "IBUG68_NAMES", "MP468_TO_IBUG68"]

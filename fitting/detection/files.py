@@ -1,0 +1,143 @@
+"""A photo's 68 landmarks: the user's file, a file beside the photo, or a detector.
+
+resolve_landmarks(photo, landmarks=None) is what a command calls: an explicit file, else a file
+beside the photo (landmarks_beside), else the detector (find.detect_face: the largest face, or
+the one --face / --face-box names), else an error that says how to install one.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from softras_cl.fitting.detection.faces import FaceCandidate, ImplausibleFaceError, implausible_landmarks
+from softras_cl.fitting.detection.find import (Detection, as_rgb8, check_backend, detect_face, find_faces,
+                                               no_face_error)
+
+#: suffixes of landmark files looked for beside a photo, in order of precedence
+BESIDE_SUFFIXES = (".pts", ".txt", ".npy")
+
+
+def read_photo_rgb8(path) -> np.ndarray:
+    """A photo as the detectors take it: (H, W, 3) uint8 RGB, turned upright by its EXIF
+    orientation (as softras_cl.io.images.read_image does, so points match the fitted image).
+    Raises FileNotFoundError for a missing file, ValueError (naming it) for an unreadable one."""
+    from PIL import Image, ImageOps
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image file not found: {path}")
+    try:
+        with Image.open(path) as img:
+            img.load()
+            return np.asarray(ImageOps.exif_transpose(img).convert("RGB"))
+    except Exception as e:   # Pillow raises many kinds (OSError, SyntaxError, ...)
+        raise ValueError(f"cannot read image {path}: {type(e).__name__}: {e}") from e
+
+
+def landmarks_beside(photo) -> Path | None:
+    """The landmark file beside a photo, or None.
+
+    Looks in the photo's folder, in this order (the first that is a file wins): the photo's name
+    with its suffix replaced by .pts, .txt, .npy (``face.png`` -> ``face.pts``, ``face.txt``,
+    ``face.npy``), then the whole name with .pts, .txt, .npy appended (``face.png.pts``, ...).
+    The format is read from the content (softras_cl.io.landmarks.read_landmarks).
+    """
+    photo = Path(photo)
+    names = [photo.with_suffix(s) for s in BESIDE_SUFFIXES] if photo.suffix else []
+    names += [photo.with_name(photo.name + s) for s in BESIDE_SUFFIXES]
+    for path in names:
+        if path != photo and path.is_file():
+            return path
+    return None
+
+
+@dataclass(frozen=True)
+class PhotoLandmarks:
+    """The 68 points of one face of a photo, and where they came from.
+
+    points: (68, 2) float64, x right, y down, 0-based pixel centres.
+    source: "file" (given explicitly), "beside" (found by landmarks_beside), "mediapipe" or
+        "dlib" (detected).
+    path: the file read, or None when detected.
+    face: the FaceCandidate (box, score, dense points, how it was found) when detected.
+    detection: when detected, every face found, which one this is (detection.index) and why.
+    """
+    points: np.ndarray
+    source: str
+    path: Path | None = None
+    face: FaceCandidate | None = None
+    detection: Detection | None = None
+
+    @property
+    def index(self) -> int | None:
+        """The face's number among the detected faces (None for a file)."""
+        return None if self.detection is None else self.detection.index
+
+
+def resolve_landmarks(photo, landmarks=None, *, all_faces: bool = False, backend: str | None = None,
+                      image=None, beside: bool = True, face: int | None = None, face_box=None,
+                      **options) -> list[PhotoLandmarks]:
+    """The 68 landmarks of a photo: an explicit file > a file beside the photo > the detector.
+
+    photo: the photo's path (also read, unless `image` is given, for its size and for detection).
+    landmarks: an explicit landmark file (.pts 1-based, .txt/.npy 0-based), or None.
+    all_faces: with a detector, every face whose landmarks form a face, in the stated order
+        (each PhotoLandmarks' index is its number; refused ones are left out but stay in its
+        detection); otherwise one face, chosen by `face` / `face_box` (detect_face). A file
+        holds one face, so then the list has one entry whatever these say.
+    backend: "mediapipe" (None: the default) or "dlib"; options go to find_faces.
+    image: the photo as (H, W, 3) uint8 RGB, upright (EXIF applied), if already read.
+    beside: look for landmarks_beside(photo) (False: skip that step).
+
+    Returns a non-empty list of PhotoLandmarks. Raises FileNotFoundError (missing photo or
+    explicit file), ValueError naming the file (unreadable photo or landmark file, wrong point
+    count, a point outside the photo), NoFaceError (no face found), InputError (--face number
+    not found), ImplausibleFaceError (exit 1), DetectorUnavailableError (an ImportError and
+    InputError: no file and the detector is not installed; its message says what to install).
+    """
+    from softras_cl.io.landmarks import read_landmarks
+
+    photo = Path(photo)
+    img = read_photo_rgb8(photo) if image is None else as_rgb8(image)
+    size = img.shape[:2]
+    if landmarks is not None:
+        return [PhotoLandmarks(read_landmarks(landmarks, image_size=size), "file", Path(landmarks))]
+    found = landmarks_beside(photo) if beside else None
+    if found is not None:
+        return [PhotoLandmarks(read_landmarks(found, image_size=size), "beside", found)]
+    if all_faces:
+        return _every_face(img, str(photo), check_backend(backend), options)
+    detection = detect_face(img, backend, face=face, face_box=face_box, name=str(photo), **options)
+    return [_detected(detection)]
+
+
+def _detected(detection: Detection) -> PhotoLandmarks:
+    chosen = detection.chosen
+    return PhotoLandmarks(chosen.landmarks.copy(), detection.backend, None, chosen, detection)
+
+
+def _every_face(img: np.ndarray, name: str, backend: str, options: dict) -> list[PhotoLandmarks]:
+    candidates = tuple(find_faces(img, backend, **options))
+    if not candidates:
+        raise no_face_error(name, backend)
+    usable = [i for i, c in enumerate(candidates)
+              if c.landmarks is not None and implausible_landmarks(c.landmarks) is None]
+    if not usable:
+        raise ImplausibleFaceError(f"none of the {len(candidates)} face(s) found in {name} has landmarks "
+                                   "that form a face; give the 68 points as a file")
+    return [_detected(Detection(candidates, i, f"--all-faces: face {i}", backend)) for i in usable]
+
+
+def format_pts(points) -> str:
+    """iBUG .pts text for (N, 2) 0-based pixel coordinates, 3 decimals. The .pts convention is
+    1-based (the top-left pixel's centre is (1, 1)), so 1 is added to each coordinate; the
+    shipped examples/data/*.pts are written with it."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2 or not np.isfinite(pts).all():
+        raise ValueError(f"expected finite (N, 2) points, got shape {pts.shape}")
+    lines = ["version: 1", f"n_points: {len(pts)}", "{"]
+    lines += [f"{x + 1.0:.3f} {y + 1.0:.3f}" for x, y in pts]
+    lines.append("}")
+    return "\n".join(lines) + "\n"

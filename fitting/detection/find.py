@@ -1,0 +1,147 @@
+"""Find the faces of an image with a backend, and choose one, saying which and why.
+
+find_faces(image, backend) lists every face (FaceCandidate), largest box first; detect_face adds
+the choice (choose_face: the largest, --face N or --face-box) and refuses a chosen face whose
+landmarks do not form a face. Backends: "mediapipe" (the default; mediapipe_backend.py) and
+"dlib" (opt-in; dlib_backend.py). Nothing runs the dlib model unless "dlib" is asked for.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from softras_cl.errors import InputError
+from softras_cl.fitting.detection import dlib_backend, mediapipe_backend
+from softras_cl.fitting.detection.faces import (ORDER, DetectorUnavailableError, FaceCandidate, NoFaceError,
+                                                check_box_on_image, check_plausible, choose_face,
+                                                sort_candidates)
+
+BACKENDS = ("mediapipe", "dlib")
+DEFAULT_BACKEND = "mediapipe"
+_MODULES = {"mediapipe": mediapipe_backend, "dlib": dlib_backend}
+#: the options each backend's find() takes
+OPTIONS = {"mediapipe": ("tiles", "turns"), "dlib": ("upsample", "min_score")}
+
+
+def available_backends() -> list[str]:
+    """The backends whose packages are installed, the default first."""
+    return [b for b in BACKENDS if _MODULES[b].available()]
+
+
+def default_backend() -> str | None:
+    """"mediapipe" when it is installed, else None (dlib is never chosen by default)."""
+    return DEFAULT_BACKEND if mediapipe_backend.available() else None
+
+
+def check_backend(backend: str | None) -> str:
+    """The backend to use (None: the default); DetectorUnavailableError, with the install hint,
+    when it is not installed; ValueError for an unknown name."""
+    backend = DEFAULT_BACKEND if backend is None else backend
+    if backend not in BACKENDS:
+        raise InputError(f"unknown face detector backend {backend!r}; expected one of {', '.join(BACKENDS)}")
+    if not _MODULES[backend].available():
+        raise DetectorUnavailableError(_MODULES[backend].INSTALL_HINT)
+    return backend
+
+
+def as_rgb8(image) -> np.ndarray:
+    """The image as a C-contiguous (H, W, 3) uint8 array; ValueError otherwise."""
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+        raise ValueError(f"expected an (H, W, 3) uint8 RGB image, got shape {img.shape} dtype {img.dtype}")
+    return np.ascontiguousarray(img)
+
+
+def find_faces(image, backend: str | None = None, **options) -> list[FaceCandidate]:
+    """Every face in an (H, W, 3) uint8 RGB image, in the stated ORDER (largest box first).
+
+    backend: "mediapipe" (None: the default) or "dlib".
+    options, mediapipe: tiles (True: the tile pyramid for small faces), turns (True: try the
+        image turned by 90/270/180 degrees when no face is upright); dlib: upsample (1),
+        min_score (0.5) (mediapipe_backend / dlib_backend have the details).
+    Returns [] when there is no face. Raises ValueError for a bad image, backend or option and
+    DetectorUnavailableError (an ImportError) when the backend is not installed.
+    """
+    img = as_rgb8(image)
+    backend = check_backend(backend)
+    unknown = set(options) - set(OPTIONS[backend])
+    if unknown:
+        raise ValueError(f"the {backend} backend takes the options {', '.join(OPTIONS[backend])}, "
+                         f"not {', '.join(sorted(unknown))}")
+    return sort_candidates(_MODULES[backend].find(img, **options))
+
+
+@dataclass(frozen=True)
+class Detection:
+    """The faces of an image and the one chosen.
+
+    candidates: every FaceCandidate in the stated ORDER, plus, last, the face found in
+        --face-box itself when no candidate lay in that box.
+    index: which candidate was chosen; reason: the rule that chose it, for people.
+    backend: the backend that found them.
+    """
+    candidates: tuple[FaceCandidate, ...]
+    index: int
+    reason: str
+    backend: str
+
+    @property
+    def chosen(self) -> FaceCandidate:
+        return self.candidates[self.index]
+
+    def describe(self) -> list[str]:
+        """Lines for people: how many faces, then one line per candidate (the chosen one marked
+        with "*" and followed by why)."""
+        lines = [f"{len(self.candidates)} face(s) found by {self.backend}, numbered {ORDER}:"]
+        for i, c in enumerate(self.candidates):
+            x, y, w, h = c.box
+            mark = "*" if i == self.index else " "
+            lines.append(f"{mark} face {i}: box {x:.0f},{y:.0f},{w:.0f},{h:.0f} (x,y,w,h), score "
+                         f"{c.score:.2f}, {c.found_by}" + (f"; chosen: {self.reason}" if i == self.index else ""))
+        return lines
+
+    def to_json(self) -> dict:
+        """JSON-ready: backend, order, chosen (index), reason and every candidate's to_json()."""
+        return dict(backend=self.backend, order=ORDER, chosen=self.index, reason=self.reason,
+                    candidates=[dict(index=i, **c.to_json()) for i, c in enumerate(self.candidates)])
+
+
+def detect_face(image, backend: str | None = None, *, face: int | None = None, face_box=None,
+                name: str = "the image", **options) -> Detection:
+    """Find the faces of an (H, W, 3) uint8 RGB image and choose one (choose_face): the largest,
+    the `face`-th, or the one in `face_box` (x, y, w, h; when no detected face lies in it, the
+    backend looks for landmarks in the box itself). options go to find_faces.
+
+    Raises NoFaceError ("no face found in <name> (...)", exit 2), InputError for a --face number
+    that was not found or a box off the image, ImplausibleFaceError (exit 1) when the chosen
+    face's landmarks do not form a face, DetectorUnavailableError when the backend is missing.
+    """
+    img = as_rgb8(image)
+    backend = check_backend(backend)
+    if face_box is not None:
+        face_box = np.asarray(face_box, dtype=np.float64)
+        check_box_on_image(face_box, img.shape)
+    candidates = find_faces(img, backend, **options)
+    if not candidates and face_box is None:
+        raise no_face_error(name, backend)
+    index, reason = choose_face(candidates, face, face_box)
+    if index is None:
+        in_box = _MODULES[backend].find_in_box(img, face_box)
+        if in_box is None:
+            raise NoFaceError(f"no face found in {name}'s --face-box, nor by the detector in it ({reason})")
+        candidates, index = candidates + [in_box], len(candidates)
+    check_plausible(candidates[index], index)
+    return Detection(tuple(candidates), index, reason, backend)
+
+
+def no_face_error(name: str, backend: str | None = None) -> NoFaceError:
+    """The NoFaceError for `name` (a photo's path or "the image"), saying what was tried."""
+    if (backend or DEFAULT_BACKEND) == "dlib":
+        how = ("dlib HOG detector: a frontal, upright face at least about 40 px across; a lower "
+               "--min-score or a higher --upsample finds more")
+    else:
+        how = ("MediaPipe short- and full-range detectors, on the whole image, on tiles down to "
+               f"{mediapipe_backend.MIN_TILE} px and turned by 90/180/270 degrees: faces from about 32 px")
+    return NoFaceError(f"no face found in {name} ({how}); give --face-box X,Y,W,H around it, or the "
+                       "68 points as a file")
