@@ -38,9 +38,9 @@ from softras_cl.fitting.recipes.body import (BodyFit, BodyFitConfig, BodyObjecti
 from softras_cl.fitting.recipes.body_keypoints import KeypointLayout, keypoint_layout
 from softras_cl.fitting.solver import Stage, fit
 
-__all__ = ["PHOTO_BUDGETS", "PHOTO_WEIGHTS", "OBJECTIVES", "MIN_VISIBILITY", "BodyPhotoObjective",
+__all__ = ["PHOTO_BUDGETS", "PHOTO_WEIGHTS", "OBJECTIVES", "INPUTS", "MIN_VISIBILITY", "BodyPhotoObjective",
            "BodyPhotoFit", "keypoint_weights", "photo_fov", "camera_distance", "photo_stages",
-           "fit_body_photo"]
+           "fit_body_photo", "input_kind", "read_person"]
 
 # (torso evaluations, pose evaluations, ((sigma, gamma, evaluations) per silhouette stage))
 PHOTO_BUDGETS = {
@@ -245,3 +245,53 @@ def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFit
     stages = photo_stages(budget, objective)
     result = fit(body_params(model, init), objective_fn, stages, out_dir=out_dir, progress=progress, resume=resume)
     return BodyPhotoFit(result.values, scene, data, result, layout, keypoints, weights, detection, fov_source)
+
+
+# ---------------------------------------------------------------------------------------------
+# what a target file is, and a photo's inputs
+# ---------------------------------------------------------------------------------------------
+
+INPUTS = ("auto", "photo", "parts", "mask")
+AUTO_BACKGROUND_SHARE = 0.2     # "auto": an RGB image with at least this share of background pixels is parts
+
+
+def input_kind(path, given: str = "auto", silhouette: bool = False, background=(0.0, 0.0, 0.0)) -> str:
+    """"photo", "parts" or "mask": what fit-body fits to the target file ``path``.
+
+    ``given`` (--input) other than "auto" decides; --silhouette means "mask". "auto": an .npy,
+    a grey or an RGBA image is what a renderer makes ("parts": fitting.recipes.body reads a
+    mask from a grey one); an RGB image is "parts" when at least AUTO_BACKGROUND_SHARE of its
+    pixels are the background colour to 8 bits (a part-coloured target is drawn on one flat
+    colour; photos practically never hold a fifth of their pixels at one exact colour), else a
+    "photo"."""
+    if given not in INPUTS:
+        raise InputError(f"--input must be one of {', '.join(INPUTS)}, got {given!r}")
+    if silhouette:
+        if given == "photo":
+            raise InputError("--silhouette says the target is a mask; it cannot go with --input photo")
+        return "mask"
+    if given != "auto":
+        return given
+    from pathlib import Path
+
+    from softras_cl.io.images import read_image, to_srgb
+
+    if Path(path).suffix.lower() == ".npy":
+        return "parts"
+    image = read_image(path)
+    if image.ndim != 3 or image.shape[2] != 3:
+        return "parts"
+    on_background = np.all(np.abs(to_srgb(image) - to_srgb(np.asarray(background, np.float64))) < 0.5 / 255, -1)
+    return "parts" if on_background.mean() >= AUTO_BACKGROUND_SHARE else "photo"
+
+
+def read_person(path):
+    """(photo (H, W, 3) float64 linear RGB, PersonDetection, field of view from EXIF or None)
+    of a photo file; NoPersonError naming it when it shows no person."""
+    from softras_cl.fitting.detection.files import read_photo_rgb8
+    from softras_cl.fitting.detection.people import detect_person
+    from softras_cl.io.images import to_linear
+
+    rgb8 = read_photo_rgb8(path)
+    detection = detect_person(rgb8, str(path))
+    return to_linear(rgb8 / 255.0), detection, photo_fov(path, rgb8.shape[:2])
