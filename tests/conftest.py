@@ -41,6 +41,7 @@ OPTIONAL = {
     "landmarks": ("dlib", "pip install 'softras-cl[landmarks]'"),
     "torch": ("torch", "pip install torch"),
     "jax": ("jax", "pip install jax"),
+    "detect": ("mediapipe", "pip install 'softras-cl[detect]'"),
 }
 
 

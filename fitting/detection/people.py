@@ -8,10 +8,12 @@ Finding the person (:func:`detect_person`):
 
 1. selfie segmentation (the general 256 px model) on the whole photo; its mask > 0.5, split
    into connected regions, each region of at least MIN_REGION of the photo a candidate person;
-2. with at most one region, the pose model on the whole photo; with several, the pose model
-   on each region's box (widened by REGION_MARGIN of its size on every side) and the person
-   with the largest keypoint box is kept (MediaPipe's pose model itself finds one person per
-   image, not necessarily the largest). What was done is said in ``PersonDetection.note``;
+2. with at most one region, the pose model on the whole photo; with several (or when the whole
+   photo gave nothing), the pose model on each region's box (widened by REGION_MARGIN of its
+   size on every side) and the person with the largest keypoint box is kept (MediaPipe's pose
+   model itself finds one person per image, not necessarily the largest; on a crop it is not
+   distracted by faces elsewhere, e.g. an animal's). What was done is said in
+   ``PersonDetection.note``;
 3. the pose model's own segmentation mask of that person is the person mask;
 4. no pose found anywhere: :class:`NoPersonError` (exit 1), naming the photo.
 
@@ -158,23 +160,30 @@ def detect_person(image, name: str = "the photo") -> PersonDetection:
         raise DetectorUnavailableError(PEOPLE_INSTALL_HINT)
     image = as_rgb8(image)
     regions = person_regions(_selfie().process(image).segmentation_mask)
+    found, note = None, "pose model on the whole photo"
     if len(regions) <= 1:
         found = _pose_in(image, 0, 0, image.shape)
-        note = "one person-like region; pose model on the whole photo"
-    else:
-        found = None
-        for region in regions:
-            x0, y0, x1, y1 = _crop(image.shape, region)
-            pose = _pose_in(image[y0:y1, x0:x1], x0, y0, image.shape)
-            if pose is not None and (found is None or _area(pose[0], image.shape) > _area(found[0], image.shape)):
-                found = pose
-        note = f"{len(regions)} person-like regions; the person with the largest keypoint box kept"
+    if found is None and regions:
+        found = _largest_in_regions(image, regions)
+        note = "pose model on each person-like region's crop, the largest keypoint box kept"
+    note = f"{len(regions)} person-like region(s) in the selfie mask; {note}"
     if found is None:
         raise NoPersonError(f"no person found in {name} (MediaPipe pose); give a photo of a person, "
                             f"or a part-coloured target or mask with --input parts|mask")
     points, visibility, mask = found
     return PersonDetection(points, visibility, mask, keypoint_box(points, image.shape),
                            float(visibility[list(TORSO)].mean()), len(regions), note)
+
+
+def _largest_in_regions(image: np.ndarray, regions) -> tuple | None:
+    """The pose (as _pose_in) of the largest keypoint box among the regions' crops, or None."""
+    best, best_area = None, -1.0
+    for region in regions:
+        x0, y0, x1, y1 = _crop(image.shape, region)
+        pose = _pose_in(image[y0:y1, x0:x1], x0, y0, image.shape)
+        if pose is not None and _area(pose[0], image.shape) > best_area:
+            best, best_area = pose, _area(pose[0], image.shape)
+    return best
 
 
 def _area(points: np.ndarray, shape) -> float:

@@ -217,34 +217,35 @@ def _torso_translation(scene: BodyScene, values: dict, layout, targets: np.ndarr
 
 
 def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFitConfig(), budget: str = "default",
-                   fov_deg: float | None = None, objective: str = "full", out_dir=None, progress: bool = True,
-                   resume: bool = False) -> BodyPhotoFit:
+                   fov_deg: float | None = None, objective: str = "full", weights: dict | None = None,
+                   out_dir=None, progress: bool = True, resume: bool = False) -> BodyPhotoFit:
     """Fit ``model`` to a detected person (fitting.detection.people.PersonDetection) of a photo
     of ``photo_size`` (H, W).
 
     config: size, fov_deg (used when ``fov_deg`` is None: no EXIF focal), height, robust_px,
     coarse_mesh, dtype of fitting.recipes.body (its distance is replaced by camera_distance's);
-    budget: PHOTO_BUDGETS; objective: OBJECTIVES (the bench's ablations). out_dir / progress /
+    budget: PHOTO_BUDGETS; objective: OBJECTIVES (the bench's ablations); weights: the terms'
+    weights (default PHOTO_WEIGHTS). out_dir / progress /
     resume: as fitting.recipes.body.fit_body (checkpoints, Ctrl-C keeps the best).
     """
     layout = keypoint_layout(model)
-    weights = keypoint_weights(layout, detection.keypoints, detection.visibility, photo_size)
+    seen = keypoint_weights(layout, detection.keypoints, detection.visibility, photo_size)
     fov_source = "EXIF 35 mm equivalent focal length" if fov_deg is not None else "--fov (no EXIF focal length)"
     config = replace(config, fov_deg=config.fov_deg if fov_deg is None else fov_deg)
     data = prepare_target(detection.mask, config.size, config.background, None, None, model.n_joints)
     keypoints = (detection.keypoints[layout.detector] + 0.5) * data.scale - 0.5
     focal = float(Camera.look_at((0, 0, 1), (0, 0, 0), fov_deg=config.fov_deg, image_size=data.alpha.shape).focal[1])
-    distance = camera_distance(model, layout, keypoints, weights, focal)
+    distance = camera_distance(model, layout, keypoints, seen, focal)
     if distance is not None:
         config = replace(config, distance=distance)
     scene = BodyScene(model, data.alpha.shape, config)
-    init = _initial_values(model, scene, layout, keypoints, weights, data.alpha)
+    init = _initial_values(model, scene, layout, keypoints, seen, data.alpha)
     robust = config.robust_px if config.robust_px is not None else ROBUST_FRACTION * max(data.alpha.shape)
     faces = None if config.coarse_mesh is None else coarse_faces(model.v_template, model.faces, config.coarse_mesh)
-    objective_fn = BodyPhotoObjective(scene, data, layout, keypoints, weights, robust, faces)
-    stages = photo_stages(budget, objective)
+    objective_fn = BodyPhotoObjective(scene, data, layout, keypoints, seen, robust, faces)
+    stages = photo_stages(budget, objective, weights)
     result = fit(body_params(model, init), objective_fn, stages, out_dir=out_dir, progress=progress, resume=resume)
-    return BodyPhotoFit(result.values, scene, data, result, layout, keypoints, weights, detection, fov_source)
+    return BodyPhotoFit(result.values, scene, data, result, layout, keypoints, seen, detection, fov_source)
 
 
 # ---------------------------------------------------------------------------------------------
