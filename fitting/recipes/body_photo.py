@@ -18,7 +18,8 @@ and the solver); what is new here:
   with s = ROBUST_FRACTION of the working image's longer side (or the config's robust_px); the
   ``silhouette`` of the soft render against the mask (fitting.recipes.body), and the priors;
 - stages as data (:func:`photo_stages`): ``torso`` (global rotation and translation from the
-  torso keypoints), ``pose`` (every block from the keypoints and priors, no rendering), then
+  torso keypoints; run first from START_YAWS, and the start whose end is closest to all the
+  keypoints kept: the face points tell front from back), ``pose`` (every block from the keypoints and priors, no rendering), then
   ``silhouette-k`` (keypoints + silhouette + priors) under a decreasing sigma/gamma schedule
   (PHOTO_BUDGETS). The ablations of ``softras-cl bench body-photo`` (OBJECTIVES) drop the
   silhouette ("keypoints") or the keypoints ("mask").
@@ -56,6 +57,7 @@ MIN_VISIBILITY = 0.3            # a keypoint the detector is less sure of than t
 ROBUST_FRACTION = 0.05          # Geman-McClure scale / the working image's longer side
 FILM_DIAGONAL_MM = 43.27        # of the 36 x 24 mm frame of "35 mm equivalent" focal lengths
 EXIF_IFD, FOCAL_35MM = 0x8769, 41989
+START_YAWS = (0, 90, 180, -90)  # degrees about the vertical: the torso stage's starts
 
 
 def keypoint_weights(layout: KeypointLayout, keypoints: np.ndarray, visibility: np.ndarray,
@@ -189,21 +191,33 @@ class BodyPhotoFit(BodyFit):
         return (uv + 0.5) / self.target.scale - 0.5
 
 
-def _initial_values(model, scene: BodyScene, layout, keypoints, weights, mask) -> dict:
-    """Mean shape in the rest pose, facing the camera or turned away (the subject's left
-    shoulder on the image's right means facing), moved onto the torso keypoints' centre (or the
-    mask's centroid when the shoulders are not seen)."""
+def _initial_values(model, scene: BodyScene, layout, keypoints, weights, mask, yaw: float = 0.0) -> dict:
+    """Mean shape in the rest pose turned by ``yaw`` (rad) about the vertical, moved onto the
+    torso keypoints' centre (or the mask's centroid when no torso keypoint is seen)."""
     values = rest_values(model)
-    index = {n: i for i, n in enumerate(layout.names)}
-    left, right = index.get("left_shoulder"), index.get("right_shoulder")
-    if left is not None and right is not None and weights[left] > 0 and weights[right] > 0:
-        if keypoints[left, 0] < keypoints[right, 0]:
-            values["global_rotation"] = np.array([0.0, np.pi, 0.0])
-        torso = layout.torso & (weights > 0)
+    values["global_rotation"] = np.array([0.0, yaw, 0.0])
+    torso = layout.torso & (weights > 0)
+    if torso.any():
         values["translation"] = _torso_translation(scene, values, layout, keypoints[torso], torso)
-        return values
-    values["translation"] = initial_translation(scene, values, mask)
+    else:
+        values["translation"] = initial_translation(scene, values, mask)
     return values
+
+
+def _oriented_start(model, scene: BodyScene, objective: BodyPhotoObjective, mask, torso_stage: Stage) -> dict:
+    """The start of the fit: from each of START_YAWS, the torso stage alone (no rendering);
+    kept: the one whose end is closest to all the keypoints (nose and ears tell front from back,
+    which the four torso points cannot)."""
+    layout, keypoints, weights = objective.layout, objective.keypoints, objective.weights
+    judge = Stage("choose", ("global_rotation", "translation"), dict(keypoints=1.0))
+    best, best_loss = None, np.inf
+    for yaw in START_YAWS:
+        values = _initial_values(model, scene, layout, keypoints, weights, mask, np.radians(yaw))
+        values = fit(body_params(model, values), objective, [torso_stage], progress=False).values
+        loss = objective(values, judge)[0]
+        if loss < best_loss:
+            best, best_loss = values, loss
+    return best
 
 
 def _torso_translation(scene: BodyScene, values: dict, layout, targets: np.ndarray, torso: np.ndarray) -> np.ndarray:
@@ -239,11 +253,14 @@ def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFit
     if distance is not None:
         config = replace(config, distance=distance)
     scene = BodyScene(model, data.alpha.shape, config)
-    init = _initial_values(model, scene, layout, keypoints, seen, data.alpha)
     robust = config.robust_px if config.robust_px is not None else ROBUST_FRACTION * max(data.alpha.shape)
     faces = None if config.coarse_mesh is None else coarse_faces(model.v_template, model.faces, config.coarse_mesh)
     objective_fn = BodyPhotoObjective(scene, data, layout, keypoints, seen, robust, faces)
     stages = photo_stages(budget, objective, weights)
+    if stages[0].name == "torso" and seen[layout.torso].any():
+        init = _oriented_start(model, scene, objective_fn, data.alpha, stages[0])
+    else:
+        init = _initial_values(model, scene, layout, keypoints, seen, data.alpha)
     result = fit(body_params(model, init), objective_fn, stages, out_dir=out_dir, progress=progress, resume=resume)
     return BodyPhotoFit(result.values, scene, data, result, layout, keypoints, seen, detection, fov_source)
 
@@ -259,12 +276,12 @@ AUTO_BACKGROUND_SHARE = 0.2     # "auto": an RGB image with at least this share 
 def input_kind(path, given: str = "auto", silhouette: bool = False, background=(0.0, 0.0, 0.0)) -> str:
     """"photo", "parts" or "mask": what fit-body fits to the target file ``path``.
 
-    ``given`` (--input) other than "auto" decides; --silhouette means "mask". "auto": an .npy,
-    a grey or an RGBA image is what a renderer makes ("parts": fitting.recipes.body reads a
-    mask from a grey one); an RGB image is "parts" when at least AUTO_BACKGROUND_SHARE of its
-    pixels are the background colour to 8 bits (a part-coloured target is drawn on one flat
-    colour; photos practically never hold a fifth of their pixels at one exact colour), else a
-    "photo"."""
+    ``given`` (--input) other than "auto" decides; --silhouette means "mask". "auto": an .npy or
+    an RGBA image is what a renderer makes ("parts": fitting.recipes.body reads a mask from an
+    (H, W) one); an RGB image is "parts" when at least AUTO_BACKGROUND_SHARE of its pixels are the
+    background colour to 8 bits, a grey one when that share is black (a mask), else a "photo": a
+    part-coloured target or a mask is drawn on one flat colour, and photos practically never hold
+    a fifth of their pixels at one exact colour."""
     if given not in INPUTS:
         raise InputError(f"--input must be one of {', '.join(INPUTS)}, got {given!r}")
     if silhouette:
@@ -280,10 +297,13 @@ def input_kind(path, given: str = "auto", silhouette: bool = False, background=(
     if Path(path).suffix.lower() == ".npy":
         return "parts"
     image = read_image(path)
-    if image.ndim != 3 or image.shape[2] != 3:
+    if image.ndim == 3 and image.shape[2] == 4:
         return "parts"
-    on_background = np.all(np.abs(to_srgb(image) - to_srgb(np.asarray(background, np.float64))) < 0.5 / 255, -1)
-    return "parts" if on_background.mean() >= AUTO_BACKGROUND_SHARE else "photo"
+    # a grey image: a mask (on 0) or a grey photo; an RGB one: part colours (on --background) or a photo
+    flat = np.zeros(1) if image.ndim == 2 else np.asarray(background, np.float64)
+    on_background = np.abs(to_srgb(image) - to_srgb(flat)) < 0.5 / 255
+    share = (on_background if image.ndim == 2 else on_background.all(-1)).mean()
+    return "parts" if share >= AUTO_BACKGROUND_SHARE else "photo"
 
 
 def read_person(path):
