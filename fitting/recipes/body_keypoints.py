@@ -12,11 +12,14 @@ explains each choice:
 - hips -> ``left_hip`` / ``right_hip`` at weight HIP_WEIGHT: MediaPipe marks the hip on the
   surface's outline at the pelvis' widest point, SMPL's hip joints are the femoral heads,
   further in (the demo body's hip joints are 0.17 m apart, a person's outline there ~0.3 m);
+- the midpoint of the pinky and index knuckles (17/19, 18/20) -> ``left_hand`` / ``right_hand``
+  at HAND_WEIGHT: SMPL's hand joint, and the demo body's (the mean of the finger 2-5 knuckles),
+  sit between them; thumbs are not used;
 - foot_index -> ``left_foot`` / ``right_foot`` (the ball of the foot; the detector's point
   is the toe tip, a few cm further) at FOOT_WEIGHT; heels are not used;
 - nose -> the head's most forward vertex (``nose``), ears -> the head's widest vertices
   level with the head joint (``left_ear``, ``right_ear``): these give the head's turn; eyes,
-  eye corners, mouth, fingers and thumbs are not used (the model has no eyes, fingers or mouth
+  eye corners, mouth and thumbs are not used (the model has no eyes, fingers or mouth
   that a keypoint could pin).
 
 A model without a joint (or without a ``head`` joint for the face points) leaves that entry out.
@@ -33,12 +36,14 @@ __all__ = ["KEYPOINT_MAP", "HIP_WEIGHT", "FOOT_WEIGHT", "KeypointLayout", "keypo
 HIP_WEIGHT = 0.5
 FOOT_WEIGHT = 0.5
 FACE_WEIGHT = 0.5
+HAND_WEIGHT = 0.5
 
-#: (MediaPipe keypoint index, model point name, weight)
+#: (MediaPipe keypoint index, or a pair whose midpoint is the keypoint; model point name; weight)
 KEYPOINT_MAP = (
     (11, "left_shoulder", 1.0), (12, "right_shoulder", 1.0),
     (13, "left_elbow", 1.0), (14, "right_elbow", 1.0),
     (15, "left_wrist", 1.0), (16, "right_wrist", 1.0),
+    ((17, 19), "left_hand", HAND_WEIGHT), ((18, 20), "right_hand", HAND_WEIGHT),
     (23, "left_hip", HIP_WEIGHT), (24, "right_hip", HIP_WEIGHT),
     (25, "left_knee", 1.0), (26, "right_knee", 1.0),
     (27, "left_ankle", 1.0), (28, "right_ankle", 1.0),
@@ -71,7 +76,8 @@ def head_landmarks(model) -> dict[str, int]:
 class KeypointLayout:
     """The keypoint map resolved on one model.
 
-    detector (K,) int: MediaPipe indices; names (K,) model point names; weights (K,) float64;
+    detector (K, 2) int: the MediaPipe indices whose midpoint is each keypoint (a single index
+    twice); names (K,) model point names; weights (K,) float64;
     joints (K,) int: the model joint of each entry, -1 for a surface landmark; vertices (K,)
     int: the vertex of each surface landmark, -1 for a joint; torso (K,) bool: shoulders and hips.
     """
@@ -81,6 +87,11 @@ class KeypointLayout:
     joints: np.ndarray
     vertices: np.ndarray
     torso: np.ndarray
+
+    def detected(self, keypoints: np.ndarray, visibility: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(K, 2) keypoints and (K,) visibility of the layout's entries from the detector's (33, 2)
+        and (33,): a pair's midpoint, seen as well as the less visible of the two."""
+        return keypoints[self.detector].mean(1), visibility[self.detector].min(1)
 
     def points(self, joints: np.ndarray, vertices: np.ndarray) -> np.ndarray:
         """(K, 3) model points of a posed body: joints (J, 3), vertices (V, 3)."""
@@ -105,7 +116,7 @@ def keypoint_layout(model) -> KeypointLayout:
     rows = [(k, name, w) for k, name, w in KEYPOINT_MAP if name in model.joint_names or name in landmarks]
     names = tuple(name for _, name, _ in rows)
     return KeypointLayout(
-        detector=np.array([k for k, _, _ in rows], np.int64), names=names,
+        detector=np.array([np.broadcast_to(k, 2) for k, _, _ in rows], np.int64).reshape(-1, 2), names=names,
         weights=np.array([w for _, _, w in rows], np.float64),
         joints=np.array([model.joint_names.index(n) if n in model.joint_names else -1 for n in names], np.int64),
         vertices=np.array([landmarks.get(n, -1) for n in names], np.int64),

@@ -64,7 +64,7 @@ def keypoint_weights(layout: KeypointLayout, keypoints: np.ndarray, visibility: 
                      image_size) -> np.ndarray:
     """(K,) float64 weights of the layout's entries: map weight x visibility, 0 below
     MIN_VISIBILITY or outside the (H, W) image. keypoints (33, 2) pixels, visibility (33,)."""
-    points, seen = keypoints[layout.detector], visibility[layout.detector]
+    points, seen = layout.detected(keypoints, visibility)
     h, w = image_size
     inside = (points[:, 0] >= -0.5) & (points[:, 0] <= w - 0.5) & (points[:, 1] >= -0.5) & (points[:, 1] <= h - 0.5)
     return np.where(inside & (seen >= MIN_VISIBILITY), layout.weights * seen, 0.0)
@@ -247,7 +247,7 @@ def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFit
     fov_source = "EXIF 35 mm equivalent focal length" if fov_deg is not None else "--fov (no EXIF focal length)"
     config = replace(config, fov_deg=config.fov_deg if fov_deg is None else fov_deg)
     data = prepare_target(detection.mask, config.size, config.background, None, None, model.n_joints)
-    keypoints = (detection.keypoints[layout.detector] + 0.5) * data.scale - 0.5
+    keypoints = (layout.detected(detection.keypoints, detection.visibility)[0] + 0.5) * data.scale - 0.5
     focal = float(Camera.look_at((0, 0, 1), (0, 0, 0), fov_deg=config.fov_deg, image_size=data.alpha.shape).focal[1])
     distance = camera_distance(model, layout, keypoints, seen, focal)
     if distance is not None:

@@ -116,7 +116,7 @@ def _photo_axes(image: np.ndarray, scale: float, ax) -> None:
 def draw_keypoints(fit, ax, scale: float) -> None:
     """The used detected keypoints (green crosses, size by weight) and the fitted model points
     (cyan dots), joined, on axes of the photo drawn at ``scale``."""
-    detected = (fit.detection.keypoints[fit.layout.detector] + 0.5) * scale - 0.5
+    detected = (fit.layout.detected(fit.detection.keypoints, fit.detection.visibility)[0] + 0.5) * scale - 0.5
     fitted = (fit.fitted_keypoints_full() + 0.5) * scale - 0.5
     used = fit.weights > 0
     for a, b in zip(detected[used], fitted[used]):

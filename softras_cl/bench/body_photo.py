@@ -5,7 +5,7 @@ Each synthetic photo: the demo body (or --model) with a random shape and a rando
 turned up to +-30 degrees about the vertical), dressed by part (skin on the head, forearms and
 hands, a random shirt colour on the torso and upper arms, random trousers on the hips, thighs and
 calves, dark shoes) and drawn with Gouraud (Lambert) shading by softras-cl's hard render, from a
-camera at a random distance (3.2-4.5 m) and height (0.6-1.2 m) with the fitting camera's field
+camera at a random distance (3.8-5.0 m) and height (0.6-1.2 m) with the fitting camera's field
 of view, over a real photo (one of BACKGROUNDS from skimage.data, resized to the frame). The
 person detector (fitting.detection.people) sees each photo as a user's would; the fit
 (fitting.recipes.body_photo) runs on what it found, with the full objective and its ablations
@@ -79,7 +79,7 @@ def synthetic_photo(model, rng: np.random.Generator, size: int, fov_deg: float) 
 
     truth = random_pose(model, rng)
     state, _ = model.forward(truth["betas"], truth["body_pose"], truth["global_rotation"], truth["translation"])
-    distance, height = rng.uniform(3.2, 4.5), rng.uniform(0.6, 1.2)
+    distance, height = rng.uniform(3.8, 5.0), rng.uniform(0.6, 1.2)
     camera = Camera.look_at((0.0, height, distance), (0.0, 0.85, 0.0), fov_deg=fov_deg, image_size=(size, size))
     settings = RasterSettings(image_size=(size, size), outputs=("rgb", "alpha"), near=0.5, far=distance + 3.0,
                               double_sided=True, color_agg="hard", alpha_agg="hard")
@@ -210,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
             per_photo.append(run_photo(model, sample, objectives, config, args.budget))
         summary = {o: summarise([p[o] for p in per_photo]) for o in objectives}
         doc = dict(photos=args.photos, size=args.size, seed=args.seed, budget=args.budget,
-                   backgrounds=list(BACKGROUNDS), camera=f"distance 3.2-4.5 m, height 0.6-1.2 m, "
+                   backgrounds=list(BACKGROUNDS), camera=f"distance 3.8-5.0 m, height 0.6-1.2 m, "
                    f"{config.fov_deg} deg across the shorter side (the fit's default --fov)",
                    summary=summary, targets=targets_reached(summary),
                    load_average=dict(start=load_start, end=os.getloadavg()),

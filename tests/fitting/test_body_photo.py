@@ -20,7 +20,7 @@ def test_every_keypoint_of_the_map_lands_on_a_demo_body_point(demo_body_model):
     named = dict(zip(layout.names, rest))
     # the subject's left at +x, the face at +z, the nose in front of the ears, above the shoulders
     for side, sign in (("left", 1), ("right", -1)):
-        for part in ("shoulder", "elbow", "wrist", "hip", "knee", "ankle", "ear"):
+        for part in ("shoulder", "elbow", "wrist", "hand", "hip", "knee", "ankle", "ear"):
             assert sign * named[f"{side}_{part}"][0] > 0, f"{side}_{part}"
     assert named["nose"][2] > named["left_ear"][2] + 0.05
     assert named["nose"][1] > named["left_shoulder"][1] + 0.1
@@ -46,7 +46,11 @@ def test_weights_drop_unseen_and_outside_keypoints(demo_body_model):
     points[27] = (50.0, 120.0)                          # left ankle below a 100 px tall photo
     w = dict(zip(layout.names, keypoint_weights(layout, points, visibility, (100, 100))))
     assert w["left_knee"] == 0 and w["left_ankle"] == 0
-    assert w["right_knee"] == pytest.approx(0.9) and w["left_hip"] == pytest.approx(0.9 * layout.weights[6])
+    assert w["right_knee"] == pytest.approx(0.9)
+    assert w["left_hip"] == pytest.approx(0.9 * layout.weights[layout.names.index("left_hip")])
+    visibility[17] = 0.4                                # the left pinky: the hand as seen as its less seen point
+    assert dict(zip(layout.names, keypoint_weights(layout, points, visibility, (100, 100))))["left_hand"] == \
+        pytest.approx(0.4 * layout.weights[layout.names.index("left_hand")])
 
 
 def _objective(model, size=(40, 32)):
@@ -148,8 +152,9 @@ def test_detects_a_rendered_person_where_it_is(demo_body_model, synthetic):
     found = detect_person(synthetic["image"])
     layout = keypoint_layout(demo_body_model)
     truth = synthetic["camera"].project_pixels(layout.points(synthetic["joints_3d"], synthetic["vertices"]))[0]
-    seen = found.visibility[layout.detector] > 0.5
-    error = np.linalg.norm(found.keypoints[layout.detector] - truth, axis=1)[seen]
+    points, visibility = layout.detected(found.keypoints, found.visibility)
+    seen = visibility > 0.5
+    error = np.linalg.norm(points - truth, axis=1)[seen]
     assert seen.sum() >= 10 and np.median(error) < 8.0, error
     mask = found.mask > 0.5
     iou = (mask & synthetic["mask"]).sum() / (mask | synthetic["mask"]).sum()
