@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from softras_cl.errors import ResultError
+from softras_cl.fitting.detection import mediapipe_backend
 from softras_cl.fitting.detection.faces import DetectorUnavailableError
 from softras_cl.fitting.detection.find import as_rgb8
 
@@ -82,16 +83,13 @@ class PersonDetection:
 
 
 def people_available() -> bool:
-    """mediapipe is installed with its legacy pose and selfie_segmentation solutions (found
-    without importing it)."""
-    try:
-        spec = importlib.util.find_spec("mediapipe")
-    except (ImportError, ValueError):
+    """mediapipe is installed with its legacy solutions (mediapipe_backend.available, found
+    without importing it) and among them pose and selfie_segmentation."""
+    if not mediapipe_backend.available():
         return False
-    if spec is None or not spec.submodule_search_locations:
-        return False
-    solutions = [Path(p) / "python" / "solutions" for p in spec.submodule_search_locations]
-    return any((s / "pose.py").is_file() and (s / "selfie_segmentation.py").is_file() for s in solutions)
+    folders = importlib.util.find_spec("mediapipe").submodule_search_locations
+    return any((Path(p) / "python" / "solutions" / "pose.py").is_file()
+               and (Path(p) / "python" / "solutions" / "selfie_segmentation.py").is_file() for p in folders)
 
 
 @lru_cache(maxsize=None)

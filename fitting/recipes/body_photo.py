@@ -54,7 +54,7 @@ PHOTO_WEIGHTS = dict(torso=1.0, keypoints=1.0, silhouette=10.0, pose_prior=4.0, 
                      translation_prior=1.0, limits=100.0)
 OBJECTIVES = {"full": ("keypoints", "silhouette"), "keypoints": ("keypoints",), "mask": ("silhouette",)}
 MIN_VISIBILITY = 0.3            # a keypoint the detector is less sure of than this is not used
-ROBUST_FRACTION = 0.05          # Geman-McClure scale / the working image's longer side
+ROBUST_FRACTION = 0.1           # Geman-McClure scale / the working image's longer side
 FILM_DIAGONAL_MM = 43.27        # of the 36 x 24 mm frame of "35 mm equivalent" focal lengths
 EXIF_IFD, FOCAL_35MM = 0x8769, 41989
 START_YAWS = (0, 90, 180, -90)  # degrees about the vertical: the torso stage's starts

@@ -4,7 +4,7 @@ Each synthetic photo: the demo body (or --model) with a random shape and a rando
 (softras_cl.bench.body.random_pose: joints within the pose prior, knees and elbows as hinges,
 turned up to +-30 degrees about the vertical), dressed by part (skin on the head, forearms and
 hands, a random shirt colour on the torso and upper arms, random trousers on the hips, thighs and
-calves, dark shoes) and drawn with Gouraud (Lambert) shading by softras-cl's hard render, from a
+calves, dark shoes, hair, eyes and a mouth: paint_face) and drawn with Gouraud (Lambert) shading by softras-cl's hard render, from a
 camera at a random distance (3.8-5.0 m) and height (0.6-1.2 m) with the fitting camera's field
 of view, over a real photo (one of BACKGROUNDS from skimage.data, resized to the frame). The
 person detector (fitting.detection.people) sees each photo as a user's would; the fit
@@ -35,6 +35,7 @@ SKIN = ("head", "left_forearm", "right_forearm", "left_hand", "right_hand")
 SHIRT = ("torso", "left_upper_arm", "right_upper_arm")
 TROUSERS = ("hips", "left_thigh", "right_thigh", "left_calf", "right_calf")
 SHOES = ("left_foot", "right_foot")
+HAIR_COLORS = ((0.03, 0.02, 0.01), (0.15, 0.07, 0.03), (0.5, 0.35, 0.15))
 SKIN_TONES = ((0.62, 0.42, 0.32), (0.45, 0.28, 0.18), (0.25, 0.14, 0.09), (0.75, 0.55, 0.45))
 
 
@@ -50,7 +51,31 @@ def clothing_colors(model, rng: np.random.Generator) -> np.ndarray:
         for name in parts:
             if name in model.part_names:
                 colors[model.part_labels == model.part_names.index(name)] = color
+    paint_face(model, colors, np.array(HAIR_COLORS[rng.integers(len(HAIR_COLORS))]))
     return colors
+
+
+def paint_face(model, colors: np.ndarray, hair: np.ndarray) -> None:
+    """Hair (above the brows, and the back of the head), dark eyes and a mouth on the head's
+    vertices of ``colors`` (V, 3), in place, placed from the nose vertex
+    (fitting.recipes.body_keypoints.head_landmarks): without them a detector cannot tell the
+    bald, blank demo head's front from its back."""
+    from softras_cl.fitting.recipes.body_keypoints import head_landmarks
+
+    marks = head_landmarks(model)
+    if not marks:
+        return
+    head = np.asarray(model.weights).argmax(1) == model.joint_names.index("head")
+    v = model.v_template
+    nose = v[marks["nose"]]
+    centre_z = 0.5 * (v[marks["left_ear"], 2] + v[marks["right_ear"], 2])
+    hair_mask = head & ((v[:, 1] > nose[1] + 0.07) | ((v[:, 2] < centre_z - 0.02) & (v[:, 1] > nose[1] - 0.03)))
+    colors[hair_mask] = hair
+    front = head & (v[:, 2] > nose[2] - 0.05)
+    for centre, radius, color in (((0.032, 0.035), 0.012, (0.02, 0.02, 0.02)), ((-0.032, 0.035), 0.012, (0.02, 0.02, 0.02)),
+                                  ((0.0, -0.04), 0.016, (0.35, 0.05, 0.05))):
+        near = np.hypot(v[:, 0] - nose[0] - centre[0], (v[:, 1] - nose[1] - centre[1]) * 1.8) < radius
+        colors[front & near] = color
 
 
 def background(name: str, size: int) -> np.ndarray:
