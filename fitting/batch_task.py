@@ -91,7 +91,7 @@ def body_inputs(item: Item):
 
     values = BODY.values(item.opts)
     model = load_model("body", values["model"])
-    target = read_target(item.photo, values["silhouette"])
+    target = read_target(item.photo, values["silhouette"] or values["input"] == "mask")
     joints, weights = (None, None) if item.landmarks is None else read_joints(item.landmarks, model.n_joints)
     return target, joints, weights, model, item_config(item)
 
@@ -102,7 +102,9 @@ def _fit_body(item: Item, folder: Path) -> tuple[dict, float]:
     from softras_cl.fitting.reports.body import write_outputs
 
     values = BODY.values(item.opts)
-    if input_kind(item.photo, values["input"], values["silhouette"], item_config(item).background) == "photo":
+    kind = input_kind(item.photo, values["input"], values["silhouette"], item_config(item).background,
+                      item.landmarks is not None)
+    if kind == "photo":
         return _fit_body_photo(item, folder)
     target, joints, weights, model, config = body_inputs(item)
     start = time.perf_counter()

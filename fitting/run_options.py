@@ -200,9 +200,9 @@ def _body_options() -> tuple[Option, ...]:
                "the channels); the same as --input mask"),
         Option("input", str, "auto", "what the target is: 'photo' (a photo of a person: its keypoints and "
                "person mask are detected, docs/body_photos.md), 'parts' (part colours on --background, RGBA, "
-               "or a grey mask), 'mask' (a mask of the body); 'auto' (the default): .npy, grey and RGBA "
-               "images are parts, an RGB image is parts when a fifth of its pixels are the --background "
-               "colour, else a photo", choices=("auto", "photo", "parts", "mask"), record_default=False),
+               "or a grey mask), 'mask' (a mask of the body); 'auto' (the default): a target with --joints, "
+               ".npy and RGBA images are parts, an RGB image is parts when a fifth of its pixels are the "
+               "--background colour (a grey one: black), else a photo", choices=("auto", "photo", "parts", "mask"), record_default=False),
         Option("background", str, "0,0,0", "background colour of a part-coloured target, linear RGB "
                "'r,g,b' (default 0,0,0)", field="background", to_config=_background),
         Option("budget", str, "default", "schedule: evaluations and sigma/gamma steps (default: default); "

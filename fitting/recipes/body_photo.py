@@ -273,10 +273,12 @@ INPUTS = ("auto", "photo", "parts", "mask")
 AUTO_BACKGROUND_SHARE = 0.2     # "auto": an RGB image with at least this share of background pixels is parts
 
 
-def input_kind(path, given: str = "auto", silhouette: bool = False, background=(0.0, 0.0, 0.0)) -> str:
+def input_kind(path, given: str = "auto", silhouette: bool = False, background=(0.0, 0.0, 0.0),
+               joints: bool = False) -> str:
     """"photo", "parts" or "mask": what fit-body fits to the target file ``path``.
 
-    ``given`` (--input) other than "auto" decides; --silhouette means "mask". "auto": an .npy or
+    ``given`` (--input) other than "auto" decides; --silhouette means "mask". "auto": a target
+    given with 2D joints (``joints``: --joints, only for renderer-made targets) is "parts"; an .npy or
     an RGBA image is what a renderer makes ("parts": fitting.recipes.body reads a mask from an
     (H, W) one); an RGB image is "parts" when at least AUTO_BACKGROUND_SHARE of its pixels are the
     background colour to 8 bits, a grey one when that share is black (a mask), else a "photo": a
@@ -294,7 +296,7 @@ def input_kind(path, given: str = "auto", silhouette: bool = False, background=(
 
     from softras_cl.io.images import read_image, to_srgb
 
-    if Path(path).suffix.lower() == ".npy":
+    if joints or Path(path).suffix.lower() == ".npy":
         return "parts"
     image = read_image(path)
     if image.ndim == 3 and image.shape[2] == 4:

@@ -114,7 +114,7 @@ def run_one(args: argparse.Namespace) -> int:
     from softras_cl.fitting.recipes.body_photo import input_kind
     from softras_cl.fitting.reports.body import write_outputs
 
-    kind = input_kind(args.target, args.input, args.silhouette, _config(args).background)
+    kind = input_kind(args.target, args.input, args.silhouette, _config(args).background, args.joints is not None)
     if kind == "photo":
         return run_photo(args)
     target, joints, weights, model, config = _load_inputs(args, kind == "mask")

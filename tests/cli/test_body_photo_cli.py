@@ -47,7 +47,7 @@ def test_a_photo_with_nobody_exits_1_naming_it(tmp_path, run_cli):
 def test_joints_do_not_go_with_a_photo(tmp_path, run_cli, examples_data):
     joints = tmp_path / "joints.txt"
     np.savetxt(joints, np.zeros((24, 2)))
-    result = run_cli("fit-body", str(examples_data / "cameraman.png"), "--joints", str(joints),
+    result = run_cli("fit-body", str(examples_data / "cameraman.png"), "--input", "photo", "--joints", str(joints),
                      "--out", str(tmp_path / "o"), *FAST)
     assert result.code == 2 and "--joints is for part-coloured targets" in result.err
 
