@@ -222,8 +222,9 @@ def _body_options() -> tuple[Option, ...]:
                "faces; the fitted body, its joints and every output use the full mesh; "
                "docs/body_fitting.md shows what the choices cost and gain)",
                field="coarse_mesh", to_config=_coarse_mesh, record_default=False, metavar="EDGES"),
-        Option("robust_joints", float, None, "Geman-McClure scale in pixels for the joint term (default: "
-               "plain squares)", field="robust_px", metavar="PX"),
+        Option("robust_joints", float, None, "Geman-McClure scale in pixels (of the working image) for the "
+               "joint term (default: plain squares; for a photo's keypoints 10%% of the working image's "
+               "longer side)", field="robust_px", metavar="PX"),
     )
 
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from softras_cl.errors import InputError
+from softras_cl.errors import InputError, ResultError
 from softras_cl.scene.camera import Camera
 from softras_cl.fitting.models.mesh_lod import coarse_faces
 from softras_cl.fitting.recipes.body import (BodyFit, BodyFitConfig, BodyObjective, BodyScene, body_params,
@@ -239,9 +239,11 @@ def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFit
     config: size, fov_deg (used when ``fov_deg`` is None: no EXIF focal), height, robust_px,
     coarse_mesh, dtype of fitting.recipes.body (its distance is replaced by camera_distance's);
     budget: PHOTO_BUDGETS; objective: OBJECTIVES (the bench's ablations); weights: the terms'
-    weights (default PHOTO_WEIGHTS). out_dir / progress /
-    resume: as fitting.recipes.body.fit_body (checkpoints, Ctrl-C keeps the best).
+    weights (default PHOTO_WEIGHTS). out_dir / progress / resume: as fitting.recipes.body.fit_body
+    (checkpoints, Ctrl-C keeps the best). ResultError when the detection's mask is empty or full.
     """
+    if not 0.0 < (detection.mask > 0.5).mean() < 1.0:
+        raise ResultError("the detector's person mask is empty or fills the whole photo: nothing to fit")
     layout = keypoint_layout(model)
     seen = keypoint_weights(layout, detection.keypoints, detection.visibility, photo_size)
     fov_source = "EXIF 35 mm equivalent focal length" if fov_deg is not None else "--fov (no EXIF focal length)"

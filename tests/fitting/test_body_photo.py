@@ -188,3 +188,14 @@ def test_fit_of_a_synthetic_photo_beats_the_rest_pose(demo_body_model, synthetic
     metrics, scores = fit.metrics(), evaluate(fit, synthetic)
     assert metrics["keypoint_error_px_full"] < 12.0 and scores["mask_iou"] > 0.75
     assert scores["pa_mpjpe_mm"] < 110.0
+
+
+def test_an_empty_person_mask_is_a_result_error(demo_body_model):
+    from softras_cl.errors import ResultError
+    from softras_cl.fitting.detection.people import PersonDetection
+    from softras_cl.fitting.recipes.body_photo import fit_body_photo
+
+    empty = PersonDetection(np.full((33, 2), 20.0), np.ones(33), np.zeros((40, 40)), np.array([0, 0, 1, 1.0]),
+                            1.0, 1, "test")
+    with pytest.raises(ResultError, match="person mask is empty"):
+        fit_body_photo((40, 40), empty, demo_body_model, body.BodyFitConfig(size=32), "fast", progress=False)
