@@ -17,7 +17,7 @@ pytestmark = pytest.mark.detect
 @pytest.mark.slow
 def test_fit_body_on_a_photo_writes_every_output(tmp_path, capsys, examples_data):
     out = tmp_path / "fit"
-    assert main(["fit-body", str(examples_data / "cameraman.png"), "--out", str(out), *FAST]) == 0
+    assert main(["fit-body", str(examples_data / "people" / "cameraman.png"), "--out", str(out), *FAST]) == 0
     for name in ("body.ply", "overlay.png", "keypoints.png", "mask.png", "figure.png", "params.json", "params.npz",
                  "loss_curve.png", "history.json", "checkpoint.npz", "complete.json"):
         assert (out / name).stat().st_size > 0, name
@@ -47,7 +47,7 @@ def test_a_photo_with_nobody_exits_1_naming_it(tmp_path, run_cli):
 def test_joints_do_not_go_with_a_photo(tmp_path, run_cli, examples_data):
     joints = tmp_path / "joints.txt"
     np.savetxt(joints, np.zeros((24, 2)))
-    result = run_cli("fit-body", str(examples_data / "cameraman.png"), "--input", "photo", "--joints", str(joints),
+    result = run_cli("fit-body", str(examples_data / "people" / "cameraman.png"), "--input", "photo", "--joints", str(joints),
                      "--out", str(tmp_path / "o"), *FAST)
     assert result.code == 2 and "--joints is for part-coloured targets" in result.err
 
@@ -65,7 +65,7 @@ def test_input_parts_forces_the_renderer_target_path(tmp_path, run_cli, examples
 @pytest.mark.slow
 def test_interrupted_photo_fit_keeps_the_best_and_resumes(tmp_path, capsys, examples_data):
     out = tmp_path / "fit"
-    photo = str(examples_data / "cameraman.png")
+    photo = str(examples_data / "people" / "cameraman.png")
     with sigint_once_written(out / "checkpoint.npz"):
         code = main(["fit-body", photo, "--out", str(out), "--budget", "thorough", "--size", "64", "--no-progress"])
     assert code == 130
@@ -82,7 +82,7 @@ def test_a_batch_fits_a_photo_item(tmp_path, examples_data):
     pytest.importorskip("distributed")
     folder = tmp_path / "photos"
     folder.mkdir()
-    shutil.copy(examples_data / "cameraman.png", folder / "cameraman.png")
+    shutil.copy(examples_data / "people" / "cameraman.png", folder / "cameraman.png")
     out = tmp_path / "batch"
     assert main(["fit-body", str(folder / "*.png"), str(examples_data / "astronaut.png"), "--workers", "1",
                  "--out", str(out), *FAST]) == 0

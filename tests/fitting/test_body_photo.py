@@ -119,7 +119,7 @@ def test_input_kind_tells_part_coloured_targets_from_photos(tmp_path, examples_d
     assert input_kind(examples_data / "astronaut.png") == "photo"
     assert input_kind(examples_data / "astronaut.png", "parts") == "parts"
     assert input_kind(examples_data / "astronaut.png", joints=True) == "parts"     # joints: a rendered target
-    assert input_kind(examples_data / "cameraman.png") == "photo"                   # grey, not a mask
+    assert input_kind(examples_data / "people" / "cameraman.png") == "photo"                   # grey, not a mask
     assert input_kind(tmp_path / "parts.png", silhouette=True) == "mask"
     np.save(tmp_path / "t.npy", parts)
     assert input_kind(tmp_path / "t.npy") == "parts"
