@@ -93,15 +93,21 @@ def body_inputs(item: Item):
 
     values = BODY.values(item.opts)
     model = load_model("body", values["model"])
-    target = read_target(item.photo, values["silhouette"])
+    target = read_target(item.photo, values["silhouette"] or values["input"] == "mask")
     joints, weights = (None, None) if item.landmarks is None else read_joints(item.landmarks, model.n_joints)
     return target, joints, weights, model, item_config(item)
 
 
 def _fit_body(item: Item, folder: Path) -> tuple[dict, float]:
     from softras_cl.fitting.recipes.body import fit_body
+    from softras_cl.fitting.recipes.body_photo import input_kind
     from softras_cl.fitting.reports.body import write_outputs
 
+    values = BODY.values(item.opts)
+    kind = input_kind(item.photo, values["input"], values["silhouette"], item_config(item).background,
+                      item.landmarks is not None)
+    if kind == "photo":
+        return _fit_body_photo(item, folder)
     target, joints, weights, model, config = body_inputs(item)
     start = time.perf_counter()
     fit = fit_body(target, model, config, joints, weights, out_dir=folder, progress=False)
@@ -110,6 +116,27 @@ def _fit_body(item: Item, folder: Path) -> tuple[dict, float]:
     metrics = finite_metrics(fit, folder, required)
     write_outputs(fit, target, folder, metrics=metrics, run_config=dict(fit=config, options=item.opts),
                   extra=dict(target=item.photo, seconds=seconds, budget=item.opts.get("budget", "default")))
+    return metrics, seconds
+
+
+def _fit_body_photo(item: Item, folder: Path) -> tuple[dict, float]:
+    """A body item whose target is a photo of a person (fitting.recipes.body_photo)."""
+    from softras_cl.fitting.recipes.body_photo import fit_body_photo, read_person
+    from softras_cl.fitting.reports.body import write_photo_outputs
+
+    if item.landmarks is not None:
+        raise InputError(f"{item.photo}: joints are for part-coloured targets and masks: a photo's keypoints "
+                         "are detected")
+    values, config = BODY.values(item.opts), item_config(item)
+    model = load_model("body", values["model"])
+    photo, detection, fov = read_person(item.photo)
+    start = time.perf_counter()
+    fit = fit_body_photo(photo.shape[:2], detection, model, config, values["budget"], fov, out_dir=folder,
+                         progress=False)
+    seconds = time.perf_counter() - start
+    metrics = finite_metrics(fit, folder, ("silhouette_iou", "keypoint_error_px_full"))
+    write_photo_outputs(fit, photo, folder, metrics=metrics, run_config=dict(fit=config, options=item.opts),
+                        extra=dict(target=item.photo, input="photo", seconds=seconds, budget=values["budget"]))
     return metrics, seconds
 
 

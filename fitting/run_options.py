@@ -197,7 +197,12 @@ def _body_options() -> tuple[Option, ...]:
         Option("model", str, None, "body model file: SMPL .pkl/.npz or the project's .npz "
                "(default: the demo model shipped with softras-cl)", recorded=False, file=True),
         Option("silhouette", yes_no, False, "the target is a mask of the body (alpha channel, or mean of "
-               "the channels)"),
+               "the channels); the same as --input mask"),
+        Option("input", str, "auto", "what the target is: 'photo' (a photo of a person: its keypoints and "
+               "person mask are detected, docs/body_photos.md), 'parts' (part colours on --background, RGBA, "
+               "or a grey mask), 'mask' (a mask of the body); 'auto' (the default): a target with --joints, "
+               ".npy and RGBA images are parts, an RGB image is parts when a fifth of its pixels are the "
+               "--background colour (a grey one: black), else a photo", choices=("auto", "photo", "parts", "mask"), record_default=False),
         Option("background", str, "0,0,0", "background colour of a part-coloured target, linear RGB "
                "'r,g,b' (default 0,0,0)", field="background", to_config=_background),
         Option("budget", str, "default", "schedule: evaluations and sigma/gamma steps (default: default); "
@@ -209,15 +214,17 @@ def _body_options() -> tuple[Option, ...]:
         Option("height", float, d.height, f"camera and aim height in metres (default {d.height})",
                field="height"),
         Option("fov", float, d.fov_deg, f"field of view in degrees across the shorter image side (default "
-               f"{d.fov_deg})", field="fov_deg"),
+               f"{d.fov_deg}; a photo's EXIF 35 mm equivalent focal length, when it has one, is used instead)",
+               field="fov_deg"),
         Option("coarse_mesh", float, d.coarse_mesh, "the image stages draw the model's faces merged into "
                "cubes of EDGES median edge lengths of its template: most of the full mesh's triangles cover "
                f"less than a pixel at the working size (default {d.coarse_mesh:g}; 0: the model's own "
                "faces; the fitted body, its joints and every output use the full mesh; "
                "docs/body_fitting.md shows what the choices cost and gain)",
                field="coarse_mesh", to_config=_coarse_mesh, record_default=False, metavar="EDGES"),
-        Option("robust_joints", float, None, "Geman-McClure scale in pixels for the joint term (default: "
-               "plain squares)", field="robust_px", metavar="PX"),
+        Option("robust_joints", float, None, "Geman-McClure scale in pixels (of the working image) for the "
+               "joint term (default: plain squares; for a photo's keypoints 10%% of the working image's "
+               "longer side)", field="robust_px", metavar="PX"),
     )
 
 

@@ -1,4 +1,5 @@
-"""Faces in photos: find them, choose one and say why, and their 68 iBUG landmarks.
+"""Faces and people in photos: find them, choose one and say why; a face's 68 iBUG landmarks, a
+person's 33 body keypoints and mask (people.py: MediaPipe's pose model, docs/body_photos.md).
 
 Backends (find.py): "mediapipe" (the default; MediaPipe's short- and full-range face detectors
 on the whole image and on a pyramid of tiles; then Face Mesh, 478 points, on each face's
@@ -19,9 +20,13 @@ from softras_cl.fitting.detection.find import (BACKENDS, DEFAULT_BACKEND, Detect
                                                default_backend, detect_face, find_faces, no_face_error)
 from softras_cl.fitting.detection.ibug68 import IBUG68_NAMES, MP468_TO_IBUG68
 from softras_cl.fitting.detection.overlay import draw_detection, draw_landmarks
+from softras_cl.fitting.detection.people import (MP33_NAMES, PEOPLE_INSTALL_HINT, NoPersonError,
+                                                 PersonDetection, detect_person, people_available)
 
 __all__ = ["ORDER", "BACKENDS", "DEFAULT_BACKEND", "FaceCandidate", "Detection", "PhotoLandmarks",
            "DetectorUnavailableError", "NoFaceError", "ImplausibleFaceError", "find_faces", "detect_face",
            "choose_face", "implausible_landmarks", "parse_face_box", "resolve_landmarks", "landmarks_beside",
            "read_photo_rgb8", "available_backends", "default_backend", "no_face_error", "format_pts",
-           "draw_landmarks", "draw_detection", "IBUG68_NAMES", "MP468_TO_IBUG68"]
+           "draw_landmarks", "draw_detection", "IBUG68_NAMES", "MP468_TO_IBUG68",
+           "MP33_NAMES", "PEOPLE_INSTALL_HINT", "NoPersonError", "PersonDetection", "detect_person",
+           "people_available"]

@@ -60,7 +60,7 @@ from softras_cl.fitting.solver import FitResult, Stage, fit
 
 __all__ = ["BUDGETS", "POSE_SIGMA", "HINGE_LIMITS", "BodyFitConfig", "BodyTarget", "BodyScene",
            "BodyObjective", "BodyFit", "part_colors", "hinge_frames", "joint_limits",
-           "pose_sigmas", "prepare_target", "body_params", "rest_values", "default_stages", "fit_body",
+           "pose_sigmas", "prepare_target", "reprojection", "body_params", "rest_values", "default_stages", "fit_body",
            "initial_translation"]
 
 # Schedules: evaluations of the joint stage (run when 2D joints are given), and (sigma, gamma,
@@ -412,6 +412,16 @@ class BodyScene:
 # objective
 # ---------------------------------------------------------------------------------------------
 
+def reprojection(camera: Camera, points, target, weights, robust_px: float | None) -> tuple[float, np.ndarray]:
+    """``sum_i w_i |proj(points_i) - target_i|^2`` in px^2 (Geman-McClure ``s^2 rho`` with
+    ``robust_px = s``): points (N, 3) float64 world, target (N, 2) pixels, weights (N,) >= 0.
+    Returns (value, d value / d points (N, 3))."""
+    uv, ctx = camera.project_pixels(points)
+    value, g = losses.landmarks_2d(uv, target, weights, robust_px)
+    factor = len(uv) * (1.0 if robust_px is None else robust_px ** 2)
+    return value * factor, camera.project_pixels_vjp(ctx, g["points"] * factor, camera=False)["vertices"]
+
+
 class BodyObjective:
     """``(values, stage) -> (loss, grads, terms)`` for fitting.solver.fit.
 
@@ -442,13 +452,15 @@ class BodyObjective:
             terms.update(self.image_terms(out))
         if w.get("joints"):
             terms["joints"] = self.joint_term(state.joints)
+        terms.update(self.extra_terms(state, w))
         total, g, weighted = losses.weighted_sum(terms, w)
-        g_vertices = None
+        g_vertices = g.pop("vertices", None)
         if out is not None:
             g_rgb, g_alpha = g.pop("rgb", None), g.pop("alpha", None)
-            g_vertices = self.scene.renderer.backward(
+            g_render = self.scene.renderer.backward(
                 out, grad_rgb=None if g_rgb is None else g_rgb[None],
                 grad_alpha=None if g_alpha is None else g_alpha[None])["vertices"]
+            g_vertices = g_render if g_vertices is None else g_vertices + g_render
         grads = self.scene.model.forward_vjp(body_ctx, g_vertices, g.pop("joints", None))
         for name, value in g.items():
             grads[name] = grads[name] + value
@@ -472,12 +484,14 @@ class BodyObjective:
     def joint_term(self, joints: np.ndarray) -> tuple[float, dict]:
         """Sum over joints of weighted squared pixel distances (Geman-McClure scaled by s^2 when
         robust), with its gradient wrt the 3D joints (J, 3)."""
-        points, ctx = self.scene.camera.project_pixels(joints)
-        value, g = losses.landmarks_2d(points, self.target.joints, self.target.joint_weights,
-                                       self.robust_px)
-        factor = len(points) * (1.0 if self.robust_px is None else self.robust_px ** 2)
-        g_3d = self.scene.camera.project_pixels_vjp(ctx, g["points"] * factor, camera=False)["vertices"]
-        return value * factor, {"joints": g_3d}
+        value, g_3d = reprojection(self.scene.camera, joints, self.target.joints, self.target.joint_weights,
+                                   self.robust_px)
+        return value, {"joints": g_3d}
+
+    def extra_terms(self, state: BodyPose, w: dict) -> dict:
+        """More terms of the posed body ``state`` asked for by ``w``, with gradients wrt
+        "joints" (J, 3) or "vertices" (V, 3): none here (recipes built on this one add theirs)."""
+        return {}
 
     def prior_terms(self, values: dict, w: dict) -> dict:
         """The pose, shape and translation priors and the joint limits asked for by ``w``."""

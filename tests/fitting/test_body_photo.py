@@ -1,0 +1,201 @@
+"""Bodies from photos: the keypoint map on the model, the new objective terms' gradients, the
+stages, the input kinds, the EXIF field of view, and (with mediapipe) detection of a rendered
+person, the no-person error and a fit of a synthetic photo."""
+import numpy as np
+import pytest
+
+from softras_cl.errors import InputError
+from softras_cl.fitting.recipes import body
+from softras_cl.fitting.recipes.body_keypoints import KEYPOINT_MAP, head_landmarks, keypoint_layout
+from softras_cl.fitting.recipes.body_photo import (BodyPhotoObjective, camera_distance, input_kind,
+                                                   keypoint_weights, photo_fov, photo_stages)
+from softras_cl.fitting.solver import Stage
+from softras_cl.io.images import write_image
+
+
+def test_every_keypoint_of_the_map_lands_on_a_demo_body_point(demo_body_model):
+    layout = keypoint_layout(demo_body_model)
+    assert len(layout.names) == len(KEYPOINT_MAP)
+    rest = layout.points(demo_body_model.rest_joints(np.zeros(demo_body_model.n_betas)), demo_body_model.v_template)
+    named = dict(zip(layout.names, rest))
+    # the subject's left at +x, the face at +z, the nose in front of the ears, above the shoulders
+    for side, sign in (("left", 1), ("right", -1)):
+        for part in ("shoulder", "elbow", "wrist", "hand", "hip", "knee", "ankle", "ear"):
+            assert sign * named[f"{side}_{part}"][0] > 0, f"{side}_{part}"
+    assert named["nose"][2] > named["left_ear"][2] + 0.05
+    assert named["nose"][1] > named["left_shoulder"][1] + 0.1
+    assert abs(named["left_ear"][1] - named["nose"][1]) < 0.1
+    assert layout.torso.sum() == 4
+
+
+def test_a_model_without_a_head_joint_leaves_the_face_points_out(demo_body_model):
+    class Headless:
+        joint_names = [n if n != "head" else "skull" for n in demo_body_model.joint_names]
+        weights, v_template, n_betas = demo_body_model.weights, demo_body_model.v_template, demo_body_model.n_betas
+        rest_joints = demo_body_model.rest_joints
+
+    layout = keypoint_layout(Headless())
+    assert head_landmarks(Headless()) == {} and "nose" not in layout.names and "left_knee" in layout.names
+
+
+def test_weights_drop_unseen_and_outside_keypoints(demo_body_model):
+    layout = keypoint_layout(demo_body_model)
+    points = np.full((33, 2), 50.0)
+    visibility = np.full(33, 0.9)
+    visibility[25] = 0.1                                # left knee: not sure
+    points[27] = (50.0, 120.0)                          # left ankle below a 100 px tall photo
+    w = dict(zip(layout.names, keypoint_weights(layout, points, visibility, (100, 100))))
+    assert w["left_knee"] == 0 and w["left_ankle"] == 0
+    assert w["right_knee"] == pytest.approx(0.9)
+    assert w["left_hip"] == pytest.approx(0.9 * layout.weights[layout.names.index("left_hip")])
+    visibility[17] = 0.4                                # the left pinky: the hand as seen as its less seen point
+    assert dict(zip(layout.names, keypoint_weights(layout, points, visibility, (100, 100))))["left_hand"] == \
+        pytest.approx(0.4 * layout.weights[layout.names.index("left_hand")])
+
+
+def _objective(model, size=(40, 32)):
+    rng = np.random.default_rng(3)
+    layout = keypoint_layout(model)
+    config = body.BodyFitConfig(size=40, dtype="float64")
+    scene = body.BodyScene(model, size, config)
+    target = body.prepare_target(np.pad(np.ones((20, 10)), ((10, 10), (11, 11))), 40, (0, 0, 0), None, None,
+                                 model.n_joints)
+    keypoints = rng.uniform(5, 30, (len(layout.names), 2))
+    weights = rng.uniform(0.2, 1.0, len(layout.names))
+    return BodyPhotoObjective(scene, target, layout, keypoints, weights, robust_px=4.0)
+
+
+@pytest.mark.parametrize("term", ["keypoints", "torso"])
+def test_keypoint_terms_match_central_differences(demo_body_model, term):
+    objective = _objective(demo_body_model)
+    rng = np.random.default_rng(0)
+    values = body.rest_values(demo_body_model)
+    values["body_pose"] = rng.normal(0, 0.1, values["body_pose"].shape)
+    values["translation"] = np.array([0.02, -0.1, 0.1])
+    stage = Stage("s", ("body_pose", "translation"), {term: 1.0})
+    _, grads, _ = objective(values, stage)
+    for block, index in (("translation", (1,)), ("body_pose", (15, 2)), ("global_rotation", (1,))):
+        step = 1e-6
+        plus, minus = {k: v.copy() for k, v in values.items()}, {k: v.copy() for k, v in values.items()}
+        plus[block][index] += step
+        minus[block][index] -= step
+        numeric = (objective(plus, stage)[0] - objective(minus, stage)[0]) / (2 * step)
+        assert grads[block][index] == pytest.approx(numeric, rel=1e-5, abs=1e-6), (block, index)
+
+
+def test_stages_follow_the_objective():
+    names = lambda stages: [s.name for s in stages]
+    assert names(photo_stages("fast")) == ["torso", "pose", "silhouette-1"]
+    assert names(photo_stages("fast", "keypoints")) == ["torso", "pose"]
+    mask = photo_stages("default", "mask")
+    assert names(mask) == ["silhouette-1", "silhouette-2"] and all("keypoints" not in s.weights for s in mask)
+    torso = photo_stages("default")[0]
+    assert set(torso.free) == {"global_rotation", "translation"} and set(torso.weights) == {"torso", "translation_prior"}
+    assert all(s.sigma is not None and "silhouette" in s.weights for s in photo_stages("default")[2:])
+    with pytest.raises(InputError, match="objective must be one of"):
+        photo_stages("fast", "both")
+
+
+def test_camera_distance_puts_the_model_torso_on_the_detected_one(demo_body_model):
+    layout = keypoint_layout(demo_body_model)
+    rest = layout.points(demo_body_model.rest_joints(np.zeros(demo_body_model.n_betas)), demo_body_model.v_template)
+    focal, depth = 200.0, 4.0
+    pixels = rest[:, :2] * focal / depth                # a frontal (orthographic-like) view at 4 m
+    weights = np.ones(len(layout.names))
+    # the torso's 3D length includes its small forward lean, which a frontal view does not show
+    assert camera_distance(demo_body_model, layout, pixels, weights, focal) == pytest.approx(depth, rel=0.01)
+    weights[layout.names.index("left_hip")] = 0         # hips unseen: from the shoulder width
+    assert camera_distance(demo_body_model, layout, pixels, weights, focal) == pytest.approx(depth, rel=1e-9)
+    assert camera_distance(demo_body_model, layout, 2 * pixels, weights, focal) == pytest.approx(depth / 2)
+    weights[layout.names.index("left_shoulder")] = 0
+    assert camera_distance(demo_body_model, layout, pixels, weights, focal) is None
+
+
+def test_input_kind_tells_part_coloured_targets_from_photos(tmp_path, examples_data):
+    parts = np.zeros((40, 40, 3))
+    parts[10:30, 15:25] = (0.2, 0.5, 0.7)
+    write_image(tmp_path / "parts.png", parts)
+    assert input_kind(tmp_path / "parts.png") == "parts"
+    assert input_kind(examples_data / "astronaut.png") == "photo"
+    assert input_kind(examples_data / "astronaut.png", "parts") == "parts"
+    assert input_kind(examples_data / "astronaut.png", joints=True) == "parts"     # joints: a rendered target
+    assert input_kind(examples_data / "people" / "cameraman.png") == "photo"                   # grey, not a mask
+    assert input_kind(tmp_path / "parts.png", silhouette=True) == "mask"
+    np.save(tmp_path / "t.npy", parts)
+    assert input_kind(tmp_path / "t.npy") == "parts"
+    with pytest.raises(InputError, match="--input must be one of"):
+        input_kind(tmp_path / "parts.png", "video")
+
+
+def test_photo_fov_reads_the_exif_35mm_focal_length(tmp_path):
+    from PIL import Image
+
+    image = Image.new("RGB", (300, 200))
+    exif = image.getexif()
+    exif.get_ifd(0x8769)[41989] = 50                     # 50 mm equivalent, by the diagonal
+    image.save(tmp_path / "exif.jpg", exif=exif)
+    image.save(tmp_path / "plain.jpg")
+    expected = 2 * np.degrees(np.arctan(np.tan(np.arctan(43.27 / 2 / 50)) * 200 / np.hypot(200, 300)))
+    assert photo_fov(tmp_path / "exif.jpg", (200, 300)) == pytest.approx(expected)
+    assert photo_fov(tmp_path / "plain.jpg", (200, 300)) is None
+
+
+@pytest.fixture(scope="module")
+def synthetic(demo_body_model):
+    from softras_cl.bench.body_photo import synthetic_photo
+
+    return synthetic_photo(demo_body_model, np.random.default_rng(1), 256, 30.0)
+
+
+@pytest.mark.detect
+def test_detects_a_rendered_person_where_it_is(demo_body_model, synthetic):
+    from softras_cl.fitting.detection.people import MP33_NAMES, detect_person
+
+    found = detect_person(synthetic["image"])
+    layout = keypoint_layout(demo_body_model)
+    truth = synthetic["camera"].project_pixels(layout.points(synthetic["joints_3d"], synthetic["vertices"]))[0]
+    points, visibility = layout.detected(found.keypoints, found.visibility)
+    seen = visibility > 0.5
+    error = np.linalg.norm(points - truth, axis=1)[seen]
+    assert seen.sum() >= 10 and np.median(error) < 8.0, error
+    mask = found.mask > 0.5
+    iou = (mask & synthetic["mask"]).sum() / (mask | synthetic["mask"]).sum()
+    assert iou > 0.7 and found.people == 1 and len(MP33_NAMES) == 33
+    assert found.box[2] > 30 and found.box[3] > 80
+
+
+@pytest.mark.detect
+def test_no_person_is_an_error_naming_the_photo():
+    import skimage.data
+
+    from softras_cl.errors import ResultError
+    from softras_cl.fitting.detection.people import NoPersonError, detect_person
+
+    with pytest.raises(NoPersonError, match="no person found in coffee.png") as raised:
+        detect_person(skimage.data.coffee(), "coffee.png")
+    assert isinstance(raised.value, ResultError)
+
+
+@pytest.mark.detect
+@pytest.mark.slow
+def test_fit_of_a_synthetic_photo_beats_the_rest_pose(demo_body_model, synthetic):
+    from softras_cl.bench.body_photo import evaluate
+    from softras_cl.fitting.detection.people import detect_person
+    from softras_cl.fitting.recipes.body_photo import fit_body_photo
+
+    detection = detect_person(synthetic["image"])
+    fit = fit_body_photo((256, 256), detection, demo_body_model, body.BodyFitConfig(), "fast", progress=False)
+    metrics, scores = fit.metrics(), evaluate(fit, synthetic)
+    assert metrics["keypoint_error_px_full"] < 12.0 and scores["mask_iou"] > 0.75
+    assert scores["pa_mpjpe_mm"] < 110.0
+
+
+def test_an_empty_person_mask_is_a_result_error(demo_body_model):
+    from softras_cl.errors import ResultError
+    from softras_cl.fitting.detection.people import PersonDetection
+    from softras_cl.fitting.recipes.body_photo import fit_body_photo
+
+    empty = PersonDetection(np.full((33, 2), 20.0), np.ones(33), np.zeros((40, 40)), np.array([0, 0, 1, 1.0]),
+                            1.0, 1, "test")
+    with pytest.raises(ResultError, match="person mask is empty"):
+        fit_body_photo((40, 40), empty, demo_body_model, body.BodyFitConfig(size=32), "fast", progress=False)
