@@ -42,8 +42,8 @@ from softras_cl.fitting.recipes.face import FaceFitConfig, FaceScene, initial_po
 from softras_cl.fitting.solver import Stage, fit
 from softras_cl.scene.rotation import axis_angle_to_matrix, rodrigues, rodrigues_vjp
 
-__all__ = ["TrackConfig", "Identity", "LandmarkBasis", "FrameObjective", "FrameResult", "FrameTracker",
-           "TrackerState", "project_landmarks", "choose_keyframes", "fit_identity", "head_angles_deg", "FRAME_BLOCKS"]
+__all__ = ["FaceFollower", "TrackConfig", "Identity", "LandmarkBasis", "FrameObjective", "FrameResult", "FrameTracker",
+           "TrackerState", "project_landmarks", "choose_keyframes", "fit_identity", "identity_from_video", "head_angles_deg", "FRAME_BLOCKS"]
 
 FRAME_BLOCKS = ("rotation", "translation", "exp")     # fitted per frame
 
@@ -168,6 +168,36 @@ def fit_identity(images: list, landmarks: list, keyframes, model, config: TrackC
     return Identity(joint.values["id"].copy(), joint.values["albedo"].copy(), sh,
                     float(joint.values["focal"][0] / first.crop.scale), float(first.crop.scale),
                     tuple(int(k) for k in keyframes), joint.metrics())
+
+
+def identity_from_video(source, model, config: TrackConfig, follower: "FaceFollower", scan: int,
+                        progress: bool = False) -> Identity:
+    """The Identity of a video (softras_cl.io.video.VideoSource): the face followed through its
+    first ``scan`` frames, the keyframes chosen among those with a face (:func:`choose_keyframes`),
+    decoded again and fitted jointly (:func:`fit_identity`). NoFaceError when no frame has a face."""
+    from softras_cl.fitting.detection import NoFaceError
+    from softras_cl.io.images import to_linear
+
+    found, previous, shape = {}, None, None
+    for frame in source.frames():
+        if frame.index >= scan:
+            break
+        shape = frame.image.shape
+        previous = follower.find(frame.image, previous)
+        if previous is not None:
+            found[frame.index] = previous
+    if not found:
+        raise NoFaceError(f"no face found in the first {scan} frames of {source.path} (--scan); give "
+                          "--face-box X,Y,W,H around it")
+    keyframes = choose_keyframes(found, model, shape, config.keyframes)
+    images = {}
+    for frame in source.frames():
+        if frame.index > keyframes[-1]:
+            break
+        if frame.index in keyframes:
+            images[frame.index] = to_linear(frame.image / 255.0)
+    return fit_identity([images[k] for k in keyframes], [found[k] for k in keyframes], keyframes, model, config,
+                        progress=progress)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -344,6 +374,14 @@ class FrameTracker:
                            self.fitted_landmarks(values), False, terms, len(result.history),
                            time.perf_counter() - start)
 
+    def follow(self, follower: "FaceFollower", image: np.ndarray, time_s: float, index: int) -> FrameResult:
+        """:meth:`step` on the landmarks the follower finds in image (H, W, 3) uint8 RGB, searched
+        around this tracker's last fitted landmarks (the whole frame before any, or after a
+        frame without a face)."""
+        state = self.state
+        previous = None if state.values is None or state.held else self.fitted_landmarks(state.values)
+        return self.step(follower.find(image, previous), time_s, index)
+
     def predict(self, dt: float) -> dict:
         """The values expected dt seconds after the last frame: the last values moved on by
         ``momentum`` times their last velocity (none after a frame that started a track)."""
@@ -359,3 +397,60 @@ class FrameTracker:
         return ParamSet([Block("rotation", np.asarray(values["rotation"], np.float64), scale=0.05),
                          Block("translation", np.asarray(values["translation"], np.float64), scale=0.01),
                          Block("exp", np.clip(values["exp"], -4.0, 4.0), -4.0, 4.0)])
+
+
+# ---------------------------------------------------------------------------------------------
+# the face in each frame
+# ---------------------------------------------------------------------------------------------
+
+class FaceFollower:
+    """The 68 landmarks of the followed face in each frame (fitting.detection).
+
+    The first frame with a face: detect_face on the whole frame, choosing by ``face`` (the N-th,
+    largest first) or ``face_box`` (x, y, w, h), else the largest. Then, given the previous
+    frame's fitted landmarks (:meth:`find`'s ``previous``), only a square crop CROP_MARGIN times
+    their extent around them is searched, for the face overlapping their box; when it is not
+    there (or its landmarks do not form a face), the whole frame again, for the largest face.
+    ``backend``: the detection backend (None: the default).
+    """
+
+    CROP_MARGIN = 2.0
+
+    def __init__(self, face: int | None = None, face_box=None, backend: str | None = None):
+        self.face, self.face_box, self.backend = face, face_box, backend
+        self.started = False
+
+    def find(self, image: np.ndarray, previous=None) -> np.ndarray | None:
+        """(68, 2) frame pixels of the face in image (H, W, 3) uint8 RGB, or None (no face)."""
+        if previous is not None and np.all(np.isfinite(previous)):
+            points = self._near(image, np.asarray(previous, np.float64))
+            if points is not None:
+                return points
+        return self._whole(image)
+
+    def _detect(self, image, **choice) -> np.ndarray | None:
+        from softras_cl.fitting.detection import ImplausibleFaceError, NoFaceError, detect_face
+
+        try:
+            chosen = detect_face(image, self.backend, **choice).chosen
+        except (NoFaceError, ImplausibleFaceError):
+            return None
+        return chosen.landmarks
+
+    def _whole(self, image) -> np.ndarray | None:
+        choice = {} if self.started else dict(face=self.face, face_box=self.face_box)
+        points = self._detect(image, **choice)
+        self.started = self.started or points is not None
+        return points
+
+    def _near(self, image, previous: np.ndarray) -> np.ndarray | None:
+        """The face in the crop around the previous landmarks (None: not there)."""
+        lo, hi = previous.min(0), previous.max(0)
+        centre, half = (lo + hi) / 2, 0.5 * self.CROP_MARGIN * float(np.max(hi - lo))
+        x0, y0 = np.maximum(np.floor(centre - half), 0).astype(int)
+        x1, y1 = np.minimum(np.ceil(centre + half), [image.shape[1], image.shape[0]]).astype(int)
+        if x1 - x0 < 16 or y1 - y0 < 16:            # the face has left the frame
+            return None
+        box = np.array([lo[0] + 0.5 - x0, lo[1] + 0.5 - y0, *(hi - lo)])   # the pixel grid: centres + 0.5
+        points = self._detect(np.ascontiguousarray(image[y0:y1, x0:x1]), face_box=box, tiles=False, turns=False)
+        return None if points is None else points + [x0, y0]
