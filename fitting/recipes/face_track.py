@@ -179,7 +179,7 @@ def identity_from_video(source, model, config: TrackConfig, follower: "FaceFollo
     from softras_cl.io.images import to_linear
 
     found, previous, shape = {}, None, None
-    for frame in source.frames():
+    for frame in _until_broken(source.frames()):
         if frame.index >= scan:
             break
         shape = frame.image.shape
@@ -191,13 +191,23 @@ def identity_from_video(source, model, config: TrackConfig, follower: "FaceFollo
                           "--face-box X,Y,W,H around it")
     keyframes = choose_keyframes(found, model, shape, config.keyframes)
     images = {}
-    for frame in source.frames():
+    for frame in _until_broken(source.frames()):
         if frame.index > keyframes[-1]:
             break
         if frame.index in keyframes:
             images[frame.index] = to_linear(frame.image / 255.0)
     return fit_identity([images[k] for k in keyframes], [found[k] for k in keyframes], keyframes, model, config,
                         progress=progress)
+
+
+def _until_broken(frames):
+    """The frames up to where a video breaks off (the tracking of the frames reports the break)."""
+    from softras_cl.io.video import VideoReadError
+
+    try:
+        yield from frames
+    except VideoReadError:
+        return
 
 
 # ---------------------------------------------------------------------------------------------

@@ -11,7 +11,7 @@ Bad input is an InputError naming the file: one PyAV cannot open, no video strea
 that breaks off (a truncated download): :class:`VideoReadError` is raised once the frames that
 could be decoded have been yielded, so a caller keeps what it did with them.
 
-Writing (:class:`VideoWriter`): H.264 (yuv420p, no audio) into an .mp4, each frame at its
+Writing (:class:`VideoWriter`): H.264 (yuv420p, no audio) into an .mp4 (index first), each frame at its
 given time (times in milliseconds, so a variable rate stays variable).
 """
 from __future__ import annotations
@@ -218,7 +218,8 @@ class VideoWriter:
 
     def __enter__(self) -> "VideoWriter":
         av = _av()
-        self._container = av.open(str(self.path), "w")
+        # the index first ("faststart"): players start at once, and a cut file still opens
+        self._container = av.open(str(self.path), "w", format="mp4", options={"movflags": "faststart"})
         return self
 
     def _start(self, height: int, width: int) -> None:
