@@ -362,9 +362,11 @@ class FrameTracker:
         the previous values when None (a frame before any face: NaN values, held)."""
         state = self.state
         if landmarks is None:
-            values = state.values if state.values is not None else self._nan_values()
             self.state = TrackerState(state.values, state.time, held=True)
-            fitted = self.fitted_landmarks(values)
+            if state.values is None:
+                values, fitted = self._nan_values(), np.full((68, 2), np.nan)
+            else:
+                values, fitted = state.values, self.fitted_landmarks(state.values)
             return FrameResult(index, time_s, dict(values, sh=self.identity.sh), None, fitted, True, {}, 0, 0.0)
         start = time.perf_counter()
         steady = state.values is not None and not state.held

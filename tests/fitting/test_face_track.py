@@ -137,3 +137,15 @@ def test_state_round_trips_through_arrays():
     assert back.time == 1.5 and back.held
     np.testing.assert_array_equal(back.values["rotation"], np.arange(3.0))
     assert TrackerState.from_arrays(TrackerState().to_arrays()).values is None
+
+
+def test_frames_before_the_first_face_are_held_without_values(demo_face_model):
+    rng = np.random.default_rng(6)
+    tracker = FrameTracker(demo_face_model, truth_identity(demo_face_model, rng), (SIZE, SIZE), TrackConfig())
+    clean = tracker.fitted_landmarks(head(-10.0, np.zeros(demo_face_model.n_exp)))
+    before = tracker.step(None, 0.0, 0)
+    assert before.held and np.isnan(before.values["rotation"]).all() and np.isnan(before.fitted).all()
+    first = tracker.step(clean, 0.04, 1)                      # started from the closed-form pose
+    assert not first.held and "smooth_pose" not in first.terms
+    assert np.linalg.norm(first.fitted - clean, axis=1).mean() < 0.5
+    assert "smooth_pose" in tracker.step(clean, 0.08, 2).terms
