@@ -159,10 +159,12 @@ def fit_identity(images: list, landmarks: list, keyframes, model, config: TrackC
                  progress: bool = False) -> Identity:
     """Identity, albedo, one focal length and light from the keyframes: images (H, W, 3)
     linear RGB of one size, landmarks (68, 2) frame pixels each, keyframes their frame
-    indices (recorded)."""
+    indices (recorded). KeyboardInterrupt when Ctrl-C stopped the fit."""
     from softras_cl.fitting.recipes.face_views import fit_face_views
 
     joint = fit_face_views(images, landmarks, model, config.face_config(), progress=progress, same_camera=True)
+    if joint.result.interrupted:         # the solver stopped at Ctrl-C: no identity from half a fit
+        raise KeyboardInterrupt
     first = joint.views[0]
     sh = np.mean([joint.values[f"sh.{k}"] for k in range(len(images))], axis=0)
     return Identity(joint.values["id"].copy(), joint.values["albedo"].copy(), sh,
@@ -359,7 +361,8 @@ class FrameTracker:
 
     def step(self, landmarks, time_s: float, index: int) -> FrameResult:
         """Fit one frame at ``time_s`` seconds from its landmarks (68, 2) frame pixels, or hold
-        the previous values when None (a frame before any face: NaN values, held)."""
+        the previous values when None (a frame before any face: NaN values, held).
+        KeyboardInterrupt when Ctrl-C stopped the frame's fit (the state stays the last frame's)."""
         state = self.state
         if landmarks is None:
             self.state = TrackerState(state.values, state.time, held=True)
@@ -377,6 +380,8 @@ class FrameTracker:
                                    prediction, dt)
         result = fit(self._params(begin), objective, [Stage("frame", FRAME_BLOCKS, max_iters=self.config.frame_iters)],
                      progress=False)
+        if result.interrupted:               # Ctrl-C during the frame's fit stops the tracking
+            raise KeyboardInterrupt
         values = {k: result.values[k] for k in FRAME_BLOCKS}
         _, _, terms = objective(values)
         velocity = ({k: (values[k] - state.values[k]) / max(dt, 1e-3) for k in FRAME_BLOCKS}

@@ -149,3 +149,17 @@ def test_frames_before_the_first_face_are_held_without_values(demo_face_model):
     assert not first.held and "smooth_pose" not in first.terms
     assert np.linalg.norm(first.fitted - clean, axis=1).mean() < 0.5
     assert "smooth_pose" in tracker.step(clean, 0.08, 2).terms
+
+
+def test_ctrl_c_in_a_frames_fit_stops_the_tracking(demo_face_model, monkeypatch):
+    """The solver keeps Ctrl-C to itself (it returns interrupted=True): the tracker raises it on."""
+    from softras_cl.fitting.recipes import face_track
+    from softras_cl.fitting.solver import FitResult
+
+    rng = np.random.default_rng(7)
+    tracker = FrameTracker(demo_face_model, truth_identity(demo_face_model, rng), (SIZE, SIZE), TrackConfig())
+    clean = tracker.fitted_landmarks(head(0.0, np.zeros(demo_face_model.n_exp)))
+    monkeypatch.setattr(face_track, "fit", lambda params, *a, **k: FitResult(params.values(), 0.0, [], {}, True))
+    with pytest.raises(KeyboardInterrupt):
+        tracker.step(clean, 0.0, 0)
+    assert tracker.state.values is None
