@@ -1,6 +1,7 @@
 """What `softras-cl track-face` writes into --out, chunk by chunk (fitting.recipes.face_track).
 
-- ``identity.npz`` (id, albedo, sh, focal in frame pixels, pixel_scale, keyframes) and
+- ``identity.npz`` (id, albedo, sh, focal in frame pixels, pixel_scale, keyframes, the joint
+  fit's metrics as JSON text) and
   ``identity.ply`` (the neutral face of the identity, albedo vertex colours, model frame);
 - ``chunks/chunk_NNNN.npz``: one chunk's frames: index, time (s), held (bool), rotation (N, 3),
   translation (N, 3), exp (N, K), sh (N, 3, 9), detected and fitted landmarks (N, 68, 2)
@@ -15,6 +16,7 @@
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -33,9 +35,9 @@ TERMS = ("landmarks", "exp_prior", "smooth_pose", "smooth_exp")
 
 
 def write_identity(folder: Path, identity: Identity, model) -> None:
-    """identity.npz and identity.ply (module docstring)."""
+    """identity.npz (its metrics as JSON text in ``metrics``) and identity.ply (module docstring)."""
     with atomic_path(folder / "identity.npz") as tmp:
-        np.savez(tmp, **identity.to_arrays())
+        np.savez(tmp, **identity.to_arrays(), metrics=np.array(json.dumps(json_safe(identity.metrics))))
     shape = model.shape(identity.id, np.zeros(model.n_exp))[0]
     save_mesh(folder / "identity.ply", shape, model.faces,
               colors=np.clip(model.albedo(identity.albedo)[0], 0.0, 1.0))
@@ -47,7 +49,7 @@ def read_identity(folder: Path) -> Identity | None:
     if not path.is_file():
         return None
     with np.load(path) as z:
-        return Identity.from_arrays(z)
+        return dataclasses.replace(Identity.from_arrays(z), metrics=json.loads(str(z["metrics"])))
 
 
 def chunk_path(folder: Path, k: int, suffix: str = ".npz", stem: str = "chunk") -> Path:

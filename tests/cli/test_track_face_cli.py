@@ -75,6 +75,8 @@ def test_track_face_writes_every_output_and_resumes_after_ctrl_c(video, tmp_path
     result = run_cli("track-face", video["path"], "--out", parted, *FAST, "--resume")
     assert result.code == 0, result.err
     assert (parted / "chunks/chunk_0000.npz").read_bytes() == first_chunk        # not done again
+    resumed = json.loads((parted / "complete.json").read_text())
+    assert resumed["identity_metrics"] == complete["identity_metrics"] and resumed["frames"] == FRAMES
     with np.load(parted / "frames.npz") as z:
         for name in ("rotation", "translation", "exp", "fitted", "detected"):
             np.testing.assert_allclose(z[name], frames[name], rtol=0, atol=1e-9, err_msg=name)
