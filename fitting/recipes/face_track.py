@@ -43,9 +43,10 @@ from softras_cl.fitting.solver import Stage, fit
 from softras_cl.scene.rotation import axis_angle_to_matrix, rodrigues, rodrigues_vjp
 
 __all__ = ["FaceFollower", "TrackConfig", "Identity", "LandmarkBasis", "FrameObjective", "FrameResult", "FrameTracker",
-           "TrackerState", "project_landmarks", "choose_keyframes", "fit_identity", "identity_from_video", "head_angles_deg", "FRAME_BLOCKS"]
+           "TrackerState", "project_landmarks", "choose_keyframes", "fit_identity", "detector_offsets", "identity_from_video", "head_angles_deg", "FRAME_BLOCKS"]
 
 FRAME_BLOCKS = ("rotation", "translation", "exp")     # fitted per frame
+OFFSET_PRIOR_M = 0.01   # detector_offsets' prior: a detector's landmark within about a centimetre of the model's
 
 
 @dataclass(frozen=True)
@@ -106,25 +107,30 @@ class TrackConfig:
 class Identity:
     """What stays fixed over a video: id (K_id,), albedo (K_alb,), sh (3, 9), focal (frame
     pixels), pixel_scale (working pixels of the identity fit per frame pixel), keyframes (their
-    frame indices), metrics (the identity fit's)."""
+    frame indices), landmark_offsets (68, 3) metres in the model frame: where the detector puts
+    each landmark on this face, from the model's own point (:func:`detector_offsets`; None:
+    nowhere else), metrics (the identity fit's)."""
     id: np.ndarray
     albedo: np.ndarray
     sh: np.ndarray
     focal: float
     pixel_scale: float
     keyframes: tuple[int, ...]
+    landmark_offsets: np.ndarray | None = None
     metrics: dict = field(default_factory=dict)
 
     def to_arrays(self) -> dict:
         """Arrays for an .npz (see :meth:`from_arrays`)."""
+        offsets = np.zeros((68, 3)) if self.landmark_offsets is None else self.landmark_offsets
         return dict(id=self.id, albedo=self.albedo, sh=self.sh, focal=np.array(self.focal),
-                    pixel_scale=np.array(self.pixel_scale), keyframes=np.array(self.keyframes, np.int64))
+                    pixel_scale=np.array(self.pixel_scale), keyframes=np.array(self.keyframes, np.int64),
+                    landmark_offsets=offsets)
 
     @classmethod
     def from_arrays(cls, arrays) -> "Identity":
         return cls(np.asarray(arrays["id"], np.float64), np.asarray(arrays["albedo"], np.float64),
                    np.asarray(arrays["sh"], np.float64), float(arrays["focal"]), float(arrays["pixel_scale"]),
-                   tuple(int(k) for k in arrays["keyframes"]))
+                   tuple(int(k) for k in arrays["keyframes"]), np.asarray(arrays["landmark_offsets"], np.float64))
 
 
 def head_angles_deg(rotation) -> tuple[float, float, float]:
@@ -172,9 +178,37 @@ def fit_identity(images: list, landmarks: list, keyframes, model, config: TrackC
         raise KeyboardInterrupt
     first = joint.views[0]
     sh = np.mean([joint.values[f"sh.{k}"] for k in range(len(images))], axis=0)
-    return Identity(joint.values["id"].copy(), joint.values["albedo"].copy(), sh,
-                    float(joint.values["focal"][0] / first.crop.scale), float(first.crop.scale),
-                    tuple(int(k) for k in keyframes), joint.metrics())
+    focal, scale = float(joint.values["focal"][0] / first.crop.scale), float(first.crop.scale)
+    camera = FaceScene(model, images[0].shape[:2]).camera(focal)
+    poses = [{name: joint.values[f"{name}.{k}"] for name in FRAME_BLOCKS} for k in range(len(images))]
+    offsets = detector_offsets(LandmarkBasis(model, joint.values["id"]), camera, poses, landmarks,
+                               noise_px=1.0 / math.sqrt(config.landmark_weight) / scale)
+    return Identity(joint.values["id"].copy(), joint.values["albedo"].copy(), sh, focal, scale,
+                    tuple(int(k) for k in keyframes), offsets, joint.metrics())
+
+
+def detector_offsets(basis: "LandmarkBasis", camera, poses: list[dict], detected: list, noise_px: float,
+                     prior_m: float = OFFSET_PRIOR_M) -> np.ndarray:
+    """(68, 3) model-frame offsets (metres) of the detector's landmarks from the model's: per
+    landmark, the offset that best moves the fitted model's point onto the detected one over
+    the keyframes (poses: rotation, translation, exp each; detected (68, 2) pixels each), with a
+    Gaussian prior of ``prior_m`` against the landmark noise ``noise_px``. One linearised step
+    (Gauss-Newton from 0: the offsets are millimetres at a metre's distance). A detector that
+    places, say, the jaw line on the face's outline rather than where the model has it, does so
+    in every frame: the offsets carry what the keyframes' photometric fit told about it to the
+    frames fitted from landmarks alone."""
+    normal = np.zeros((68, 3, 3))
+    rhs = np.zeros((68, 3))
+    unit = np.eye(2)
+    for values, points in zip(poses, detected):
+        uv, (_, R, _, ctx) = project_landmarks(basis, camera, values)
+        rows = [camera.project_pixels_vjp(ctx, np.tile(unit[a], (68, 1)), camera=False)["vertices"] @ R
+                for a in (0, 1)]
+        J = np.stack(rows, axis=1)                                  # (68, 2, 3): d pixels / d model point
+        normal += np.einsum("lai,laj->lij", J, J)
+        rhs += np.einsum("lai,la->li", J, np.asarray(points, np.float64) - uv)
+    damping = (noise_px / prior_m) ** 2 * np.eye(3)
+    return np.linalg.solve(normal + damping, rhs[..., None])[..., 0]
 
 
 def identity_from_video(source, model, config: TrackConfig, follower: "FaceFollower", scan: int,
@@ -223,14 +257,15 @@ def _until_broken(frames):
 
 class LandmarkBasis:
     """The 68 model-frame landmarks of a fixed identity as a linear function of the expression:
-    ``points(exp) = mean + exp @ basis``, mean (68, 3), basis (K_exp, 68, 3) float64."""
+    ``points(exp) = mean + exp @ basis``, mean (68, 3), basis (K_exp, 68, 3) float64; offsets
+    (68, 3): moved by as much (where a detector puts them, Identity.landmark_offsets)."""
 
-    def __init__(self, model, id_coeffs):
-        zero = np.zeros(model.n_exp)
-        self.mean = model.landmarks(model.shape(id_coeffs, zero)[0])[0]
+    def __init__(self, model, id_coeffs, offsets=None):
+        neutral = model.landmarks(model.shape(id_coeffs, np.zeros(model.n_exp))[0])[0]
         unit = np.eye(model.n_exp)
-        self.basis = np.stack([model.landmarks(model.shape(id_coeffs, unit[k])[0])[0] - self.mean
+        self.basis = np.stack([model.landmarks(model.shape(id_coeffs, unit[k])[0])[0] - neutral
                                for k in range(model.n_exp)]) if model.n_exp else np.zeros((0, 68, 3))
+        self.mean = neutral if offsets is None else neutral + offsets
 
     def points(self, exp) -> np.ndarray:
         return self.mean + np.tensordot(exp, self.basis, axes=1)
@@ -345,7 +380,9 @@ class FrameTracker:
     def __init__(self, model, identity: Identity, frame_shape, config: TrackConfig,
                  state: TrackerState | None = None):
         self.model, self.identity, self.config = model, identity, config
-        self.basis = LandmarkBasis(model, identity.id)
+        self.model_basis = LandmarkBasis(model, identity.id)         # the model's 68 points: the outputs
+        self.basis = (self.model_basis if identity.landmark_offsets is None   # the detector's: the fit
+                      else LandmarkBasis(model, identity.id, identity.landmark_offsets))
         self.scene = FaceScene(model, tuple(frame_shape[:2]))
         self.camera = self.scene.camera(identity.focal)
         self.state = state or TrackerState()
@@ -361,8 +398,8 @@ class FrameTracker:
         return dict(values, id=ident.id, albedo=ident.albedo, sh=ident.sh, focal=np.array([ident.focal]))
 
     def fitted_landmarks(self, values: dict) -> np.ndarray:
-        """(68, 2) frame pixels of a frame's values."""
-        return project_landmarks(self.basis, self.camera, values)[0]
+        """(68, 2) frame pixels of the model's own 68 landmarks (not moved by the detector offsets) at a frame's values."""
+        return project_landmarks(self.model_basis, self.camera, values)[0]
 
     def step(self, landmarks, time_s: float, index: int) -> FrameResult:
         """Fit one frame at ``time_s`` seconds from its landmarks (68, 2) frame pixels, or hold

@@ -163,3 +163,32 @@ def test_ctrl_c_in_a_frames_fit_stops_the_tracking(demo_face_model, monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         tracker.step(clean, 0.0, 0)
     assert tracker.state.values is None
+
+
+def test_detector_offsets_are_found_from_keyframes_at_several_yaws(demo_face_model):
+    """A detector that puts every landmark a few millimetres off the model's point, the same
+    on the face in every frame: the keyframes (yaw -25, 0, 25) recover the offsets, and the
+    tracker fitting with them puts the model back where the frame's face is."""
+    from softras_cl.fitting.recipes.face_track import detector_offsets
+
+    model = demo_face_model
+    rng = np.random.default_rng(8)
+    identity = truth_identity(model, rng)
+    tracker = FrameTracker(model, identity, (SIZE, SIZE), TrackConfig())
+    offsets = rng.normal(0, 0.004, (68, 3))
+    shifted = LandmarkBasis(model, identity.id, offsets)
+    poses = [head(y, 0.3 * rng.normal(size=model.n_exp)) for y in (-25, 0, 25)]
+    from softras_cl.fitting.recipes.face_track import project_landmarks
+
+    detected = [project_landmarks(shifted, tracker.camera, p)[0] for p in poses]
+    found = detector_offsets(tracker.basis, tracker.camera, poses, detected, noise_px=0.01)
+    # one linearised step: within a few per cent of millimetre offsets
+    np.testing.assert_allclose(found, offsets, atol=0.1 * np.abs(offsets).max())
+    with_offsets = FrameTracker(model, Identity(identity.id, identity.albedo, identity.sh, identity.focal, 0.8, (0,),
+                                                found), (SIZE, SIZE), TrackConfig())
+    truth = head(10.0, 0.3 * rng.normal(size=model.n_exp))
+    result = with_offsets.step(project_landmarks(shifted, tracker.camera, truth)[0], 0.0, 0)
+    error = np.linalg.norm(result.fitted - tracker.fitted_landmarks(truth), axis=1).mean()
+    plain = np.linalg.norm(tracker.step(project_landmarks(shifted, tracker.camera, truth)[0], 0.0, 0).fitted
+                           - tracker.fitted_landmarks(truth), axis=1).mean()
+    assert error < 0.5 * plain
