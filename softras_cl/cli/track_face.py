@@ -118,9 +118,12 @@ def run(args: argparse.Namespace) -> int:
     from softras_cl.io.outputs import OutputFolder
     from softras_cl.io.video import open_video
 
+    from softras_cl.cl.device import select_device
+
     config, face_box = _checked(args)
     source = open_video(args.video, args.fps)
     _check_detector()
+    select_device()       # a bad SOFTRAS_CL_DEVICE: InputError now, not after the face search
     model = load_model("face", args.model, None)
     with OutputFolder(args.out, "track-face", "--out") as out:
         replacing = out.begin(_run_record(args, source), resume=args.resume, overwrite=args.overwrite)

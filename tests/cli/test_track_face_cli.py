@@ -123,3 +123,18 @@ def test_folder_of_frames_needs_fps(tmp_path, run_cli):
     assert result.code == 2 and "needs --fps" in result.err
     result = run_cli("track-face", tmp_path / "missing.mp4", "--out", tmp_path / "o")
     assert result.code == 2 and "video not found" in result.err
+
+
+def test_a_bad_device_is_refused_before_the_face_search(video, tmp_path):
+    """SOFTRAS_CL_DEVICE is read when the process starts: a real process, exit 2, no output folder."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(sys.executable).with_name("softras-cl")
+    done = subprocess.run([str(script), "track-face", str(video["path"]), "--out", str(tmp_path / "o")],
+                          capture_output=True, text=True, env={**os.environ, "SOFTRAS_CL_DEVICE": "nonsense"},
+                          timeout=300)
+    assert done.returncode == 2 and "matches no OpenCL device" in done.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "o").exists()
