@@ -175,9 +175,10 @@ def save_plot(arrays: dict, path: Path) -> None:
     axes[2].set_yscale("log")
     axes[2].set_ylabel("loss terms")
     axes[2].set_xlabel("time, s")
+    half = 0.5 * float(np.median(np.diff(t))) if len(t) > 1 else 0.5
     for ax in axes:
         for held_time in t[arrays["held"]]:
-            ax.axvspan(held_time - 0.5 / 30, held_time + 0.5 / 30, color="0.85", lw=0)
+            ax.axvspan(held_time - half, held_time + half, color="0.85", lw=0)
         ax.legend(fontsize=7, loc="upper right", ncol=5)
         ax.grid(True, alpha=0.3)
     fig.suptitle("track-face: pose, expression and per-frame losses (grey: no face found, pose held)")

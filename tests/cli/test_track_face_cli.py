@@ -102,6 +102,26 @@ def test_a_broken_video_keeps_the_frames_read(video, tmp_path, run_cli, tiny_bud
     assert not (tmp_path / "o/complete.json").exists()
 
 
+@pytest.mark.slow
+def test_frames_without_a_face_are_held_and_marked(video, tmp_path, run_cli, tiny_budget):
+    from softras_cl.bench.track import write_sequence
+    from softras_cl.io.video import open_video
+
+    images = [f.image for f in open_video(video["path"]).frames()]
+    for k in (4, 5):                           # the face gone: a plain grey frame
+        images[k] = np.full_like(images[k], 128)
+    write_sequence(tmp_path / "gap.mp4", images, FPS)
+    result = run_cli("track-face", tmp_path / "gap.mp4", "--out", tmp_path / "o", *FAST)
+    assert result.code == 0, result.err
+    with np.load(tmp_path / "o/frames.npz") as z:
+        assert z["held"].tolist() == [k in (4, 5) for k in range(FRAMES)]
+        assert np.isnan(z["detected"][4]).all() and np.isfinite(z["detected"][6]).all()
+        np.testing.assert_array_equal(z["rotation"][5], z["rotation"][3])      # the last pose kept
+        assert np.isnan(z["term_landmarks"][4]) and np.isfinite(z["term_landmarks"][6])
+    assert json.loads((tmp_path / "o/complete.json").read_text())["frames_held"] == 2
+    assert json.loads((tmp_path / "o/frames.jsonl").read_text().splitlines()[4])["held"] is True
+
+
 @pytest.mark.parametrize("extra, message", [
     (["--chunk", "0"], "--chunk must be"),
     (["--frame-iters", "0"], "--frame-iters must be"),
