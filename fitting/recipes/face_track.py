@@ -30,6 +30,7 @@ Light: the identity fit's, held for the video (per-frame light is not fitted her
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -53,8 +54,9 @@ OFFSET_PRIOR_M = 0.01   # detector_offsets' prior: a detector's landmark within 
 class TrackConfig:
     """Every knob of the tracker.
 
-    keyframes: frames of the identity fit; identity_budget / size: its schedule (fitting.recipes.face
-        BUDGETS) and working size.
+    keyframes: frames of the identity fit; identity_passes: its joint fits (see fit_identity: the
+        second on landmarks corrected by the first's detector offsets); identity_budget / size:
+        its schedule (fitting.recipes.face BUDGETS) and working size.
     frame_iters: L-BFGS evaluations per frame.
     landmark_weight: the landmark term's w (1 / noise^2, noise in working pixels).
     exp_prior: the expression prior's weight.
@@ -69,6 +71,7 @@ class TrackConfig:
     temporal terms left out (2.1 against 6.2 mm/frame^2); momentum 1 beat 0 at every setting.
     """
     keyframes: int = 4
+    identity_passes: int = 2
     identity_budget: str = "fast"
     size: int = 256
     frame_iters: int = 30
@@ -80,7 +83,7 @@ class TrackConfig:
     momentum: float = 1.0
 
     def __post_init__(self):
-        for name in ("keyframes", "frame_iters"):
+        for name in ("keyframes", "identity_passes", "frame_iters"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise InputError(f"{name} must be an integer >= 1, got {value!r}")
@@ -168,9 +171,30 @@ def choose_keyframes(landmarks: dict, model, frame_shape, n: int, fov_deg: float
 
 def fit_identity(images: list, landmarks: list, keyframes, model, config: TrackConfig,
                  progress: bool = False) -> Identity:
-    """Identity, albedo, one focal length and light from the keyframes: images (H, W, 3)
-    linear RGB of one size, landmarks (68, 2) frame pixels each, keyframes their frame
-    indices (recorded). KeyboardInterrupt when Ctrl-C stopped the fit."""
+    """Identity, albedo, one focal length, light and the detector offsets from the keyframes:
+    images (H, W, 3) linear RGB of one size, landmarks (68, 2) frame pixels each, keyframes
+    their frame indices (recorded). ``config.identity_passes`` joint fits, each followed by the
+    offsets of the detected landmarks from its model (:func:`detector_offsets`); each pass after
+    the first fits the landmarks moved back by the previous pass's offsets, so that the
+    detector's own idea of the landmarks no longer bends the shape.
+    KeyboardInterrupt when Ctrl-C stopped a fit."""
+    detected = [np.asarray(points, np.float64) for points in landmarks]
+    corrected = detected
+    for _ in range(config.identity_passes):
+        identity, camera, poses = _joint_identity(images, corrected, keyframes, model, config, progress)
+        plain = LandmarkBasis(model, identity.id)
+        offsets = detector_offsets(plain, camera, poses, detected,
+                                   noise_px=1.0 / math.sqrt(config.landmark_weight) / identity.pixel_scale)
+        identity = dataclasses.replace(identity, landmark_offsets=offsets)
+        moved = LandmarkBasis(model, identity.id, offsets)
+        corrected = [points - (project_landmarks(moved, camera, pose)[0] - project_landmarks(plain, camera, pose)[0])
+                     for points, pose in zip(detected, poses)]
+    return identity
+
+
+def _joint_identity(images, landmarks, keyframes, model, config: TrackConfig, progress: bool):
+    """One joint fit of the keyframes (fit-face --same-person, one camera) -> (its Identity
+    without offsets, the frame camera, each keyframe's pose: rotation, translation, exp)."""
     from softras_cl.fitting.recipes.face_views import fit_face_views
 
     joint = fit_face_views(images, landmarks, model, config.face_config(), progress=progress, same_camera=True)
@@ -181,10 +205,9 @@ def fit_identity(images: list, landmarks: list, keyframes, model, config: TrackC
     focal, scale = float(joint.values["focal"][0] / first.crop.scale), float(first.crop.scale)
     camera = FaceScene(model, images[0].shape[:2]).camera(focal)
     poses = [{name: joint.values[f"{name}.{k}"] for name in FRAME_BLOCKS} for k in range(len(images))]
-    offsets = detector_offsets(LandmarkBasis(model, joint.values["id"]), camera, poses, landmarks,
-                               noise_px=1.0 / math.sqrt(config.landmark_weight) / scale)
-    return Identity(joint.values["id"].copy(), joint.values["albedo"].copy(), sh, focal, scale,
-                    tuple(int(k) for k in keyframes), offsets, joint.metrics())
+    identity = Identity(joint.values["id"].copy(), joint.values["albedo"].copy(), sh, focal, scale,
+                        tuple(int(k) for k in keyframes), None, joint.metrics())
+    return identity, camera, poses
 
 
 def detector_offsets(basis: "LandmarkBasis", camera, poses: list[dict], detected: list, noise_px: float,

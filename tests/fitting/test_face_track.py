@@ -192,3 +192,34 @@ def test_detector_offsets_are_found_from_keyframes_at_several_yaws(demo_face_mod
     plain = np.linalg.norm(tracker.step(project_landmarks(shifted, tracker.camera, truth)[0], 0.0, 0).fitted
                            - tracker.fitted_landmarks(truth), axis=1).mean()
     assert error < 0.5 * plain
+
+
+def test_second_identity_pass_fits_landmarks_corrected_by_the_first_offsets(demo_face_model, monkeypatch):
+    """fit_identity's passes (the joint fit itself replaced by a stand-in that records what it is
+    given): the second pass sees the detected landmarks moved back by the first pass's offsets,
+    and the offsets returned are those of the detected landmarks, not of the corrected ones."""
+    from softras_cl.fitting.recipes import face_track
+
+    model = demo_face_model
+    rng = np.random.default_rng(9)
+    identity = truth_identity(model, rng)
+    tracker = FrameTracker(model, identity, (SIZE, SIZE), TrackConfig())
+    poses = [head(y, np.zeros(model.n_exp)) for y in (-20, 20)]
+    offsets = rng.normal(0, 0.004, (68, 3))
+    detected = [face_track.project_landmarks(LandmarkBasis(model, identity.id, offsets), tracker.camera, p)[0]
+                for p in poses]
+    given = []
+
+    def joint(images, landmarks, keyframes, model_, config, progress):
+        given.append([np.array(p) for p in landmarks])
+        return Identity(identity.id, identity.albedo, identity.sh, identity.focal, 0.8, (0, 1)), tracker.camera, poses
+
+    monkeypatch.setattr(face_track, "_joint_identity", joint)
+    found = face_track.fit_identity([None, None], detected, (0, 1), model, TrackConfig(identity_passes=2))
+    assert len(given) == 2
+    np.testing.assert_array_equal(given[0][0], detected[0])
+    plain = [face_track.project_landmarks(tracker.basis, tracker.camera, p)[0] for p in poses]
+    # the model here is the truth: the corrected landmarks are (nearly) the model's own
+    assert np.abs(given[1][0] - plain[0]).max() < 0.2 * np.abs(detected[0] - plain[0]).max()
+    # across the line of sight (depth is left to the prior by two views 40 degrees apart)
+    np.testing.assert_allclose(found.landmark_offsets[:, :2], offsets[:, :2], atol=0.15 * np.abs(offsets).max())
