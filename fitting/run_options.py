@@ -18,7 +18,7 @@ from typing import Any, Callable, Iterator
 
 from softras_cl.errors import InputError
 
-__all__ = ["Option", "FitOptions", "FACE", "BODY", "FITS", "yes_no"]
+__all__ = ["Option", "FitOptions", "FACE", "BODY", "TRACK", "FITS", "yes_no"]
 
 
 def yes_no(text: str) -> bool:
@@ -228,6 +228,52 @@ def _body_options() -> tuple[Option, ...]:
     )
 
 
+def _track_config(budget: str, **changes):
+    from softras_cl.fitting.recipes.face_track import TrackConfig
+    return TrackConfig(identity_budget=budget, **changes)
+
+
+def _track_options() -> tuple[Option, ...]:
+    from softras_cl.fitting.recipes.face import BUDGETS
+    from softras_cl.fitting.recipes.face_track import TrackConfig
+
+    d = TrackConfig()
+    return (
+        Option("model", str, None, "face model file, as for fit-face (default: the demo model shipped with "
+               "softras-cl)", recorded=False, file=True),
+        Option("fps", float, None, "frames per second of a folder of frames (frame k at k / FPS s); a video "
+               "file's frames carry their own times"),
+        Option("face", int, None, "follow the N-th face found in the first frame with a face (numbered "
+               "largest first; default: the largest)", metavar="N"),
+        Option("face_box", str, None, "follow the face in this box of the first frame with a face: x,y,w,h "
+               "in pixels", metavar="X,Y,W,H"),
+        Option("chunk", int, 100, "frames per chunk of outputs: each chunk is written when done and "
+               "--resume goes on at the first unfinished one (default 100)", metavar="FRAMES"),
+        Option("scan", int, 150, "the identity's keyframes are chosen among the first FRAMES frames "
+               "(default 150)", metavar="FRAMES"),
+        Option("keyframes", int, d.keyframes, f"frames of the identity fit, chosen for pose variety (default "
+               f"{d.keyframes})", field="keyframes"),
+        Option("identity_passes", int, d.identity_passes, "joint fits of the identity: each after the first "
+               "on the landmarks corrected by the detector offsets the one before found (default "
+               f"{d.identity_passes}; 1: one fit on the landmarks as detected)", field="identity_passes", metavar="N"),
+        Option("budget", str, d.identity_budget, f"schedule of the identity fit on the keyframes (default: "
+               f"{d.identity_budget}; see fit-face --budget)", choices=tuple(sorted(BUDGETS))),
+        Option("size", int, d.size, f"working size in pixels of the identity fit (default {d.size})", field="size"),
+        Option("frame_iters", int, d.frame_iters, f"evaluations of each frame's fit (default {d.frame_iters})",
+               field="frame_iters"),
+        Option("rotation_speed", float, d.rotation_speed, "temporal term: the head's rotation as a random walk "
+               f"of this many radians per square-root second (smaller: steadier, slower to follow; default "
+               f"{d.rotation_speed:g})", field="rotation_speed", metavar="RAD"),
+        Option("translation_speed", float, d.translation_speed, "the same for its position, metres per "
+               f"square-root second (default {d.translation_speed:g})", field="translation_speed", metavar="M"),
+        Option("exp_speed", float, d.exp_speed, "the same for the expression, standard deviations per "
+               f"square-root second (default {d.exp_speed:g})", field="exp_speed", metavar="STD"),
+        Option("momentum", float, d.momentum, "how much of the last frame's motion the temporal terms expect "
+               f"to go on, 0-1 (default {d.momentum:g})", field="momentum"),
+    )
+
+
 FACE = FitOptions("fit-face", _face_options(), _face_config)
 BODY = FitOptions("fit-body", _body_options(), _body_config)
 FITS = {"face": FACE, "body": BODY}      # batch item kind -> its fit's options
+TRACK = FitOptions("track-face", _track_options(), _track_config)

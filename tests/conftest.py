@@ -3,7 +3,7 @@ shared by several folders live in tests/support/ (this folder is on sys.path for
 
 Markers (registered in pyproject.toml, which also sets --strict-markers):
   slow                          more than about 5 s; the default run includes these.
-  mitsuba, landmarks (dlib), torch, jax
+  mitsuba, landmarks (dlib), torch, jax, video (PyAV), detect (mediapipe)
                                 the test needs that optional dependency: it is skipped, saying
                                 which extra to install, only when the module cannot be found.
                                 Installed but broken, it runs and fails.
@@ -42,6 +42,7 @@ OPTIONAL = {
     "detect": ("mediapipe", "pip install 'softras-cl[detect]'"),
     "torch": ("torch", "pip install torch"),
     "jax": ("jax", "pip install jax"),
+    "video": ("av", "pip install 'softras-cl[video]'"),
 }
 
 

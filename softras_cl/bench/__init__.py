@@ -3,7 +3,7 @@
 raster (the soft rasteriser: speed, memory, accuracy), render (the whole differentiable render
 path), pose, face and body (the fitting recipes on synthetic targets with known answers), interop
 (the PyTorch and JAX bridges' overhead over the numpy call), batch (photos per minute of many
-fits against Dask workers and threads).
+fits against Dask workers and threads), track (the face tracker on synthetic talking-head videos).
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from importlib import import_module
 # dependencies inside its runner, so building the parser stays light.
 BENCHMARKS = {"raster": "raster", "render": "render", "pose": "pose", "face": "face", "body": "body",
               "interop": "interop", "batch": "batch",
-              "face-views": "face_views", "body-photo": "body_photo",
+              "face-views": "face_views", "body-photo": "body_photo", "track": "track",
               "peers": "peers"}
 
 

@@ -33,6 +33,7 @@ COMMANDS = {
     "detect-landmarks": "softras_cl.cli.detect_landmarks",
     "fit-face": "softras_cl.cli.fit_face",
     "fit-body": "softras_cl.cli.fit_body",
+    "track-face": "softras_cl.cli.track_face",
     "bench": "softras_cl.bench",
 }
 

@@ -1,0 +1,538 @@
+"""One face followed through a video: its identity fitted once, then pose and expression per
+frame, steady from frame to frame.
+
+1. **Identity** (:func:`fit_identity`): a few keyframes, chosen for pose variety among the
+   frames with a face (:func:`choose_keyframes`: farthest-point sampling of the yaw and pitch
+   of each frame's closed-form pose), fitted jointly by the one-identity multi-photo fit
+   (fitting.recipes.face_views, ``same_camera``: one focal length for the video). Identity,
+   albedo, focal length and light (the keyframes' mean) are then fixed: an :class:`Identity`.
+2. **Per frame** (:class:`FrameTracker`): rotation (3,), translation (3,) and expression
+   (K_exp,) from the frame's 68 landmarks, warm-started from the previous frame, by a few
+   L-BFGS evaluations of :class:`FrameObjective` (no render: the identity is fixed, so the
+   landmarks are a linear function of the expression, :class:`LandmarkBasis`). A frame without
+   landmarks is held: the previous values, marked ``held``.
+
+The per-frame objective (every term a sum, as in fitting.recipes.face):
+
+- ``landmarks``: ``w * sum_i c_i |s (p_i - q_i)|^2`` over the 68 points, p the fitted and q the
+  detected landmarks in frame pixels, c the single fit's per-point weights (jaw line 0.5), s the
+  scale from frame pixels to the identity fit's working pixels (so that w = 1 / noise^2 means
+  what it means in fit-face whatever the video's resolution);
+- ``exp_prior``: ``|exp|^2``;
+- ``smooth_pose`` / ``smooth_exp``: the temporal terms, ``|x - x_pred|^2 / (speed^2 dt)`` for
+  rotation (rad), translation (m) and expression (standard deviations), x_pred the previous
+  frame's values moved on by ``momentum`` times their last velocity: a random walk of
+  ``speed`` per square-root second around that prediction as the prior of how a block moves
+  between frames dt seconds apart, so that a variable frame rate is weighed right. Absent at
+  the first frame and after a held one.
+
+Light: the identity fit's, held for the video (per-frame light is not fitted here).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from softras_cl.errors import InputError
+from softras_cl.fitting.params import Block, ParamSet
+from softras_cl.fitting.recipes.face import FaceFitConfig, FaceScene, initial_pose, landmark_weights
+from softras_cl.fitting.solver import Stage, fit
+from softras_cl.scene.rotation import axis_angle_to_matrix, rodrigues, rodrigues_vjp
+
+__all__ = ["FaceFollower", "TrackConfig", "Identity", "LandmarkBasis", "FrameObjective", "FrameResult", "FrameTracker",
+           "TrackerState", "project_landmarks", "choose_keyframes", "fit_identity", "detector_offsets", "identity_from_video", "head_angles_deg", "FRAME_BLOCKS"]
+
+FRAME_BLOCKS = ("rotation", "translation", "exp")     # fitted per frame
+OFFSET_PRIOR_M = 0.01   # detector_offsets' prior: a detector's landmark within about a centimetre of the model's
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """Every knob of the tracker.
+
+    keyframes: frames of the identity fit; identity_passes: its joint fits (see fit_identity: the
+        second on landmarks corrected by the first's detector offsets); identity_budget / size:
+        its schedule (fitting.recipes.face BUDGETS) and working size.
+    frame_iters: L-BFGS evaluations per frame.
+    landmark_weight: the landmark term's w (1 / noise^2, noise in working pixels).
+    exp_prior: the expression prior's weight.
+    rotation_speed (rad), translation_speed (m), exp_speed (std): the random-walk speed per
+        square-root second of the temporal terms (smaller: steadier and slower to follow).
+    momentum: in [0, 1], how much of the last frame's velocity the temporal terms expect to
+        carry on (0: a random walk around the last values).
+
+    The speeds' defaults: on bench track's trajectories (60 frames at 30 fps, true identity,
+    1.5 px landmark noise) translation 0.005 m lagged the head's depth by 11 mm (vertex error 9 mm);
+    0.02 m with rotation 0.2 rad and momentum 1 gave 1.7 mm at a third of the jitter of the
+    temporal terms left out (2.1 against 6.2 mm/frame^2); momentum 1 beat 0 at every setting.
+    """
+    keyframes: int = 4
+    identity_passes: int = 2
+    identity_budget: str = "fast"
+    size: int = 256
+    frame_iters: int = 30
+    landmark_weight: float = 0.25
+    exp_prior: float = 1.0
+    rotation_speed: float = 0.2
+    translation_speed: float = 0.02
+    exp_speed: float = 1.0
+    momentum: float = 1.0
+
+    def __post_init__(self):
+        for name in ("keyframes", "identity_passes", "frame_iters"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise InputError(f"{name} must be an integer >= 1, got {value!r}")
+        for name in ("landmark_weight", "exp_prior", "rotation_speed", "translation_speed", "exp_speed"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise InputError(f"{name} must be a positive number, got {value!r}")
+        if not (isinstance(self.momentum, (int, float)) and 0.0 <= self.momentum <= 1.0):
+            raise InputError(f"momentum must be a number in [0, 1], got {self.momentum!r}")
+        FaceFitConfig.from_budget(self.identity_budget, size=self.size)     # checks both
+
+    def face_config(self) -> FaceFitConfig:
+        """The identity fit's config (the joint fit's landmark weight: face_views.joint_config)."""
+        from softras_cl.fitting.recipes.face_views import joint_config
+
+        return joint_config(FaceFitConfig.from_budget(self.identity_budget, size=self.size))
+
+
+# ---------------------------------------------------------------------------------------------
+# identity
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class Identity:
+    """What stays fixed over a video: id (K_id,), albedo (K_alb,), sh (3, 9), focal (frame
+    pixels), pixel_scale (working pixels of the identity fit per frame pixel), keyframes (their
+    frame indices), landmark_offsets (68, 3) metres in the model frame: where the detector puts
+    each landmark on this face, from the model's own point (:func:`detector_offsets`; None:
+    nowhere else), metrics (the identity fit's)."""
+    id: np.ndarray
+    albedo: np.ndarray
+    sh: np.ndarray
+    focal: float
+    pixel_scale: float
+    keyframes: tuple[int, ...]
+    landmark_offsets: np.ndarray | None = None
+    metrics: dict = field(default_factory=dict)
+
+    def to_arrays(self) -> dict:
+        """Arrays for an .npz (see :meth:`from_arrays`)."""
+        offsets = np.zeros((68, 3)) if self.landmark_offsets is None else self.landmark_offsets
+        return dict(id=self.id, albedo=self.albedo, sh=self.sh, focal=np.array(self.focal),
+                    pixel_scale=np.array(self.pixel_scale), keyframes=np.array(self.keyframes, np.int64),
+                    landmark_offsets=offsets)
+
+    @classmethod
+    def from_arrays(cls, arrays) -> "Identity":
+        return cls(np.asarray(arrays["id"], np.float64), np.asarray(arrays["albedo"], np.float64),
+                   np.asarray(arrays["sh"], np.float64), float(arrays["focal"]), float(arrays["pixel_scale"]),
+                   tuple(int(k) for k in arrays["keyframes"]), np.asarray(arrays["landmark_offsets"], np.float64))
+
+
+def head_angles_deg(rotation) -> tuple[float, float, float]:
+    """(yaw, pitch, roll) in degrees of a model rotation R = Ry(yaw) Rx(pitch) Rz(roll)."""
+    R = axis_angle_to_matrix(rotation)
+    yaw = math.atan2(R[0, 2], R[2, 2])
+    pitch = math.asin(float(np.clip(-R[1, 2], -1.0, 1.0)))
+    roll = math.atan2(R[1, 0], R[1, 1])
+    return tuple(math.degrees(a) for a in (yaw, pitch, roll))
+
+
+def choose_keyframes(landmarks: dict, model, frame_shape, n: int, fov_deg: float = 30.0) -> list[int]:
+    """Up to ``n`` frame indices for the identity fit, among ``landmarks`` (frame index -> (68, 2)
+    frame pixels): the most frontal frame, then, again and again, the frame whose (yaw, pitch)
+    is farthest from those chosen (closed-form pose of the mean face, fitting.recipes.face
+    initial_pose). Sorted."""
+    if not landmarks:
+        return []
+    h, w = frame_shape[:2]
+    focal = 0.5 * max(h, w) / math.tan(math.radians(fov_deg) / 2.0)
+    mean_points = model.landmarks(model.mean_shape)[0]
+    indices = sorted(landmarks)
+    angles = np.array([head_angles_deg(initial_pose(mean_points, landmarks[i], focal,
+                                                    (w / 2.0 - 0.5, h / 2.0 - 0.5))[0])[:2] for i in indices])
+    chosen = [int(np.argmin(np.linalg.norm(angles, axis=1)))]
+    distance = np.linalg.norm(angles - angles[chosen[0]], axis=1)
+    while len(chosen) < min(n, len(indices)):
+        k = int(np.argmax(distance))
+        if distance[k] <= 0:
+            k = next(i for i in range(len(indices)) if i not in chosen)   # all alike: any other frame
+        chosen.append(k)
+        distance = np.minimum(distance, np.linalg.norm(angles - angles[k], axis=1))
+    return sorted(indices[k] for k in chosen)
+
+
+def fit_identity(images: list, landmarks: list, keyframes, model, config: TrackConfig,
+                 progress: bool = False) -> Identity:
+    """Identity, albedo, one focal length, light and the detector offsets from the keyframes:
+    images (H, W, 3) linear RGB of one size, landmarks (68, 2) frame pixels each, keyframes
+    their frame indices (recorded). ``config.identity_passes`` joint fits, each followed by the
+    offsets of the detected landmarks from its model (:func:`detector_offsets`); each pass after
+    the first fits the landmarks moved back by the previous pass's offsets, so that the
+    detector's own idea of the landmarks no longer bends the shape.
+    KeyboardInterrupt when Ctrl-C stopped a fit."""
+    detected = [np.asarray(points, np.float64) for points in landmarks]
+    corrected = detected
+    for _ in range(config.identity_passes):
+        identity, camera, poses = _joint_identity(images, corrected, keyframes, model, config, progress)
+        plain = LandmarkBasis(model, identity.id)
+        offsets = detector_offsets(plain, camera, poses, detected,
+                                   noise_px=1.0 / math.sqrt(config.landmark_weight) / identity.pixel_scale)
+        identity = dataclasses.replace(identity, landmark_offsets=offsets)
+        moved = LandmarkBasis(model, identity.id, offsets)
+        corrected = [points - (project_landmarks(moved, camera, pose)[0] - project_landmarks(plain, camera, pose)[0])
+                     for points, pose in zip(detected, poses)]
+    return identity
+
+
+def _joint_identity(images, landmarks, keyframes, model, config: TrackConfig, progress: bool):
+    """One joint fit of the keyframes (fit-face --same-person, one camera) -> (its Identity
+    without offsets, the frame camera, each keyframe's pose: rotation, translation, exp)."""
+    from softras_cl.fitting.recipes.face_views import fit_face_views
+
+    joint = fit_face_views(images, landmarks, model, config.face_config(), progress=progress, same_camera=True)
+    if joint.result.interrupted:         # the solver stopped at Ctrl-C: no identity from half a fit
+        raise KeyboardInterrupt
+    first = joint.views[0]
+    sh = np.mean([joint.values[f"sh.{k}"] for k in range(len(images))], axis=0)
+    focal, scale = float(joint.values["focal"][0] / first.crop.scale), float(first.crop.scale)
+    camera = FaceScene(model, images[0].shape[:2]).camera(focal)
+    poses = [{name: joint.values[f"{name}.{k}"] for name in FRAME_BLOCKS} for k in range(len(images))]
+    identity = Identity(joint.values["id"].copy(), joint.values["albedo"].copy(), sh, focal, scale,
+                        tuple(int(k) for k in keyframes), None, joint.metrics())
+    return identity, camera, poses
+
+
+def detector_offsets(basis: "LandmarkBasis", camera, poses: list[dict], detected: list, noise_px: float,
+                     prior_m: float = OFFSET_PRIOR_M) -> np.ndarray:
+    """(68, 3) model-frame offsets (metres) of the detector's landmarks from the model's: per
+    landmark, the offset that best moves the fitted model's point onto the detected one over
+    the keyframes (poses: rotation, translation, exp each; detected (68, 2) pixels each), with a
+    Gaussian prior of ``prior_m`` against the landmark noise ``noise_px``. One linearised step
+    (Gauss-Newton from 0: the offsets are millimetres at a metre's distance). A detector that
+    places, say, the jaw line on the face's outline rather than where the model has it, does so
+    in every frame: the offsets carry what the keyframes' photometric fit told about it to the
+    frames fitted from landmarks alone."""
+    normal = np.zeros((68, 3, 3))
+    rhs = np.zeros((68, 3))
+    unit = np.eye(2)
+    for values, points in zip(poses, detected):
+        uv, (_, R, _, ctx) = project_landmarks(basis, camera, values)
+        rows = [camera.project_pixels_vjp(ctx, np.tile(unit[a], (68, 1)), camera=False)["vertices"] @ R
+                for a in (0, 1)]
+        J = np.stack(rows, axis=1)                                  # (68, 2, 3): d pixels / d model point
+        normal += np.einsum("lai,laj->lij", J, J)
+        rhs += np.einsum("lai,la->li", J, np.asarray(points, np.float64) - uv)
+    damping = (noise_px / prior_m) ** 2 * np.eye(3)
+    return np.linalg.solve(normal + damping, rhs[..., None])[..., 0]
+
+
+def identity_from_video(source, model, config: TrackConfig, follower: "FaceFollower", scan: int,
+                        progress: bool = False) -> Identity:
+    """The Identity of a video (softras_cl.io.video.VideoSource): the face followed through its
+    first ``scan`` frames, the keyframes chosen among those with a face (:func:`choose_keyframes`),
+    decoded again and fitted jointly (:func:`fit_identity`). NoFaceError when no frame has a face."""
+    from softras_cl.fitting.detection import NoFaceError
+    from softras_cl.io.images import to_linear
+
+    found, previous, shape = {}, None, None
+    for frame in _until_broken(source.frames()):
+        if frame.index >= scan:
+            break
+        shape = frame.image.shape
+        previous = follower.find(frame.image, previous)
+        if previous is not None:
+            found[frame.index] = previous
+    if not found:
+        raise NoFaceError(f"no face found in the first {scan} frames of {source.path} (--scan); give "
+                          "--face-box X,Y,W,H around it")
+    keyframes = choose_keyframes(found, model, shape, config.keyframes)
+    images = {}
+    for frame in _until_broken(source.frames()):
+        if frame.index > keyframes[-1]:
+            break
+        if frame.index in keyframes:
+            images[frame.index] = to_linear(frame.image / 255.0)
+    return fit_identity([images[k] for k in keyframes], [found[k] for k in keyframes], keyframes, model, config,
+                        progress=progress)
+
+
+def _until_broken(frames):
+    """The frames up to where a video breaks off (the tracking of the frames reports the break)."""
+    from softras_cl.io.video import VideoReadError
+
+    try:
+        yield from frames
+    except VideoReadError:
+        return
+
+
+# ---------------------------------------------------------------------------------------------
+# per frame
+# ---------------------------------------------------------------------------------------------
+
+class LandmarkBasis:
+    """The 68 model-frame landmarks of a fixed identity as a linear function of the expression:
+    ``points(exp) = mean + exp @ basis``, mean (68, 3), basis (K_exp, 68, 3) float64; offsets
+    (68, 3): moved by as much (where a detector puts them, Identity.landmark_offsets)."""
+
+    def __init__(self, model, id_coeffs, offsets=None):
+        neutral = model.landmarks(model.shape(id_coeffs, np.zeros(model.n_exp))[0])[0]
+        unit = np.eye(model.n_exp)
+        self.basis = np.stack([model.landmarks(model.shape(id_coeffs, unit[k])[0])[0] - neutral
+                               for k in range(model.n_exp)]) if model.n_exp else np.zeros((0, 68, 3))
+        self.mean = neutral if offsets is None else neutral + offsets
+
+    def points(self, exp) -> np.ndarray:
+        return self.mean + np.tensordot(exp, self.basis, axes=1)
+
+    def points_vjp(self, grad) -> np.ndarray:
+        """dL/d(points) (68, 3) -> dL/d(exp) (K_exp,)."""
+        return np.tensordot(self.basis, grad, axes=([1, 2], [0, 1]))
+
+
+def project_landmarks(basis: LandmarkBasis, camera, values: dict):
+    """The landmarks of values (rotation, translation, exp) in pixels (68, 2), and what their
+    gradient needs (model-frame points, R, its RodriguesContext, the projection's context)."""
+    model_points = basis.points(values["exp"])
+    R, rot_ctx = rodrigues(values["rotation"])
+    uv, ctx = camera.project_pixels(model_points @ R.T + values["translation"])
+    return uv, (model_points, R, rot_ctx, ctx)
+
+
+class FrameObjective:
+    """``(values, stage) -> (loss, grads, terms)`` of one frame (module docstring): values hold
+    rotation, translation, exp; ``target`` (68, 2) the frame's landmarks (pixels); ``prediction``
+    the values the previous frames predict for this one (None: no temporal terms) and ``dt``
+    the seconds since the previous frame."""
+
+    def __init__(self, basis: LandmarkBasis, camera, pixel_scale: float, config: TrackConfig,
+                 target, prediction: dict | None, dt: float):
+        self.basis, self.camera, self.config = basis, camera, config
+        self.scale = float(pixel_scale)
+        self.target = np.asarray(target, np.float64)
+        self.prediction, self.dt = prediction, max(float(dt), 1e-3)
+        self.point_weights = landmark_weights()
+
+    def __call__(self, values: dict, stage: Stage | None = None):
+        cfg = self.config
+        uv, (model_points, R, rot_ctx, ctx) = project_landmarks(self.basis, self.camera, values)
+        residual = (uv - self.target) * self.scale
+        weighted = cfg.landmark_weight * self.point_weights[:, None] * residual
+        terms = {"landmarks": float(np.sum(weighted * residual))}
+        g_uv = 2.0 * weighted * self.scale
+        g_world = self.camera.project_pixels_vjp(ctx, g_uv, camera=False)["vertices"]
+        grads = dict(translation=g_world.sum(axis=0),
+                     rotation=rodrigues_vjp(rot_ctx, g_world.T @ model_points)["omega"],
+                     exp=self.basis.points_vjp(g_world @ R))
+        terms["exp_prior"] = cfg.exp_prior * float(values["exp"] @ values["exp"])
+        grads["exp"] = grads["exp"] + 2.0 * cfg.exp_prior * values["exp"]
+        if self.prediction is not None:
+            self._temporal(values, terms, grads)
+        return sum(terms.values()), grads, terms
+
+    def _temporal(self, values: dict, terms: dict, grads: dict) -> None:
+        """Add smooth_pose and smooth_exp (module docstring) to terms and their gradients."""
+        cfg, prev = self.config, self.prediction
+        terms["smooth_pose"] = 0.0
+        for name, speed in (("rotation", cfg.rotation_speed), ("translation", cfg.translation_speed),
+                            ("exp", cfg.exp_speed)):
+            weight = 1.0 / (speed * speed * self.dt)
+            step = values[name] - prev[name]
+            value = weight * float(step @ step)
+            if name == "exp":
+                terms["smooth_exp"] = value
+            else:
+                terms["smooth_pose"] += value
+            grads[name] = grads[name] + 2.0 * weight * step
+
+
+@dataclass
+class FrameResult:
+    """One frame's answer: index, time (s), values (rotation, translation, exp, sh), detected
+    (68, 2) frame pixels or None, fitted (68, 2) frame pixels, held (no face: the previous
+    values kept), terms (weighted, at the answer; {} when held), evaluations, seconds (the fit)."""
+    index: int
+    time: float
+    values: dict
+    detected: np.ndarray | None
+    fitted: np.ndarray
+    held: bool
+    terms: dict
+    evaluations: int
+    seconds: float
+
+
+@dataclass
+class TrackerState:
+    """What carries from one frame to the next (and over a resumed chunk boundary): the last
+    values (None before the first face), their time, and whether the last frame was held."""
+    values: dict | None = None
+    time: float | None = None
+    held: bool = False
+    velocity: dict | None = None
+
+    def to_arrays(self) -> dict:
+        if self.values is None:
+            return dict(has_values=np.array(False))
+        velocity = {} if self.velocity is None else {f"velocity_{k}": v for k, v in self.velocity.items()}
+        return dict(has_values=np.array(True), time=np.array(self.time), held=np.array(self.held),
+                    **{f"value_{k}": v for k, v in self.values.items()}, **velocity)
+
+    @classmethod
+    def from_arrays(cls, arrays) -> "TrackerState":
+        if not bool(arrays["has_values"]):
+            return cls()
+        def blocks(prefix):
+            return {k.removeprefix(prefix): np.array(arrays[k]) for k in arrays if k.startswith(prefix)}
+
+        return cls(blocks("value_"), float(arrays["time"]), bool(arrays["held"]), blocks("velocity_") or None)
+
+
+class FrameTracker:
+    """Fits frame after frame (:meth:`step`) for one video: model (not truncated), identity,
+    frame_shape (H, W) of the (upright) frames, config; state: where a resumed run goes on."""
+
+    def __init__(self, model, identity: Identity, frame_shape, config: TrackConfig,
+                 state: TrackerState | None = None):
+        self.model, self.identity, self.config = model, identity, config
+        self.model_basis = LandmarkBasis(model, identity.id)         # the model's 68 points: the outputs
+        self.basis = (self.model_basis if identity.landmark_offsets is None   # the detector's: the fit
+                      else LandmarkBasis(model, identity.id, identity.landmark_offsets))
+        self.scene = FaceScene(model, tuple(frame_shape[:2]))
+        self.camera = self.scene.camera(identity.focal)
+        self.state = state or TrackerState()
+
+    def initial_values(self, landmarks) -> dict:
+        """Closed-form pose of the identity's neutral face to the landmarks (68, 2), exp 0."""
+        rotation, translation = initial_pose(self.basis.mean, landmarks, self.identity.focal, self.scene.principal)
+        return dict(rotation=rotation, translation=translation, exp=np.zeros(self.model.n_exp))
+
+    def full_values(self, values: dict) -> dict:
+        """A frame's values with the identity's blocks: every block FaceScene renders."""
+        ident = self.identity
+        return dict(values, id=ident.id, albedo=ident.albedo, sh=ident.sh, focal=np.array([ident.focal]))
+
+    def fitted_landmarks(self, values: dict) -> np.ndarray:
+        """(68, 2) frame pixels of the model's own 68 landmarks (not moved by the detector offsets) at a frame's values."""
+        return project_landmarks(self.model_basis, self.camera, values)[0]
+
+    def step(self, landmarks, time_s: float, index: int) -> FrameResult:
+        """Fit one frame at ``time_s`` seconds from its landmarks (68, 2) frame pixels, or hold
+        the previous values when None (a frame before any face: NaN values, held).
+        KeyboardInterrupt when Ctrl-C stopped the frame's fit (the state stays the last frame's)."""
+        state = self.state
+        if landmarks is None:
+            self.state = TrackerState(state.values, state.time, held=True)
+            if state.values is None:
+                values, fitted = self._nan_values(), np.full((68, 2), np.nan)
+            else:
+                values, fitted = state.values, self.fitted_landmarks(state.values)
+            return FrameResult(index, time_s, dict(values, sh=self.identity.sh), None, fitted, True, {}, 0, 0.0)
+        start = time.perf_counter()
+        steady = state.values is not None and not state.held
+        dt = time_s - state.time if steady else 1.0
+        prediction = self.predict(dt) if steady else None
+        begin = prediction if steady else self.initial_values(landmarks)
+        objective = FrameObjective(self.basis, self.camera, self.identity.pixel_scale, self.config, landmarks,
+                                   prediction, dt)
+        result = fit(self._params(begin), objective, [Stage("frame", FRAME_BLOCKS, max_iters=self.config.frame_iters)],
+                     progress=False)
+        if result.interrupted:               # Ctrl-C during the frame's fit stops the tracking
+            raise KeyboardInterrupt
+        values = {k: result.values[k] for k in FRAME_BLOCKS}
+        _, _, terms = objective(values)
+        velocity = ({k: (values[k] - state.values[k]) / max(dt, 1e-3) for k in FRAME_BLOCKS}
+                    if steady else None)
+        self.state = TrackerState(values, time_s, False, velocity)
+        return FrameResult(index, time_s, dict(values, sh=self.identity.sh), np.asarray(landmarks, np.float64),
+                           self.fitted_landmarks(values), False, terms, len(result.history),
+                           time.perf_counter() - start)
+
+    def follow(self, follower: "FaceFollower", image: np.ndarray, time_s: float, index: int) -> FrameResult:
+        """:meth:`step` on the landmarks the follower finds in image (H, W, 3) uint8 RGB, searched
+        around this tracker's last fitted landmarks (the whole frame before any, or after a
+        frame without a face)."""
+        state = self.state
+        previous = None if state.values is None or state.held else self.fitted_landmarks(state.values)
+        return self.step(follower.find(image, previous), time_s, index)
+
+    def predict(self, dt: float) -> dict:
+        """The values expected dt seconds after the last frame: the last values moved on by
+        ``momentum`` times their last velocity (none after a frame that started a track)."""
+        state = self.state
+        if state.velocity is None:
+            return dict(state.values)
+        return {k: state.values[k] + self.config.momentum * state.velocity[k] * dt for k in FRAME_BLOCKS}
+
+    def _nan_values(self) -> dict:
+        return dict(rotation=np.full(3, np.nan), translation=np.full(3, np.nan), exp=np.full(self.model.n_exp, np.nan))
+
+    def _params(self, values: dict) -> ParamSet:
+        return ParamSet([Block("rotation", np.asarray(values["rotation"], np.float64), scale=0.05),
+                         Block("translation", np.asarray(values["translation"], np.float64), scale=0.01),
+                         Block("exp", np.clip(values["exp"], -4.0, 4.0), -4.0, 4.0)])
+
+
+# ---------------------------------------------------------------------------------------------
+# the face in each frame
+# ---------------------------------------------------------------------------------------------
+
+class FaceFollower:
+    """The 68 landmarks of the followed face in each frame (fitting.detection).
+
+    The first frame with a face: detect_face on the whole frame, choosing by ``face`` (the N-th,
+    largest first) or ``face_box`` (x, y, w, h), else the largest. Then, given the previous
+    frame's fitted landmarks (:meth:`find`'s ``previous``), only a square crop CROP_MARGIN times
+    their extent around them is searched, for the face overlapping their box; when it is not
+    there (or its landmarks do not form a face), the whole frame again, for the largest face.
+    ``backend``: the detection backend (None: the default).
+    """
+
+    CROP_MARGIN = 2.0
+
+    def __init__(self, face: int | None = None, face_box=None, backend: str | None = None):
+        self.face, self.face_box, self.backend = face, face_box, backend
+        self.started = False
+
+    def find(self, image: np.ndarray, previous=None) -> np.ndarray | None:
+        """(68, 2) frame pixels of the face in image (H, W, 3) uint8 RGB, or None (no face)."""
+        if previous is not None and np.all(np.isfinite(previous)):
+            points = self._near(image, np.asarray(previous, np.float64))
+            if points is not None:
+                return points
+        return self._whole(image)
+
+    def _detect(self, image, **choice) -> np.ndarray | None:
+        from softras_cl.fitting.detection import ImplausibleFaceError, NoFaceError, detect_face
+
+        try:
+            chosen = detect_face(image, self.backend, **choice).chosen
+        except (NoFaceError, ImplausibleFaceError):
+            return None
+        return chosen.landmarks
+
+    def _whole(self, image) -> np.ndarray | None:
+        choice = {} if self.started else dict(face=self.face, face_box=self.face_box)
+        points = self._detect(image, **choice)
+        self.started = self.started or points is not None
+        return points
+
+    def _near(self, image, previous: np.ndarray) -> np.ndarray | None:
+        """The face in the crop around the previous landmarks (None: not there)."""
+        lo, hi = previous.min(0), previous.max(0)
+        centre, half = (lo + hi) / 2, 0.5 * self.CROP_MARGIN * float(np.max(hi - lo))
+        x0, y0 = np.maximum(np.floor(centre - half), 0).astype(int)
+        x1, y1 = np.minimum(np.ceil(centre + half), [image.shape[1], image.shape[0]]).astype(int)
+        if x1 - x0 < 16 or y1 - y0 < 16:            # the face has left the frame
+            return None
+        box = np.array([lo[0] + 0.5 - x0, lo[1] + 0.5 - y0, *(hi - lo)])   # the pixel grid: centres + 0.5
+        points = self._detect(np.ascontiguousarray(image[y0:y1, x0:x1]), face_box=box, tiles=False, turns=False)
+        return None if points is None else points + [x0, y0]

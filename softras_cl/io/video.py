@@ -1,0 +1,267 @@
+"""Video in and out: frames with their times from a video file (through PyAV, the optional
+``video`` extra) or from a folder of images; an H.264 video written from frames.
+
+Reading (:func:`open_video`): every frame is a :class:`Frame`, an (H, W, 3) uint8 RGB image
+as it is meant to be shown (the stream's display matrix, or an older file's ``rotate`` tag,
+applied: a phone's portrait video comes out upright) with its presentation time in seconds
+from the stream's own timestamps, so a variable frame rate is kept. A folder of frames is its
+image files in name order, frame k at time k / fps.
+
+Bad input is an InputError naming the file: one PyAV cannot open, no video stream, or a stream
+that breaks off (a truncated download): :class:`VideoReadError` is raised once the frames that
+could be decoded have been yielded, so a caller keeps what it did with them.
+
+Writing (:class:`VideoWriter`): H.264 (yuv420p, no audio) into an .mp4 (index first), each frame at its
+given time (times in milliseconds, so a variable rate stays variable).
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from softras_cl.errors import InputError
+
+__all__ = ["Frame", "VideoSource", "VideoReadError", "VideoWriter", "open_video", "IMAGE_SUFFIXES",
+           "VIDEO_SUFFIXES", "INSTALL_HINT", "upright"]
+
+VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".webm", ".mkv")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+INSTALL_HINT = "reading and writing videos needs PyAV: pip install 'softras-cl[video]'"
+TIME_BASE = Fraction(1, 1000)     # the writer's timestamps: milliseconds
+
+
+class VideoReadError(InputError):
+    """A video that cannot be read, or breaks off; ``frames_read``: frames yielded before."""
+
+    def __init__(self, message: str, frames_read: int = 0):
+        super().__init__(message)
+        self.frames_read = frames_read
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One frame: index (0-based, in decoding order), time (s, presentation time), image
+    (H, W, 3) uint8 RGB, upright."""
+    index: int
+    time: float
+    image: np.ndarray
+
+
+def _av():
+    try:
+        import av
+    except ImportError:
+        raise InputError(INSTALL_HINT) from None
+    return av
+
+
+def upright(image: np.ndarray, rotation_deg: float) -> np.ndarray:
+    """The image turned counter-clockwise by ``rotation_deg`` (a multiple of 90: what a display
+    matrix or rotate tag says the frame must be turned by to be shown)."""
+    quarter = int(round(rotation_deg / 90.0)) % 4
+    return np.ascontiguousarray(np.rot90(image, quarter)) if quarter else image
+
+
+@dataclass(frozen=True)
+class VideoSource:
+    """Where frames come from. path: the video file or the folder; files: a folder's images in
+    order (empty for a video); fps: the folder's rate, or the video's average rate (nominal:
+    frame times come from the stream); frame_count: frames the container announces (None
+    when it does not say; a folder's image count)."""
+    path: Path
+    files: tuple[Path, ...]
+    fps: float | None
+    frame_count: int | None
+
+    @property
+    def is_folder(self) -> bool:
+        return bool(self.files)
+
+    def frames(self, start: int = 0) -> Iterator[Frame]:
+        """The frames from index ``start`` on (the ones before are decoded and dropped for a
+        video: a stream is only read in order)."""
+        return self._folder_frames(start) if self.is_folder else self._video_frames(start)
+
+    def _folder_frames(self, start: int) -> Iterator[Frame]:
+        for index in range(start, len(self.files)):
+            yield Frame(index, index / self.fps, _read_rgb8(self.files[index]))
+
+    def _video_frames(self, start: int) -> Iterator[Frame]:
+        index, error = 0, None
+        with _opened(self.path) as container:
+            stream = container.streams.video[0]
+            tag = _rotate_tag(stream)
+            for decoded, error in _decoded(container, stream):
+                if decoded is not None:
+                    if index >= start:
+                        yield Frame(index, _frame_time(decoded, index, self.fps),
+                                    upright(decoded.to_ndarray(format="rgb24"), decoded.rotation or tag))
+                    index += 1
+        if error is not None:
+            raise VideoReadError(f"video {self.path} breaks off after {index} frames (truncated or "
+                                 f"damaged: {error})", index)
+        if self.frame_count is not None and index < self.frame_count:
+            raise VideoReadError(f"video {self.path} breaks off after {index} of the {self.frame_count} frames "
+                                 "its header announces (truncated?)", index)
+
+
+def _decoded(container, stream) -> Iterator[tuple]:
+    """(decoded frame, None) for each frame a stream's packets give, in order; at the first
+    packet that cannot be read or decoded, the frames the decoder still holds, then
+    (None, the error)."""
+    av = _av()
+    try:
+        for packet in container.demux(stream):
+            for decoded in packet.decode():
+                yield decoded, None
+    except av.error.FFmpegError as e:
+        with contextlib.suppress(av.error.FFmpegError):
+            for decoded in stream.decode(None):
+                yield decoded, None
+        yield None, e
+
+
+def _frame_time(decoded, index: int, fps: float | None) -> float:
+    """A decoded frame's presentation time in seconds (index / fps when it has none)."""
+    if decoded.time is not None:
+        return float(decoded.time)
+    return index / fps if fps else float(index)
+
+
+def _rotate_tag(stream) -> float:
+    """An older file's ``rotate`` tag (degrees clockwise) as a counter-clockwise angle; 0 when
+    absent."""
+    text = stream.metadata.get("rotate")
+    try:
+        return -float(text) if text else 0.0
+    except ValueError:
+        return 0.0
+
+
+@contextlib.contextmanager
+def _opened(path: Path):
+    """PyAV's container of a video file; InputError naming the file when it cannot be opened
+    or holds no video stream."""
+    av = _av()
+    try:
+        container = av.open(str(path))
+    except (av.error.FFmpegError, OSError) as e:
+        raise VideoReadError(f"cannot read video {path}: {type(e).__name__}: {e}") from None
+    try:
+        if not container.streams.video:
+            raise VideoReadError(f"video {path} holds no video stream")
+        yield container
+    finally:
+        container.close()
+
+
+def _read_rgb8(path: Path) -> np.ndarray:
+    """An image file as (H, W, 3) uint8 RGB, upright by its EXIF orientation; InputError
+    naming it when it cannot be read."""
+    from PIL import Image, ImageOps
+
+    try:
+        with Image.open(path) as img:
+            img.load()
+            return np.asarray(ImageOps.exif_transpose(img).convert("RGB"))
+    except Exception as e:   # Pillow raises many kinds (OSError, SyntaxError, ...)
+        raise InputError(f"cannot read frame {path}: {type(e).__name__}: {e}") from None
+
+
+def open_video(path, fps: float | None = None) -> VideoSource:
+    """The frames of a video file or of a folder of images (``fps`` frames per second, needed
+    for a folder and refused for a file: a video's frames carry their own times). InputError
+    naming the path or --fps when the input cannot be used (checked before any frame is
+    decoded, but for a video's damaged frames, see the module docstring)."""
+    path = Path(path)
+    if path.is_dir():
+        return _folder_source(path, fps)
+    if not path.is_file():
+        raise InputError(f"video not found: {path} (expected a video file or a folder of frames)")
+    if fps is not None:
+        raise InputError(f"--fps is for a folder of frames; the video {path} gives its frames' times itself")
+    with _opened(path) as container:
+        stream = container.streams.video[0]
+        rate = float(stream.average_rate) if stream.average_rate else None
+        count = int(stream.frames) or None
+    return VideoSource(path, (), rate, count)
+
+
+def _folder_source(path: Path, fps: float | None) -> VideoSource:
+    files = tuple(sorted(p for p in path.iterdir()
+                         if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")))
+    if not files:
+        raise InputError(f"no frames in the folder {path} (looked for {', '.join(IMAGE_SUFFIXES)})")
+    if fps is None:
+        raise InputError(f"the folder of frames {path} needs --fps (its frames' rate: frame k is at k / fps s)")
+    if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
+        raise InputError(f"--fps must be a positive number of frames per second, got {fps!r}")
+    return VideoSource(path, files, float(fps), len(files))
+
+
+class VideoWriter:
+    """An H.264 .mp4 written frame by frame: ``with VideoWriter(path, fps) as w: w.write(image,
+    time)``. image (H, W, 3) uint8 RGB, every frame of one size (odd sizes are padded by one
+    black row/column: yuv420p needs even ones); time in seconds (None: the previous one + 1 /
+    fps), increasing by at least a millisecond. No audio."""
+
+    def __init__(self, path, fps: float = 30.0, crf: int = 23):
+        self.path, self.fps, self.crf = Path(path), float(fps), int(crf)
+        self._container = self._stream = None
+        self._last_ms = None
+
+    def __enter__(self) -> "VideoWriter":
+        av = _av()
+        # the index first ("faststart"): players start at once, and a cut file still opens
+        self._container = av.open(str(self.path), "w", format="mp4", options={"movflags": "faststart"})
+        return self
+
+    def _start(self, height: int, width: int) -> None:
+        stream = self._container.add_stream("libx264", rate=Fraction(self.fps).limit_denominator(1001),
+                                            options={"crf": str(self.crf)})
+        stream.width, stream.height = width + width % 2, height + height % 2
+        stream.pix_fmt = "yuv420p"
+        stream.codec_context.time_base = TIME_BASE
+        self._stream = stream
+
+    def write(self, image: np.ndarray, time: float | None = None) -> None:
+        av = _av()
+        img = np.asarray(image)
+        if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+            raise ValueError(f"a video frame must be an (H, W, 3) uint8 RGB image, got {img.shape} {img.dtype}")
+        if self._stream is None:
+            self._start(*img.shape[:2])
+        pad = ((0, self._stream.height - img.shape[0]), (0, self._stream.width - img.shape[1]), (0, 0))
+        if min(pad[0][1], pad[1][1]) < 0 or max(pad[0][1], pad[1][1]) > 1:
+            raise ValueError(f"every frame of {self.path} must have the first one's size "
+                             f"{self._stream.height}x{self._stream.width}, got {img.shape[0]}x{img.shape[1]}")
+        frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(np.pad(img, pad)), format="rgb24")
+        ms = self._next_ms(time)
+        frame.pts, frame.time_base = ms, TIME_BASE
+        for packet in self._stream.encode(frame):
+            self._container.mux(packet)
+
+    def _next_ms(self, time: float | None) -> int:
+        if time is None:
+            ms = 0 if self._last_ms is None else self._last_ms + max(1, round(1000.0 / self.fps))
+        else:
+            ms = int(round(1000.0 * time))
+        if self._last_ms is not None and ms <= self._last_ms:
+            raise ValueError(f"frame times of {self.path} must increase (by 1 ms at least): "
+                             f"{ms} ms after {self._last_ms} ms")
+        self._last_ms = ms
+        return ms
+
+    def __exit__(self, *exc) -> None:
+        try:
+            if self._stream is not None and exc[0] is None:
+                for packet in self._stream.encode():
+                    self._container.mux(packet)
+        finally:
+            self._container.close()

@@ -1,0 +1,225 @@
+"""fitting.recipes.face_track: the per-frame objective's gradients, keyframes, the tracker on a
+short synthetic sequence."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from softras_cl.errors import InputError
+from softras_cl.fitting.recipes.face_track import (FrameObjective, FrameTracker, Identity, LandmarkBasis,
+                                                   TrackConfig, TrackerState, choose_keyframes, head_angles_deg)
+from softras_cl.scene.rotation import axis_angle_to_matrix, matrix_to_axis_angle
+
+SIZE = 256
+
+
+def truth_identity(model, rng):
+    """A random identity seen by a 256 px camera of focal 480 px."""
+    return Identity(np.clip(rng.normal(size=model.n_id), -2, 2), np.zeros(model.n_albedo),
+                    np.zeros((3, 9)), 480.0, 0.8, (0,))
+
+
+def head(yaw_deg, exp, distance=0.6):
+    R = axis_angle_to_matrix([0.0, np.radians(yaw_deg), 0.0])
+    return dict(rotation=matrix_to_axis_angle(R), translation=np.array([0.0, 0.0, -distance]), exp=exp)
+
+
+@pytest.mark.parametrize("with_previous", [False, True])
+def test_frame_objective_gradients_match_central_differences(demo_face_model, with_previous):
+    rng = np.random.default_rng(1)
+    model = demo_face_model
+    tracker = FrameTracker(model, truth_identity(model, rng), (SIZE, SIZE), TrackConfig())
+    values = head(12.0, 0.5 * rng.normal(size=model.n_exp))
+    target = tracker.fitted_landmarks(values) + rng.normal(0, 2.0, (68, 2))
+    previous = head(10.0, 0.5 * rng.normal(size=model.n_exp)) if with_previous else None   # the prediction
+    objective = FrameObjective(tracker.basis, tracker.camera, 0.8, TrackConfig(), target, previous, 1 / 30)
+    loss, grads, terms = objective(values)
+    assert set(terms) == ({"landmarks", "exp_prior", "smooth_pose", "smooth_exp"} if with_previous
+                          else {"landmarks", "exp_prior"})
+    assert loss == pytest.approx(sum(terms.values()))
+    for name in ("rotation", "translation", "exp"):
+        step = 1e-6 if name != "translation" else 1e-8
+        numeric = np.zeros_like(values[name])
+        for i in range(values[name].size):
+            up, down = dict(values), dict(values)
+            up[name] = values[name].copy()
+            down[name] = values[name].copy()
+            up[name][i] += step
+            down[name][i] -= step
+            numeric[i] = (objective(up)[0] - objective(down)[0]) / (2 * step)
+        np.testing.assert_allclose(grads[name], numeric, rtol=1e-5, atol=1e-6 * np.abs(numeric).max())
+
+
+def test_temporal_terms_weigh_by_the_time_between_frames(demo_face_model):
+    rng = np.random.default_rng(2)
+    tracker = FrameTracker(demo_face_model, truth_identity(demo_face_model, rng), (SIZE, SIZE), TrackConfig())
+    values = head(5.0, np.zeros(demo_face_model.n_exp))
+    previous = head(3.0, np.full(demo_face_model.n_exp, 0.1))
+    target = tracker.fitted_landmarks(values)
+
+    def smooth(dt):
+        terms = FrameObjective(tracker.basis, tracker.camera, 1.0, TrackConfig(), target, previous, dt)(values)[2]
+        return terms["smooth_pose"], terms["smooth_exp"]
+
+    # a random walk: the same step twice as far apart in time costs half as much
+    np.testing.assert_allclose(smooth(1 / 15), np.array(smooth(1 / 30)) / 2)
+    cfg = TrackConfig()
+    rotation_step = np.linalg.norm(values["rotation"] - previous["rotation"])
+    assert smooth(1.0)[0] == pytest.approx(rotation_step ** 2 / cfg.rotation_speed ** 2)
+    assert smooth(1.0)[1] == pytest.approx(0.01 * demo_face_model.n_exp / cfg.exp_speed ** 2)
+
+
+def test_landmark_basis_is_the_model_at_that_expression(demo_face_model):
+    rng = np.random.default_rng(3)
+    identity = rng.normal(size=demo_face_model.n_id)
+    exp = rng.normal(size=demo_face_model.n_exp)
+    basis = LandmarkBasis(demo_face_model, identity)
+    expected = demo_face_model.landmarks(demo_face_model.shape(identity, exp)[0])[0]
+    np.testing.assert_allclose(basis.points(exp), expected, atol=1e-12)
+
+
+def test_keyframes_spread_over_the_poses(demo_face_model):
+    rng = np.random.default_rng(4)
+    tracker = FrameTracker(demo_face_model, truth_identity(demo_face_model, rng), (SIZE, SIZE), TrackConfig())
+    yaws = {i: y for i, y in enumerate([0, 1, 2, 25, 24, -25, -1, 3])}
+    landmarks = {i: tracker.fitted_landmarks(head(y, np.zeros(demo_face_model.n_exp))) for i, y in yaws.items()}
+    chosen = choose_keyframes(landmarks, demo_face_model, (SIZE, SIZE), 3)
+    picked = sorted(yaws[i] for i in chosen)      # one of each side and a frontal one
+    assert picked[0] == -25 and abs(picked[1]) <= 3 and picked[2] >= 24
+    assert choose_keyframes({}, demo_face_model, (SIZE, SIZE), 3) == []
+    assert head_angles_deg(head(25, None)["rotation"])[0] == pytest.approx(25.0)
+
+
+def test_config_checks_name_the_field():
+    with pytest.raises(InputError, match="frame_iters"):
+        TrackConfig(frame_iters=0)
+    with pytest.raises(InputError, match="exp_speed"):
+        TrackConfig(exp_speed=-1.0)
+    with pytest.raises(InputError, match="budget"):
+        TrackConfig(identity_budget="nope")
+
+
+def test_tracker_follows_and_is_steadier_than_without_temporal_terms(demo_face_model):
+    """30 frames of a turning, talking head with 1.5 px landmark noise: the fitted landmarks
+    follow the truth, and the temporal terms cut the frame-to-frame jitter against a tracker
+    whose temporal terms are (nearly) off; a frame without landmarks is held."""
+    model = demo_face_model
+    rng = np.random.default_rng(5)
+    identity = truth_identity(model, rng)
+    exp_a, exp_b = 0.8 * rng.normal(size=model.n_exp), 0.8 * rng.normal(size=model.n_exp)
+    frames = [head(20 * np.sin(k / 10), exp_a + (exp_b - exp_a) * k / 29) for k in range(30)]
+    reference = FrameTracker(model, identity, (SIZE, SIZE), TrackConfig())
+    clean = [reference.fitted_landmarks(v) for v in frames]
+    noisy = [c + rng.normal(0, 1.5, c.shape) for c in clean]
+
+    def run(config):
+        tracker = FrameTracker(model, identity, (SIZE, SIZE), config)
+        return [tracker.step(None if k == 12 else noisy[k], k / 30, k) for k in range(30)]
+
+    steady = run(TrackConfig())
+    loose = run(TrackConfig(rotation_speed=1e3, translation_speed=1e3, exp_speed=1e3))
+    errors = [np.linalg.norm(r.fitted - c, axis=1).mean() for r, c in zip(steady, clean)]
+    assert np.median(errors) < 1.0
+    assert steady[12].held and steady[12].detected is None and not steady[13].held
+    np.testing.assert_array_equal(steady[12].values["rotation"], steady[11].values["rotation"])
+
+    def jitter(results):
+        fitted = np.array([r.fitted for r in results[13:]])       # after the held frame
+        truth = np.array(clean[13:])
+        return np.sqrt(np.mean(np.diff(fitted - truth, n=2, axis=0) ** 2))
+
+    assert jitter(steady) < 0.6 * jitter(loose)
+
+
+def test_state_round_trips_through_arrays():
+    state = TrackerState(dict(rotation=np.arange(3.0), translation=np.ones(3), exp=np.zeros(4)), 1.5, True)
+    back = TrackerState.from_arrays(state.to_arrays())
+    assert back.time == 1.5 and back.held
+    np.testing.assert_array_equal(back.values["rotation"], np.arange(3.0))
+    assert TrackerState.from_arrays(TrackerState().to_arrays()).values is None
+
+
+def test_frames_before_the_first_face_are_held_without_values(demo_face_model):
+    rng = np.random.default_rng(6)
+    tracker = FrameTracker(demo_face_model, truth_identity(demo_face_model, rng), (SIZE, SIZE), TrackConfig())
+    clean = tracker.fitted_landmarks(head(-10.0, np.zeros(demo_face_model.n_exp)))
+    before = tracker.step(None, 0.0, 0)
+    assert before.held and np.isnan(before.values["rotation"]).all() and np.isnan(before.fitted).all()
+    first = tracker.step(clean, 0.04, 1)                      # started from the closed-form pose
+    assert not first.held and "smooth_pose" not in first.terms
+    assert np.linalg.norm(first.fitted - clean, axis=1).mean() < 0.5
+    assert "smooth_pose" in tracker.step(clean, 0.08, 2).terms
+
+
+def test_ctrl_c_in_a_frames_fit_stops_the_tracking(demo_face_model, monkeypatch):
+    """The solver keeps Ctrl-C to itself (it returns interrupted=True): the tracker raises it on."""
+    from softras_cl.fitting.recipes import face_track
+    from softras_cl.fitting.solver import FitResult
+
+    rng = np.random.default_rng(7)
+    tracker = FrameTracker(demo_face_model, truth_identity(demo_face_model, rng), (SIZE, SIZE), TrackConfig())
+    clean = tracker.fitted_landmarks(head(0.0, np.zeros(demo_face_model.n_exp)))
+    monkeypatch.setattr(face_track, "fit", lambda params, *a, **k: FitResult(params.values(), 0.0, [], {}, True))
+    with pytest.raises(KeyboardInterrupt):
+        tracker.step(clean, 0.0, 0)
+    assert tracker.state.values is None
+
+
+def test_detector_offsets_are_found_from_keyframes_at_several_yaws(demo_face_model):
+    """A detector that puts every landmark a few millimetres off the model's point, the same
+    on the face in every frame: the keyframes (yaw -25, 0, 25) recover the offsets, and the
+    tracker fitting with them puts the model back where the frame's face is."""
+    from softras_cl.fitting.recipes.face_track import detector_offsets
+
+    model = demo_face_model
+    rng = np.random.default_rng(8)
+    identity = truth_identity(model, rng)
+    tracker = FrameTracker(model, identity, (SIZE, SIZE), TrackConfig())
+    offsets = rng.normal(0, 0.004, (68, 3))
+    shifted = LandmarkBasis(model, identity.id, offsets)
+    poses = [head(y, 0.3 * rng.normal(size=model.n_exp)) for y in (-25, 0, 25)]
+    from softras_cl.fitting.recipes.face_track import project_landmarks
+
+    detected = [project_landmarks(shifted, tracker.camera, p)[0] for p in poses]
+    found = detector_offsets(tracker.basis, tracker.camera, poses, detected, noise_px=0.01)
+    # one linearised step: within a few per cent of millimetre offsets
+    np.testing.assert_allclose(found, offsets, atol=0.1 * np.abs(offsets).max())
+    with_offsets = FrameTracker(model, Identity(identity.id, identity.albedo, identity.sh, identity.focal, 0.8, (0,),
+                                                found), (SIZE, SIZE), TrackConfig())
+    truth = head(10.0, 0.3 * rng.normal(size=model.n_exp))
+    result = with_offsets.step(project_landmarks(shifted, tracker.camera, truth)[0], 0.0, 0)
+    error = np.linalg.norm(result.fitted - tracker.fitted_landmarks(truth), axis=1).mean()
+    plain = np.linalg.norm(tracker.step(project_landmarks(shifted, tracker.camera, truth)[0], 0.0, 0).fitted
+                           - tracker.fitted_landmarks(truth), axis=1).mean()
+    assert error < 0.5 * plain
+
+
+def test_second_identity_pass_fits_landmarks_corrected_by_the_first_offsets(demo_face_model, monkeypatch):
+    """fit_identity's passes (the joint fit itself replaced by a stand-in that records what it is
+    given): the second pass sees the detected landmarks moved back by the first pass's offsets,
+    and the offsets returned are those of the detected landmarks, not of the corrected ones."""
+    from softras_cl.fitting.recipes import face_track
+
+    model = demo_face_model
+    rng = np.random.default_rng(9)
+    identity = truth_identity(model, rng)
+    tracker = FrameTracker(model, identity, (SIZE, SIZE), TrackConfig())
+    poses = [head(y, np.zeros(model.n_exp)) for y in (-20, 20)]
+    offsets = rng.normal(0, 0.004, (68, 3))
+    detected = [face_track.project_landmarks(LandmarkBasis(model, identity.id, offsets), tracker.camera, p)[0]
+                for p in poses]
+    given = []
+
+    def joint(images, landmarks, keyframes, model_, config, progress):
+        given.append([np.array(p) for p in landmarks])
+        return Identity(identity.id, identity.albedo, identity.sh, identity.focal, 0.8, (0, 1)), tracker.camera, poses
+
+    monkeypatch.setattr(face_track, "_joint_identity", joint)
+    found = face_track.fit_identity([None, None], detected, (0, 1), model, TrackConfig(identity_passes=2))
+    assert len(given) == 2
+    np.testing.assert_array_equal(given[0][0], detected[0])
+    plain = [face_track.project_landmarks(tracker.basis, tracker.camera, p)[0] for p in poses]
+    # the model here is the truth: the corrected landmarks are (nearly) the model's own
+    assert np.abs(given[1][0] - plain[0]).max() < 0.2 * np.abs(detected[0] - plain[0]).max()
+    # across the line of sight (depth is left to the prior by two views 40 degrees apart)
+    np.testing.assert_allclose(found.landmark_offsets[:, :2], offsets[:, :2], atol=0.15 * np.abs(offsets).max())
