@@ -534,5 +534,5 @@ class FaceFollower:
         if x1 - x0 < 16 or y1 - y0 < 16:            # the face has left the frame
             return None
         box = np.array([lo[0] + 0.5 - x0, lo[1] + 0.5 - y0, *(hi - lo)])   # the pixel grid: centres + 0.5
-        points = self._detect(np.ascontiguousarray(image[y0:y1, x0:x1]), face_box=box, tiles=False, turns=False)
+        points = self._detect(np.ascontiguousarray(image[y0:y1, x0:x1]), face_box=box, tiles=False)
         return None if points is None else points + [x0, y0]
