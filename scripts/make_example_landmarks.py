@@ -12,13 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.fitting.detection import detect_face, draw_landmarks, format_pts, read_photo_rgb8
+from softras_cl.fitting.detection import detect_face, draw_landmarks, format_pts
+from softras_cl.io.images import read_rgb8
 
 DATA = Path(__file__).resolve().parents[1] / "examples" / "data"
 
 for photo in ["astronaut.png", "grace_hopper.jpg"]:
     stem = photo.rsplit(".", 1)[0]
-    image = read_photo_rgb8(DATA / photo)
+    image = read_rgb8(DATA / photo)
     points = detect_face(image, name=photo).chosen.landmarks
     (DATA / "landmarks" / f"{stem}.pts").write_text(format_pts(points))
     # overlay: the face region (landmark box + 25 % margin), scaled to 640 px wide

@@ -15,7 +15,7 @@ from softras_cl.fitting.detection.faces import (ORDER, DetectorUnavailableError,
                                                 ImplausibleFaceError, NoFaceError, choose_face,
                                                 implausible_landmarks, parse_face_box)
 from softras_cl.fitting.detection.files import (PhotoLandmarks, format_pts, landmarks_beside,
-                                                read_photo_rgb8, resolve_landmarks)
+                                                resolve_landmarks)
 from softras_cl.fitting.detection.find import (BACKENDS, DEFAULT_BACKEND, Detection, available_backends,
                                                default_backend, detect_face, find_faces, no_face_error)
 from softras_cl.fitting.detection.ibug68 import IBUG68_NAMES, MP468_TO_IBUG68
@@ -26,7 +26,7 @@ from softras_cl.fitting.detection.people import (MP33_NAMES, PEOPLE_INSTALL_HINT
 __all__ = ["ORDER", "BACKENDS", "DEFAULT_BACKEND", "FaceCandidate", "Detection", "PhotoLandmarks",
            "DetectorUnavailableError", "NoFaceError", "ImplausibleFaceError", "find_faces", "detect_face",
            "choose_face", "implausible_landmarks", "parse_face_box", "resolve_landmarks", "landmarks_beside",
-           "read_photo_rgb8", "available_backends", "default_backend", "no_face_error", "format_pts",
+           "available_backends", "default_backend", "no_face_error", "format_pts",
            "draw_landmarks", "draw_detection", "IBUG68_NAMES", "MP468_TO_IBUG68",
            "MP33_NAMES", "PEOPLE_INSTALL_HINT", "NoPersonError", "PersonDetection", "detect_person",
            "people_available"]

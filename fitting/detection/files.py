@@ -11,29 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.io.images import read_rgb8
 from softras_cl.fitting.detection.faces import FaceCandidate, ImplausibleFaceError, implausible_landmarks
 from softras_cl.fitting.detection.find import (Detection, as_rgb8, check_backend, detect_face, find_faces,
                                                no_face_error)
 
 #: suffixes of landmark files looked for beside a photo, in order of precedence
 BESIDE_SUFFIXES = (".pts", ".txt", ".npy")
-
-
-def read_photo_rgb8(path) -> np.ndarray:
-    """A photo as the detectors take it: (H, W, 3) uint8 RGB, turned upright by its EXIF
-    orientation (as softras_cl.io.images.read_image does, so points match the fitted image).
-    Raises FileNotFoundError for a missing file, ValueError (naming it) for an unreadable one."""
-    from PIL import Image, ImageOps
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"image file not found: {path}")
-    try:
-        with Image.open(path) as img:
-            img.load()
-            return np.asarray(ImageOps.exif_transpose(img).convert("RGB"))
-    except Exception as e:   # Pillow raises many kinds (OSError, SyntaxError, ...)
-        raise ValueError(f"cannot read image {path}: {type(e).__name__}: {e}") from e
 
 
 def landmarks_beside(photo) -> Path | None:
@@ -100,7 +84,7 @@ def resolve_landmarks(photo, landmarks=None, *, all_faces: bool = False, backend
     from softras_cl.io.landmarks import read_landmarks
 
     photo = Path(photo)
-    img = read_photo_rgb8(photo) if image is None else as_rgb8(image)
+    img = read_rgb8(photo) if image is None else as_rgb8(image)
     size = img.shape[:2]
     if landmarks is not None:
         return [PhotoLandmarks(read_landmarks(landmarks, image_size=size), "file", Path(landmarks))]

@@ -318,10 +318,10 @@ def input_kind(path, given: str = "auto", silhouette: bool = False, background=(
 def read_person(path):
     """(photo (H, W, 3) float64 linear RGB, PersonDetection, field of view from EXIF or None)
     of a photo file; NoPersonError naming it when it shows no person."""
-    from softras_cl.fitting.detection.files import read_photo_rgb8
+    from softras_cl.io.images import read_rgb8
     from softras_cl.fitting.detection import detect_person
     from softras_cl.io.images import to_linear
 
-    rgb8 = read_photo_rgb8(path)
+    rgb8 = read_rgb8(path)
     detection = detect_person(rgb8, str(path))
     return to_linear(rgb8 / 255.0), detection, photo_fov(path, rgb8.shape[:2])

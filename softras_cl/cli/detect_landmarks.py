@@ -23,10 +23,11 @@ def json_out_path(args: argparse.Namespace) -> Path:
 
 
 def _run_detect(args: argparse.Namespace) -> int:
-    from softras_cl.fitting.detection import parse_face_box, read_photo_rgb8, resolve_landmarks
+    from softras_cl.fitting.detection import parse_face_box, resolve_landmarks
+    from softras_cl.io.images import read_rgb8
     from softras_cl.io.landmarks import write_pts
 
-    image = read_photo_rgb8(args.photo)
+    image = read_rgb8(args.photo)
     _check_output_files(args)
     face_box = None if args.face_box is None else parse_face_box(args.face_box)
     found = resolve_landmarks(args.photo, None, beside=False, image=image, backend=args.backend,

@@ -162,6 +162,24 @@ def read_image(path) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Writing
 
+def read_rgb8(path) -> np.ndarray:
+    """An image file as (H, W, 3) uint8 RGB (sRGB values undecoded, alpha dropped), turned upright
+    by its EXIF orientation as read_image does, so points found on it match the fitted image:
+    what the detectors and video frames take. FileNotFoundError for a missing file, ValueError
+    naming it for an unreadable one."""
+    from PIL import Image, ImageOps
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"image file not found: {path}")
+    try:
+        with Image.open(path) as img:
+            img.load()
+            return np.asarray(ImageOps.exif_transpose(img).convert("RGB"))
+    except Exception as e:   # Pillow raises many kinds (OSError, SyntaxError, ...)
+        raise ValueError(f"cannot read image {path}: {type(e).__name__}: {e}") from e
+
+
 def _image_to_write(image) -> np.ndarray:
     a = np.asarray(image)
     if a.dtype == object or not (np.issubdtype(a.dtype, np.floating)

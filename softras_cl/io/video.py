@@ -26,6 +26,7 @@ from typing import Iterator
 import numpy as np
 
 from softras_cl.errors import InputError
+from softras_cl.io.images import read_rgb8
 
 __all__ = ["Frame", "VideoSource", "VideoReadError", "VideoWriter", "open_video", "IMAGE_SUFFIXES",
            "VIDEO_SUFFIXES", "INSTALL_HINT", "upright"]
@@ -90,7 +91,7 @@ class VideoSource:
 
     def _folder_frames(self, start: int) -> Iterator[Frame]:
         for index in range(start, len(self.files)):
-            yield Frame(index, index / self.fps, _read_rgb8(self.files[index]))
+            yield Frame(index, index / self.fps, _read_frame(self.files[index]))
 
     def _video_frames(self, start: int) -> Iterator[Frame]:
         index, error = 0, None
@@ -161,17 +162,13 @@ def _opened(path: Path):
         container.close()
 
 
-def _read_rgb8(path: Path) -> np.ndarray:
-    """An image file as (H, W, 3) uint8 RGB, upright by its EXIF orientation; InputError
-    naming it when it cannot be read."""
-    from PIL import Image, ImageOps
-
+def _read_frame(path: Path) -> np.ndarray:
+    """A folder's frame file as (H, W, 3) uint8 RGB (images.read_rgb8); InputError naming it
+    when it cannot be read."""
     try:
-        with Image.open(path) as img:
-            img.load()
-            return np.asarray(ImageOps.exif_transpose(img).convert("RGB"))
-    except Exception as e:   # Pillow raises many kinds (OSError, SyntaxError, ...)
-        raise InputError(f"cannot read frame {path}: {type(e).__name__}: {e}") from None
+        return read_rgb8(path)
+    except (OSError, ValueError) as e:
+        raise InputError(f"cannot read frame {path}: {e}") from None
 
 
 def open_video(path, fps: float | None = None) -> VideoSource:

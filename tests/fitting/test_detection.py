@@ -12,6 +12,7 @@ from support.face_scenes import DATA, astronaut, nme, read_pts, small_face_in_la
 from softras_cl.errors import InputError, ResultError
 from softras_cl.fitting import detection as det
 from softras_cl.fitting.detection import faces, mediapipe_backend as mp
+from softras_cl.io.images import read_rgb8
 
 #: Largest NME (faces.nme: mean point error / outer-eye-corner distance) allowed against the
 #: shipped .pts. Those were made with Face Mesh on the whole photo (examples/data/README.md), so
@@ -201,7 +202,7 @@ def test_bad_image_backend_and_options(monkeypatch):
 @pytest.mark.detect
 @pytest.mark.parametrize("name, file", [("astronaut", "astronaut.png"), ("grace_hopper", "grace_hopper.jpg")])
 def test_shipped_photos(name, file):
-    image = det.read_photo_rgb8(DATA / file)
+    image = read_rgb8(DATA / file)
     reference = read_pts(DATA / "landmarks" / f"{name}.pts")
     found = det.find_faces(image)
     assert len(found) == 1

@@ -11,6 +11,7 @@ from PIL import Image
 from softras_cl import cli
 from softras_cl.fitting import detection as ld
 from softras_cl.fitting.detection import mediapipe_backend
+from softras_cl.io.images import read_rgb8
 
 DATA = Path(__file__).resolve().parents[2] / "examples" / "data"
 PHOTOS = {"astronaut": "astronaut.png", "grace_hopper": "grace_hopper.jpg"}
@@ -297,7 +298,7 @@ def test_mirror_table():
 
 
 def _rgb8(name):
-    return ld.read_photo_rgb8(DATA / PHOTOS[name])
+    return read_rgb8(DATA / PHOTOS[name])
 
 
 @pytest.mark.landmarks
