@@ -926,10 +926,10 @@ def _dense_option(config: FaceFitConfig) -> str:
     return f"dense_weight {config.dense_weight:g}, fit-face --dense-landmarks"
 
 
-def detected_dense(landmarks) -> np.ndarray | None:
-    """The Face Mesh points (468, 2) pixels of detected landmarks (fitting.detection's
-    PhotoLandmarks; the candidate's 10 iris points left out), or None (a file, dlib)."""
-    face = landmarks.face
+def detected_dense(face) -> np.ndarray | None:
+    """The Face Mesh points (468, 2) pixels of a detected face (fitting.detection's
+    FaceCandidate, a PhotoLandmarks' ``face``; its 10 iris points left out), or None (no
+    candidate: landmarks from a file; dlib's candidates have none)."""
     if face is None or face.dense is None:
         return None
     return np.asarray(face.dense[:N_FACE_MESH], np.float64)

@@ -187,7 +187,7 @@ def run_one(args: argparse.Namespace) -> int:
     photo, landmarks, model = _load_inputs(args)
     record = _run_record(args)          # refuses a --face/--face-box that a landmark file makes moot
     config = _config(args)
-    dense = detected_dense(landmarks)
+    dense = detected_dense(landmarks.face)
     check_dense_inputs(config, model, dense)        # before the output folder is touched
 
     def fit(folder):

@@ -604,7 +604,6 @@ def test_detected_dense_is_the_face_mesh_points_without_the_iris():
     from types import SimpleNamespace
 
     mesh = np.arange(478 * 2, dtype=np.float64).reshape(478, 2)
-    detected = SimpleNamespace(face=SimpleNamespace(dense=mesh))
-    np.testing.assert_array_equal(face.detected_dense(detected), mesh[:468])
-    assert face.detected_dense(SimpleNamespace(face=None)) is None
-    assert face.detected_dense(SimpleNamespace(face=SimpleNamespace(dense=None))) is None
+    np.testing.assert_array_equal(face.detected_dense(SimpleNamespace(dense=mesh)), mesh[:468])
+    assert face.detected_dense(None) is None                        # landmarks from a file
+    assert face.detected_dense(SimpleNamespace(dense=None)) is None   # a dlib candidate
