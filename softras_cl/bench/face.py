@@ -466,12 +466,13 @@ def save_strip(rows: list[dict], path: Path, n: int = 4) -> None:
 
 
 def format_table(summary: dict) -> str:
-    head = ("renderer", "yaw", "contour", "budget", "faces", "RMSE mm", "mean-face mm", "ratio", "rigid ratio", "lmk px", "focal err",
+    head = ("renderer", "yaw", "landmarks", "contour", "dense", "budget", "faces", "RMSE mm", "mean-face mm", "ratio", "rigid ratio", "lmk px", "focal err",
             "max focal err", "PSNR dB", "min PSNR", "median s/fit", "median CPU s")
     lines = ["  ".join(f"{h:>12}" for h in head)]
     for name, s in summary.items():
-        cells = (s.get("renderer", "softras"), s.get("yaw_bin") or "+-30", s.get("contour", "-"),
-                 s.get("budget", name), s["faces"], f"{s['rmse_mm']:.3f}", f"{s['mean_face_rmse_mm']:.3f}",
+        dense = s.get("dense")
+        cells = (s.get("renderer", "softras"), s.get("yaw_bin") or "+-30", s.get("landmarks") or "truth",
+                 s.get("contour", "-"), "-" if dense is None else f"{dense:g}", s.get("budget", name), s["faces"], f"{s['rmse_mm']:.3f}", f"{s['mean_face_rmse_mm']:.3f}",
                  f"{s['rmse_ratio']:.3f}", f"{s['rigid_ratio']:.3f}", f"{s['landmark_error_px']:.2f}",
                  f"{100 * s['focal_error_median']:.1f}%", f"{100 * s['focal_error_max']:.1f}%",
                  f"{s['psnr_face_db']:.1f}",
