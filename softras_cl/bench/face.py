@@ -499,26 +499,25 @@ def parse_yaws(text: str | None) -> list[tuple[float, float]]:
     return bins
 
 
-def parse_contours(text: str | None) -> list[str | None]:
-    """'fixed,sliding' -> ['fixed', 'sliding'] (None or '' -> [None]: the fit's default);
-    InputError unless each is one of CONTOURS, once."""
+def parse_names(text: str | None, flag: str, allowed: tuple[str, ...]) -> list[str | None]:
+    """'a,b' -> ['a', 'b'] (None or '' -> [None]: the default, runs named as before); InputError
+    naming ``flag`` unless each is one of ``allowed``, once."""
     if not text:
         return [None]
     names = [c.strip() for c in text.split(",") if c.strip()]
-    if not names or any(c not in CONTOURS for c in names) or len(set(names)) != len(names):
-        raise InputError(f"--contour must name some of {', '.join(CONTOURS)} once each, got {text!r}")
+    if not names or any(c not in allowed for c in names) or len(set(names)) != len(names):
+        raise InputError(f"{flag} must name some of {', '.join(allowed)} once each, got {text!r}")
     return names
+
+
+def parse_contours(text: str | None) -> list[str | None]:
+    """--contour: 'fixed,sliding' -> ['fixed', 'sliding'] ([None]: the fit's default)."""
+    return parse_names(text, "--contour", CONTOURS)
 
 
 def parse_landmark_sources(text: str | None) -> list[str | None]:
-    """'truth,detected' -> ['truth', 'detected'] (None or '' -> [None]: the true landmarks, runs
-    named as before); InputError unless each is one of LANDMARK_SOURCES, once."""
-    if not text:
-        return [None]
-    names = [c.strip() for c in text.split(",") if c.strip()]
-    if not names or any(c not in LANDMARK_SOURCES for c in names) or len(set(names)) != len(names):
-        raise InputError(f"--landmarks must name some of {', '.join(LANDMARK_SOURCES)} once each, got {text!r}")
-    return names
+    """--landmarks: 'truth,detected' -> ['truth', 'detected'] ([None]: the true landmarks)."""
+    return parse_names(text, "--landmarks", LANDMARK_SOURCES)
 
 
 def parse_dense(text: str | None) -> list[float | None]:

@@ -178,13 +178,17 @@ def test_yaw_bin_faces_are_turned_that_far_and_plausible(demo_face_model):
         assert not layout_faults(face["landmarks"])
 
 
+def _bench(tmp_path, capsys, *options) -> tuple[str, dict]:
+    """`bench face --faces 1 --budgets fast` with these options: (what it printed, face.json)."""
+    out = tmp_path / "bench"
+    assert main(["bench", "face", "--faces", "1", "--budgets", "fast", *options, "--out", str(out)]) == 0
+    return capsys.readouterr().out, json.loads((out / "face.json").read_text())
+
+
 @pytest.mark.slow
 def test_bench_face_compares_contours_per_yaw_bin(tmp_path, capsys):
-    out = tmp_path / "bench"
-    assert main(["bench", "face", "--faces", "1", "--size", "96", "--budgets", "fast", "--yaws", "45-75",
-                 "--contour", "fixed,sliding", "--out", str(out), "--seed", "2"]) == 0
-    assert "fixed against sliding jaw points" in capsys.readouterr().out
-    doc = json.loads((out / "face.json").read_text())
+    said, doc = _bench(tmp_path, capsys, "--size", "96", "--yaws", "45-75", "--contour", "fixed,sliding", "--seed", "2")
+    assert "fixed against sliding jaw points" in said
     assert list(doc["summary"]) == [f"yaw 45-75/{b}/{c} contour" for b in ("landmarks-only", "fast")
                                     for c in ("fixed", "sliding")]
     assert doc["yaw_bins"] == [[45.0, 75.0]] and set(doc["redrawn_faces"]) == {"yaw 45-75"}
@@ -254,11 +258,8 @@ def test_detected_samples_hold_mediapipe_points_near_the_truth(demo_face_model):
 @pytest.mark.slow
 @pytest.mark.detect
 def test_bench_face_compares_the_dense_term_on_detected_landmarks(tmp_path, capsys):
-    out = tmp_path / "bench"
-    assert main(["bench", "face", "--faces", "1", "--size", "128", "--budgets", "fast", "--landmarks", "detected",
-                 "--dense", "0,0.5", "--out", str(out), "--seed", "0"]) == 0
-    assert "without against with the dense landmark term" in capsys.readouterr().out
-    doc = json.loads((out / "face.json").read_text())
+    said, doc = _bench(tmp_path, capsys, "--size", "128", "--landmarks", "detected", "--dense", "0,0.5", "--seed", "0")
+    assert "without against with the dense landmark term" in said
     assert list(doc["summary"]) == [f"detected landmarks/{b}/dense {w}" for b in ("landmarks-only", "fast")
                                     for w in ("0", "0.5")]
     assert [(r["budget"], r["dense_weight"]) for r in doc["dense_comparison"]] == [("landmarks-only", 0.5),
