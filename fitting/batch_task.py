@@ -70,7 +70,7 @@ def face_points(item: Item):
 
 def _fit_face(item: Item, folder: Path) -> tuple[dict, float]:
     from softras_cl.io.images import read_image
-    from softras_cl.fitting.recipes.face import fit_face
+    from softras_cl.fitting.recipes.face import detected_dense, fit_face
     from softras_cl.fitting.reports.face import write_outputs
 
     options = item.opts
@@ -79,7 +79,8 @@ def _fit_face(item: Item, folder: Path) -> tuple[dict, float]:
     model = load_model("face", options.get("model"), options.get("model_landmarks"))
     config = item_config(item)
     start = time.perf_counter()
-    fit = fit_face(photo, landmarks.points, model, config, out_dir=folder, progress=False)
+    fit = fit_face(photo, landmarks.points, model, config, out_dir=folder, progress=False,
+                   dense=detected_dense(landmarks.face))
     seconds = time.perf_counter() - start
     metrics = finite_metrics(fit, folder, FACE_REQUIRED)
     write_outputs(fit, photo, landmarks, folder, metrics=metrics, run_config=dict(fit=config, options=options),

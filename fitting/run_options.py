@@ -183,6 +183,11 @@ def _face_options() -> tuple[Option, ...]:
                field="coarse_mesh", to_config=_coarse_mesh, record_default=False, metavar="EDGES"),
         Option("focal", float, None, "focal length in pixels of the photo, if known (default: fitted)",
                field="focal"),
+        Option("dense_landmarks", float, 0.0, "add MediaPipe Face Mesh's 468 points as a landmark term, each "
+               "point weighing WEIGHT times one of the 68 landmarks (default 0: off; needs landmarks "
+               "detected by MediaPipe and a model with dense points, such as the demo model; not with "
+               "--same-person; docs/face_fitting.md shows what it gains)",
+               field="dense_weight", record_default=False, metavar="WEIGHT"),
         Option("n_id", int, None, "identity components to use (default: all)", field="n_id"),
         Option("n_exp", int, None, "expression components to use (default: all)", field="n_exp"),
         Option("n_albedo", int, None, "albedo components to use (default: all)", field="n_albedo"),

@@ -38,7 +38,8 @@ e (summed over channels), or with ``robust_scale`` of its Geman-McClure kernel
 s^2 for what the model cannot explain (cast shadows, highlights, hair strands, glasses),
 ``landmarks`` = sum over points of weighted squared pixel distances (the jaw line's points that
 are turned away from the camera slide on the mesh's occluding contour, FaceFitConfig's
-contour_landmarks, see fitting/contour.py), priors = sum of squared
+contour_landmarks, see fitting/contour.py), optionally ``dense`` = the same over MediaPipe Face
+Mesh's points (FaceFitConfig's dense_weight, off by default), priors = sum of squared
 coefficients. Read as negative log-likelihoods, ``w_landmarks = 1 / noise_px^2`` (2 px) and
 ``w_photo = 1 / noise_rgb^2``; the priors have weight 1. The defaults, chosen by measurement
 on synthetic faces and the shipped photos (docs/face_fitting.md): photo weight 100 (noise
@@ -80,7 +81,7 @@ from softras_cl.fitting.solver import FitResult, Stage, fit
 
 __all__ = ["FaceFitConfig", "Crop", "FaceScene", "FaceFit", "BUDGETS", "landmark_weights", "default_stages",
            "depth_range", "half_resolution", "initial_pose", "initial_light", "prepare_photo", "face_params", "FaceObjective",
-           "prepare_fit", "fit_face", "psnr"]
+           "prepare_fit", "fit_face", "check_dense_inputs", "detected_dense", "psnr"]
 
 N_LANDMARKS = 68
 # Smallest working image (pixels a side). Measured on astronaut with the fast budget: the face
@@ -91,6 +92,7 @@ MIN_SIZE = 32
 # Smallest ratio of the landmarks' two singular values (centred): a face spans an area (0.92 on
 # both shipped photos); points on a line, or all at one point, fix no pose.
 MIN_LANDMARK_SPREAD = 0.05
+N_FACE_MESH = 468           # MediaPipe Face Mesh's points without its 10 iris points
 JAW = slice(0, 17)          # iBUG 300-W: jaw line; a fixed-vertex contour only approximates it
 # iBUG outlines: the face (jaw line, then the brows back) and what a skin model cannot explain
 # inside it (the eyes and the inside of the mouth)
@@ -152,6 +154,10 @@ class FaceFitConfig:
         is turned away from the camera is the model's occluding contour point nearest to it,
         re-chosen at every evaluation (fitting.contour); "fixed": every landmark is a fixed
         point of the model.
+    dense_weight: weight of each dense landmark (MediaPipe Face Mesh's 468 points, those the
+        model's dense_use marks) relative to one of the 68 landmarks, in every stage that has
+        the landmarks; 0: no dense term. Needs a model with dense points (FaceModel.has_dense)
+        and the photo's dense points (fit_face's ``dense``).
     n_id / n_exp / n_albedo: use only the first components of the model (None: all).
     dtype: rasteriser precision; float64 keeps line searches clean.
     """
@@ -171,6 +177,7 @@ class FaceFitConfig:
     mask_erosion: int = 2
     forehead: float = 0.15
     contour_landmarks: str = "sliding"
+    dense_weight: float = 0.0
     n_id: int | None = None
     n_exp: int | None = None
     n_albedo: int | None = None
@@ -246,6 +253,8 @@ def _check_face_config(c: FaceFitConfig) -> None:
     if c.contour_landmarks not in CONTOUR_LANDMARKS:
         raise InputError(f"contour_landmarks must be one of {', '.join(map(repr, CONTOUR_LANDMARKS))}, "
                          f"got {c.contour_landmarks!r}")
+    if _check(lambda: number("dense_weight", c.dense_weight)) < 0:
+        raise InputError(f"dense_weight must be >= 0 (0: no dense landmark term), got {c.dense_weight!r}")
     if c.dtype not in ("float32", "float64"):
         raise InputError(f"dtype must be 'float32' or 'float64', got {c.dtype!r}")
 
@@ -538,16 +547,25 @@ def default_stages(config: FaceFitConfig, fit_focal: bool) -> list[Stage]:
     priors = dict(id_prior=w["id_prior"], exp_prior=w["exp_prior"])
     pose = ("rotation", "translation") + (("focal",) if fit_focal else ())
     focal_prior = dict(focal_prior=w["focal_prior"]) if fit_focal else {}
-    stages = [Stage("landmarks", pose + ("id", "exp"), dict(landmarks=w["landmarks"], **priors, **focal_prior),
+    stages = [Stage("landmarks", pose + ("id", "exp"),
+                    dict(_landmark_weights(config, w["landmarks"]), **priors, **focal_prior),
                     max_iters=config.landmark_iters)]
     for k, (sigma, gamma, iters, *stall_rel) in enumerate(config.photo_stages):
-        weights = dict(landmarks=w["landmarks"] * config.landmark_weight_photo, photo=w["photo"],
+        weights = dict(_landmark_weights(config, w["landmarks"] * config.landmark_weight_photo), photo=w["photo"],
                        albedo_prior=w["albedo_prior"], sh_white=w["sh_white"], **priors, **focal_prior)
         stages.append(Stage(f"photo-{k + 1}", ("id", "exp", "albedo", "sh") + pose,
                             weights, sigma=sigma, gamma=gamma, max_iters=iters,
                             stall_window=config.stall_window if stall_rel else 0,
                             stall_rel=stall_rel[0] if stall_rel else 0.0))
     return stages
+
+
+def _landmark_weights(config: FaceFitConfig, landmarks: float) -> dict:
+    """A stage's landmark term weights: the 68 points' ``landmarks`` and, with a dense_weight,
+    the dense points' ("dense") relative to it."""
+    if not config.dense_weight:
+        return dict(landmarks=landmarks)
+    return dict(landmarks=landmarks, dense=landmarks * config.dense_weight)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -572,7 +590,8 @@ class FaceObjective:
     focal prior is centred on; forehead: how far above the brows the face region reaches, in
     chin-to-nose-bridge distances; robust_scale: see :meth:`start_stage` (None: plain squared
     errors); contour: the landmarks that slide on the occluding contour (fitting.contour; None:
-    every landmark is the model's fixed point). At the first evaluation of each photometric
+    every landmark is the model's fixed point); dense: the photo's dense points (468, 2) pixels
+    for the "dense" term (None: none; the model must have dense points). At the first evaluation of each photometric
     stage the depth range is fitted to the face and the face-region mask and the robust scale
     are taken from the render; all stay fixed within the stage (see the module docstring).
     """
@@ -580,8 +599,9 @@ class FaceObjective:
     def __init__(self, scene: FaceScene, image, landmarks, mask_erosion: int = 2, focal0: float = 1.0,
                  forehead: float = 0.15, coarse_sigma: float | None = COARSE_SIGMA,
                  robust_scale: float | None = ROBUST_SCALE, coarse_mesh: float | None = COARSE_MESH,
-                 contour: ContourLandmarks | None = None):
+                 contour: ContourLandmarks | None = None, dense=None):
         self.scene, self.image, self.target = scene, image, np.asarray(landmarks, np.float64)
+        self.dense_target = None if dense is None else np.asarray(dense, np.float64)
         self.contour = contour
         self.focal0, self.forehead = float(focal0), float(forehead)
         self.landmark_weights = landmark_weights()
@@ -617,7 +637,8 @@ class FaceObjective:
         return FaceObjective(self.scene.half_size(faces), image, to_half(self.target),
                              mask_erosion=max(1, self.mask_erosion // 2) if self.mask_erosion else 0,
                              focal0=self.focal0 * 0.5, forehead=self.forehead, coarse_sigma=None,
-                             robust_scale=self.robust_scale, contour=self.contour)
+                             robust_scale=self.robust_scale, contour=self.contour,
+                             dense=None if self.dense_target is None else to_half(self.dense_target))
 
     def set_depth_range(self, translation) -> None:
         """Fit near/far to a face at ``translation`` (:func:`depth_range`) in this objective's
@@ -632,6 +653,8 @@ class FaceObjective:
         terms = {}
         if w.get("landmarks"):
             terms["landmarks"] = self.landmark_term(values, world)
+        if w.get("dense"):
+            terms["dense"] = self.dense_term(values, world)
         if w.get("photo"):
             level = self.photo_level(stage.sigma)
             scale = 1.0 if level is self else 0.5
@@ -685,6 +708,21 @@ class FaceObjective:
         if ctx.choice is not None:
             g_points, g_world = self.contour.points_3d_vjp(g_points, ctx.choice)
         g_world = self.scene.model.landmarks_vjp(ctx.model_ctx, g_points)["vertices"] + g_world
+        return value * n, dict(world=g_world, focal=np.array([g_cam["focal"].sum()]))
+
+    def dense_term(self, values: dict, world: np.ndarray) -> tuple[float, dict]:
+        """Sum over the model's used dense points (dense_use) of squared pixel distances to the
+        photo's (dense_target); gradients wrt the world vertices ("world") and focal."""
+        if self.dense_target is None:
+            raise InputError("the dense landmark term needs the photo's dense points (none were given)")
+        camera = self.scene.camera(values["focal"][0])
+        model = self.scene.model
+        points_3d, model_ctx = model.dense_points(world)
+        points, camera_ctx = camera.project_pixels(points_3d)
+        value, g = losses.landmarks_2d(points, self.dense_target, model.dense_use.astype(np.float64))
+        n = len(points)
+        g_cam = camera.project_pixels_vjp(camera_ctx, g["points"] * n, camera="focal")
+        g_world = model.dense_points_vjp(model_ctx, g_cam["vertices"])["vertices"]
         return value * n, dict(world=g_world, focal=np.array([g_cam["focal"].sum()]))
 
     def focal_prior(self, focal) -> tuple[float, dict]:
@@ -810,8 +848,12 @@ class FaceFit:
 
 
 def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), out_dir=None,
-             progress: bool = True, resume: bool = False) -> FaceFit:
+             progress: bool = True, resume: bool = False, dense=None) -> FaceFit:
     """Fit ``model`` to a photo (H, W, 3) linear RGB and its 68 landmarks (68, 2) pixels.
+
+    dense: the photo's dense points (N, 2) pixels, MediaPipe Face Mesh's 468 (see
+    :func:`detected_dense`), for config.dense_weight > 0 (ignored at 0); InputError, before any
+    fitting, when the weight asks for them and they or the model's dense points are missing.
 
     With ``out_dir`` the solver writes checkpoint.npz (best values so far) as it goes,
     history.json and loss_curve.png; Ctrl-C stops and keeps the best values (result.interrupted);
@@ -820,8 +862,9 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
     if model.n_landmarks != N_LANDMARKS:
         raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
                          f"{N_LANDMARKS} iBUG points (pass a landmark mapping file with the model)")
+    check_dense_inputs(config, model, dense)
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
-    objective, crop, params = prepare_fit(photo, landmarks, model, config)
+    objective, crop, params = prepare_fit(photo, landmarks, model, config, dense)
     check_landmark_layout(landmarks)      # after prepare_fit's input checks (shape, area, size)
     stages = default_stages(config, fit_focal=config.focal is None)
     result = fit(params, objective, stages, out_dir=out_dir, progress=progress, resume=resume)
@@ -831,10 +874,12 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
     return FaceFit(result.values, objective.scene, objective.image, objective.target, crop, mask, result, objective)
 
 
-def prepare_fit(photo, landmarks, model, config: FaceFitConfig) -> tuple[FaceObjective, Crop, ParamSet]:
+def prepare_fit(photo, landmarks, model, config: FaceFitConfig,
+                dense=None) -> tuple[FaceObjective, Crop, ParamSet]:
     """Where :func:`fit_face` starts: photo (H, W, 3) linear RGB and its landmarks (68, 2)
     pixels -> (the FaceObjective of the working image, the Crop from the photo, the ParamSet at
-    the initial pose, focal and light). ``model`` is used as given (not truncated)."""
+    the initial pose, focal and light). ``model`` is used as given (not truncated); dense: the
+    photo's dense points (N, 2) pixels, used when config.dense_weight > 0."""
     image, target, crop = prepare_photo(photo, landmarks, config.size)
     h, w = np.shape(photo)[:2]
     principal = crop.to_work([[w / 2.0 - 0.5, h / 2.0 - 0.5]])[0]
@@ -850,8 +895,41 @@ def prepare_fit(photo, landmarks, model, config: FaceFitConfig) -> tuple[FaceObj
     objective = FaceObjective(scene, image, target, config.mask_erosion, focal0=focal,
                               forehead=config.forehead, coarse_sigma=config.coarse_sigma,
                               robust_scale=config.robust_scale, coarse_mesh=config.coarse_mesh,
-                              contour=jaw_candidates(model) if config.contour_landmarks == "sliding" else None)
+                              contour=jaw_candidates(model) if config.contour_landmarks == "sliding" else None,
+                              dense=crop.to_work(dense) if config.dense_weight else None)
     values = dict(zero, rotation=rotation, translation=translation, focal=np.array([focal]))
     sh = initial_light(scene, values, image)
     return objective, crop, face_params(model, focal, rotation, translation, sh)
 
+
+
+def check_dense_inputs(config: FaceFitConfig, model, dense) -> None:
+    """InputError unless a config with a dense_weight has what the dense term needs: a model with
+    dense points and the photo's (model.n_dense, 2) finite points. Nothing to check at weight 0."""
+    if not config.dense_weight:
+        return
+    if not model.has_dense:
+        raise InputError(f"the dense landmark term ({_dense_option(config)}) needs a face model with dense points; "
+                         f"face model {model.name or '(unnamed)'} has none (the shipped demo model has "
+                         "MediaPipe Face Mesh's 468)")
+    if dense is None:
+        raise InputError(f"the dense landmark term ({_dense_option(config)}) needs the photo's dense points: MediaPipe "
+                         "Face Mesh's 468, which only the MediaPipe detector gives (landmarks read from a "
+                         "file or found by dlib have none)")
+    points = np.asarray(dense, np.float64)
+    if points.shape != (model.n_dense, 2):
+        raise InputError(f"dense points must have shape ({model.n_dense}, 2), got {points.shape}")
+    _check(lambda: check_finite("dense points", points))
+
+
+def _dense_option(config: FaceFitConfig) -> str:
+    return f"dense_weight {config.dense_weight:g}, fit-face --dense-landmarks"
+
+
+def detected_dense(face) -> np.ndarray | None:
+    """The Face Mesh points (468, 2) pixels of a detected face (fitting.detection's
+    FaceCandidate, a PhotoLandmarks' ``face``; its 10 iris points left out), or None (no
+    candidate: landmarks from a file; dlib's candidates have none)."""
+    if face is None or face.dense is None:
+        return None
+    return np.asarray(face.dense[:N_FACE_MESH], np.float64)

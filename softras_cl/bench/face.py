@@ -36,6 +36,13 @@ projected truth points (:func:`silhouette_jaw`); faces the fit would refuse are 
 (:func:`draw_faces`). --contour fixed,sliding
 fits every face with each way of placing the jaw landmarks on the model
 (FaceFitConfig.contour_landmarks) and compares them per yaw bin.
+
+--landmarks truth,detected fits each face from the true landmarks (with their noise, above) and
+from what the detector finds on its photo (MediaPipe Face Mesh, the fit's default detector: its
+68 points and its 468 dense points; needs the detect extra); a face the detector misses is left
+out of every run, and counted. --dense 0,W fits each face with each dense landmark weight
+(FaceFitConfig.dense_weight) and compares them with 0; the dense points are always the
+detector's (with --landmarks truth, beside the true 68).
 """
 from __future__ import annotations
 
@@ -57,6 +64,7 @@ RENDERERS = ("softras", "mitsuba")
 DEFAULT_SPP = 256        # Mitsuba rays per pixel: noise ~0.005 RMS linear RGB on the face (0.007 at 128)
 NOISE_FACES = 3          # faces whose Mitsuba noise is measured (two extra renders each)
 CONTOURS = ("fixed", "sliding")
+LANDMARK_SOURCES = ("truth", "detected")
 OCCLUDED_MM = 2.0        # a jaw point this far behind the rendered surface is hidden
 
 
@@ -144,6 +152,30 @@ def draw_faces(model, rng: np.random.Generator, size: int, n: int, yaw_bin=None)
             continue
         faces.append(face)
     return faces, redrawn
+
+
+def detect_samples(samples: list[dict]) -> tuple[list[dict], list[dict], int]:
+    """MediaPipe on each sample's photo (sRGB, 8 bits, as a photo file would hold it): (the
+    samples it found a face in, the same samples with the detected 68 landmarks, both with the
+    detected dense points (468, 2) under "dense" and the detection's seconds, the number missed).
+    A sample whose detection fails (no face, landmarks that form no face) is left out."""
+    from softras_cl.fitting.detection.faces import ImplausibleFaceError, NoFaceError
+    from softras_cl.fitting.detection.find import detect_face
+    from softras_cl.fitting.recipes.face import detected_dense
+    from softras_cl.io.images import to_srgb
+
+    truth, detected, missed = [], [], 0
+    for sample in samples:
+        start = time.perf_counter()
+        try:
+            chosen = detect_face(np.round(to_srgb(sample["photo"]) * 255).astype(np.uint8), "mediapipe").chosen
+        except (NoFaceError, ImplausibleFaceError):
+            missed += 1
+            continue
+        found = dict(dense=detected_dense(chosen), detect_seconds=time.perf_counter() - start)
+        truth.append(dict(sample, **found))
+        detected.append(dict(sample, landmarks=chosen.landmarks.copy(), **found))
+    return truth, detected, missed
 
 
 def silhouette_jaw(scene, truth: dict, landmarks: np.ndarray) -> np.ndarray:
@@ -330,12 +362,18 @@ def summarise(rows: list[dict]) -> dict:
 # the run
 # ---------------------------------------------------------------------------------------------
 
-def budget_config(budget: str, size: int, photo_weight: float | None = None, contour: str | None = None):
+def budget_config(budget: str, size: int, photo_weight: float | None = None, contour: str | None = None,
+                  dense_weight: float | None = None):
     """The FaceFitConfig of a budget name, LANDMARKS_ONLY meaning the default budget's landmark
-    stage alone; contour: its contour_landmarks (None: the config's default)."""
+    stage alone; contour: its contour_landmarks, dense_weight: its dense_weight (None: the
+    config's default)."""
     from softras_cl.fitting.recipes.face import FaceFitConfig
 
-    changes = dict(size=size) if contour is None else dict(size=size, contour_landmarks=contour)
+    changes = dict(size=size)
+    if contour is not None:
+        changes["contour_landmarks"] = contour
+    if dense_weight is not None:
+        changes["dense_weight"] = dense_weight
     if budget == LANDMARKS_ONLY:
         return FaceFitConfig.from_budget("default", photo_weight=photo_weight, photo_stages=(), **changes)
     return FaceFitConfig.from_budget(budget, photo_weight=photo_weight, **changes)
@@ -347,7 +385,7 @@ def fit_one(model, sample: dict, config) -> dict:
     from softras_cl.fitting.recipes.face import fit_face
 
     start, cpu = time.perf_counter(), time.process_time()
-    fit = fit_face(sample["photo"], sample["landmarks"], model, config, progress=False)
+    fit = fit_face(sample["photo"], sample["landmarks"], model, config, progress=False, dense=sample.get("dense"))
     row = evaluate(fit, sample, model, time.perf_counter() - start)
     stages = [h["stage"] for h in fit.result.history]
     # CPU time of the whole process (host and the OpenCL CPU device's threads): on a shared
@@ -364,13 +402,15 @@ def run_budget(model, samples: list[dict], budget: str, size: int, progress: boo
 
 
 def run_interleaved(model, photos: dict, budget: str, size: int, progress: bool,
-                    photo_weight: float | None = None, contour: str | None = None) -> dict:
+                    photo_weight: float | None = None, contour: str | None = None,
+                    dense_weight: float | None = None) -> dict:
     """photos: renderer -> samples of the same faces. Fits face 0 of every renderer, then face
     1, ... (A B A B: a load change on the shared machine hits every renderer alike); returns
-    renderer -> fit_one() rows. contour: the fits' contour_landmarks (None: the default)."""
+    renderer -> fit_one() rows. contour, dense_weight: the fits' contour_landmarks and
+    dense_weight (None: the default)."""
     from tqdm import tqdm
 
-    config = budget_config(budget, size, photo_weight, contour)
+    config = budget_config(budget, size, photo_weight, contour, dense_weight)
     rows = {renderer: [] for renderer in photos}
     n = len(next(iter(photos.values())))
     for i in tqdm(range(n), desc=f"bench face [{budget}]", disable=not progress):
@@ -426,12 +466,13 @@ def save_strip(rows: list[dict], path: Path, n: int = 4) -> None:
 
 
 def format_table(summary: dict) -> str:
-    head = ("renderer", "yaw", "contour", "budget", "faces", "RMSE mm", "mean-face mm", "ratio", "rigid ratio", "lmk px", "focal err",
+    head = ("renderer", "yaw", "landmarks", "contour", "dense", "budget", "faces", "RMSE mm", "mean-face mm", "ratio", "rigid ratio", "lmk px", "focal err",
             "max focal err", "PSNR dB", "min PSNR", "median s/fit", "median CPU s")
     lines = ["  ".join(f"{h:>12}" for h in head)]
     for name, s in summary.items():
-        cells = (s.get("renderer", "softras"), s.get("yaw_bin") or "+-30", s.get("contour", "-"),
-                 s.get("budget", name), s["faces"], f"{s['rmse_mm']:.3f}", f"{s['mean_face_rmse_mm']:.3f}",
+        dense = s.get("dense")
+        cells = (s.get("renderer", "softras"), s.get("yaw_bin") or "+-30", s.get("landmarks") or "truth",
+                 s.get("contour", "-"), "-" if dense is None else f"{dense:g}", s.get("budget", name), s["faces"], f"{s['rmse_mm']:.3f}", f"{s['mean_face_rmse_mm']:.3f}",
                  f"{s['rmse_ratio']:.3f}", f"{s['rigid_ratio']:.3f}", f"{s['landmark_error_px']:.2f}",
                  f"{100 * s['focal_error_median']:.1f}%", f"{100 * s['focal_error_max']:.1f}%",
                  f"{s['psnr_face_db']:.1f}",
@@ -458,15 +499,40 @@ def parse_yaws(text: str | None) -> list[tuple[float, float]]:
     return bins
 
 
-def parse_contours(text: str | None) -> list[str | None]:
-    """'fixed,sliding' -> ['fixed', 'sliding'] (None or '' -> [None]: the fit's default);
-    InputError unless each is one of CONTOURS, once."""
+def parse_names(text: str | None, flag: str, allowed: tuple[str, ...]) -> list[str | None]:
+    """'a,b' -> ['a', 'b'] (None or '' -> [None]: the default, runs named as before); InputError
+    naming ``flag`` unless each is one of ``allowed``, once."""
     if not text:
         return [None]
     names = [c.strip() for c in text.split(",") if c.strip()]
-    if not names or any(c not in CONTOURS for c in names) or len(set(names)) != len(names):
-        raise InputError(f"--contour must name some of {', '.join(CONTOURS)} once each, got {text!r}")
+    if not names or any(c not in allowed for c in names) or len(set(names)) != len(names):
+        raise InputError(f"{flag} must name some of {', '.join(allowed)} once each, got {text!r}")
     return names
+
+
+def parse_contours(text: str | None) -> list[str | None]:
+    """--contour: 'fixed,sliding' -> ['fixed', 'sliding'] ([None]: the fit's default)."""
+    return parse_names(text, "--contour", CONTOURS)
+
+
+def parse_landmark_sources(text: str | None) -> list[str | None]:
+    """--landmarks: 'truth,detected' -> ['truth', 'detected'] ([None]: the true landmarks)."""
+    return parse_names(text, "--landmarks", LANDMARK_SOURCES)
+
+
+def parse_dense(text: str | None) -> list[float | None]:
+    """'0,0.5' -> [0.0, 0.5] (None or '' -> [None]: the fit's default); InputError unless each is
+    a number >= 0, once."""
+    if not text:
+        return [None]
+    try:
+        weights = [float(w) for w in text.split(",") if w.strip()]
+    except ValueError:
+        weights = []
+    if not weights or any(not (np.isfinite(w) and w >= 0) for w in weights) or len(set(weights)) != len(weights):
+        raise InputError(f"--dense must be comma-separated dense landmark weights >= 0, each once, e.g. 0,0.5; "
+                         f"got {text!r}")
+    return weights
 
 
 def yaw_name(yaw_bin) -> str:
@@ -474,38 +540,58 @@ def yaw_name(yaw_bin) -> str:
     return "" if yaw_bin is None else f"yaw {yaw_bin[0]:g}-{yaw_bin[1]:g}"
 
 
-def contour_comparison(summary: dict) -> list[dict]:
-    """Fixed against sliding jaw points for each (renderer, yaw bin, budget) that has both:
-    landmark and shape error of each, the relative reduction (1 - sliding / fixed) and the
-    median seconds per fit."""
+COMPARED = ("landmark_error_px", "rmse_mm", "median_seconds")
+RUN_KEYS = ("renderer", "yaw_bin", "landmarks", "budget", "contour", "dense")     # what sets a run apart
+
+
+def paired_comparison(summary: dict, key: str, base, other, labels: tuple[str, str]) -> list[dict]:
+    """Runs whose ``key`` is ``base`` against those where it is ``other``, alike in every other
+    RUN_KEYS: landmark and shape error and median seconds per fit of each (suffixed by
+    ``labels``), and the relative reductions (1 - other / base)."""
     runs = {}
     for s in summary.values():
-        runs.setdefault((s["renderer"], s.get("yaw_bin"), s["budget"]), {})[s.get("contour")] = s
+        rest = tuple((k, s.get(k)) for k in RUN_KEYS if k != key)
+        runs.setdefault(rest, {})[s.get(key)] = s
     rows = []
-    for (renderer, yaw, budget), by in runs.items():
-        if not {"fixed", "sliding"} <= set(by):
+    for rest, by in runs.items():
+        if base not in by or other not in by:
             continue
-        fixed, sliding = by["fixed"], by["sliding"]
-        rows.append(dict(renderer=renderer, yaw_bin=yaw, budget=budget, faces=fixed["faces"],
-                         **{f"{k}_{c}": by[c][k] for k in ("landmark_error_px", "rmse_mm", "median_seconds")
-                            for c in CONTOURS},
-                         landmark_reduction=1.0 - sliding["landmark_error_px"] / fixed["landmark_error_px"],
-                         rmse_reduction=1.0 - sliding["rmse_mm"] / fixed["rmse_mm"]))
+        rows.append(dict(rest, faces=by[base]["faces"],
+                         **{f"{k}_{label}": by[v][k] for k in COMPARED for v, label in zip((base, other), labels)},
+                         landmark_reduction=1.0 - by[other]["landmark_error_px"] / by[base]["landmark_error_px"],
+                         rmse_reduction=1.0 - by[other]["rmse_mm"] / by[base]["rmse_mm"]))
     return rows
 
 
-def format_comparison(rows: list[dict]) -> str:
-    """contour_comparison() rows as a table ("" without any)."""
+def contour_comparison(summary: dict) -> list[dict]:
+    """Fixed against sliding jaw points (paired_comparison, suffixes _fixed and _sliding)."""
+    return paired_comparison(summary, "contour", "fixed", "sliding", CONTOURS)
+
+
+def dense_comparison(summary: dict) -> list[dict]:
+    """No dense term against each dense weight W > 0 (paired_comparison, suffixes _off and _on,
+    the weight under "dense_weight")."""
+    weights = sorted({s.get("dense") for s in summary.values() if s.get("dense")})
+    return [dict(row, dense_weight=w) for w in weights
+            for row in paired_comparison(summary, "dense", 0.0, w, ("off", "on"))]
+
+
+def format_comparison(rows: list[dict], labels: tuple[str, str] = CONTOURS,
+                      title: str = "fixed against sliding jaw points") -> str:
+    """paired_comparison() rows (contour_comparison()'s by default) as a table ("" without any)."""
     from softras_cl.bench.tools import format_table as columns_table
 
     if not rows:
         return ""
-    return "fixed against sliding jaw points:\n" + columns_table(rows, [
-        ("renderer", "renderer", "s"), ("yaw", "yaw_bin", "s"), ("budget", "budget", "s"), ("faces", "faces", "d"),
-        ("lmk px fixed", "landmark_error_px_fixed", ".2f"), ("lmk px sliding", "landmark_error_px_sliding", ".2f"),
-        ("lmk -%", "landmark_reduction", ".0%"), ("RMSE mm fixed", "rmse_mm_fixed", ".3f"),
-        ("RMSE mm sliding", "rmse_mm_sliding", ".3f"), ("RMSE -%", "rmse_reduction", ".0%"),
-        ("s/fit fixed", "median_seconds_fixed", ".1f"), ("s/fit sliding", "median_seconds_sliding", ".1f")])
+    a, b = labels
+    extra = [("landmarks", "landmarks", "s"), ("W", "dense_weight", "g")] if "dense_weight" in rows[0] else []
+    return f"{title}:\n" + columns_table(rows, [
+        ("renderer", "renderer", "s"), ("yaw", "yaw_bin", "s"), *extra, ("budget", "budget", "s"),
+        ("faces", "faces", "d"),
+        (f"lmk px {a}", f"landmark_error_px_{a}", ".2f"), (f"lmk px {b}", f"landmark_error_px_{b}", ".2f"),
+        ("lmk -%", "landmark_reduction", ".0%"), (f"RMSE mm {a}", f"rmse_mm_{a}", ".3f"),
+        (f"RMSE mm {b}", f"rmse_mm_{b}", ".3f"), ("RMSE -%", "rmse_reduction", ".0%"),
+        (f"s/fit {a}", f"median_seconds_{a}", ".1f"), (f"s/fit {b}", f"median_seconds_{b}", ".1f")])
 
 
 def parse_renderers(text: str) -> list[str]:
@@ -552,6 +638,11 @@ def run(args: argparse.Namespace) -> int:
     renderers = parse_renderers(args.renderers)
     yaw_bins = parse_yaws(args.yaws) or [None]
     contours = parse_contours(args.contour)
+    sources, dense_weights = parse_landmark_sources(args.landmarks), parse_dense(args.dense)
+    detect = "detected" in sources or any(dense_weights)
+    if detect:
+        from softras_cl.fitting.detection.find import check_backend
+        check_backend("mediapipe")          # the detector is installed, before any face is drawn
     if args.spp < 2:
         raise InputError(f"--spp must be >= 2 (Mitsuba rays per pixel), got {args.spp}")
     if args.faces < 1 or args.size < 16:
@@ -561,43 +652,57 @@ def run(args: argparse.Namespace) -> int:
         model = load_demo_face_model() if args.model is None else load_face_model(args.model)
         rng = np.random.default_rng(args.seed)
         per_run, summary, checks = {}, {}, {}
-        redrawn = {}
+        redrawn, missed = {}, {}
         for yaw_bin in yaw_bins:
             samples, redrawn[yaw_name(yaw_bin)] = draw_faces(model, rng, args.size, args.faces, yaw_bin)
-            photos, checks = photos_by_renderer(model, samples, renderers, args.spp, not args.json)
-            for b, contour in ((b, c) for b in [LANDMARKS_ONLY] + budgets for c in contours):
-                for renderer, rows in run_interleaved(model, photos, b, args.size, not args.json,
-                                                      args.photo_weight, contour).items():
-                    name = run_name(renderer, b, yaw_bin, contour)
-                    per_run[name] = rows
-                    summary[name] = dict(summarise(rows), renderer=renderer, budget=b, yaw_bin=yaw_name(yaw_bin) or None,
-                                         contour=contour or budget_config(b, args.size).contour_landmarks)
-        comparison = contour_comparison(summary)
+            by_source = dict.fromkeys((None, "truth"), samples)
+            if detect:
+                truth, detected, missed[yaw_name(yaw_bin)] = detect_samples(samples)
+                by_source = dict(truth=truth, detected=detected)
+            for source in sources:
+                photos, checks = photos_by_renderer(model, by_source[source], renderers, args.spp, not args.json)
+                for b, contour, dense in ((b, c, d) for b in [LANDMARKS_ONLY] + budgets for c in contours
+                                          for d in dense_weights):
+                    for renderer, rows in run_interleaved(model, photos, b, args.size, not args.json,
+                                                          args.photo_weight, contour, dense).items():
+                        name = run_name(renderer, b, yaw_bin, contour, source, dense)
+                        per_run[name] = rows
+                        summary[name] = dict(summarise(rows), renderer=renderer, budget=b,
+                                             yaw_bin=yaw_name(yaw_bin) or None, landmarks=source, dense=dense,
+                                             contour=contour or budget_config(b, args.size).contour_landmarks)
+        comparison, dense_rows = contour_comparison(summary), dense_comparison(summary)
         doc = dict(size=args.size, seed=args.seed, model=model.name, photo_weight=args.photo_weight,
                    renderers=renderers, yaw_bins=yaw_bins if yaw_bins != [None] else None,
                    redrawn_faces=redrawn if yaw_bins != [None] else None,
-                   summary=summary, contour_comparison=comparison, **checks,
+                   undetected_faces=missed or None,
+                   summary=summary, contour_comparison=comparison, dense_comparison=dense_rows, **checks,
                    faces={name: [{k: v for k, v in r.items() if k != "fit"} for r in rows]
                           for name, rows in per_run.items()},
                    provenance=provenance(dict(options=args)))
         write_json(out / "face.json", doc)
         save_chart(summary, out / "face.png")
         for renderer in renderers:
-            name = run_name(renderer, budgets[-1], yaw_bins[-1], contours[-1])
+            name = run_name(renderer, budgets[-1], yaw_bins[-1], contours[-1], sources[-1], dense_weights[-1])
             save_strip(per_run[name], out / ("face_strip.png" if renderer == "softras"
                                              else f"face_{renderer}_strip.png"))
         print(json.dumps(json_safe(doc), indent=2) if args.json
-              else "\n".join(filter(None, (format_table(summary), format_comparison(comparison), format_mitsuba(doc)))))
+              else "\n".join(filter(None, (format_table(summary), format_comparison(comparison),
+                                           format_comparison(dense_rows, ("off", "on"), "without against with the "
+                                                             "dense landmark term"),
+                                           format_mitsuba(doc)))))
     return 0
 
 
-def run_name(renderer: str, budget: str, yaw_bin=None, contour: str | None = None) -> str:
+def run_name(renderer: str, budget: str, yaw_bin=None, contour: str | None = None,
+             landmarks: str | None = None, dense: float | None = None) -> str:
     """The key of a run in the JSON: the budget for softras-cl's photos of the standard faces
     with the fit's default contour (the keys the bench always had), preceded by "mitsuba/" for
-    Mitsuba's photos and "yaw lo-hi/" for a yaw bin's faces, followed by "/<contour> contour"
-    when --contour names it."""
-    parts = ("" if renderer == "softras" else renderer, yaw_name(yaw_bin), budget,
-             "" if contour is None else f"{contour} contour")
+    Mitsuba's photos, "yaw lo-hi/" for a yaw bin's faces and "<landmarks> landmarks/" when
+    --landmarks names them, followed by "/<contour> contour" when --contour names it and
+    "/dense W" when --dense does."""
+    parts = ("" if renderer == "softras" else renderer, yaw_name(yaw_bin),
+             "" if landmarks is None else f"{landmarks} landmarks", budget,
+             "" if contour is None else f"{contour} contour", "" if dense is None else f"dense {dense:g}")
     return "/".join(filter(None, parts))
 
 
@@ -648,6 +753,14 @@ def register(which) -> None:
                         "to every face and compared per yaw bin: fixed (fixed model points), sliding (the "
                         "fitted mesh's occluding contour where the jaw is turned away); default: the fit's "
                         "own (FaceFitConfig.contour_landmarks)")
+    p.add_argument("--landmarks", default=None,
+                   help="comma-separated landmark sources, each fitted to every face: truth (the true 68 "
+                        "with 1-2 px noise), detected (MediaPipe's 68 found on the photo; needs the detect "
+                        "extra; faces it misses are left out of every run); default: truth")
+    p.add_argument("--dense", default=None, metavar="W,...",
+                   help="comma-separated dense landmark weights (fit-face --dense-landmarks), each fitted to "
+                        "every face and compared with 0, e.g. 0,0.5; the dense points are MediaPipe's (needs "
+                        "the detect extra); default: the fit's own (off)")
     p.add_argument("--model", default=None, help="face model file (default: the shipped demo model)")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
     p.add_argument("--out", default="out/bench",

@@ -181,15 +181,18 @@ def _config(args: argparse.Namespace):
 
 
 def run_one(args: argparse.Namespace) -> int:
-    from softras_cl.fitting.recipes.face import fit_face
+    from softras_cl.fitting.recipes.face import check_dense_inputs, detected_dense, fit_face
     from softras_cl.fitting.reports.face import write_outputs
 
     photo, landmarks, model = _load_inputs(args)
     record = _run_record(args)          # refuses a --face/--face-box that a landmark file makes moot
     config = _config(args)
+    dense = detected_dense(landmarks.face)
+    check_dense_inputs(config, model, dense)        # before the output folder is touched
+
     def fit(folder):
         return fit_face(photo, landmarks.points, model, config, out_dir=folder, progress=not args.no_progress,
-                        resume=args.resume)
+                        resume=args.resume, dense=dense)
 
     def write(fit, folder, metrics, seconds):
         return write_outputs(fit, photo, landmarks, folder, metrics=metrics,
@@ -217,7 +220,8 @@ def _check_same_person(args: argparse.Namespace) -> list:
         ("--all-faces", args.all_faces), ("--face", args.face is not None),
         ("--face-box", args.face_box is not None), ("--manifest", args.manifest is not None),
         ("--workers", args.workers is not None), ("--threads-per-worker", args.threads_per_worker is not None),
-        ("--scheduler", args.scheduler is not None)) if given]
+        ("--scheduler", args.scheduler is not None), ("--dense-landmarks", bool(args.dense_landmarks)))
+        if given]
     if clashes:
         raise InputError(f"--same-person fits the photos together in this process, as one person with "
                          f"one face each (the largest when detected); it does not go with {', '.join(clashes)}")

@@ -178,13 +178,17 @@ def test_yaw_bin_faces_are_turned_that_far_and_plausible(demo_face_model):
         assert not layout_faults(face["landmarks"])
 
 
+def _bench(tmp_path, capsys, *options) -> tuple[str, dict]:
+    """`bench face --faces 1 --budgets fast` with these options: (what it printed, face.json)."""
+    out = tmp_path / "bench"
+    assert main(["bench", "face", "--faces", "1", "--budgets", "fast", *options, "--out", str(out)]) == 0
+    return capsys.readouterr().out, json.loads((out / "face.json").read_text())
+
+
 @pytest.mark.slow
 def test_bench_face_compares_contours_per_yaw_bin(tmp_path, capsys):
-    out = tmp_path / "bench"
-    assert main(["bench", "face", "--faces", "1", "--size", "96", "--budgets", "fast", "--yaws", "45-75",
-                 "--contour", "fixed,sliding", "--out", str(out), "--seed", "2"]) == 0
-    assert "fixed against sliding jaw points" in capsys.readouterr().out
-    doc = json.loads((out / "face.json").read_text())
+    said, doc = _bench(tmp_path, capsys, "--size", "96", "--yaws", "45-75", "--contour", "fixed,sliding", "--seed", "2")
+    assert "fixed against sliding jaw points" in said
     assert list(doc["summary"]) == [f"yaw 45-75/{b}/{c} contour" for b in ("landmarks-only", "fast")
                                     for c in ("fixed", "sliding")]
     assert doc["yaw_bins"] == [[45.0, 75.0]] and set(doc["redrawn_faces"]) == {"yaw 45-75"}
@@ -193,3 +197,72 @@ def test_bench_face_compares_contours_per_yaw_bin(tmp_path, capsys):
     fixed, sliding = (doc["summary"][f"yaw 45-75/fast/{c} contour"] for c in ("fixed", "sliding"))
     assert fixed["contour"] == "fixed" and sliding["contour"] == "sliding"
     assert fixed["landmark_error_px"] != sliding["landmark_error_px"]
+
+
+@pytest.mark.parametrize("text, says", [("truth,truth", "got 'truth,truth'"), ("mediapipe", "got 'mediapipe'")])
+def test_landmark_sources_are_checked(text, says):
+    from softras_cl.errors import InputError
+
+    with pytest.raises(InputError, match=re.escape(says)):
+        bench.parse_landmark_sources(text)
+
+
+@pytest.mark.parametrize("text", ["0,-1", "0,0", "a", "0,nan", ","])
+def test_dense_weights_are_checked(text):
+    from softras_cl.errors import InputError
+
+    with pytest.raises(InputError, match=re.escape(f"--dense must be comma-separated dense landmark weights >= 0, "
+                                                   f"each once, e.g. 0,0.5; got {text!r}")):
+        bench.parse_dense(text)
+
+
+def test_landmark_sources_and_dense_weights_parse_and_name_the_runs():
+    assert bench.parse_landmark_sources("truth, detected") == ["truth", "detected"]
+    assert bench.parse_landmark_sources(None) == [None] and bench.parse_dense(None) == [None]
+    assert bench.parse_dense("0, 0.5") == [0.0, 0.5]
+    assert bench.run_name("softras", "fast", landmarks="detected", dense=0.5) == "detected landmarks/fast/dense 0.5"
+    assert bench.run_name("softras", "fast", (0.0, 15.0), "fixed", "truth", 0.0) == \
+        "yaw 0-15/truth landmarks/fast/fixed contour/dense 0"
+    assert bench.budget_config("fast", 96, dense_weight=0.5).dense_weight == 0.5
+    assert bench.budget_config("fast", 96).dense_weight == 0.0
+
+
+def test_dense_comparison_pairs_each_weight_with_none_per_landmark_source():
+    def run(landmarks, dense, lmk, rmse):
+        return dict(renderer="softras", yaw_bin=None, budget="fast", contour="sliding", landmarks=landmarks,
+                    dense=dense, faces=3, landmark_error_px=lmk, rmse_mm=rmse, median_seconds=2.0)
+
+    summary = {"a": run("detected", 0.0, 4.0, 2.0), "b": run("detected", 0.5, 3.0, 1.0),
+               "c": run("truth", 0.0, 1.0, 1.0), "d": run("truth", 0.5, 2.0, 1.5), "e": run("detected", 1.0, 2.0, 1.5)}
+    rows = bench.dense_comparison(summary)
+    assert [(r["landmarks"], r["dense_weight"]) for r in rows] == [("detected", 0.5), ("truth", 0.5), ("detected", 1.0)]
+    assert rows[0]["landmark_reduction"] == 0.25 and rows[0]["rmse_reduction"] == 0.5
+    assert rows[0]["rmse_mm_off"] == 2.0 and rows[0]["rmse_mm_on"] == 1.0
+    assert rows[1]["rmse_reduction"] == -0.5
+    table = bench.format_comparison(rows, ("off", "on"), "dense")
+    assert table.startswith("dense:") and "RMSE mm on" in table and "detected" in table
+
+
+@pytest.mark.detect
+def test_detected_samples_hold_mediapipe_points_near_the_truth(demo_face_model):
+    samples = [bench.synthetic_face(demo_face_model, np.random.default_rng(s), 256) for s in (0, 2)]
+    truth, detected, missed = bench.detect_samples(samples)
+    assert missed == 0 and len(truth) == len(detected) == 2
+    for t, d, sample in zip(truth, detected, samples):
+        np.testing.assert_array_equal(t["landmarks"], sample["landmarks"])     # the true ones, noisy
+        assert d["dense"].shape == (468, 2) and np.array_equal(t["dense"], d["dense"])
+        error = np.linalg.norm(d["landmarks"] - sample["clean_landmarks"], axis=1)
+        assert 0.5 < np.median(error) < 15.0             # MediaPipe's points, not the truth's
+
+
+@pytest.mark.slow
+@pytest.mark.detect
+def test_bench_face_compares_the_dense_term_on_detected_landmarks(tmp_path, capsys):
+    said, doc = _bench(tmp_path, capsys, "--size", "128", "--landmarks", "detected", "--dense", "0,0.5", "--seed", "0")
+    assert "without against with the dense landmark term" in said
+    assert list(doc["summary"]) == [f"detected landmarks/{b}/dense {w}" for b in ("landmarks-only", "fast")
+                                    for w in ("0", "0.5")]
+    assert [(r["budget"], r["dense_weight"]) for r in doc["dense_comparison"]] == [("landmarks-only", 0.5),
+                                                                                    ("fast", 0.5)]
+    off, on = (doc["summary"][f"detected landmarks/fast/dense {w}"] for w in ("0", "0.5"))
+    assert off["landmark_error_px"] != on["landmark_error_px"]

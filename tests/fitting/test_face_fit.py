@@ -259,6 +259,8 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     (dict(coarse_sigma=0.0), "coarse_sigma must be > 0, got 0.0"),
     (dict(coarse_mesh=-2.0), "coarse_mesh must be > 0, got -2.0"),
     (dict(coarse_mesh=float("inf")), "coarse_mesh must be a finite number"),
+    (dict(dense_weight=-0.5), "dense_weight must be >= 0 (0: no dense landmark term), got -0.5"),
+    (dict(dense_weight=float("nan")), "dense_weight must be a finite number"),
 ])
 def test_face_config_names_a_bad_field(changes, says):
     from softras_cl.errors import InputError
@@ -514,3 +516,94 @@ def test_sliding_jaw_points_find_the_silhouette_the_fixed_ones_miss(demo):
         errors[contour_landmarks] = np.linalg.norm(points - clean, axis=1)
     assert errors["sliding"][:17].mean() < 1.0 < 2.0 < errors["fixed"][:17].mean()
     np.testing.assert_array_equal(errors["sliding"][17:], errors["fixed"][17:])
+
+
+def _dense_targets(model, values, size: int, rng=None) -> np.ndarray:
+    """The model's dense points at ``values`` projected into a size x size image (468, 2), plus
+    1 px noise with ``rng``."""
+    scene = face.FaceScene(model, (size, size))
+    world, _ = scene.geometry(values)
+    points = scene.camera(values["focal"][0]).project_pixels(model.dense_points(world)[0])[0]
+    return points if rng is None else points + rng.normal(0, 1.0, points.shape)
+
+
+@pytest.mark.parametrize("stage_weights", [
+    dict(landmarks=1.0, dense=0.3, id_prior=1.0, exp_prior=1.0, focal_prior=1.0),
+    dict(dense=1.0)], ids=["landmark stage with the dense term", "dense term alone"])
+def test_dense_landmark_gradient_matches_central_differences(demo, stage_weights):
+    """The objective with the dense term, float64: every block of the landmark stage against
+    central differences; the unused points (dense_use False) add nothing."""
+    sample = _turned_face(demo, yaw_deg=20.0)
+    rng = np.random.default_rng(4)
+    values = dict(sample["truth"], id=sample["truth"]["id"] * 0.5, exp=sample["truth"]["exp"] * 0.5)
+    dense = _dense_targets(demo, sample["truth"], 128, rng)
+    scene = face.FaceScene(demo, (128, 128))
+    objective = face.FaceObjective(scene, sample["photo"], sample["landmarks"], focal0=values["focal"][0],
+                                   contour=None, dense=dense)
+    stage = Stage("landmarks", ("id",), stage_weights)
+    loss, grads, terms = objective(values, stage)
+    assert set(terms) == set(stage_weights) and terms["dense"] > 0
+    for name in ("id", "exp", "rotation", "translation", "focal"):
+        fd = central_differences(objective, values, stage, name, step=1e-6)
+        np.testing.assert_allclose(grads[name], fd, rtol=1e-6, atol=1e-6 * np.abs(fd).max(), err_msg=name)
+    unused = dense.copy()
+    unused[~demo.dense_use] += 50.0
+    moved = face.FaceObjective(scene, sample["photo"], sample["landmarks"], focal0=values["focal"][0],
+                               contour=None, dense=unused)
+    assert moved(values, stage)[0] == loss
+
+
+def test_dense_term_is_the_sum_of_squared_pixel_distances_of_the_used_points(demo):
+    """Targets moved by 2 px along x from the model's own projection cost 4 px^2 per used point."""
+    values = _turned_face(demo, yaw_deg=10.0)["truth"]
+    exact = _dense_targets(demo, values, 128)
+    objective = face.FaceObjective(face.FaceScene(demo, (128, 128)), np.zeros((128, 128, 3)),
+                                   _spread_landmarks(128), dense=exact + [2.0, 0.0])
+    value, _ = objective.dense_term(values, objective.scene.geometry(values)[0])
+    assert value == pytest.approx(4.0 * demo.dense_use.sum(), rel=1e-9)
+
+
+def test_dense_weight_adds_the_dense_term_to_every_landmark_stage_relative_to_the_68():
+    config = face.FaceFitConfig(dense_weight=0.5)
+    stages = face.default_stages(config, fit_focal=True)
+    for stage in stages:
+        assert stage.weights["dense"] == pytest.approx(0.5 * stage.weights["landmarks"])
+    assert all("dense" not in s.weights for s in face.default_stages(face.FaceFitConfig(), fit_focal=True))
+
+
+def test_dense_targets_move_into_working_and_half_resolution_pixels_with_the_crop(demo):
+    """prepare_fit maps the photo's dense points like the 68 landmarks; the half-size objective
+    holds them halved like its landmarks."""
+    sample = _turned_face(demo, yaw_deg=10.0)
+    dense = _dense_targets(demo, sample["truth"], 128, np.random.default_rng(1))
+    config = face.FaceFitConfig(size=64, dense_weight=1.0, coarse_sigma=1e-9)
+    objective, crop, _ = face.prepare_fit(sample["photo"], sample["landmarks"], demo, config, dense)
+    np.testing.assert_allclose(objective.dense_target, crop.to_work(dense))
+    np.testing.assert_allclose(objective.target, crop.to_work(sample["landmarks"]))
+    without, _, _ = face.prepare_fit(sample["photo"], sample["landmarks"], demo, face.FaceFitConfig(size=64), dense)
+    assert without.dense_target is None
+
+
+def test_dense_weight_without_dense_points_or_a_dense_model_is_refused_before_fitting(demo, toy, tmp_path):
+    from softras_cl.errors import InputError
+
+    sample = _turned_face(demo, yaw_deg=10.0)
+    config = face.FaceFitConfig(size=64, dense_weight=1.0)
+    with pytest.raises(InputError, match="needs the photo's dense points: MediaPipe Face Mesh's 468"):
+        face.fit_face(sample["photo"], sample["landmarks"], demo, config, out_dir=tmp_path)
+    with pytest.raises(InputError, match="needs a face model with dense points"):
+        face.fit_face(sample["photo"], sample["landmarks"], toy, config, out_dir=tmp_path,
+                      dense=np.zeros((468, 2)))
+    with pytest.raises(InputError, match=re.escape("dense points must have shape (468, 2), got (478, 2)")):
+        face.fit_face(sample["photo"], sample["landmarks"], demo, config, out_dir=tmp_path,
+                      dense=np.zeros((478, 2)))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_detected_dense_is_the_face_mesh_points_without_the_iris():
+    from types import SimpleNamespace
+
+    mesh = np.arange(478 * 2, dtype=np.float64).reshape(478, 2)
+    np.testing.assert_array_equal(face.detected_dense(SimpleNamespace(dense=mesh)), mesh[:468])
+    assert face.detected_dense(None) is None                        # landmarks from a file
+    assert face.detected_dense(SimpleNamespace(dense=None)) is None   # a dlib candidate
