@@ -25,12 +25,12 @@ def finite_metrics(fit, folder, required) -> dict:
     reported as a success. ``folder`` is where the solver's files of that fit are, for the
     message."""
     metrics = fit.metrics()
+    for what, face_fit, face_metrics in _face_fits(fit, metrics):    # first: it names the cause
+        check_face_result(face_metrics, face_fit.landmarks, folder, what)
     bad = [f"{name} is {metrics[name]}" for name in required if not math.isfinite(metrics[name])]
     if bad:
         raise ResultError(f"the fit failed: {', '.join(bad)}; checkpoint.npz, history.json and "
                           f"loss_curve.png in {folder} show how it went")
-    for what, face_fit, face_metrics in _face_fits(fit, metrics):
-        check_face_result(face_metrics, face_fit.landmarks, folder, what)
     return metrics
 
 
