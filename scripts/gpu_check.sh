@@ -1,0 +1,179 @@
+#!/usr/bin/env bash
+# softras-cl on a GPU in one call of at most 8 minutes, on a bare machine with no network
+# (docs/gpu_check.md). From the repository's root:
+#
+#     OUT=/empty/folder bash scripts/gpu_check.sh
+#
+# Steps, each under its own time limit, so one stuck step cannot eat the call: install the
+# carried wheels (scripts/fetch_gpu_wheels.sh fills .whl/) and make the source tree importable;
+# list the machine's GPU driver files; find the GPU's OpenCL library and register it as an ICD;
+# `softras-cl devices`; the kernel tests against the float64 reference (tests/raster and the
+# renderer's); determinism (the same forward+backward three times, hashed); the raster bench at
+# 1024^2 for each kernel layout; a face fit end to end. Writes into $OUT: gpu_check.json (the
+# summary: scripts/gpu_check_report.py), junit.xml, bench_LAYOUT.json (the bench's raster.json)
+# and gpu_check_files.tar.gz (every log and report). Exit code 0 when the summary says "ok".
+#
+# Variables (all optional but OUT):
+#   GPU_CHECK_PYTHON      the Python to run (default python3)
+#   GPU_CHECK_WHEELS      folder of wheels to install first (default .whl; none there: none)
+#   GPU_CHECK_DEVICE      "gpu" (default): stop with status "no_gpu" unless the device chosen is
+#                         an OpenCL GPU; anything else is passed on as SOFTRAS_CL_DEVICE (e.g.
+#                         "pocl 3.1" to rehearse on a CPU)
+#   GPU_CHECK_LAYOUTS     kernel layouts, comma-separated (default gpu,cpu): one bench run each
+#                         with --layout; empty: one run without --layout
+#   GPU_CHECK_QUICK=1     small scenes, one repeat, the fast fit budget (a rehearsal on 2 cores)
+#   GPU_CHECK_DEADLINE_S  seconds the steps may take together (default 450); each step's limit
+#                         shrinks to what is left, and a step with under 5 s left is skipped
+#   GPU_CHECK_SCRATCH     working folder (default /tmp/gpu_check; emptied first)
+set -uo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+REPO=$(pwd)
+: "${OUT:?set OUT to the folder for the results}"
+PY=${GPU_CHECK_PYTHON:-python3}
+WHEELS=${GPU_CHECK_WHEELS:-.whl}
+DEVICE=${GPU_CHECK_DEVICE:-gpu}
+LAYOUTS=${GPU_CHECK_LAYOUTS-gpu,cpu}
+QUICK=${GPU_CHECK_QUICK:-0}
+DEADLINE_S=${GPU_CHECK_DEADLINE_S:-450}
+SCRATCH=${GPU_CHECK_SCRATCH:-/tmp/gpu_check}
+SITE=$SCRATCH/site
+LOGS=$SCRATCH/logs
+START=$SECONDS
+
+# Options of the steps, as words (the step functions run in a new bash, which gets no arrays).
+if [ "$QUICK" = 1 ]; then
+    BENCH_ARGS="--sizes 128 --faces 320,1280 --repeats 1" DETERMINISM_ARGS="--faces 1280 --size 128"
+    FIT_ARGS="--budget fast"
+else   # the published sizes (280 / 3.3k / 39k faces) lie between these icosphere counts
+    BENCH_ARGS="--sizes 1024 --faces 320,1280,5120,20480,81920 --repeats 5" DETERMINISM_ARGS=""
+    FIT_ARGS="--budget default"
+fi
+
+rm -rf "$SCRATCH" && mkdir -p "$LOGS" "$SITE/wheels" "$SITE/shim/softras_cl" "$SCRATCH/bin" "$OUT" || exit 1
+# The source tree importable as installed, without a build: softras_cl/ with kernels/ and
+# fitting/ inside (pyproject.toml's package-dir). PYTHONSAFEPATH keeps the repository's own
+# softras_cl/ (which lacks them) off sys.path when Python starts in the repository's root.
+export PYTHONPATH="$SITE/wheels:$SITE/shim${PYTHONPATH:+:$PYTHONPATH}" PYTHONSAFEPATH=1 PYTHONUNBUFFERED=1
+printf '#!/bin/sh\nexec "%s" -c "import sys; from softras_cl.cli import main; sys.exit(main())" "$@"\n' \
+    "$PY" > "$SCRATCH/bin/softras-cl" && chmod +x "$SCRATCH/bin/softras-cl"
+export PATH="$SCRATCH/bin:$PATH"
+
+# step NAME BUDGET_S FUNCTION [ARGS...]: run the exported FUNCTION in a new bash with its output
+# in logs/NAME.log, killed after BUDGET_S (less when the deadline is nearer); append NAME,
+# status (ok, failed, timeout, skipped), exit code, seconds and limit to steps.tsv.
+step() {
+    local name=$1 budget=$2 left rc status t0 seconds
+    shift 2
+    left=$((DEADLINE_S - (SECONDS - START)))
+    ((budget > left)) && budget=$left
+    if ((budget < 5)); then
+        printf '%s\tskipped\t\t\t%s\n' "$name" "$budget" >> "$SCRATCH/steps.tsv"
+        echo "== $name: skipped (deadline)"
+        return 125
+    fi
+    echo "== $name (at most $budget s)"
+    t0=$(date +%s.%N)
+    timeout -k 5 "$budget" bash -c '"$@"' step "$@" > "$LOGS/$name.log" 2>&1
+    rc=$?
+    seconds=$(awk -v t0="$t0" -v t1="$(date +%s.%N)" 'BEGIN { printf "%.2f", t1 - t0 }')
+    case $rc in 0) status=ok ;; 124 | 137) status=timeout ;; *) status=failed ;; esac
+    printf '%s\t%s\t%s\t%s\t%s\n' "$name" "$status" "$rc" "$seconds" "$budget" >> "$SCRATCH/steps.tsv"
+    echo "   $status (exit $rc) in $seconds s"
+    [ "$status" = ok ] || tail -n 15 "$LOGS/$name.log"
+    return $rc
+}
+
+install_packages() {
+    if compgen -G "$WHEELS/*.whl" > /dev/null; then
+        "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+            --target "$SITE/wheels" "$WHEELS"/*.whl || return 1
+    fi
+    ln -s "$REPO"/softras_cl/* "$SITE/shim/softras_cl/" || return 1
+    ln -s "$REPO/kernels" "$SITE/shim/softras_cl/kernels" && ln -s "$REPO/fitting" "$SITE/shim/softras_cl/fitting" || return 1
+    "$PY" -c "import pyopencl, trimesh, png, nlopt, softras_cl.fitting.solver, softras_cl.kernels, softras_cl.raster.rasterizer
+print('python', __import__('sys').version.split()[0], 'pyopencl', pyopencl.VERSION_TEXT)"
+}
+
+system_inventory() {   # what the machine holds of GPU drivers and OpenCL (read when no GPU shows)
+    set -x
+    uname -a
+    "$PY" --version
+    nvidia-smi
+    nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader > "$SCRATCH/nvidia_smi.csv"
+    ls -la /usr/local/nvidia /usr/local/nvidia/lib64 /usr/local/nvidia/lib /etc/OpenCL/vendors
+    ls /usr/lib/x86_64-linux-gnu | grep -i -E 'nvidia|cuda|opencl'
+    ldconfig -p | grep -i -E 'opencl|nvidia-opencl|libcuda'
+    true
+}
+
+find_opencl_driver() {
+    "$PY" scripts/gpu_check_icd.py --vendors "$SCRATCH/vendors" --report "$SCRATCH/icd.json" > "$SCRATCH/icd_libdir"
+}
+
+list_devices() {
+    softras-cl devices && softras-cl devices --json > "$SCRATCH/devices.json"
+}
+
+gpu_present() {
+    local chosen
+    chosen=$("$PY" scripts/gpu_check_report.py chosen-device "$SCRATCH/devices.json") || return 1
+    echo "chosen device: $chosen"
+    [ "${chosen%%$'\t'*}" = GPU ]
+}
+
+kernel_tests() {
+    "$PY" -m pytest -q -p no:cacheprovider tests/raster tests/scene/test_renderer.py \
+        --junitxml="$SCRATCH/junit.xml" -o junit_family=xunit2
+}
+
+determinism() {
+    "$PY" scripts/gpu_check_determinism.py --out "$SCRATCH/determinism.json" --layouts "$LAYOUTS" $DETERMINISM_ARGS
+}
+
+bench_raster() {   # $1: a layout, or "default" for none named
+    local layout_args=""
+    [ "$1" = default ] || layout_args="--layout $1"
+    softras-cl bench raster --speed-only $BENCH_ARGS $layout_args --out "$SCRATCH/bench_$1"
+}
+
+fit_face() {
+    softras-cl fit-face examples/data/astronaut.png --landmarks examples/data/landmarks/astronaut.pts \
+        --out "$SCRATCH/fit" --no-progress $FIT_ARGS
+}
+
+export REPO PY WHEELS SITE SCRATCH LAYOUTS BENCH_ARGS DETERMINISM_ARGS FIT_ARGS
+export -f install_packages system_inventory find_opencl_driver list_devices gpu_present kernel_tests \
+    determinism bench_raster fit_face
+
+run_steps() {
+    step install 60 install_packages || return
+    step system 30 system_inventory
+    step find_opencl_driver 40 find_opencl_driver
+    export OCL_ICD_VENDORS="$SCRATCH/vendors"
+    local libdir
+    libdir=$(cat "$SCRATCH/icd_libdir" 2> /dev/null)
+    [ -n "$libdir" ] && export LD_LIBRARY_PATH="$libdir${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+    [ "$DEVICE" = gpu ] || export SOFTRAS_CL_DEVICE="$DEVICE"
+    step devices 60 list_devices || return
+    if [ "$DEVICE" = gpu ]; then step gpu_present 20 gpu_present || return; fi
+    step kernel_tests 150 kernel_tests
+    step determinism 60 determinism
+    local layout
+    for layout in $(tr ',' ' ' <<< "${LAYOUTS:-default}"); do
+        step "bench_$layout" 120 bench_raster "$layout"
+    done
+    step fit_face 120 fit_face
+}
+
+run_steps
+
+quick_flag=()
+[ "$QUICK" = 1 ] && quick_flag=(--quick)
+timeout 60 "$PY" scripts/gpu_check_report.py summary "$SCRATCH" "$OUT/gpu_check.json" "${quick_flag[@]}"
+cp "$SCRATCH/junit.xml" "$OUT/" 2> /dev/null
+for raster in "$SCRATCH"/bench_*/raster.json; do
+    [ -f "$raster" ] && cp "$raster" "$OUT/$(basename "$(dirname "$raster")").json"
+done
+tar -czf "$OUT/gpu_check_files.tar.gz" -C "$SCRATCH" --exclude=site --exclude=bin \
+    --exclude='*.npz' --exclude='*.ply' --exclude='*.obj' --exclude='*.mtl' .
+grep -q '"status": "ok"' "$OUT/gpu_check.json"

@@ -1,0 +1,200 @@
+"""The summary of a scripts/gpu_check.sh run: one JSON file from the files its steps left behind.
+
+    python3 scripts/gpu_check_report.py summary SCRATCH OUT.json [--quick]
+    python3 scripts/gpu_check_report.py chosen-device DEVICES.json
+
+`summary` reads the scratch folder of gpu_check.sh (layout below) and writes OUT.json:
+status ("ok", "failed" or "no_gpu"), the device (name, type, OpenCL and driver versions),
+the ICD search, each step's status and seconds, the test counts, the bench rows per kernel
+layout, the rows that bracket the published sizes (280 / 3.3k / 39k faces at 1024^2), the face
+fit's time, the determinism check and the targets with what was measured. Missing files leave
+their entries None: a run that stopped early still gets a summary.
+
+`chosen-device` prints "TYPE<tab>NAME" of the device that `softras-cl devices --json` marked as
+chosen (exit 1 when none is).
+
+Scratch folder: steps.tsv (name, status, exit code, seconds, budget; one step a line),
+icd.json (scripts/gpu_check_icd.py), devices.json, nvidia_smi.csv (name, driver_version,
+memory.total), junit.xml (pytest), determinism.json (scripts/gpu_check_determinism.py),
+bench_LAYOUT/raster.json (`softras-cl bench raster`; LAYOUT "default" when no layout was named).
+Standard library only.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+PAPER_SIZES = (280, 3300, 39000)     # faces of the published fwd+bwd timings at 1024^2
+PAPER_IMAGE = 1024
+BENCH_SCENE = (20480, 1024)          # (faces, image size) of the raster bench's headline row
+TARGET_BENCH_SCENE_MS = 2.0          # fwd+bwd at BENCH_SCENE on an H100
+TARGET_FIT_S = 2.0                   # a face fit (default budget) end to end
+BENCH_KEYS = ("faces", "size", "fwd_ms", "fwdbwd_ms", "fwdbwd_cpu_ms", "pairs", "ns_per_pair",
+              "stage_ms")
+
+
+def read_json(path: Path):
+    """The JSON in `path`, or None when the file is missing or not valid JSON."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def read_steps(path: Path) -> list[dict]:
+    """steps.tsv as [{name, status, rc, seconds, budget_s}] (rc and seconds None when blank)."""
+    if not path.is_file():
+        return []
+    steps = []
+    for line in path.read_text().splitlines():
+        name, status, rc, seconds, budget = (line.split("\t") + [""] * 5)[:5]
+        steps.append(dict(name=name, status=status, rc=int(rc) if rc else None,
+                          seconds=float(seconds) if seconds else None,
+                          budget_s=float(budget) if budget else None))
+    return steps
+
+
+def junit_counts(path: Path) -> dict | None:
+    """Totals of a pytest JUnit XML file: tests, passed, failures, errors, skipped, seconds;
+    with the ids of the failed and errored tests. None when the file is missing or unreadable."""
+    try:
+        root = ET.parse(path).getroot()
+    except (OSError, ET.ParseError):
+        return None
+    suites = [root] if root.tag == "testsuite" else root.findall("testsuite")
+    counts = {k: sum(int(s.get(k, 0)) for s in suites) for k in ("tests", "failures", "errors", "skipped")}
+    counts["seconds"] = sum(float(s.get("time", 0)) for s in suites)
+    counts["passed"] = counts["tests"] - counts["failures"] - counts["errors"] - counts["skipped"]
+    counts["failed_tests"] = [f"{case.get('classname')}::{case.get('name')}"
+                              for s in suites for case in s.iter("testcase")
+                              if case.find("failure") is not None or case.find("error") is not None]
+    return counts
+
+
+def bench_rows(scratch: Path) -> list[dict]:
+    """The speed rows of every bench_LAYOUT/raster.json, each with its layout, sorted by layout,
+    size and faces. A row that names its own layout keeps it."""
+    rows = []
+    for path in sorted(scratch.glob("bench_*/raster.json")):
+        result = read_json(path) or {}
+        layout = path.parent.name.removeprefix("bench_")
+        for row in result.get("raster", []):
+            rows.append(dict(layout=row.get("layout", layout), **{k: row.get(k) for k in BENCH_KEYS}))
+    return sorted(rows, key=lambda r: (str(r["layout"]), r["size"] or 0, r["faces"] or 0))
+
+
+def paper_brackets(rows: list[dict]) -> list[dict]:
+    """For each published size, the bench rows at PAPER_IMAGE with the nearest face counts below
+    and above it, per layout: [{paper_faces, layout, below: row | None, above: row | None}]."""
+    out = []
+    for layout in sorted({r["layout"] for r in rows}):
+        at_size = [r for r in rows if r["layout"] == layout and r["size"] == PAPER_IMAGE]
+        for n in PAPER_SIZES:
+            below = max((r for r in at_size if r["faces"] <= n), key=lambda r: r["faces"], default=None)
+            above = min((r for r in at_size if r["faces"] >= n), key=lambda r: r["faces"], default=None)
+            out.append(dict(paper_faces=n, layout=layout, below=below, above=above))
+    return out
+
+
+def chosen_device(devices: list | None) -> dict | None:
+    """The entry of `softras-cl devices --json` marked chosen, or None."""
+    return next((d for d in devices or [] if d.get("chosen")), None)
+
+
+def device_summary(scratch: Path) -> dict | None:
+    """Name, type, platform, OpenCL and driver versions of the device the steps ran on (from the
+    determinism or bench reports, the type from devices.json); None when no step got that far."""
+    reports = [read_json(scratch / "determinism.json")]
+    reports += [read_json(p) for p in sorted(scratch.glob("bench_*/raster.json"))]
+    device = next((r["device"] for r in reports if r and r.get("device")), None)
+    chosen = chosen_device(read_json(scratch / "devices.json"))
+    if device is None and chosen is None:
+        return None
+    device = dict(device or dict(name=chosen["device_name"], platform=chosen["platform_name"],
+                                 platform_version=chosen["platform_version"]))
+    device["type"] = chosen["type"] if chosen else None
+    return device
+
+
+def nvidia_smi(path: Path) -> dict | None:
+    """The first GPU of `nvidia-smi --query-gpu=name,driver_version,memory.total
+    --format=csv,noheader` output, or None."""
+    try:
+        fields = [f.strip() for f in path.read_text().splitlines()[0].split(",")]
+    except (OSError, IndexError):
+        return None
+    return dict(zip(("name", "driver_version", "memory_total"), fields)) if len(fields) == 3 else None
+
+
+def step_seconds(steps: list[dict], name: str) -> float | None:
+    """Seconds of the step called `name` when it succeeded, else None."""
+    return next((s["seconds"] for s in steps if s["name"] == name and s["status"] == "ok"), None)
+
+
+def targets(rows: list[dict], fit_s: float | None) -> dict:
+    """The issue's targets beside what was measured: the bench scene's best fwd+bwd over the
+    layouts, and the face fit's seconds end to end."""
+    scene = [r for r in rows if (r["faces"], r["size"]) == BENCH_SCENE and r["fwdbwd_ms"] is not None]
+    best = min(scene, key=lambda r: r["fwdbwd_ms"], default=None)
+    return dict(
+        bench_scene_fwdbwd_ms=dict(target=TARGET_BENCH_SCENE_MS, measured=best and best["fwdbwd_ms"],
+                                   layout=best and best["layout"],
+                                   met=None if best is None else best["fwdbwd_ms"] <= TARGET_BENCH_SCENE_MS),
+        fit_s=dict(target=TARGET_FIT_S, measured=fit_s, met=None if fit_s is None else fit_s < TARGET_FIT_S))
+
+
+def overall_status(steps: list[dict], tests: dict | None, determinism: dict | None) -> str:
+    """"no_gpu" when the GPU check stopped the run, "ok" when every step succeeded, no test
+    failed and the reruns were identical, else "failed"."""
+    if any(s["name"] == "gpu_present" and s["status"] != "ok" for s in steps):
+        return "no_gpu"
+    steps_ok = bool(steps) and all(s["status"] == "ok" for s in steps)
+    tests_ok = tests is not None and tests["failures"] == 0 and tests["errors"] == 0
+    return "ok" if steps_ok and tests_ok and bool(determinism and determinism.get("identical")) else "failed"
+
+
+def summary(scratch: Path, quick: bool) -> dict:
+    """Everything gpu_check.sh measured, as one dict (see the module docstring)."""
+    steps = read_steps(scratch / "steps.tsv")
+    tests = junit_counts(scratch / "junit.xml")
+    determinism = read_json(scratch / "determinism.json")
+    rows = bench_rows(scratch)
+    fit_s = step_seconds(steps, "fit_face")
+    return dict(status=overall_status(steps, tests, determinism), quick=quick,
+                device=device_summary(scratch), nvidia_smi=nvidia_smi(scratch / "nvidia_smi.csv"),
+                icd=read_json(scratch / "icd.json"), devices=read_json(scratch / "devices.json"),
+                steps=steps, tests=tests, bench=rows, paper_sizes=paper_brackets(rows),
+                fit=dict(seconds=fit_s, budget="fast" if quick else "default"),
+                determinism=determinism, targets=targets(rows, fit_s))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    s = sub.add_parser("summary", help="write the summary JSON")
+    s.add_argument("scratch", type=Path, help="gpu_check.sh's scratch folder")
+    s.add_argument("out", type=Path, help="JSON file to write")
+    s.add_argument("--quick", action="store_true", help="the run used GPU_CHECK_QUICK=1")
+    c = sub.add_parser("chosen-device", help="print the chosen device's type and name")
+    c.add_argument("devices", type=Path, help="output of `softras-cl devices --json`")
+    args = p.parse_args(argv)
+    if args.command == "summary":
+        if not args.scratch.is_dir():
+            p.error(f"scratch folder {args.scratch} does not exist")
+        result = summary(args.scratch, args.quick)
+        args.out.write_text(json.dumps(result, indent=2) + "\n")
+        print(f"status: {result['status']}")
+        return 0
+    chosen = chosen_device(read_json(args.devices))
+    if chosen is None:
+        print(f"no chosen device in {args.devices}", file=sys.stderr)
+        return 1
+    print(f"{chosen['type']}\t{chosen['device_name']}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
