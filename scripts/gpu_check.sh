@@ -30,12 +30,14 @@ cd "$(dirname "${BASH_SOURCE[0]}")/.."
 REPO=$(pwd)
 : "${OUT:?set OUT to the folder for the results}"
 PY=${GPU_CHECK_PYTHON:-python3}
-WHEELS=${GPU_CHECK_WHEELS:-.whl}
+[[ $PY == */* ]] && PY=$(realpath -ms "$PY")   # the steps run in another folder
+OUT=$(realpath -m "$OUT")
+WHEELS=$(realpath -m "${GPU_CHECK_WHEELS:-.whl}")
 DEVICE=${GPU_CHECK_DEVICE:-gpu}
 LAYOUTS=${GPU_CHECK_LAYOUTS-gpu,cpu}
 QUICK=${GPU_CHECK_QUICK:-0}
 DEADLINE_S=${GPU_CHECK_DEADLINE_S:-450}
-SCRATCH=${GPU_CHECK_SCRATCH:-/tmp/gpu_check}
+SCRATCH=$(realpath -m "${GPU_CHECK_SCRATCH:-/tmp/gpu_check}")
 SITE=$SCRATCH/site
 LOGS=$SCRATCH/logs
 START=$SECONDS
@@ -49,11 +51,12 @@ else   # the published sizes (280 / 3.3k / 39k faces) lie between these icospher
     FIT_ARGS="--budget default"
 fi
 
-rm -rf "$SCRATCH" && mkdir -p "$LOGS" "$SITE/wheels" "$SITE/shim/softras_cl" "$SCRATCH/bin" "$OUT" || exit 1
+rm -rf "$SCRATCH" && mkdir -p "$LOGS" "$SITE/wheels" "$SITE/shim/softras_cl" "$SCRATCH/bin" "$SCRATCH/work" "$OUT" || exit 1
 # The source tree importable as installed, without a build: softras_cl/ with kernels/ and
-# fitting/ inside (pyproject.toml's package-dir). PYTHONSAFEPATH keeps the repository's own
-# softras_cl/ (which lacks them) off sys.path when Python starts in the repository's root.
-export PYTHONPATH="$SITE/wheels:$SITE/shim${PYTHONPATH:+:$PYTHONPATH}" PYTHONSAFEPATH=1 PYTHONUNBUFFERED=1
+# fitting/ inside (pyproject.toml's package-dir) comes first; the repository's root after it, for
+# the tests' `tests.` imports. The steps run in $SCRATCH/work, since Python puts the folder it
+# starts in before all of these, and the root's own softras_cl/ lacks kernels/ and fitting/.
+export PYTHONPATH="$SITE/wheels:$SITE/shim:$REPO${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 printf '#!/bin/sh\nexec "%s" -c "import sys; from softras_cl.cli import main; sys.exit(main())" "$@"\n' \
     "$PY" > "$SCRATCH/bin/softras-cl" && chmod +x "$SCRATCH/bin/softras-cl"
 export PATH="$SCRATCH/bin:$PATH"
@@ -84,7 +87,7 @@ step() {
 }
 
 install_packages() {
-    if compgen -G "$WHEELS/*.whl" > /dev/null; then
+    if compgen -G "$WHEELS/*.whl" > /dev/null; then   # $WHEELS: absolute (set below)
         "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
             --target "$SITE/wheels" "$WHEELS"/*.whl || return 1
     fi
@@ -107,7 +110,7 @@ system_inventory() {   # what the machine holds of GPU drivers and OpenCL (read 
 }
 
 find_opencl_driver() {
-    "$PY" scripts/gpu_check_icd.py --vendors "$SCRATCH/vendors" --report "$SCRATCH/icd.json" > "$SCRATCH/icd_libdir"
+    "$PY" "$REPO/scripts/gpu_check_icd.py" --vendors "$SCRATCH/vendors" --report "$SCRATCH/icd.json" > "$SCRATCH/icd_libdir"
 }
 
 list_devices() {
@@ -116,18 +119,18 @@ list_devices() {
 
 gpu_present() {
     local chosen
-    chosen=$("$PY" scripts/gpu_check_report.py chosen-device "$SCRATCH/devices.json") || return 1
+    chosen=$("$PY" "$REPO/scripts/gpu_check_report.py" chosen-device "$SCRATCH/devices.json") || return 1
     echo "chosen device: $chosen"
     [ "${chosen%%$'\t'*}" = GPU ]
 }
 
 kernel_tests() {
-    "$PY" -m pytest -q -p no:cacheprovider tests/raster tests/scene/test_renderer.py \
+    "$PY" -m pytest -q -p no:cacheprovider --rootdir "$REPO" "$REPO/tests/raster" "$REPO/tests/scene/test_renderer.py" \
         --junitxml="$SCRATCH/junit.xml" -o junit_family=xunit2
 }
 
 determinism() {
-    "$PY" scripts/gpu_check_determinism.py --out "$SCRATCH/determinism.json" --layouts "$LAYOUTS" $DETERMINISM_ARGS
+    "$PY" "$REPO/scripts/gpu_check_determinism.py" --out "$SCRATCH/determinism.json" --layouts "$LAYOUTS" $DETERMINISM_ARGS
 }
 
 bench_raster() {   # $1: a layout, or "default" for none named
@@ -137,7 +140,7 @@ bench_raster() {   # $1: a layout, or "default" for none named
 }
 
 fit_face() {
-    softras-cl fit-face examples/data/astronaut.png --landmarks examples/data/landmarks/astronaut.pts \
+    softras-cl fit-face "$REPO/examples/data/astronaut.png" --landmarks "$REPO/examples/data/landmarks/astronaut.pts" \
         --out "$SCRATCH/fit" --no-progress $FIT_ARGS
 }
 
@@ -165,15 +168,16 @@ run_steps() {
     step fit_face 120 fit_face
 }
 
-run_steps
+cd "$SCRATCH/work" && run_steps
 
 quick_flag=()
 [ "$QUICK" = 1 ] && quick_flag=(--quick)
-timeout 60 "$PY" scripts/gpu_check_report.py summary "$SCRATCH" "$OUT/gpu_check.json" "${quick_flag[@]}"
+timeout 60 "$PY" "$REPO/scripts/gpu_check_report.py" summary "$SCRATCH" "$OUT/gpu_check.json" "${quick_flag[@]}"
+summary_rc=$?
 cp "$SCRATCH/junit.xml" "$OUT/" 2> /dev/null
 for raster in "$SCRATCH"/bench_*/raster.json; do
     [ -f "$raster" ] && cp "$raster" "$OUT/$(basename "$(dirname "$raster")").json"
 done
 tar -czf "$OUT/gpu_check_files.tar.gz" -C "$SCRATCH" --exclude=site --exclude=bin \
     --exclude='*.npz' --exclude='*.ply' --exclude='*.obj' --exclude='*.mtl' .
-grep -q '"status": "ok"' "$OUT/gpu_check.json"
+exit $summary_rc

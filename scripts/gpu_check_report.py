@@ -3,7 +3,8 @@
     python3 scripts/gpu_check_report.py summary SCRATCH OUT.json [--quick]
     python3 scripts/gpu_check_report.py chosen-device DEVICES.json
 
-`summary` reads the scratch folder of gpu_check.sh (layout below) and writes OUT.json:
+`summary` reads the scratch folder of gpu_check.sh (layout below) and writes OUT.json (exit
+code 0 when its status is "ok", else 1):
 status ("ok", "failed" or "no_gpu"), the device (name, type, OpenCL and driver versions),
 the ICD search, each step's status and seconds, the test counts, the bench rows per kernel
 layout, the rows that bracket the published sizes (280 / 3.3k / 39k faces at 1024^2), the face
@@ -187,7 +188,7 @@ def main(argv=None) -> int:
         result = summary(args.scratch, args.quick)
         args.out.write_text(json.dumps(result, indent=2) + "\n")
         print(f"status: {result['status']}")
-        return 0
+        return 0 if result["status"] == "ok" else 1
     chosen = chosen_device(read_json(args.devices))
     if chosen is None:
         print(f"no chosen device in {args.devices}", file=sys.stderr)

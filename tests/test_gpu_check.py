@@ -1,0 +1,268 @@
+"""scripts/gpu_check.sh's parts that run without a GPU: the ICD finder (on fake file trees), the
+summary of a run (on fake step outputs), the determinism check (on this machine's device), the
+bare environment's package filter, and the script's plumbing when no step has time to run."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from support.scripts import REPO, load_script
+
+NVIDIA = "libnvidia-opencl.so.1"
+
+
+@pytest.fixture(scope="module")
+def icd():
+    return load_script("scripts/gpu_check_icd.py")
+
+
+@pytest.fixture(scope="module")
+def report():
+    return load_script("scripts/gpu_check_report.py")
+
+
+def touch(path: Path, text: str = "") -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
+
+
+# ---- the ICD finder ------------------------------------------------------------------------
+def test_driver_folders_are_searched_in_order_then_the_extra_folders(icd, tmp_path):
+    second = touch(tmp_path / "usr/local/nvidia/lib" / NVIDIA)
+    first = touch(tmp_path / "usr/local/nvidia/lib64" / NVIDIA)
+    extra = touch(tmp_path / "elsewhere" / NVIDIA)
+    touch(tmp_path / "usr/lib64/libOpenCL.so.1")
+    assert icd.in_driver_folders(NVIDIA, tmp_path, [str(tmp_path / "elsewhere"), ""]) == [first, second, extra]
+    assert icd.in_driver_folders("libamdocl64.so", tmp_path) == []
+
+
+def test_ldconfig_cache_lines_give_the_library_paths(icd):
+    text = ("1234 libs found in cache `/etc/ld.so.cache'\n"
+            f"\t{NVIDIA} (libc6,x86-64) => /usr/lib/x86_64-linux-gnu/{NVIDIA}\n"
+            "\tlibnvidia-opencl.so (libc6,x86-64) => /usr/lib/x86_64-linux-gnu/libnvidia-opencl.so\n"
+            "\tlibOpenCL.so.1 (libc6,x86-64) => /lib/x86_64-linux-gnu/libOpenCL.so.1\n")
+    assert icd.in_ldconfig_cache(NVIDIA, text) == [Path(f"/usr/lib/x86_64-linux-gnu/{NVIDIA}")]
+    assert icd.in_ldconfig_cache(NVIDIA, "") == []
+
+
+def test_walk_finds_nested_files_and_skips_the_kernel_file_systems(icd, tmp_path):
+    deep = touch(tmp_path / "opt/driver/580/lib" / NVIDIA)
+    touch(tmp_path / "proc/1/root" / NVIDIA)
+    touch(tmp_path / "sys/fs" / NVIDIA)
+    assert icd.walk_for(NVIDIA, tmp_path, 10.0) == ([deep], True)
+
+
+def test_walk_stops_at_its_time_limit(icd, tmp_path):
+    for i in range(3):
+        touch(tmp_path / f"d{i}/x")
+    found, complete = icd.walk_for(NVIDIA, tmp_path, 0.0)
+    assert found == [] and complete is False
+
+
+def test_later_searches_run_only_when_the_earlier_found_nothing(icd, tmp_path):
+    in_folder = touch(tmp_path / "usr/lib64" / NVIDIA)
+    elsewhere = touch(tmp_path / "opt/x" / NVIDIA)
+    ldconfig = f"\t{NVIDIA} (libc6,x86-64) => {elsewhere}\n"
+    r = icd.find_library(NVIDIA, tmp_path, ldconfig, 10.0)
+    assert r["found"] == str(in_folder) and r["searched"] == ["driver folders"] and r["walk_complete"] is None
+    in_folder.unlink()
+    r = icd.find_library(NVIDIA, tmp_path, ldconfig, 10.0)
+    assert r["found"] == str(elsewhere) and r["searched"] == ["driver folders", "ldconfig -p"]
+    # a stale cache entry (file gone) falls through to the walk
+    r = icd.find_library(NVIDIA, tmp_path, f"\t{NVIDIA} (libc6,x86-64) => {tmp_path}/gone/{NVIDIA}\n", 10.0)
+    assert r["found"] == str(elsewhere) and len(r["searched"]) == 3 and r["walk_complete"] is True
+    elsewhere.unlink()
+    r = icd.find_library(NVIDIA, tmp_path, "", 10.0)
+    assert r["found"] is None and r["candidates"] == []
+
+
+def test_main_registers_the_library_beside_the_system_icds(icd, tmp_path, capsys, monkeypatch):
+    root = tmp_path / "root"
+    lib = touch(root / "usr/local/nvidia/lib64" / NVIDIA)
+    touch(root / "etc/OpenCL/vendors/pocl.icd", "libpocl.so.2\n")
+    monkeypatch.setattr(icd, "ldconfig_text", lambda: "")
+    monkeypatch.delenv("LD_LIBRARY_PATH", raising=False)
+    vendors, out = tmp_path / "vendors", tmp_path / "icd.json"
+    assert icd.main(["--vendors", str(vendors), "--report", str(out), "--root", str(root)]) == 0
+    assert capsys.readouterr().out.strip() == str(lib.parent)
+    assert (vendors / "nvidia.icd").read_text() == f"{lib}\n"
+    saved = json.loads(out.read_text())
+    assert saved["found"] == str(lib)
+    assert saved["icd_files"] == {"nvidia.icd": str(lib), "pocl.icd": "libpocl.so.2"}
+
+
+def test_main_without_the_library_prints_nothing_and_keeps_the_system_icds(icd, tmp_path, capsys, monkeypatch):
+    root = tmp_path / "root"
+    touch(root / "etc/OpenCL/vendors/pocl.icd", "libpocl.so.2\n")
+    monkeypatch.setattr(icd, "ldconfig_text", lambda: "")
+    monkeypatch.delenv("LD_LIBRARY_PATH", raising=False)
+    out = tmp_path / "icd.json"
+    assert icd.main(["--vendors", str(tmp_path / "v"), "--report", str(out), "--root", str(root)]) == 0
+    assert capsys.readouterr().out == ""
+    saved = json.loads(out.read_text())
+    assert saved["found"] is None and saved["icd_files"] == {"pocl.icd": "libpocl.so.2"}
+
+
+def test_negative_walk_time_is_refused(icd, tmp_path):
+    with pytest.raises(SystemExit) as e:
+        icd.main(["--vendors", str(tmp_path), "--report", str(tmp_path / "r.json"), "--walk-seconds", "-1"])
+    assert e.value.code == 2
+
+
+# ---- the summary ---------------------------------------------------------------------------
+JUNIT = """<?xml version="1.0" encoding="utf-8"?><testsuites><testsuite name="pytest" errors="1"
+failures="1" skipped="2" tests="10" time="12.5"><testcase classname="tests.raster.test_a" name="ok"/>
+<testcase classname="tests.raster.test_a" name="bad"><failure message="x"/></testcase>
+<testcase classname="tests.raster.test_b" name="broken"><error message="y"/></testcase>
+</testsuite></testsuites>"""
+
+
+def bench_json(rows, device=None) -> str:
+    return json.dumps(dict(device=device, raster=[dict(r, stage_ms={}, pairs=1, ns_per_pair=1.0,
+                                                        fwdbwd_cpu_ms=1.0, fwd_ms=r["fwdbwd_ms"] / 2)
+                                                   for r in rows]))
+
+
+DEVICE = dict(name="NVIDIA H100 80GB HBM3", version="OpenCL 3.0 CUDA", platform="NVIDIA CUDA",
+              platform_version="OpenCL 3.0 CUDA 13.0.0", driver_version="580.159.04")
+DEVICES = [dict(device_name="NVIDIA H100 80GB HBM3", platform_name="NVIDIA CUDA", type="GPU",
+                platform_version="OpenCL 3.0 CUDA 13.0.0", chosen=True)]
+STEPS = ("install\tok\t0\t3.5\t60\nkernel_tests\tok\t0\t40.25\t150\nfit_face\tok\t0\t1.75\t120\n"
+         "bench_gpu\tok\t0\t20\t120\n")
+
+
+def fake_run(scratch: Path, steps: str = STEPS, junit: str = JUNIT, identical: bool = True) -> Path:
+    touch(scratch / "steps.tsv", steps)
+    touch(scratch / "junit.xml", junit)
+    touch(scratch / "devices.json", json.dumps(DEVICES))
+    touch(scratch / "nvidia_smi.csv", "NVIDIA H100 80GB HBM3, 580.159.04, 81559 MiB\n")
+    touch(scratch / "determinism.json", json.dumps(dict(device=DEVICE, identical=identical, runs=[])))
+    touch(scratch / "bench_gpu/raster.json", bench_json(
+        [dict(faces=f, size=1024, fwdbwd_ms=ms) for f, ms in ((320, 0.5), (5120, 1.0), (20480, 1.5), (81920, 4.0))],
+        DEVICE))
+    touch(scratch / "bench_cpu/raster.json", bench_json([dict(faces=20480, size=1024, fwdbwd_ms=3.0)], DEVICE))
+    return scratch
+
+
+def test_steps_table_is_read_with_blank_fields_as_none(report, tmp_path):
+    path = touch(tmp_path / "steps.tsv", "install\tok\t0\t3.50\t60\nfit_face\tskipped\t\t\t2\n")
+    assert report.read_steps(path) == [
+        dict(name="install", status="ok", rc=0, seconds=3.5, budget_s=60.0),
+        dict(name="fit_face", status="skipped", rc=None, seconds=None, budget_s=2.0)]
+    assert report.read_steps(tmp_path / "missing.tsv") == []
+
+
+def test_junit_counts(report, tmp_path):
+    counts = report.junit_counts(touch(tmp_path / "junit.xml", JUNIT))
+    assert counts == dict(tests=10, failures=1, errors=1, skipped=2, seconds=12.5, passed=6,
+                          failed_tests=["tests.raster.test_a::bad", "tests.raster.test_b::broken"])
+    assert report.junit_counts(tmp_path / "missing.xml") is None
+    assert report.junit_counts(touch(tmp_path / "cut.xml", JUNIT[:80])) is None
+
+
+def test_bench_rows_and_the_brackets_of_the_published_sizes(report, tmp_path):
+    rows = report.bench_rows(fake_run(tmp_path))
+    assert [(r["layout"], r["faces"]) for r in rows] == [
+        ("cpu", 20480), ("gpu", 320), ("gpu", 5120), ("gpu", 20480), ("gpu", 81920)]
+    gpu = {b["paper_faces"]: (b["below"] and b["below"]["faces"], b["above"] and b["above"]["faces"])
+           for b in report.paper_brackets(rows) if b["layout"] == "gpu"}
+    assert gpu == {280: (None, 320), 3300: (320, 5120), 39000: (20480, 81920)}
+
+
+def test_summary_of_a_good_run(report, tmp_path):
+    s = report.summary(fake_run(tmp_path), quick=False)
+    assert s["device"] == dict(DEVICE, type="GPU")
+    assert s["nvidia_smi"] == dict(name="NVIDIA H100 80GB HBM3", driver_version="580.159.04", memory_total="81559 MiB")
+    assert s["fit"] == dict(seconds=1.75, budget="default")
+    assert s["targets"]["bench_scene_fwdbwd_ms"] == dict(target=2.0, measured=1.5, layout="gpu", met=True)
+    assert s["targets"]["fit_s"] == dict(target=2.0, measured=1.75, met=True)
+    assert s["status"] == "failed"          # the JUnit file has a failure and an error
+
+
+@pytest.mark.parametrize("steps, junit, identical, expected", [
+    (STEPS, JUNIT.replace('errors="1"', 'errors="0"').replace('failures="1"', 'failures="0"'), True, "ok"),
+    (STEPS, JUNIT.replace('errors="1"', 'errors="0"').replace('failures="1"', 'failures="0"'), False, "failed"),
+    (STEPS + "bench_cpu\ttimeout\t124\t120\t120\n", JUNIT.replace('errors="1"', 'errors="0"').replace(
+        'failures="1"', 'failures="0"'), True, "failed"),
+    ("install\tok\t0\t1\t60\ngpu_present\tfailed\t1\t0.5\t20\n", "", True, "no_gpu"),
+])
+def test_overall_status(report, tmp_path, steps, junit, identical, expected):
+    assert report.summary(fake_run(tmp_path, steps, junit, identical), quick=False)["status"] == expected
+
+
+def test_summary_of_a_run_that_stopped_at_once(report, tmp_path):
+    touch(tmp_path / "steps.tsv", "install\tfailed\t1\t2\t60\n")
+    s = report.summary(tmp_path, quick=True)
+    assert s["status"] == "failed" and s["device"] is None and s["tests"] is None and s["bench"] == []
+    assert s["targets"]["fit_s"] == dict(target=2.0, measured=None, met=None)
+
+
+def test_main_writes_the_summary_and_its_exit_code_tells_the_status(report, tmp_path, capsys):
+    out = tmp_path / "gpu_check.json"
+    assert report.main(["summary", str(fake_run(tmp_path / "s")), str(out)]) == 1
+    assert json.loads(out.read_text())["status"] == "failed"
+    with pytest.raises(SystemExit):
+        report.main(["summary", str(tmp_path / "missing"), str(out)])
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_chosen_device(report, tmp_path, capsys):
+    devices = touch(tmp_path / "devices.json", json.dumps(DEVICES))
+    assert report.main(["chosen-device", str(devices)]) == 0
+    assert capsys.readouterr().out == "GPU\tNVIDIA H100 80GB HBM3\n"
+    touch(devices, json.dumps([dict(DEVICES[0], chosen=False)]))
+    assert report.main(["chosen-device", str(devices)]) == 1
+
+
+# ---- determinism (on this machine's OpenCL device) ----------------------------------------
+def test_determinism_check_hashes_three_runs_and_sees_a_changed_result(tmp_path):
+    det = load_script("scripts/gpu_check_determinism.py")
+    out = tmp_path / "d.json"
+    assert det.main(["--out", str(out), "--faces", "320", "--size", "32"]) == 0
+    saved = json.loads(out.read_text())
+    (run,) = saved["runs"]
+    assert saved["identical"] and run["identical"] and len(run["hashes"]) == 3 and run["layout"] is None
+    import numpy as np
+    rgb = np.zeros((1, 2, 2, 3), np.float32)
+    grads = dict(vertices=np.zeros((3, 3)), colors=np.zeros((3, 3)))
+    base = det.result_hash(SimpleNamespace(rgb=rgb, alpha=rgb[..., 0]), grads)
+    grads["colors"][1, 2] = np.nextafter(0.0, 1.0)
+    assert det.result_hash(SimpleNamespace(rgb=rgb, alpha=rgb[..., 0]), grads) != base
+    assert det.layout_list(" cpu, gpu,") == ["cpu", "gpu"] and det.layout_list("") == []
+
+
+# ---- the rehearsal's bare environment ------------------------------------------------------
+def test_bare_environment_keeps_only_the_gpu_image_packages():
+    bare = load_script("scripts/gpu_check_bare_env.py")
+
+    def dist(name, files):
+        return SimpleNamespace(metadata={"Name": name}, files=[Path(f) for f in files])
+
+    numpy = dist("numpy", ["numpy/__init__.py", "numpy-2.4.dist-info/METADATA", "../../../bin/f2py"])
+    kept = bare.image_distributions([numpy, dist("pyopencl", ["pyopencl/__init__.py"]),
+                                     dist("Typing_Extensions", ["typing_extensions.py"]),
+                                     dist("numpy", ["other/x.py"])])
+    assert [d.metadata["Name"] for d in kept] == ["numpy", "Typing_Extensions"] and kept[0] is numpy
+    assert bare.top_level_entries(numpy) == {"numpy", "numpy-2.4.dist-info"}
+
+
+# ---- the script's plumbing ----------------------------------------------------------------
+def test_script_with_no_time_left_skips_every_step_and_still_reports(tmp_path):
+    env = dict(os.environ, OUT=str(tmp_path / "out"), GPU_CHECK_SCRATCH=str(tmp_path / "scratch"),
+               GPU_CHECK_DEADLINE_S="0", GPU_CHECK_WHEELS=str(tmp_path / "no-wheels"),
+               GPU_CHECK_PYTHON=sys.executable)
+    proc = subprocess.run(["bash", str(REPO / "scripts/gpu_check.sh")], env=env, capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "install: skipped" in proc.stdout
+    summary = json.loads((tmp_path / "out/gpu_check.json").read_text())
+    assert summary["status"] == "failed"
+    assert summary["steps"] == [dict(name="install", status="skipped", rc=None, seconds=None, budget_s=0.0)]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["gpu_check.json", "gpu_check_files.tar.gz"]
