@@ -157,8 +157,13 @@ run_steps() {
     libdir=$(cat "$SCRATCH/icd_libdir" 2> /dev/null)
     [ -n "$libdir" ] && export LD_LIBRARY_PATH="$libdir${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
     [ "$DEVICE" = gpu ] || export SOFTRAS_CL_DEVICE="$DEVICE"
-    step devices 60 list_devices || return
-    if [ "$DEVICE" = gpu ]; then step gpu_present 20 gpu_present || return; fi
+    step devices 60 list_devices
+    local devices_rc=$?
+    if [ "$DEVICE" = gpu ]; then   # no OpenCL platform at all is a "no_gpu" too
+        step gpu_present 20 gpu_present || { cat "$LOGS/system.log" "$SCRATCH/icd.json"; return 1; }
+    elif ((devices_rc != 0)); then
+        return 1
+    fi
     step kernel_tests 150 kernel_tests
     step determinism 60 determinism
     local layout

@@ -35,14 +35,23 @@ SYSTEM_VENDORS = "etc/OpenCL/vendors"
 WALK_SECONDS = 20.0
 
 
+def is_shared_library(path: Path) -> bool:
+    """True if `path` is a file that starts like an ELF binary (not a stray copy or stub)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(4) == b"\x7fELF"
+    except OSError:
+        return False
+
+
 def in_driver_folders(name: str, root: Path, extra_folders=()) -> list[Path]:
-    """Existing files called `name` in DRIVER_FOLDERS under `root`, then in `extra_folders`
+    """ELF files called `name` in DRIVER_FOLDERS under `root`, then in `extra_folders`
     (absolute, e.g. LD_LIBRARY_PATH's entries), in that order, without repeats."""
     folders = [root / f for f in DRIVER_FOLDERS] + [Path(f) for f in extra_folders if f]
     found = []
     for folder in folders:
         path = folder / name
-        if path.is_file() and path not in found:
+        if is_shared_library(path) and path not in found:
             found.append(path)
     return found
 
@@ -67,15 +76,15 @@ def ldconfig_text() -> str:
 
 
 def walk_for(name: str, root: Path, seconds: float) -> tuple[list[Path], bool]:
-    """Files called `name` anywhere under `root` (symbolic links to folders not followed, the
-    folders of WALK_EXCLUDED at the top skipped); stops after `seconds`. Returns (paths found,
-    whether the walk finished)."""
+    """ELF files called `name` anywhere under `root` (symbolic links to folders not followed,
+    the folders of WALK_EXCLUDED at the top skipped); stops after `seconds`. Returns (paths
+    found, whether the walk finished)."""
     deadline = time.monotonic() + seconds
     found = []
     for folder, subfolders, files in os.walk(root):
         if Path(folder) == root:
             subfolders[:] = [d for d in subfolders if d not in WALK_EXCLUDED]
-        if name in files:
+        if name in files and is_shared_library(Path(folder) / name):
             found.append(Path(folder) / name)
         if time.monotonic() > deadline:
             return found, False
@@ -91,7 +100,7 @@ def find_library(name: str, root: Path, ldconfig: str, walk_seconds: float,
     candidates = in_driver_folders(name, root, extra_folders)
     if not candidates:
         searched.append("ldconfig -p")
-        candidates = [p for p in in_ldconfig_cache(name, ldconfig) if p.is_file()]
+        candidates = [p for p in in_ldconfig_cache(name, ldconfig) if is_shared_library(p)]
     walk_complete = None
     if not candidates:
         searched.append(f"walk of {root} (at most {walk_seconds:g} s)")

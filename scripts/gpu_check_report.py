@@ -4,8 +4,8 @@
     python3 scripts/gpu_check_report.py chosen-device DEVICES.json
 
 `summary` reads the scratch folder of gpu_check.sh (layout below) and writes OUT.json (exit
-code 0 when its status is "ok", else 1):
-status ("ok", "failed" or "no_gpu"), the device (name, type, OpenCL and driver versions),
+code 0 when its status is "ok", else 1): status ("ok", "failed" or "no_gpu", with a note
+saying what a GPU needs), the device (name, type, OpenCL and driver versions),
 the ICD search, each step's status and seconds, the test counts, the bench rows per kernel
 layout, the rows that bracket the published sizes (280 / 3.3k / 39k faces at 1024^2), the face
 fit's time, the determinism check and the targets with what was measured. Missing files leave
@@ -33,6 +33,10 @@ PAPER_IMAGE = 1024
 BENCH_SCENE = (20480, 1024)          # (faces, image size) of the raster bench's headline row
 TARGET_BENCH_SCENE_MS = 2.0          # fwd+bwd at BENCH_SCENE on an H100
 TARGET_FIT_S = 2.0                   # a face fit (default budget) end to end
+NO_GPU_NOTE = ("No OpenCL GPU: see icd (where the GPU's OpenCL library was looked for) and "
+               "logs/system.log in gpu_check_files.tar.gz (driver folders, nvidia-smi, ldconfig). "
+               "The GPU vendor's OpenCL driver (for NVIDIA: libnvidia-opencl.so.1, from the driver "
+               "package) is needed; pip's PoCL builds have no CUDA device to fall back on.")
 BENCH_KEYS = ("faces", "size", "fwd_ms", "fwdbwd_ms", "fwdbwd_cpu_ms", "pairs", "ns_per_pair",
               "stage_ms")
 
@@ -164,7 +168,8 @@ def summary(scratch: Path, quick: bool) -> dict:
     determinism = read_json(scratch / "determinism.json")
     rows = bench_rows(scratch)
     fit_s = step_seconds(steps, "fit_face")
-    return dict(status=overall_status(steps, tests, determinism), quick=quick,
+    status = overall_status(steps, tests, determinism)
+    return dict(status=status, note=NO_GPU_NOTE if status == "no_gpu" else None, quick=quick,
                 device=device_summary(scratch), nvidia_smi=nvidia_smi(scratch / "nvidia_smi.csv"),
                 icd=read_json(scratch / "icd.json"), devices=read_json(scratch / "devices.json"),
                 steps=steps, tests=tests, bench=rows, paper_sizes=paper_brackets(rows),

@@ -33,12 +33,18 @@ def touch(path: Path, text: str = "") -> Path:
     return path
 
 
+def fake_library(path: Path) -> Path:
+    """A file that starts like a shared library (the finder checks the ELF magic)."""
+    return touch(path, "\x7fELF fake")
+
+
 # ---- the ICD finder ------------------------------------------------------------------------
 def test_driver_folders_are_searched_in_order_then_the_extra_folders(icd, tmp_path):
-    second = touch(tmp_path / "usr/local/nvidia/lib" / NVIDIA)
-    first = touch(tmp_path / "usr/local/nvidia/lib64" / NVIDIA)
-    extra = touch(tmp_path / "elsewhere" / NVIDIA)
+    second = fake_library(tmp_path / "usr/local/nvidia/lib" / NVIDIA)
+    first = fake_library(tmp_path / "usr/local/nvidia/lib64" / NVIDIA)
+    extra = fake_library(tmp_path / "elsewhere" / NVIDIA)
     touch(tmp_path / "usr/lib64/libOpenCL.so.1")
+    touch(tmp_path / "usr/lib/x86_64-linux-gnu" / NVIDIA, "not a library")   # a stray copy
     assert icd.in_driver_folders(NVIDIA, tmp_path, [str(tmp_path / "elsewhere"), ""]) == [first, second, extra]
     assert icd.in_driver_folders("libamdocl64.so", tmp_path) == []
 
@@ -53,9 +59,9 @@ def test_ldconfig_cache_lines_give_the_library_paths(icd):
 
 
 def test_walk_finds_nested_files_and_skips_the_kernel_file_systems(icd, tmp_path):
-    deep = touch(tmp_path / "opt/driver/580/lib" / NVIDIA)
-    touch(tmp_path / "proc/1/root" / NVIDIA)
-    touch(tmp_path / "sys/fs" / NVIDIA)
+    deep = fake_library(tmp_path / "opt/driver/580/lib" / NVIDIA)
+    fake_library(tmp_path / "proc/1/root" / NVIDIA)
+    fake_library(tmp_path / "sys/fs" / NVIDIA)
     assert icd.walk_for(NVIDIA, tmp_path, 10.0) == ([deep], True)
 
 
@@ -67,8 +73,8 @@ def test_walk_stops_at_its_time_limit(icd, tmp_path):
 
 
 def test_later_searches_run_only_when_the_earlier_found_nothing(icd, tmp_path):
-    in_folder = touch(tmp_path / "usr/lib64" / NVIDIA)
-    elsewhere = touch(tmp_path / "opt/x" / NVIDIA)
+    in_folder = fake_library(tmp_path / "usr/lib64" / NVIDIA)
+    elsewhere = fake_library(tmp_path / "opt/x" / NVIDIA)
     ldconfig = f"\t{NVIDIA} (libc6,x86-64) => {elsewhere}\n"
     r = icd.find_library(NVIDIA, tmp_path, ldconfig, 10.0)
     assert r["found"] == str(in_folder) and r["searched"] == ["driver folders"] and r["walk_complete"] is None
@@ -85,7 +91,7 @@ def test_later_searches_run_only_when_the_earlier_found_nothing(icd, tmp_path):
 
 def test_main_registers_the_library_beside_the_system_icds(icd, tmp_path, capsys, monkeypatch):
     root = tmp_path / "root"
-    lib = touch(root / "usr/local/nvidia/lib64" / NVIDIA)
+    lib = fake_library(root / "usr/local/nvidia/lib64" / NVIDIA)
     touch(root / "etc/OpenCL/vendors/pocl.icd", "libpocl.so.2\n")
     monkeypatch.setattr(icd, "ldconfig_text", lambda: "")
     monkeypatch.delenv("LD_LIBRARY_PATH", raising=False)
@@ -194,7 +200,9 @@ def test_summary_of_a_good_run(report, tmp_path):
     ("install\tok\t0\t1\t60\ngpu_present\tfailed\t1\t0.5\t20\n", "", True, "no_gpu"),
 ])
 def test_overall_status(report, tmp_path, steps, junit, identical, expected):
-    assert report.summary(fake_run(tmp_path, steps, junit, identical), quick=False)["status"] == expected
+    s = report.summary(fake_run(tmp_path, steps, junit, identical), quick=False)
+    assert s["status"] == expected
+    assert (s["note"] is not None) == (expected == "no_gpu")
 
 
 def test_summary_of_a_run_that_stopped_at_once(report, tmp_path):
