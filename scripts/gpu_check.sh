@@ -8,8 +8,8 @@
 # carried wheels (scripts/fetch_gpu_wheels.sh fills .whl/) and make the source tree importable;
 # list the machine's GPU driver files; find the GPU's OpenCL library and register it as an ICD;
 # `softras-cl devices`; the kernel tests against the float64 reference (tests/raster and the
-# renderer's); determinism (the same forward+backward three times, hashed); the raster bench at
-# 1024^2 for each kernel layout; a face fit end to end. Writes into $OUT: gpu_check.json (the
+# renderer's); determinism (the same forward+backward three times, hashed); a face fit end to
+# end; the raster bench at 1024^2 for each kernel layout. Writes into $OUT: gpu_check.json (the
 # summary: scripts/gpu_check_report.py), junit.xml, bench_LAYOUT.json (the bench's raster.json)
 # and gpu_check_files.tar.gz (every log and report). Exit code 0 when the summary says "ok".
 #
@@ -57,18 +57,26 @@ rm -rf "$SCRATCH" && mkdir -p "$LOGS" "$SITE/wheels" "$SITE/shim/softras_cl" "$S
 # the tests' `tests.` imports. The steps run in $SCRATCH/work, since Python puts the folder it
 # starts in before all of these, and the root's own softras_cl/ lacks kernels/ and fitting/.
 export PYTHONPATH="$SITE/wheels:$SITE/shim:$REPO${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
-printf '#!/bin/sh\nexec "%s" -c "import sys; from softras_cl.cli import main; sys.exit(main())" "$@"\n' \
+printf '#!/bin/sh\nexec "%s" -c "import sys; sys.argv[0] = \x27softras-cl\x27; from softras_cl.cli import main; sys.exit(main())" "$@"\n' \
     "$PY" > "$SCRATCH/bin/softras-cl" && chmod +x "$SCRATCH/bin/softras-cl"
 export PATH="$SCRATCH/bin:$PATH"
+# Kernel binaries cached in the scratch folder, so that every run starts cold as on a fresh
+# machine, unless SOFTRAS_CL_CACHE_DIR names a cache (a rehearsal on a slow CPU).
+export SOFTRAS_CL_CACHE_DIR="${SOFTRAS_CL_CACHE_DIR:-$SCRATCH/program_cache}"
+
+# limit BUDGET_S: the time limit a step of BUDGET_S gets now (less when the deadline is nearer).
+limit() {
+    local left=$((DEADLINE_S - (SECONDS - START)))
+    echo $(($1 < left ? $1 : left))
+}
 
 # step NAME BUDGET_S FUNCTION [ARGS...]: run the exported FUNCTION in a new bash with its output
 # in logs/NAME.log, killed after BUDGET_S (less when the deadline is nearer); append NAME,
 # status (ok, failed, timeout, skipped), exit code, seconds and limit to steps.tsv.
 step() {
-    local name=$1 budget=$2 left rc status t0 seconds
+    local name=$1 budget rc status t0 seconds
+    budget=$(limit "$2")
     shift 2
-    left=$((DEADLINE_S - (SECONDS - START)))
-    ((budget > left)) && budget=$left
     if ((budget < 5)); then
         printf '%s\tskipped\t\t\t%s\n' "$name" "$budget" >> "$SCRATCH/steps.tsv"
         echo "== $name: skipped (deadline)"
@@ -87,7 +95,7 @@ step() {
 }
 
 install_packages() {
-    if compgen -G "$WHEELS/*.whl" > /dev/null; then   # $WHEELS: absolute (set below)
+    if compgen -G "$WHEELS/*.whl" > /dev/null; then
         "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
             --target "$SITE/wheels" "$WHEELS"/*.whl || return 1
     fi
@@ -124,9 +132,10 @@ gpu_present() {
     [ "${chosen%%$'\t'*}" = GPU ]
 }
 
-kernel_tests() {
-    "$PY" -m pytest -q -p no:cacheprovider --rootdir "$REPO" "$REPO/tests/raster" "$REPO/tests/scene/test_renderer.py" \
-        --junitxml="$SCRATCH/junit.xml" -o junit_family=xunit2
+kernel_tests() {   # $1: seconds; the session stops cleanly 15 s before (JUnit XML still written)
+    GPU_CHECK_PYTEST_DEADLINE=$(($(date +%s) + $1 - 15)) PYTHONPATH="$PYTHONPATH:$REPO/scripts" \
+        "$PY" -m pytest -q -p no:cacheprovider -p gpu_check_pytest_deadline --rootdir "$REPO" \
+        "$REPO/tests/raster" "$REPO/tests/scene/test_renderer.py" --junitxml="$SCRATCH/junit.xml" -o junit_family=xunit2
 }
 
 determinism() {
@@ -164,25 +173,25 @@ run_steps() {
     elif ((devices_rc != 0)); then
         return 1
     fi
-    step kernel_tests 150 kernel_tests
+    step kernel_tests 180 kernel_tests "$(limit 180)"
     step determinism 60 determinism
+    step fit_face 120 fit_face
     local layout
     for layout in $(tr ',' ' ' <<< "${LAYOUTS:-default}"); do
         step "bench_$layout" 120 bench_raster "$layout"
     done
-    step fit_face 120 fit_face
 }
 
 cd "$SCRATCH/work" && run_steps
 
 quick_flag=()
 [ "$QUICK" = 1 ] && quick_flag=(--quick)
-timeout 60 "$PY" "$REPO/scripts/gpu_check_report.py" summary "$SCRATCH" "$OUT/gpu_check.json" "${quick_flag[@]}"
+timeout 30 "$PY" "$REPO/scripts/gpu_check_report.py" summary "$SCRATCH" "$OUT/gpu_check.json" "${quick_flag[@]}"
 summary_rc=$?
 cp "$SCRATCH/junit.xml" "$OUT/" 2> /dev/null
 for raster in "$SCRATCH"/bench_*/raster.json; do
     [ -f "$raster" ] && cp "$raster" "$OUT/$(basename "$(dirname "$raster")").json"
 done
-tar -czf "$OUT/gpu_check_files.tar.gz" -C "$SCRATCH" --exclude=site --exclude=bin \
+tar -czf "$OUT/gpu_check_files.tar.gz" -C "$SCRATCH" --exclude=site --exclude=bin --exclude=program_cache \
     --exclude='*.npz' --exclude='*.ply' --exclude='*.obj' --exclude='*.mtl' .
 exit $summary_rc

@@ -177,6 +177,25 @@ def summary(scratch: Path, quick: bool) -> dict:
                 determinism=determinism, targets=targets(rows, fit_s))
 
 
+def digest(result: dict) -> str:
+    """A few lines for a terminal: status, device, tests, the bench scene per layout, the fit,
+    determinism."""
+    device, tests, det = result["device"] or {}, result["tests"], result["determinism"]
+    scene = {r["layout"]: r["fwdbwd_ms"] for r in result["bench"] if (r["faces"], r["size"]) == BENCH_SCENE}
+    lines = [f"status: {result['status']}",
+             f"device: {device.get('name')} ({device.get('type')}; {device.get('version')}; "
+             f"driver {device.get('driver_version')})",
+             "tests: " + (f"{tests['passed']} passed, {tests['failures'] + tests['errors']} failed, "
+                          f"{tests['skipped']} skipped of {tests['tests']} run" if tests else "no report"),
+             "bench scene fwd+bwd ms: " + (", ".join(f"{k} {v:.3f}" for k, v in sorted(scene.items()))
+                                           or "not run"),
+             f"face fit s: {result['fit']['seconds']}",
+             f"reruns identical: {det.get('identical') if det else None}"]
+    if result["note"]:
+        lines.append(result["note"])
+    return "\n".join(lines)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -192,7 +211,7 @@ def main(argv=None) -> int:
             p.error(f"scratch folder {args.scratch} does not exist")
         result = summary(args.scratch, args.quick)
         args.out.write_text(json.dumps(result, indent=2) + "\n")
-        print(f"status: {result['status']}")
+        print(digest(result))
         return 0 if result["status"] == "ok" else 1
     chosen = chosen_device(read_json(args.devices))
     if chosen is None:

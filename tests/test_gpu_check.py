@@ -205,6 +205,19 @@ def test_overall_status(report, tmp_path, steps, junit, identical, expected):
     assert (s["note"] is not None) == (expected == "no_gpu")
 
 
+def test_digest_names_what_was_measured(report, tmp_path):
+    lines = report.digest(report.summary(fake_run(tmp_path), quick=False)).splitlines()
+    assert lines[:6] == [
+        "status: failed",
+        "device: NVIDIA H100 80GB HBM3 (GPU; OpenCL 3.0 CUDA; driver 580.159.04)",
+        "tests: 6 passed, 2 failed, 2 skipped of 10 run",
+        "bench scene fwd+bwd ms: cpu 3.000, gpu 1.500",
+        "face fit s: 1.75",
+        "reruns identical: True"]
+    stopped = report.digest(report.summary(touch(tmp_path / "s/steps.tsv", "").parent, quick=True))
+    assert "tests: no report" in stopped and "bench scene fwd+bwd ms: not run" in stopped
+
+
 def test_summary_of_a_run_that_stopped_at_once(report, tmp_path):
     touch(tmp_path / "steps.tsv", "install\tfailed\t1\t2\t60\n")
     s = report.summary(tmp_path, quick=True)
@@ -274,3 +287,29 @@ def test_script_with_no_time_left_skips_every_step_and_still_reports(tmp_path):
     assert summary["status"] == "failed"
     assert summary["steps"] == [dict(name="install", status="skipped", rc=None, seconds=None, budget_s=0.0)]
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["gpu_check.json", "gpu_check_files.tar.gz"]
+
+
+# ---- the tests' deadline -------------------------------------------------------------------
+def run_pytest_with_deadline(tmp_path, deadline):
+    touch(tmp_path / "t/test_three.py", "def test_a(): pass\ndef test_b(): pass\ndef test_c(): pass\n")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO / "scripts"), os.environ.get("PYTHONPATH", "")]))
+    env.pop("GPU_CHECK_PYTEST_DEADLINE", None)
+    if deadline is not None:
+        env["GPU_CHECK_PYTEST_DEADLINE"] = deadline
+    junit = tmp_path / "junit.xml"
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p",
+                           "gpu_check_pytest_deadline", f"--junitxml={junit}", str(tmp_path / "t")],
+                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
+    return proc, junit
+
+
+@pytest.mark.parametrize("deadline, code, ran", [(None, 0, 3), ("9e99", 0, 3), ("1", 2, 1)])
+def test_pytest_stops_at_the_deadline_and_still_writes_junit(report, tmp_path, deadline, code, ran):
+    proc, junit = run_pytest_with_deadline(tmp_path, deadline)
+    assert proc.returncode == code, proc.stdout + proc.stderr
+    assert report.junit_counts(junit)["tests"] == ran
+
+
+def test_pytest_deadline_that_is_no_number_is_named(tmp_path):
+    proc, _ = run_pytest_with_deadline(tmp_path, "soon")
+    assert proc.returncode != 0 and "GPU_CHECK_PYTEST_DEADLINE must be seconds" in proc.stderr
