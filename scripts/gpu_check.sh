@@ -125,6 +125,14 @@ list_devices() {
     softras-cl devices && softras-cl devices --json > "$SCRATCH/devices.json"
 }
 
+loader_diagnosis() {   # why the ICD loader took no GPU: its debug log, the driver's missing libraries
+    local libdir
+    libdir=$(cat "$SCRATCH/icd_libdir" 2> /dev/null)
+    [ -n "$libdir" ] && ldd "$libdir/libnvidia-opencl.so.1"
+    OCL_ICD_DEBUG=7 softras-cl devices 2>&1 | grep -v -E '^ocl-icd\(.*(Entering|return: )' | head -n 60
+    true
+}
+
 gpu_present() {
     local chosen
     chosen=$("$PY" "$REPO/scripts/gpu_check_report.py" chosen-device "$SCRATCH/devices.json") || return 1
@@ -154,7 +162,7 @@ fit_face() {
 }
 
 export REPO PY WHEELS SITE SCRATCH LAYOUTS BENCH_ARGS DETERMINISM_ARGS FIT_ARGS
-export -f install_packages system_inventory find_opencl_driver list_devices gpu_present kernel_tests \
+export -f install_packages system_inventory find_opencl_driver list_devices loader_diagnosis gpu_present kernel_tests \
     determinism bench_raster fit_face
 
 run_steps() {
@@ -169,7 +177,11 @@ run_steps() {
     step devices 60 list_devices
     local devices_rc=$?
     if [ "$DEVICE" = gpu ]; then   # no OpenCL platform at all is a "no_gpu" too
-        step gpu_present 20 gpu_present || { cat "$LOGS/system.log" "$SCRATCH/icd.json"; return 1; }
+        if ! step gpu_present 20 gpu_present; then
+            step loader_diagnosis 30 loader_diagnosis
+            cat "$LOGS/system.log" "$SCRATCH/icd.json" "$LOGS/loader_diagnosis.log"
+            return 1
+        fi
     elif ((devices_rc != 0)); then
         return 1
     fi
