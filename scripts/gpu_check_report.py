@@ -17,7 +17,7 @@ chosen (exit 1 when none is).
 Scratch folder: steps.tsv (name, status, exit code, seconds, budget; one step a line),
 icd.json (scripts/gpu_check_icd.py), devices.json, nvidia_smi.csv (name, driver_version,
 memory.total), junit.xml (pytest), determinism.json (scripts/gpu_check_determinism.py),
-bench_LAYOUT/raster.json (`softras-cl bench raster`; LAYOUT "default" when no layout was named).
+bench/raster.json (`softras-cl bench raster`, one row per face count, size and layout).
 Standard library only.
 """
 from __future__ import annotations
@@ -80,15 +80,12 @@ def junit_counts(path: Path) -> dict | None:
 
 
 def bench_rows(scratch: Path) -> list[dict]:
-    """The speed rows of every bench_LAYOUT/raster.json, each with its layout, sorted by layout,
-    size and faces. A row that names its own layout keeps it."""
-    rows = []
-    for path in sorted(scratch.glob("bench_*/raster.json")):
-        result = read_json(path) or {}
-        layout = path.parent.name.removeprefix("bench_")
-        for row in result.get("raster", []):
-            rows.append(dict(layout=row.get("layout", layout), **{k: row.get(k) for k in BENCH_KEYS}))
-    return sorted(rows, key=lambda r: (str(r["layout"]), r["size"] or 0, r["faces"] or 0))
+    """The speed rows of bench/raster.json with their layout ("default" for a row that names
+    none), sorted by layout, size and faces."""
+    result = read_json(scratch / "bench" / "raster.json") or {}
+    rows = [dict(layout=row.get("layout") or "default", **{k: row.get(k) for k in BENCH_KEYS})
+            for row in result.get("raster", [])]
+    return sorted(rows, key=lambda r: (r["layout"], r["size"] or 0, r["faces"] or 0))
 
 
 def paper_brackets(rows: list[dict]) -> list[dict]:
@@ -112,8 +109,7 @@ def chosen_device(devices: list | None) -> dict | None:
 def device_summary(scratch: Path) -> dict | None:
     """Name, type, platform, OpenCL and driver versions of the device the steps ran on (from the
     determinism or bench reports, the type from devices.json); None when no step got that far."""
-    reports = [read_json(scratch / "determinism.json")]
-    reports += [read_json(p) for p in sorted(scratch.glob("bench_*/raster.json"))]
+    reports = [read_json(scratch / "determinism.json"), read_json(scratch / "bench" / "raster.json")]
     device = next((r["device"] for r in reports if r and r.get("device")), None)
     chosen = chosen_device(read_json(scratch / "devices.json"))
     if device is None and chosen is None:

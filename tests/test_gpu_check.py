@@ -136,12 +136,16 @@ def bench_json(rows, device=None) -> str:
                                                    for r in rows]))
 
 
+def bench_row(layout, faces, fwdbwd_ms, size=1024):
+    return dict(layout=layout, layout_asked=layout, faces=faces, size=size, fwdbwd_ms=fwdbwd_ms)
+
+
 DEVICE = dict(name="NVIDIA H100 80GB HBM3", version="OpenCL 3.0 CUDA", platform="NVIDIA CUDA",
               platform_version="OpenCL 3.0 CUDA 13.0.0", driver_version="580.159.04")
 DEVICES = [dict(device_name="NVIDIA H100 80GB HBM3", platform_name="NVIDIA CUDA", type="GPU",
                 platform_version="OpenCL 3.0 CUDA 13.0.0", chosen=True)]
 STEPS = ("install\tok\t0\t3.5\t60\nkernel_tests\tok\t0\t40.25\t150\nfit_face\tok\t0\t1.75\t120\n"
-         "bench_gpu\tok\t0\t20\t120\n")
+         "bench_raster\tok\t0\t20\t200\n")
 
 
 def fake_run(scratch: Path, steps: str = STEPS, junit: str = JUNIT, identical: bool = True) -> Path:
@@ -150,10 +154,8 @@ def fake_run(scratch: Path, steps: str = STEPS, junit: str = JUNIT, identical: b
     touch(scratch / "devices.json", json.dumps(DEVICES))
     touch(scratch / "nvidia_smi.csv", "NVIDIA H100 80GB HBM3, 580.159.04, 81559 MiB\n")
     touch(scratch / "determinism.json", json.dumps(dict(device=DEVICE, identical=identical, runs=[])))
-    touch(scratch / "bench_gpu/raster.json", bench_json(
-        [dict(faces=f, size=1024, fwdbwd_ms=ms) for f, ms in ((320, 0.5), (5120, 1.0), (20480, 1.5), (81920, 4.0))],
-        DEVICE))
-    touch(scratch / "bench_cpu/raster.json", bench_json([dict(faces=20480, size=1024, fwdbwd_ms=3.0)], DEVICE))
+    rows = [bench_row("gpu", f, ms) for f, ms in ((320, 0.5), (5120, 1.0), (20480, 1.5), (81920, 4.0))]
+    touch(scratch / "bench/raster.json", bench_json(rows + [bench_row("cpu", 20480, 3.0)], DEVICE))
     return scratch
 
 
@@ -180,6 +182,9 @@ def test_bench_rows_and_the_brackets_of_the_published_sizes(report, tmp_path):
     gpu = {b["paper_faces"]: (b["below"] and b["below"]["faces"], b["above"] and b["above"]["faces"])
            for b in report.paper_brackets(rows) if b["layout"] == "gpu"}
     assert gpu == {280: (None, 320), 3300: (320, 5120), 39000: (20480, 81920)}
+    # a bench from before --layout: rows without a layout
+    touch(tmp_path / "old/bench/raster.json", bench_json([dict(faces=320, size=64, fwdbwd_ms=2.0)]))
+    assert [r["layout"] for r in report.bench_rows(tmp_path / "old")] == ["default"]
 
 
 def test_summary_of_a_good_run(report, tmp_path):
@@ -195,7 +200,7 @@ def test_summary_of_a_good_run(report, tmp_path):
 @pytest.mark.parametrize("steps, junit, identical, expected", [
     (STEPS, JUNIT.replace('errors="1"', 'errors="0"').replace('failures="1"', 'failures="0"'), True, "ok"),
     (STEPS, JUNIT.replace('errors="1"', 'errors="0"').replace('failures="1"', 'failures="0"'), False, "failed"),
-    (STEPS + "bench_cpu\ttimeout\t124\t120\t120\n", JUNIT.replace('errors="1"', 'errors="0"').replace(
+    (STEPS + "bench_raster\ttimeout\t124\t200\t200\n", JUNIT.replace('errors="1"', 'errors="0"').replace(
         'failures="1"', 'failures="0"'), True, "failed"),
     ("install\tok\t0\t1\t60\ngpu_present\tfailed\t1\t0.5\t20\n", "", True, "no_gpu"),
 ])
