@@ -292,29 +292,3 @@ def test_script_with_no_time_left_skips_every_step_and_still_reports(tmp_path):
     assert summary["status"] == "failed"
     assert summary["steps"] == [dict(name="install", status="skipped", rc=None, seconds=None, budget_s=0.0)]
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["gpu_check.json", "gpu_check_files.tar.gz"]
-
-
-# ---- the tests' deadline -------------------------------------------------------------------
-def run_pytest_with_deadline(tmp_path, deadline):
-    touch(tmp_path / "t/test_three.py", "def test_a(): pass\ndef test_b(): pass\ndef test_c(): pass\n")
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO / "scripts"), os.environ.get("PYTHONPATH", "")]))
-    env.pop("GPU_CHECK_PYTEST_DEADLINE", None)
-    if deadline is not None:
-        env["GPU_CHECK_PYTEST_DEADLINE"] = deadline
-    junit = tmp_path / "junit.xml"
-    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p",
-                           "gpu_check_pytest_deadline", f"--junitxml={junit}", str(tmp_path / "t")],
-                          cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
-    return proc, junit
-
-
-@pytest.mark.parametrize("deadline, code, ran", [(None, 0, 3), ("9e99", 0, 3), ("1", 2, 1)])
-def test_pytest_stops_at_the_deadline_and_still_writes_junit(report, tmp_path, deadline, code, ran):
-    proc, junit = run_pytest_with_deadline(tmp_path, deadline)
-    assert proc.returncode == code, proc.stdout + proc.stderr
-    assert report.junit_counts(junit)["tests"] == ran
-
-
-def test_pytest_deadline_that_is_no_number_is_named(tmp_path):
-    proc, _ = run_pytest_with_deadline(tmp_path, "soon")
-    assert proc.returncode != 0 and "GPU_CHECK_PYTEST_DEADLINE must be seconds" in proc.stderr
