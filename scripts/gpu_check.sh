@@ -7,9 +7,9 @@
 # Steps, each under its own time limit, so one stuck step cannot eat the call: install the
 # carried wheels (scripts/fetch_gpu_wheels.sh fills .whl/) and make the source tree importable;
 # list the machine's GPU driver files; find the GPU's OpenCL library and register it as an ICD;
-# `softras-cl devices`; the kernel tests against the float64 reference (tests/raster and the
-# renderer's); determinism (the same forward+backward three times, hashed); a face fit end to
-# end; the raster bench at 1024^2 with each kernel layout. Writes into $OUT: gpu_check.json (the
+# `softras-cl devices`; determinism (the same forward+backward three times, hashed); a face fit
+# end to end; the raster bench at 1024^2 with each kernel layout; the kernel tests against the
+# float64 reference (tests/raster and the renderer's). Writes into $OUT: gpu_check.json (the
 # summary: scripts/gpu_check_report.py), junit.xml, bench_raster.json (the bench's raster.json)
 # and gpu_check_files.tar.gz (every log and report). Exit code 0 when the summary says "ok".
 #
@@ -178,10 +178,11 @@ run_steps() {
     elif ((devices_rc != 0)); then
         return 1
     fi
-    step kernel_tests 180 kernel_tests
+    # the measurements first; the tests last, with what is left (they are interrupted cleanly)
     step determinism 60 determinism
     step fit_face 120 fit_face
     step bench_raster 200 bench_raster
+    step kernel_tests 300 kernel_tests
 }
 
 cd "$SCRATCH/work" && run_steps
