@@ -8,7 +8,7 @@ code 0 when its status is "ok", else 1): status ("ok", "failed" or "no_gpu", wit
 saying what a GPU needs), the device (name, type, OpenCL and driver versions),
 the ICD search, each step's status and seconds, the test counts, the bench rows per kernel
 layout, the rows that bracket the published sizes (280 / 3.3k / 39k faces at 1024^2), the face
-fit's time, the determinism check and the targets with what was measured. Missing files leave
+fit's time (end to end, and as the fit reports it), the determinism check and the targets with what was measured. Missing files leave
 their entries None: a run that stopped early still gets a summary.
 
 `chosen-device` prints "TYPE<tab>NAME" of the device that `softras-cl devices --json` marked as
@@ -17,7 +17,8 @@ chosen (exit 1 when none is).
 Scratch folder: steps.tsv (name, status, exit code, seconds, budget; one step a line),
 icd.json (scripts/gpu_check_icd.py), devices.json, nvidia_smi.csv (name, driver_version,
 memory.total), junit.xml (pytest), determinism.json (scripts/gpu_check_determinism.py),
-bench/raster.json (`softras-cl bench raster`, one row per face count, size and layout).
+bench/raster.json (`softras-cl bench raster`, one row per face count, size and layout),
+fit/complete.json (`softras-cl fit-face`; its "seconds": the fit without start-up).
 Standard library only.
 """
 from __future__ import annotations
@@ -164,12 +165,14 @@ def summary(scratch: Path, quick: bool) -> dict:
     determinism = read_json(scratch / "determinism.json")
     rows = bench_rows(scratch)
     fit_s = step_seconds(steps, "fit_face")
+    fit_report = read_json(scratch / "fit" / "complete.json") or {}
     status = overall_status(steps, tests, determinism)
     return dict(status=status, note=NO_GPU_NOTE if status == "no_gpu" else None, quick=quick,
                 device=device_summary(scratch), nvidia_smi=nvidia_smi(scratch / "nvidia_smi.csv"),
                 icd=read_json(scratch / "icd.json"), devices=read_json(scratch / "devices.json"),
                 steps=steps, tests=tests, bench=rows, paper_sizes=paper_brackets(rows),
-                fit=dict(seconds=fit_s, budget="fast" if quick else "default"),
+                fit=dict(seconds=fit_s, fit_seconds=fit_report.get("seconds"),
+                         budget="fast" if quick else "default"),
                 determinism=determinism, targets=targets(rows, fit_s))
 
 

@@ -156,6 +156,7 @@ def fake_run(scratch: Path, steps: str = STEPS, junit: str = JUNIT, identical: b
     touch(scratch / "determinism.json", json.dumps(dict(device=DEVICE, identical=identical, runs=[])))
     rows = [bench_row("gpu", f, ms) for f, ms in ((320, 0.5), (5120, 1.0), (20480, 1.5), (81920, 4.0))]
     touch(scratch / "bench/raster.json", bench_json(rows + [bench_row("cpu", 20480, 3.0)], DEVICE))
+    touch(scratch / "fit/complete.json", json.dumps(dict(seconds=1.25)))
     return scratch
 
 
@@ -191,7 +192,7 @@ def test_summary_of_a_good_run(report, tmp_path):
     s = report.summary(fake_run(tmp_path), quick=False)
     assert s["device"] == dict(DEVICE, type="GPU")
     assert s["nvidia_smi"] == dict(name="NVIDIA H100 80GB HBM3", driver_version="580.159.04", memory_total="81559 MiB")
-    assert s["fit"] == dict(seconds=1.75, budget="default")
+    assert s["fit"] == dict(seconds=1.75, fit_seconds=1.25, budget="default")
     assert s["targets"]["bench_scene_fwdbwd_ms"] == dict(target=2.0, measured=1.5, layout="gpu", met=True)
     assert s["targets"]["fit_s"] == dict(target=2.0, measured=1.75, met=True)
     assert s["status"] == "failed"          # the JUnit file has a failure and an error
