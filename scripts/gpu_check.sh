@@ -51,14 +51,16 @@ else   # the published sizes (280 / 3.3k / 39k faces) lie between these icospher
     FIT_ARGS="--budget default"
 fi
 
-rm -rf "$SCRATCH" && mkdir -p "$LOGS" "$SITE/wheels" "$SITE/shim/softras_cl" "$SCRATCH/bin" "$SCRATCH/work" "$OUT" || exit 1
+rm -rf "$SCRATCH" || exit 1
+mkdir -p "$LOGS" "$SITE/wheels" "$SITE/shim/softras_cl" "$SCRATCH/bin" "$SCRATCH/work" "$OUT" || exit 1
 # The source tree importable as installed, without a build: softras_cl/ with kernels/ and
 # fitting/ inside (pyproject.toml's package-dir) comes first; the repository's root after it, for
 # the tests' `tests.` imports. The steps run in $SCRATCH/work, since Python puts the folder it
 # starts in before all of these, and the root's own softras_cl/ lacks kernels/ and fitting/.
 export PYTHONPATH="$SITE/wheels:$SITE/shim:$REPO${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
-printf '#!/bin/sh\nexec "%s" -c "import sys; sys.argv[0] = \x27softras-cl\x27; from softras_cl.cli import main; sys.exit(main())" "$@"\n' \
-    "$PY" > "$SCRATCH/bin/softras-cl" && chmod +x "$SCRATCH/bin/softras-cl"
+MAIN="import sys; sys.argv[0] = 'softras-cl'; from softras_cl.cli import main; sys.exit(main())"
+printf '#!/bin/sh\nexec "%s" -c "%s" "$@"\n' "$PY" "$MAIN" > "$SCRATCH/bin/softras-cl"
+chmod +x "$SCRATCH/bin/softras-cl"
 export PATH="$SCRATCH/bin:$PATH"
 # Kernel binaries cached in the scratch folder, so that every run starts cold as on a fresh
 # machine, unless SOFTRAS_CL_CACHE_DIR names a cache (a rehearsal on a slow CPU).
@@ -96,9 +98,11 @@ install_packages() {
             --target "$SITE/wheels" "$WHEELS"/*.whl || return 1
     fi
     ln -s "$REPO"/softras_cl/* "$SITE/shim/softras_cl/" || return 1
-    ln -s "$REPO/kernels" "$SITE/shim/softras_cl/kernels" && ln -s "$REPO/fitting" "$SITE/shim/softras_cl/fitting" || return 1
-    "$PY" -c "import pyopencl, trimesh, png, nlopt, softras_cl.fitting.solver, softras_cl.kernels, softras_cl.raster.rasterizer
-print('python', __import__('sys').version.split()[0], 'pyopencl', pyopencl.VERSION_TEXT)"
+    ln -s "$REPO/kernels" "$SITE/shim/softras_cl/kernels" || return 1
+    ln -s "$REPO/fitting" "$SITE/shim/softras_cl/fitting" || return 1
+    "$PY" -c "import sys, pyopencl, trimesh, png, nlopt
+import softras_cl.fitting.solver, softras_cl.kernels, softras_cl.raster.rasterizer
+print('python', sys.version.split()[0], 'pyopencl', pyopencl.VERSION_TEXT)"
 }
 
 system_inventory() {   # what the machine holds of GPU drivers and OpenCL (read when no GPU shows)
@@ -106,7 +110,8 @@ system_inventory() {   # what the machine holds of GPU drivers and OpenCL (read 
     uname -a
     "$PY" --version
     nvidia-smi
-    nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader > "$SCRATCH/nvidia_smi.csv"
+    nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader \
+        > "$SCRATCH/nvidia_smi.csv"
     ls -la /usr/local/nvidia /usr/local/nvidia/lib64 /usr/local/nvidia/lib /etc/OpenCL/vendors
     ls /usr/lib/x86_64-linux-gnu | grep -i -E 'nvidia|cuda|opencl'
     ldconfig -p | grep -i -E 'opencl|nvidia-opencl|libcuda'
@@ -114,7 +119,8 @@ system_inventory() {   # what the machine holds of GPU drivers and OpenCL (read 
 }
 
 find_opencl_driver() {
-    "$PY" "$REPO/scripts/gpu_check_icd.py" --vendors "$SCRATCH/vendors" --report "$SCRATCH/icd.json" > "$SCRATCH/icd_libdir"
+    "$PY" "$REPO/scripts/gpu_check_icd.py" --vendors "$SCRATCH/vendors" --report "$SCRATCH/icd.json" \
+        > "$SCRATCH/icd_libdir"
 }
 
 list_devices() {
@@ -137,12 +143,13 @@ gpu_present() {
 }
 
 kernel_tests() {
-    "$PY" -m pytest -q -p no:cacheprovider --rootdir "$REPO" "$REPO/tests/raster" "$REPO/tests/scene/test_renderer.py" \
-        --junitxml="$SCRATCH/junit.xml" -o junit_family=xunit2
+    "$PY" -m pytest -q -p no:cacheprovider --rootdir "$REPO" --junitxml="$SCRATCH/junit.xml" \
+        -o junit_family=xunit2 "$REPO/tests/raster" "$REPO/tests/scene/test_renderer.py"
 }
 
 determinism() {
-    "$PY" "$REPO/scripts/gpu_check_determinism.py" --out "$SCRATCH/determinism.json" --layouts "$LAYOUTS" $DETERMINISM_ARGS
+    "$PY" "$REPO/scripts/gpu_check_determinism.py" --out "$SCRATCH/determinism.json" \
+        --layouts "$LAYOUTS" $DETERMINISM_ARGS
 }
 
 bench_raster() {   # every layout of $LAYOUTS in one run (which counts each scene's pairs once)
@@ -150,13 +157,13 @@ bench_raster() {   # every layout of $LAYOUTS in one run (which counts each scen
 }
 
 fit_face() {
-    softras-cl fit-face "$REPO/examples/data/astronaut.png" --landmarks "$REPO/examples/data/landmarks/astronaut.pts" \
-        --out "$SCRATCH/fit" --no-progress $FIT_ARGS
+    softras-cl fit-face "$REPO/examples/data/astronaut.png" \
+        --landmarks "$REPO/examples/data/landmarks/astronaut.pts" --out "$SCRATCH/fit" --no-progress $FIT_ARGS
 }
 
 export REPO PY WHEELS SITE SCRATCH LAYOUTS BENCH_ARGS DETERMINISM_ARGS FIT_ARGS
-export -f install_packages system_inventory find_opencl_driver list_devices loader_diagnosis gpu_present kernel_tests \
-    determinism bench_raster fit_face
+export -f install_packages system_inventory find_opencl_driver list_devices loader_diagnosis gpu_present \
+    kernel_tests determinism bench_raster fit_face
 
 run_steps() {
     step install 60 install_packages || return
@@ -193,6 +200,6 @@ timeout 30 "$PY" "$REPO/scripts/gpu_check_report.py" summary "$SCRATCH" "$OUT/gp
 summary_rc=$?
 cp "$SCRATCH/junit.xml" "$OUT/" 2> /dev/null
 cp "$SCRATCH/bench/raster.json" "$OUT/bench_raster.json" 2> /dev/null
-tar -czf "$OUT/gpu_check_files.tar.gz" -C "$SCRATCH" --exclude=site --exclude=bin --exclude=program_cache \
-    --exclude='*.npz' --exclude='*.ply' --exclude='*.obj' --exclude='*.mtl' .
+tar -czf "$OUT/gpu_check_files.tar.gz" -C "$SCRATCH" --exclude=site --exclude=bin \
+    --exclude=program_cache --exclude='*.npz' --exclude='*.ply' --exclude='*.obj' --exclude='*.mtl' .
 exit $summary_rc

@@ -8,8 +8,9 @@ code 0 when its status is "ok", else 1): status ("ok", "failed" or "no_gpu", wit
 saying what a GPU needs), the device (name, type, OpenCL and driver versions),
 the ICD search, each step's status and seconds, the test counts, the bench rows per kernel
 layout, the rows that bracket the published sizes (280 / 3.3k / 39k faces at 1024^2), the face
-fit's time (end to end, and as the fit reports it), the determinism check and the targets with what was measured. Missing files leave
-their entries None: a run that stopped early still gets a summary.
+fit's time (end to end, and as the fit reports it), the determinism check and the targets
+with what was measured. Missing files leave their entries None: a run that stopped early still
+gets a summary.
 
 `chosen-device` prints "TYPE<tab>NAME" of the device that `softras-cl devices --json` marked as
 chosen (exit 1 when none is).
