@@ -659,7 +659,7 @@ def run(args: argparse.Namespace) -> int:
             if detect:
                 truth, detected, missed[yaw_name(yaw_bin)] = detect_samples(samples)
                 by_source = dict(truth=truth, detected=detected)
-            for source in sources:
+            for source in (s for s in sources if by_source[s]):     # none: the detector found no face
                 photos, checks = photos_by_renderer(model, by_source[source], renderers, args.spp, not args.json)
                 for b, contour, dense in ((b, c, d) for b in [LANDMARKS_ONLY] + budgets for c in contours
                                           for d in dense_weights):
@@ -681,10 +681,11 @@ def run(args: argparse.Namespace) -> int:
                    provenance=provenance(dict(options=args)))
         write_json(out / "face.json", doc)
         save_chart(summary, out / "face.png")
-        for renderer in renderers:
-            name = run_name(renderer, budgets[-1], yaw_bins[-1], contours[-1], sources[-1], dense_weights[-1])
-            save_strip(per_run[name], out / ("face_strip.png" if renderer == "softras"
-                                             else f"face_{renderer}_strip.png"))
+        for renderer in renderers:      # the strip of its last run at the last budget (a run may lack faces)
+            names = [n for n, s in summary.items() if s["renderer"] == renderer and s["budget"] == budgets[-1]]
+            if names:
+                save_strip(per_run[names[-1]], out / ("face_strip.png" if renderer == "softras"
+                                                      else f"face_{renderer}_strip.png"))
         print(json.dumps(json_safe(doc), indent=2) if args.json
               else "\n".join(filter(None, (format_table(summary), format_comparison(comparison),
                                            format_comparison(dense_rows, ("off", "on"), "without against with the "
