@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.errors import InputError
+from softras_cl.errors import InputError, ResultError
 from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
 from softras_cl.provenance import provenance
 
@@ -670,6 +670,8 @@ def run(args: argparse.Namespace) -> int:
                         summary[name] = dict(summarise(rows), renderer=renderer, budget=b,
                                              yaw_bin=yaw_name(yaw_bin) or None, landmarks=source, dense=dense,
                                              contour=contour or budget_config(b, args.size).contour_landmarks)
+        if not summary:
+            raise ResultError(f"the detector found none of the {args.faces * len(yaw_bins)} faces: nothing to fit")
         comparison, dense_rows = contour_comparison(summary), dense_comparison(summary)
         doc = dict(size=args.size, seed=args.seed, model=model.name, photo_weight=args.photo_weight,
                    renderers=renderers, yaw_bins=yaw_bins if yaw_bins != [None] else None,
