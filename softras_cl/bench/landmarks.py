@@ -473,8 +473,9 @@ def _percent(v) -> str:
     return "-" if v is None else format(v, ".0%")
 
 
-def save_chart(reports: dict, path: Path) -> None:
-    """NME (median, p90 dashed) and detection rate per backend, by |yaw| bin and by width bin."""
+def save_chart(reports: dict, frame, path: Path) -> None:
+    """NME (median, p90 dashed) and detection rate per backend, by |yaw| bin and by width bin;
+    frame (width, height) for the title."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(10, 6))
@@ -496,7 +497,8 @@ def save_chart(reports: dict, path: Path) -> None:
         for ax in axes[:, col]:
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
-    fig.suptitle("bench landmarks: Mitsuba renders of the textured demo face in 1280x960 photos", fontsize=10)
+    fig.suptitle(f"bench landmarks: Mitsuba renders of the textured demo face in {frame[0]}x{frame[1]} photos",
+                 fontsize=10)
     fig.tight_layout()
     write_figure(fig, path, dpi=100)
 
@@ -531,7 +533,7 @@ def run(args: argparse.Namespace) -> int:
                    second_face_every=SECOND_FACE_EVERY, targets=TARGETS, backends=reports,
                    provenance=provenance(dict(options=args)))
         write_json(folder.path / "landmarks.json", doc)
-        save_chart(reports, folder.path / "landmarks.png")
+        save_chart(reports, frame, folder.path / "landmarks.png")
         print(json.dumps(json_safe(doc), indent=2) if args.json else format_report(reports))
     return 0
 
