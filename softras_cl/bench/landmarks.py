@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import time
 from pathlib import Path
 
@@ -525,10 +526,13 @@ def run(args: argparse.Namespace) -> int:
         budget = LANDMARKS_ONLY if args.quick else "fast"
         skins = {name: skin_texture(model, name, budget, cache) for name in SKINS}
         plans = frame_plans(np.random.default_rng(args.seed), n, frame, yaw_range, widths)
+        load_start, start = os.getloadavg(), time.perf_counter()
         frames = [cached_frame(model, p, skins, spp, cache, i)
                   for i, p in enumerate(tqdm(plans, desc="bench landmarks [frames]", disable=args.json))]
+        frames_seconds = time.perf_counter() - start
         reports = {b: backend_report(detect_rows(frames, b, not args.json)) for b in backends}
         doc = dict(frames=n, frame=list(frame), spp=spp, seed=args.seed, model=model.name, skins=list(SKINS),
+                   frames_seconds=frames_seconds, load_average=dict(start=load_start, end=os.getloadavg()),
                    skin_fit_budget=budget, fov_deg=FOV_DEG, yaw_range=yaw_range, widths_px=list(widths),
                    second_face_every=SECOND_FACE_EVERY, targets=TARGETS, backends=reports,
                    provenance=provenance(dict(options=args)))
@@ -542,7 +546,7 @@ def register(which) -> None:
     """Add `landmarks` to the `softras-cl bench` subparsers."""
     p = which.add_parser("landmarks", help="face detection and 68 landmarks on Mitsuba photos with known points",
                          description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1])
-    p.add_argument("--frames", type=int, default=60, help="synthetic frames (default 60)")
+    p.add_argument("--frames", type=int, default=90, help="synthetic frames (default 90)")
     p.add_argument("--frame", default=",".join(map(str, FRAME)),
                    help=f"frame WIDTH,HEIGHT in pixels (default {FRAME[0]},{FRAME[1]})")
     p.add_argument("--spp", type=int, default=DEFAULT_SPP, help=f"Mitsuba rays per pixel (default {DEFAULT_SPP})")
