@@ -114,11 +114,12 @@ def face_frame_offsets(points, truth) -> np.ndarray:
 
 def systematic_nme(rows: list[dict], max_yaw: float = 15.0) -> float | None:
     """The part of the NME that is the same on every face: the mean over the 68 points of the
-    length of their mean face-frame offset (face_frame_offsets) over the found faces with
-    |yaw| <= max_yaw (None without any): a detector's points placed consistently elsewhere
-    than the model's (the landmark definitions differ), as opposed to its scatter."""
+    length of their median face-frame offset (face_frame_offsets; the median, so that one face
+    meshed wrongly does not count) over the found faces with |yaw| <= max_yaw (None without
+    any): a detector's points placed consistently elsewhere than the model's (the landmark
+    definitions differ), as opposed to its scatter."""
     offsets = [r["offsets"] for r in rows if r["found"] and abs(r["yaw"]) <= max_yaw]
-    return float(np.linalg.norm(np.mean(offsets, axis=0), axis=1).mean()) if offsets else None
+    return float(np.linalg.norm(np.median(offsets, axis=0), axis=1).mean()) if offsets else None
 
 
 def in_bin(value: float, lo: float, hi: float, last: bool) -> bool:

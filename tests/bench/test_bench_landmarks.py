@@ -124,3 +124,20 @@ def test_the_quick_bench_runs_and_reuses_its_renders(tmp_path, capsys):
     again = json.loads(capsys.readouterr().out)
     assert frame.stat().st_mtime_ns == before                 # read from the cache, not rendered again
     assert [r["nme"] for r in again["backends"]["mediapipe"]["frames"]] == [r["nme"] for r in report["frames"]]
+
+
+def test_the_systematic_part_is_the_offset_every_face_shares_in_its_own_frame(truth):
+    shift = np.zeros((68, 2))
+    shift[:17, 1] = 0.1                                   # the jaw 0.1 eye distances lower, in the face's frame
+    eyes = truth[45] - truth[36]
+    rows = []
+    for k, angle in enumerate((0.0, 0.4, -0.3)):          # the same offset on faces at three rolls
+        turn = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        face = truth @ turn.T
+        offsets = shift * np.linalg.norm(eyes) @ np.array([[eyes[0], eyes[1]], [-eyes[1], eyes[0]]]) / np.linalg.norm(eyes)
+        found = face + offsets @ turn.T
+        rows.append(dict(found=True, yaw=5.0, offsets=bench.face_frame_offsets(found, face)))
+    rows.append(dict(found=True, yaw=5.0, offsets=np.full((68, 2), 3.0)))    # one face meshed wrongly
+    rows.append(dict(found=True, yaw=50.0, offsets=np.full((68, 2), 9.0)))   # a turned face is not counted
+    assert bench.systematic_nme(rows) == pytest.approx(0.1 * 17 / 68)
+    assert bench.systematic_nme([dict(found=False, yaw=0.0)]) is None
