@@ -1,17 +1,18 @@
 """`softras-cl bench landmarks`: face detection and 68 landmarks on synthetic photos with known points.
 
-Each frame (--frame W,H, default 1280x960) is a real photo (skimage.data, without faces:
-bench body-photo's BACKGROUNDS) with one or two faces path-traced by Mitsuba 3 into it. A face
-is the demo face model (or --model) with a random identity and expression (bench face's
-generator) and a detail texture read off a real photo (SKINS: the shipped photos, fitted from
-their shipped landmarks, fitting.recipes.face_texture), lit by a random SH light split into an
-environment and a sun (validate.mitsuba_face), seen by one pinhole camera of FOV_DEG across the
-frame. The frames' faces are spread evenly (stratified, shuffled) over yaw -80..80 degrees and
-over face widths 30-500 px on a log scale; pitch is +-20 and roll +-20 degrees. A face's width
-is its jaw width (iBUG points 0 and 16 of its frontal face) in pixels at its distance. Every
-SECOND_FACE_EVERY-th frame holds a second face 45-75% as wide, |yaw| <= 45, beside the first:
-the intended face is the first (the larger), which the detection layer's default choice
-(largest box first) must take. Renders are cached under --cache, so reruns only detect.
+Each frame (--frame W,H, default 1280x960) is a real photo without faces (skimage.data's
+coffee, rocket, brick, grass or gravel, as in bench body-photo) with one or two faces
+path-traced by Mitsuba 3 into it. A face is the demo face model (or --model) with a random
+identity, expression and SH light (bench face's generator) and a detail texture read off a
+real photo (the shipped astronaut or Grace Hopper, fitted from their shipped landmarks:
+fitting.recipes.face_texture), lit by its light split into an environment and a sun
+(validate.mitsuba_face), seen by one pinhole camera of 50 degrees across the frame. The faces
+are spread evenly (stratified, shuffled) over yaw -80..80 degrees and over face widths 30-500
+px on a log scale, pitch and roll +-20 degrees; a face's width is its jaw width (iBUG points 0
+and 16 of its frontal face) in pixels at its distance. Every third frame holds a second face
+45-75% as wide, |yaw| <= 45, beside the first: the intended face is the first (the larger),
+which the detection layer's default choice (largest box first) must take. Renders are cached
+under --cache, so reruns only detect.
 
 The true landmarks are the model's 68 landmark points of each face projected by the camera
 (hidden ones included: the convention of Face Mesh's 3D points). Per backend (mediapipe, the
