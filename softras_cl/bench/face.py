@@ -584,7 +584,8 @@ def format_comparison(rows: list[dict], labels: tuple[str, str] = CONTOURS,
     if not rows:
         return ""
     a, b = labels
-    extra = [("landmarks", "landmarks", "s"), ("W", "dense_weight", "g")] if "dense_weight" in rows[0] else []
+    extra = [("landmarks", "landmarks", "s")] if any(r.get("landmarks") for r in rows) else []
+    extra += [("W", "dense_weight", "g")] if "dense_weight" in rows[0] else []
     return f"{title}:\n" + columns_table(rows, [
         ("renderer", "renderer", "s"), ("yaw", "yaw_bin", "s"), *extra, ("budget", "budget", "s"),
         ("faces", "faces", "d"),

@@ -163,6 +163,10 @@ def test_contour_comparison_pairs_fixed_with_sliding_per_bin_and_budget():
     row, = bench.contour_comparison(summary)
     assert row["yaw_bin"] == "yaw 45-75" and row["landmark_reduction"] == 0.75 and row["rmse_reduction"] == 0.25
     assert "yaw 45-75" in bench.format_comparison([row]) and bench.format_comparison([]) == ""
+    assert "landmarks" not in bench.format_comparison([row])      # one landmark source: no column for it
+    by_source = {k + s: dict(v, landmarks=s) for k, v in summary.items() for s in ("truth", "detected")}
+    table = bench.format_comparison(bench.contour_comparison(by_source))
+    assert "landmarks" in table and "truth" in table and "detected" in table
 
 
 def test_yaw_bin_faces_are_turned_that_far_and_plausible(demo_face_model):
