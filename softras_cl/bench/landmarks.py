@@ -89,7 +89,9 @@ def owner(candidate, faces: list[dict]) -> int | None:
 def score_frame(candidates, faces: list[dict], seconds: float) -> dict:
     """One frame's row: faces found in the stated order (candidates), the truth (faces[0] the
     intended face); found (a candidate with landmarks is the intended face), chosen_right (the
-    default choice, the first candidate, is it), NME of the first candidate that is it."""
+    default choice, the first candidate, is it), second_found, false_faces (candidates that are
+    no true face), and for the first candidate that is the intended face: nme, nme_51 (without
+    the jaw) and its offsets (face_frame_offsets)."""
     from softras_cl.fitting.detection import choose_face
 
     owners = [owner(c, faces) for c in candidates]
