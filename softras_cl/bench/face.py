@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.errors import InputError
+from softras_cl.errors import InputError, ResultError
 from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
 from softras_cl.provenance import provenance
 
@@ -584,7 +584,8 @@ def format_comparison(rows: list[dict], labels: tuple[str, str] = CONTOURS,
     if not rows:
         return ""
     a, b = labels
-    extra = [("landmarks", "landmarks", "s"), ("W", "dense_weight", "g")] if "dense_weight" in rows[0] else []
+    extra = [("landmarks", "landmarks", "s")] if any(r.get("landmarks") for r in rows) else []
+    extra += [("W", "dense_weight", "g")] if "dense_weight" in rows[0] else []
     return f"{title}:\n" + columns_table(rows, [
         ("renderer", "renderer", "s"), ("yaw", "yaw_bin", "s"), *extra, ("budget", "budget", "s"),
         ("faces", "faces", "d"),
@@ -659,7 +660,7 @@ def run(args: argparse.Namespace) -> int:
             if detect:
                 truth, detected, missed[yaw_name(yaw_bin)] = detect_samples(samples)
                 by_source = dict(truth=truth, detected=detected)
-            for source in sources:
+            for source in (s for s in sources if by_source[s]):     # none: the detector found no face
                 photos, checks = photos_by_renderer(model, by_source[source], renderers, args.spp, not args.json)
                 for b, contour, dense in ((b, c, d) for b in [LANDMARKS_ONLY] + budgets for c in contours
                                           for d in dense_weights):
@@ -670,6 +671,8 @@ def run(args: argparse.Namespace) -> int:
                         summary[name] = dict(summarise(rows), renderer=renderer, budget=b,
                                              yaw_bin=yaw_name(yaw_bin) or None, landmarks=source, dense=dense,
                                              contour=contour or budget_config(b, args.size).contour_landmarks)
+        if not summary:
+            raise ResultError(f"the detector found none of the {args.faces * len(yaw_bins)} faces: nothing to fit")
         comparison, dense_rows = contour_comparison(summary), dense_comparison(summary)
         doc = dict(size=args.size, seed=args.seed, model=model.name, photo_weight=args.photo_weight,
                    renderers=renderers, yaw_bins=yaw_bins if yaw_bins != [None] else None,
@@ -681,10 +684,11 @@ def run(args: argparse.Namespace) -> int:
                    provenance=provenance(dict(options=args)))
         write_json(out / "face.json", doc)
         save_chart(summary, out / "face.png")
-        for renderer in renderers:
-            name = run_name(renderer, budgets[-1], yaw_bins[-1], contours[-1], sources[-1], dense_weights[-1])
-            save_strip(per_run[name], out / ("face_strip.png" if renderer == "softras"
-                                             else f"face_{renderer}_strip.png"))
+        for renderer in renderers:      # the strip of its last run at the last budget (a run may lack faces)
+            names = [n for n, s in summary.items() if s["renderer"] == renderer and s["budget"] == budgets[-1]]
+            if names:
+                save_strip(per_run[names[-1]], out / ("face_strip.png" if renderer == "softras"
+                                                      else f"face_{renderer}_strip.png"))
         print(json.dumps(json_safe(doc), indent=2) if args.json
               else "\n".join(filter(None, (format_table(summary), format_comparison(comparison),
                                            format_comparison(dense_rows, ("off", "on"), "without against with the "

@@ -163,6 +163,10 @@ def test_contour_comparison_pairs_fixed_with_sliding_per_bin_and_budget():
     row, = bench.contour_comparison(summary)
     assert row["yaw_bin"] == "yaw 45-75" and row["landmark_reduction"] == 0.75 and row["rmse_reduction"] == 0.25
     assert "yaw 45-75" in bench.format_comparison([row]) and bench.format_comparison([]) == ""
+    assert "landmarks" not in bench.format_comparison([row])      # one landmark source: no column for it
+    by_source = {k + s: dict(v, landmarks=s) for k, v in summary.items() for s in ("truth", "detected")}
+    table = bench.format_comparison(bench.contour_comparison(by_source))
+    assert "landmarks" in table and "truth" in table and "detected" in table
 
 
 def test_yaw_bin_faces_are_turned_that_far_and_plausible(demo_face_model):
@@ -266,3 +270,20 @@ def test_bench_face_compares_the_dense_term_on_detected_landmarks(tmp_path, caps
                                                                                     ("fast", 0.5)]
     off, on = (doc["summary"][f"detected landmarks/fast/dense {w}"] for w in ("0", "0.5"))
     assert off["landmark_error_px"] != on["landmark_error_px"]
+
+
+@pytest.mark.detect
+def test_bench_face_says_so_when_the_detector_finds_no_face(tmp_path, capsys):
+    out = tmp_path / "bench"
+    assert main(["bench", "face", "--faces", "1", "--size", "64", "--yaws", "75-80", "--landmarks", "truth,detected",
+                 "--budgets", "fast", "--out", str(out)]) == 1
+    assert "the detector found none of the 1 faces: nothing to fit" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+@pytest.mark.detect
+def test_bench_face_leaves_out_a_yaw_bin_the_detector_misses(tmp_path, capsys):
+    said, doc = _bench(tmp_path, capsys, "--size", "128", "--yaws", "0-15,75-80", "--landmarks", "truth,detected",
+                       "--seed", "1")
+    assert doc["undetected_faces"] == {"yaw 0-15": 0, "yaw 75-80": 1}
+    assert {s["yaw_bin"] for s in doc["summary"].values()} == {"yaw 0-15"} and "yaw 0-15" in said

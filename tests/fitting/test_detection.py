@@ -337,3 +337,27 @@ def test_resolve_detects_without_a_file(tmp_path):
     assert len(got) == 1 and got[0].source == "mediapipe" and got[0].index == 0
     assert got[0].detection.reason == "the only face found"
     assert nme(got[0].points, read_pts(DATA / "landmarks" / "astronaut.pts")) < MAX_NME
+
+
+class _ScoresByTurn:
+    """A stand-in short-range detector whose score on a face's crop is given per quarter turn
+    (the crop's turn is read off the order of the calls: upright_roll tries turns 0, 1, 2, 3)."""
+
+    def __init__(self, scores):
+        self.scores = list(scores)
+
+    def process(self, image):
+        from types import SimpleNamespace
+
+        return SimpleNamespace(detections=[SimpleNamespace(score=[self.scores.pop(0)])])
+
+
+@pytest.mark.parametrize("scores, turn", [((0.872, 0.654, 0.878, 0.74), 0),    # a near tie keeps the eye line's turn
+                                          ((0.60, 0.65, 0.90, 0.70), 2),       # a clear winner turns the crop
+                                          ((0.70, 0.76, 0.50, 0.40), 1)])
+def test_upright_roll_takes_another_quarter_turn_only_when_clearly_better(monkeypatch, scores, turn):
+    detector = _ScoresByTurn(scores)
+    monkeypatch.setattr(mp, "_detector", lambda model: detector)
+    image = np.zeros((64, 64, 3), np.uint8)
+    roll, score = mp.upright_roll(image, (32.0, 32.0), 40.0, 0.1)
+    assert roll == pytest.approx(0.1 + turn * math.pi / 2) and score == scores[turn]
