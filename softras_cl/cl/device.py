@@ -151,6 +151,15 @@ def vector_lanes(device: cl.Device, dtype: str) -> int:
     return max([n for n in choices if n <= preferred] or [choices[0]])
 
 
+def kernel_layout(device: cl.Device, layout: str) -> str:
+    """The kernels' work layout for RasterSettings.layout `layout` on `device`: "cpu" or "gpu" as
+    asked; "auto" gives "gpu" on GPU and accelerator devices (one pixel per work-item fills them),
+    "cpu" on the others (vectors of pixels per work-item use a CPU's SIMD lanes)."""
+    if layout != "auto":
+        return layout
+    return "gpu" if _type_name(device) in ("GPU", "ACCELERATOR") else "cpu"
+
+
 def has_int64_atomics(device: cl.Device) -> bool:
     """True if the device supports 64-bit integer atomics (cl_khr_int64_base_atomics)."""
     return "cl_khr_int64_base_atomics" in device.extensions.split()
