@@ -594,8 +594,12 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
 inline void stage_records(__global const real *geom, __global const int *faces, const int n,
                           const int lid, __local real *records, __local int *ids)
 {
-    for (int i = lid; i < n * FACE_STRIDE; i += GPU_GROUP_ITEMS)
-        records[i] = geom[faces[i / FACE_STRIDE] * FACE_STRIDE + i % FACE_STRIDE];
+    for (int i = lid; i < n * FACE_STRIDE; i += GPU_GROUP_ITEMS) {
+        /* i - j * FACE_STRIDE, not i % FACE_STRIDE: LLVM turns that division pair into a `freeze`
+         * instruction, which Oclgrind's uninitialised-memory checker cannot run */
+        const int j = i / FACE_STRIDE;
+        records[i] = geom[faces[j] * FACE_STRIDE + i - j * FACE_STRIDE];
+    }
     for (int i = lid; i < n; i += GPU_GROUP_ITEMS)
         ids[i] = faces[i];
 }
@@ -667,6 +671,10 @@ inline PixelIn load_pixel(__global const real *grad_rgb, __global const real *gr
                           __global const int *id_state, size_t pix, size_t npix)
 {
     PixelIn in;
+    /* fields the variant does not use are zero, not undefined: the GPU layout copies the whole
+     * struct into local memory */
+    in.g_alpha = in.g_dot_img = in.lse = in.l_rest = in.l_min = in.sumD = (realv)R(0);
+    in.best_id = in.min_id = (idv)0;
     for (int c = 0; c < 3; ++c)
         in.g[c] = SR_OUT_RGB ? VLOAD(0, grad_rgb + c * npix + pix) : (realv)R(0);
     in.g_depth = SR_OUT_DEPTH ? VLOAD(0, grad_depth + pix) : (realv)R(0);
@@ -1078,8 +1086,8 @@ void soft_raster_bwd_tile(GEOMETRY_ARGS, BACKWARD_ARGS)
     const int tile = (batch * nty + tile_row) * ntx + tx;
     const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
     for (int i = lid; i < TILE_PIXELS; i += GPU_BWD_GROUP) {
-        const int row = tile_row * TILE_H + i / GPU_TILE_W;
-        const size_t pix = ((size_t)batch * Hp + row) * Wp + tx * GPU_TILE_W + i % GPU_TILE_W;
+        const int dr = i / GPU_TILE_W, row = tile_row * TILE_H + dr;   /* no %: see stage_records */
+        const size_t pix = ((size_t)batch * Hp + row) * Wp + tx * GPU_TILE_W + i - dr * GPU_TILE_W;
         live[i] = row < H && has_cotangent(grad_rgb, grad_alpha, grad_depth, g_dot_img, pix, npix);
         if (live[i])
             pixels[i] = load_pixel(grad_rgb, grad_alpha, grad_depth, g_dot_img,
@@ -1096,7 +1104,8 @@ void soft_raster_bwd_tile(GEOMETRY_ARGS, BACKWARD_ARGS)
         Accum acc;
         accum_zero(&acc);
         for (int i = 0; i < TILE_PIXELS; ++i) {
-            const int col = tx * GPU_TILE_W + i % GPU_TILE_W, row = tile_row * TILE_H + i / GPU_TILE_W;
+            const int dr = i / GPU_TILE_W, row = tile_row * TILE_H + dr;
+            const int col = tx * GPU_TILE_W + i - dr * GPU_TILE_W;
             const real px = ((real)col - R(0.5) * W + LANE_OFFSETS) * pix_scale;
             const real py = (R(0.5) * H - row - R(0.5)) * pix_scale;
             if (!live[i] || outside_footprint(geom, face, px, px, py))
