@@ -283,7 +283,7 @@ def gpu_layout_variants() -> list[tuple[str, callable]]:
         kw = dict(dtype=dtype, metric=("euclidean", "barycentric")[i % 2], texture=texture,
                   color_agg=color_agg, alpha_agg=alpha_agg, perspective_correct=i % 3 != 0)
         batch = 1 + i % 2
-        name = (f"raster gpu layout {dtype} {kw['metric']} {texture} {color_agg}/{alpha_agg} B={batch}"
+        name = (f"gpu-layout raster {dtype} {kw['metric']} {texture} {color_agg}/{alpha_agg} B={batch}"
                 + ("" if kw["perspective_correct"] else " linear"))
         out.append((name, lambda b=batch, kw=kw: run_raster(b, both, layout="gpu", **kw)))
     extra = [
@@ -300,11 +300,11 @@ def gpu_layout_variants() -> list[tuple[str, callable]]:
         ("forward only", 2, (), dict()),
     ]
     for label, batch, grads, kw in extra:
-        out.append((f"raster gpu layout {label} B={batch}",
+        out.append((f"gpu-layout raster {label} B={batch}",
                     lambda b=batch, g=grads, kw=kw: run_raster(b, g, layout="gpu", **kw)))
     for label, batch, shading, light, texture in [("pixel sh", 2, "pixel", "sh", "vertex"),
                                                   ("unlit uv texture", 1, "none", None, "uv")]:
-        out.append((f"render gpu layout {label} B={batch}",
+        out.append((f"gpu-layout render {label} B={batch}",
                     lambda b=batch, sh=shading, li=light, t=texture:
                     run_render(b, sh, li, t, layout="gpu")))
     return out

@@ -154,10 +154,13 @@ def vector_lanes(device: cl.Device, dtype: str) -> int:
 def kernel_layout(device: cl.Device, layout: str) -> str:
     """The kernels' work layout for RasterSettings.layout `layout` on `device`: "cpu" or "gpu" as
     asked; "auto" gives "gpu" on GPU and accelerator devices (one pixel per work-item fills them),
-    "cpu" on the others (vectors of pixels per work-item use a CPU's SIMD lanes)."""
+    "cpu" on the others (vectors of pixels per work-item use a CPU's SIMD lanes) and on devices
+    that say they are a CPU as well (Oclgrind's simulator claims every type)."""
     if layout != "auto":
         return layout
-    return "gpu" if _type_name(device) in ("GPU", "ACCELERATOR") else "cpu"
+    if device.type & cl.device_type.CPU:
+        return "cpu"
+    return "gpu" if device.type & (cl.device_type.GPU | cl.device_type.ACCELERATOR) else "cpu"
 
 
 def has_int64_atomics(device: cl.Device) -> bool:

@@ -117,7 +117,8 @@ def test_layout_is_chosen_by_device_type():
     gpu = SimpleNamespace(type=cl.device_type.GPU)
     accelerator = SimpleNamespace(type=cl.device_type.ACCELERATOR)
     cpu = SimpleNamespace(type=cl.device_type.CPU)
-    assert [kernel_layout(d, "auto") for d in (gpu, accelerator, cpu)] == ["gpu", "gpu", "cpu"]
+    every = SimpleNamespace(type=cl.device_type.ALL)     # Oclgrind's simulator says it is all of them
+    assert [kernel_layout(d, "auto") for d in (gpu, accelerator, cpu, every)] == ["gpu", "gpu", "cpu", "cpu"]
     assert kernel_layout(gpu, "cpu") == "cpu" and kernel_layout(cpu, "gpu") == "gpu"
 
 
