@@ -150,3 +150,29 @@ def test_too_little_local_memory_is_refused():
     with pytest.raises(ValueError, match=r"layout='gpu' needs \d+ bytes of local memory.*'tiny' has 4096"):
         rasterizer._check_local_memory(small, 8)
     rasterizer._check_local_memory(SimpleNamespace(name="gpu", local_mem_size=48 * 1024), 8)
+
+
+def test_renderer_honours_the_layout():
+    """The Renderer's rasterisers take the layout from its settings: both layouts give the same
+    render and gradients, up to rounding."""
+    from softras_cl.scene.camera import Camera
+    from softras_cl.scene.meshes import icosphere
+    from softras_cl.scene.renderer import Renderer
+    from softras_cl.scene.shading import LambertLight
+
+    v, f = icosphere(1, radius=0.6)
+    size = (20, 24)
+    camera = Camera.look_at((0.4, 0.5, 3.0), (0.0, 0.0, 0.0), fov_deg=35, image_size=size)
+    light = LambertLight(ambient=(0.3, 0.4, 0.5), directional=(0.6, 0.5, 0.4), direction=(0.3, 1.0, 0.6))
+    albedo = np.random.default_rng(3).uniform(0.2, 0.9, v.shape)
+    results = {}
+    for layout in ("cpu", "gpu"):
+        s = RasterSettings(image_size=size, sigma=1e-3, gamma=1e-2, near=0.5, far=10.0,
+                           outputs=("rgb", "alpha"), dtype="float64", layout=layout)
+        renderer = Renderer(s, shading="pixel")
+        out = renderer.forward(v, f, camera, grads=("vertices", "albedo"), albedo=albedo, light=light)
+        grads = renderer.backward(out, grad_rgb=np.cos(out.rgb), grad_alpha=np.sin(out.alpha))
+        assert {r.layout for r in renderer._rasterizers.values()} == {layout}
+        results[layout] = ({"rgb": out.rgb, "alpha": out.alpha}, grads)
+    _assert_close(results["gpu"][0], results["cpu"][0], TOLERANCE["float64"][0])
+    _assert_close(results["gpu"][1], results["cpu"][1], TOLERANCE["float64"][1])
