@@ -2,13 +2,44 @@
  *
  * Build-time flags (set by softras_cl/raster/rasterizer.py via softras_cl/cl/program.py):
  *   SR_DOUBLE      1: real = double (needs cl_khr_fp64), 0: real = float
- *   SR_LANES       floats per vector: 8 or 16 (doubles are always 4)
- * Every kernel works on SR_VEC adjacent pixels (8 or 16 floats, 4 doubles) of one image row at a time,
- * as realv vectors,
- * so CPU drivers use their SIMD lanes and GPU drivers simply see wider work-items.
+ *   SR_LANES       pixels per work-item vector: 1 (the GPU layout: scalars), or 8 or 16 floats
+ *                  (the CPU layout; doubles are then always 4)
+ * The CPU layout's kernels work on SR_VEC adjacent pixels (8 or 16 floats, 4 doubles) of one image
+ * row at a time, as realv vectors, so CPU drivers use their SIMD lanes. With SR_LANES 1 the same
+ * code is compiled over scalars (SR_VEC 1: realv = real), one pixel per work-item as
+ * GPUs want it: one copy of the maths for both layouts. Scalar comparisons give 1 (not -1) for
+ * true, so masks are negated with MASK_NOT and tested with ANY, which suit both.
  */
 #if SR_DOUBLE
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
+#endif
+
+#if SR_LANES == 1
+#if SR_DOUBLE
+typedef double real;
+#else
+typedef float real;
+#endif
+typedef real realv;
+/* select(a, b, c) on scalars takes c of a's width: int for float, long for double */
+#if SR_DOUBLE
+typedef long maskv;
+#define TO_INT (int)
+#define TO_MASK (long)
+#else
+typedef int maskv;
+#define TO_INT
+#define TO_MASK
+#endif
+#define SR_VEC 1
+#define VLOAD(offset, p) ((p)[offset])
+#define VSTORE(v, offset, p) ((p)[offset] = (v))
+#define FIRST_LANE(v) (v)
+#define LAST_LANE(v) (v)
+#define LANE_OFFSETS R(0.5)
+#define MASK_NOT(m) (!(m))
+#define ANY(m) ((m) != 0)
+#elif SR_DOUBLE
 /* 4 doubles (256 bits): wider double vectors break pip's PoCL 3.0 on CPUs without AVX-512 (its
  * kernel cache returns programs with no kernels), and 256 bits is the native width anyway. */
 typedef double real;
@@ -19,6 +50,7 @@ typedef long4 maskv;    /* result type of comparisons between double4 */
 #define VSTORE vstore4
 #define TO_INT convert_int4
 #define TO_MASK convert_long4
+#define FIRST_LANE(v) ((v).s0)
 #define LAST_LANE(v) ((v).s3)
 #define LANE_OFFSETS ((realv)(R(0.5), R(1.5), R(2.5), R(3.5)))
 #elif SR_LANES == 16
@@ -31,6 +63,7 @@ typedef int16 maskv;    /* result type of comparisons between float16 */
 #define VSTORE vstore16
 #define TO_INT
 #define TO_MASK
+#define FIRST_LANE(v) ((v).s0)
 #define LAST_LANE(v) ((v).sf)
 #define LANE_OFFSETS ((realv)(R(0.5), R(1.5), R(2.5), R(3.5), R(4.5), R(5.5), R(6.5), R(7.5), \
                               R(8.5), R(9.5), R(10.5), R(11.5), R(12.5), R(13.5), R(14.5), R(15.5)))
@@ -43,8 +76,14 @@ typedef int8 maskv;     /* result type of comparisons between float8 */
 #define VSTORE vstore8
 #define TO_INT
 #define TO_MASK
+#define FIRST_LANE(v) ((v).s0)
 #define LAST_LANE(v) ((v).s7)
 #define LANE_OFFSETS ((realv)(R(0.5), R(1.5), R(2.5), R(3.5), R(4.5), R(5.5), R(6.5), R(7.5)))
+#endif
+
+#if SR_LANES != 1
+#define MASK_NOT(m) (~(m))
+#define ANY(m) any(m)
 #endif
 
 #define R(x) ((real)(x))

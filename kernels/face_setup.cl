@@ -7,7 +7,8 @@
  * switched off below, and the program is never built with -cl-fast-relaxed-math.
  *
  * Build-time flags (besides common.h's): SR_DOUBLE says whether the records are written as
- * double or float (computed in double either way, then rounded once, like numpy's astype).
+ * double or float (computed in double either way, then rounded once, like numpy's astype);
+ * SR_TILE_W is the tile width in pixels (binning.Grid.tile_w).
  */
 #pragma OPENCL EXTENSION cl_khr_fp64 : enable
 #pragma OPENCL FP_CONTRACT OFF
@@ -110,7 +111,7 @@ __kernel void face_setup(const int n_faces, const int width, const int height,
     const int c1 = min(floor_int(clamp(xmax * inv_ps + half_w - 0.5, -1.0, (double)width)), width - 1);
     const int r0 = max(ceil_int(clamp(top - ymax * inv_ps, -1.0, (double)height)), 0);
     const int r1 = min(floor_int(clamp(top - ymin * inv_ps, -1.0, (double)height)), height - 1);
-    const int tx0 = c0 / SR_VEC, ty0 = r0 / TILE_H;
+    const int tx0 = c0 / SR_TILE_W, ty0 = r0 / TILE_H;
     tiles[g] = drawable && c1 >= c0 && r1 >= r0
-               ? (int4)(tx0, ty0, c1 / SR_VEC - tx0 + 1, r1 / TILE_H - ty0 + 1) : (int4)(0, 0, 0, 0);
+               ? (int4)(tx0, ty0, c1 / SR_TILE_W - tx0 + 1, r1 / TILE_H - ty0 + 1) : (int4)(0, 0, 0, 0);
 }

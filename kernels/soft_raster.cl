@@ -11,7 +11,8 @@
  *   SR_LIGHTING           0: colours as given, 1: per-pixel Lambert, 2: per-pixel SH (texture 0)
  *   SR_SAVE_STATE         forward also writes what the backward needs
  *   SR_GRAD_POS, SR_GRAD_COLOR   which gradients the backward computes
- *   SR_ROWS               image rows per forward work-item (divides TILE_H)
+ *   SR_ROWS               image rows per forward work-item (divides TILE_H; CPU layout)
+ *   SR_INT64_ATOMICS      1: the device has cl_khr_int64_base_atomics (uv texel gradients)
  *
  * Work layout: the image (padded to Wp x Hp) is cut into tiles of SR_VEC x TILE_H pixels; the
  * host bins each face into the tiles its cut-off footprint touches, in increasing face order.
@@ -21,6 +22,9 @@
  * summed gradient to its own slot (its index in the tile lists, so the writes go in order), and
  * kernels/grad_sums.cl adds the slots of each face in a fixed order, so results are bit-identical
  * run to run (no float atomics).
+ * That is the CPU layout (SR_VEC > 1). The GPU layout (SR_VEC 1, kernels soft_raster_fwd_tile
+ * and soft_raster_bwd_tile) runs the same per-pixel code on tiles of GPU_TILE_W x TILE_H pixels:
+ * one work-item per pixel in the forward, one per (tile, face) entry in the backward.
  * Per-pixel images are stored as planes (channel-major) of Wp x Hp pixels per batch item.
  */
 
@@ -68,7 +72,7 @@
 /* per-face colour data of texture 0: corner colours, and with lighting corner normals after them */
 #define VERTEX_ATTR (SR_LIGHTING ? LIT_CORNER_ATTRS : CORNER_COLORS)
 
-#if SR_TEXTURE == 2 && SR_GRAD_COLOR
+#if SR_TEXTURE == 2 && SR_GRAD_COLOR && SR_INT64_ATOMICS
 #pragma OPENCL EXTENSION cl_khr_int64_base_atomics : enable
 #endif
 
@@ -82,29 +86,36 @@ typedef struct {
     real inv_len2[3];     /* 1 / |edge|^2 for edges (v0 v1), (v1 v2), (v2 v0) */
 } Face;
 
-/* The face's footprint box (NDC, where D can reach dist_eps): lets a row of pixels skip a face
- * with four compares instead of a full evaluation. */
-inline bool outside_footprint(__global const real *geom, int face, real x_lo, real x_hi, real y)
-{
-    __global const real *box = geom + face * FACE_STRIDE + FACE_BOX;   /* xmin, xmax, ymin, ymax */
-    return x_hi < box[0] || x_lo > box[1] || y < box[2] || y > box[3];
+/* Readers of the per-face records in address space `space` (OpenCL C 1.2 has no generic one):
+ * outside_footprint<suffix> tests the face's footprint box (NDC, where D can reach dist_eps), which
+ * lets a row of pixels skip a face with four compares instead of a full evaluation;
+ * load_face<suffix> loads the record. The CPU layout reads __global records, the GPU layout also
+ * the __local copies of its tile's records. */
+#define FACE_READERS(space, suffix) \
+inline bool outside_footprint##suffix(space const real *geom, int face, real x_lo, real x_hi, real y) \
+{ \
+    space const real *box = geom + face * FACE_STRIDE + FACE_BOX;   /* xmin, xmax, ymin, ymax */ \
+    return x_hi < box[0] || x_lo > box[1] || y < box[2] || y > box[3]; \
+} \
+inline Face load_face##suffix(space const real *geom, int face) \
+{ \
+    space const real *g = geom + face * FACE_STRIDE; \
+    Face f; \
+    for (int k = 0; k < 3; ++k) { \
+        f.x[k] = g[FACE_XY + 2 * k]; \
+        f.y[k] = g[FACE_XY + 2 * k + 1]; \
+        f.m[k][0] = g[FACE_M + 2 * k]; \
+        f.m[k][1] = g[FACE_M + 2 * k + 1]; \
+        f.z[k] = g[FACE_Z + k]; \
+        f.iz[k] = g[FACE_INV_Z + k]; \
+        f.inv_len2[k] = g[FACE_INV_LEN2 + k]; \
+    } \
+    return f; \
 }
-
-inline Face load_face(__global const real *geom, int face)
-{
-    __global const real *g = geom + face * FACE_STRIDE;
-    Face f;
-    for (int k = 0; k < 3; ++k) {
-        f.x[k] = g[FACE_XY + 2 * k];
-        f.y[k] = g[FACE_XY + 2 * k + 1];
-        f.m[k][0] = g[FACE_M + 2 * k];
-        f.m[k][1] = g[FACE_M + 2 * k + 1];
-        f.z[k] = g[FACE_Z + k];
-        f.iz[k] = g[FACE_INV_Z + k];
-        f.inv_len2[k] = g[FACE_INV_LEN2 + k];
-    }
-    return f;
-}
+FACE_READERS(__global, )
+#if SR_VEC == 1
+FACE_READERS(__local, _local)
+#endif
 
 /* Scene constants shared by the forward and backward kernels. */
 typedef struct {
@@ -158,7 +169,7 @@ inline realv euclidean_distance2(const Face *f, realv px, real py, Frag *r)
     r->cx = select(r->cx, cx1, r->on1);
     r->cy = select(r->cy, cy1, r->on1);
     r->on2 = d2_2 < d2;
-    r->on1 = r->on1 & ~r->on2;
+    r->on1 = r->on1 & MASK_NOT(r->on2);
     d2 = select(d2, d2_2, r->on2);
     r->t = select(r->t, t2, r->on2);
     r->cx = select(r->cx, cx2, r->on2);
@@ -172,7 +183,7 @@ inline realv barycentric_distance2(Frag *r)
     r->min1 = r->b[1] < bmin;
     bmin = select(bmin, r->b[1], r->min1);
     r->min2 = r->b[2] < bmin;
-    r->min1 = r->min1 & ~r->min2;
+    r->min1 = r->min1 & MASK_NOT(r->min2);
     bmin = select(bmin, r->b[2], r->min2);
     return bmin * bmin;
 }
@@ -535,7 +546,7 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
     const int tile = (batch * nty + row0 / TILE_H) * ntx + cb;
     const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
     const realv px = ((real)(cb * SR_VEC) - R(0.5) * W + LANE_OFFSETS) * pix_scale;
-    const real x_lo = px.s0, x_hi = LAST_LANE(px);
+    const real x_lo = FIRST_LANE(px), x_hi = LAST_LANE(px);
     const realv bg[3] = {(realv)bg_r, (realv)bg_g, (realv)bg_b};
     __global const real *image = tex_image + (size_t)batch * tex_h * tex_w * 3;
     real py[SR_ROWS];
@@ -562,7 +573,7 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
             if (!(hit >> i & 1u))
                 continue;
             const Frag r = eval_frag(&f, px, py[i], &p);
-            if (any(r.valid))
+            if (ANY(r.valid))
                 fwd_add(&sums[i], &r, face, &p, far, inv_gamma, attr, image, light, tex_res, tex_h, tex_w);
         }
     }
@@ -570,6 +581,71 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
         fwd_store(&sums[i], ((size_t)batch * Hp + row0 + i) * Wp + cb * SR_VEC, npix,
                   out_rgb, out_alpha, out_depth, color_state, alpha_state, id_state);
 }
+
+#if SR_VEC == 1
+/* GPU layout: one work-item = one pixel, one work-group = one tile of GPU_TILE_W x TILE_H pixels.
+ * The tile's face records go through local memory GPU_CHUNK faces at a time (loaded by the whole
+ * group, then read by every work-item), so each record is read from global memory once per tile.
+ * Each pixel sees the tile's faces in list order with the CPU layout's per-pixel arithmetic. */
+#define GPU_GROUP_ITEMS (GPU_TILE_W * TILE_H)
+
+/* Records (and face indices) of the tile-list entries faces[0 .. n-1] into local memory, each
+ * work-item (lid: its index in the group) copying every GPU_GROUP_ITEMS-th value. */
+inline void stage_records(__global const real *geom, __global const int *faces, const int n,
+                          const int lid, __local real *records, __local int *ids)
+{
+    for (int i = lid; i < n * FACE_STRIDE; i += GPU_GROUP_ITEMS) {
+        /* i - j * FACE_STRIDE, not i % FACE_STRIDE: LLVM turns that division pair into a `freeze`
+         * instruction, which Oclgrind's uninitialised-memory checker cannot run */
+        const int j = i / FACE_STRIDE;
+        records[i] = geom[faces[j] * FACE_STRIDE + i - j * FACE_STRIDE];
+    }
+    for (int i = lid; i < n; i += GPU_GROUP_ITEMS)
+        ids[i] = faces[i];
+}
+
+__kernel __attribute__((reqd_work_group_size(GPU_TILE_W, TILE_H, 1)))
+void soft_raster_fwd_tile(GEOMETRY_ARGS,
+                          const real bg_r, const real bg_g, const real bg_b,
+                          __global real *out_rgb, __global real *out_alpha, __global real *out_depth,
+                          __global real *color_state, __global real *alpha_state,
+                          __global int *id_state)
+{
+    __local real records[GPU_CHUNK * FACE_STRIDE];
+    __local int ids[GPU_CHUNK];
+    const int col = get_global_id(0), row = get_global_id(1), batch = get_global_id(2);
+    const int lid = get_local_id(1) * GPU_TILE_W + get_local_id(0);
+    const int tile = (batch * nty + get_group_id(1)) * ntx + get_group_id(0);
+    const bool in_image = row < H;   /* padding rows only help load the records */
+    const Params p = make_params(inv_sigma, x_cut, inv_gamma, near, far);
+    const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
+    const real px = ((real)col - R(0.5) * W + LANE_OFFSETS) * pix_scale;
+    const real py = (R(0.5) * H - row - R(0.5)) * pix_scale;
+    const realv bg[3] = {bg_r, bg_g, bg_b};
+    __global const real *image = tex_image + (size_t)batch * tex_h * tex_w * 3;
+    FwdSums sums;
+    fwd_init(&sums, eps, inv_gamma, far, bg);
+
+    const int first = tile_start[tile], end = tile_start[tile + 1];
+    for (int base = first; base < end; base += GPU_CHUNK) {
+        const int n = min(GPU_CHUNK, end - base);
+        barrier(CLK_LOCAL_MEM_FENCE);          /* every work-item is done with the last chunk */
+        stage_records(geom, tile_faces + base, n, lid, records, ids);
+        barrier(CLK_LOCAL_MEM_FENCE);
+        for (int j = 0; j < n && in_image; ++j) {
+            if (outside_footprint_local(records, j, px, px, py))
+                continue;
+            const Face f = load_face_local(records, j);
+            const Frag r = eval_frag(&f, px, py, &p);
+            if (ANY(r.valid))
+                fwd_add(&sums, &r, ids[j], &p, far, inv_gamma, attr, image, light, tex_res, tex_h, tex_w);
+        }
+    }
+    if (in_image)
+        fwd_store(&sums, ((size_t)batch * Hp + row) * Wp + col, npix,
+                  out_rgb, out_alpha, out_depth, color_state, alpha_state, id_state);
+}
+#endif
 
 /* ---- backward ----------------------------------------------------------------------------- */
 /* Gradient sums of one (tile, face) pair, kept per lane until the end of the tile. */
@@ -595,6 +671,10 @@ inline PixelIn load_pixel(__global const real *grad_rgb, __global const real *gr
                           __global const int *id_state, size_t pix, size_t npix)
 {
     PixelIn in;
+    /* fields the variant does not use are zero, not undefined: the GPU layout copies the whole
+     * struct into local memory */
+    in.g_alpha = in.g_dot_img = in.lse = in.l_rest = in.l_min = in.sumD = (realv)R(0);
+    in.best_id = in.min_id = (idv)0;
     for (int c = 0; c < 3; ++c)
         in.g[c] = SR_OUT_RGB ? VLOAD(0, grad_rgb + c * npix + pix) : (realv)R(0);
     in.g_depth = SR_OUT_DEPTH ? VLOAD(0, grad_depth + pix) : (realv)R(0);
@@ -638,7 +718,7 @@ inline bool has_cotangent(__global const real *grad_rgb, __global const real *gr
 #if SR_NEED_COLOR && !SR_COLOR_HARD
     nonzero |= VLOAD(0, g_dot_img + pix) != R(0);
 #endif
-    return any(nonzero);
+    return ANY(nonzero);
 }
 
 /* Spread dL/d(b) (unclipped barycentrics) to the vertex positions: db = -U^-1 dU b. */
@@ -657,7 +737,7 @@ inline void barycentric_vjp(const Face *f, const Frag *r, const realv gb[3], mas
 inline void edge_vjp(const Frag *r, realv g_d2, maskv valid, Accum *acc)
 {
     realv ga = keep(R(2) * g_d2 * (R(1) - r->t), valid), gb = keep(R(2) * g_d2 * r->t, valid);
-    maskv on0 = ~(r->on1 | r->on2);
+    maskv on0 = MASK_NOT(r->on1 | r->on2);
     /* vertex k is the start of edge k and the end of edge k-1 */
     const maskv start[3] = {on0, r->on1, r->on2}, end[3] = {r->on2, on0, r->on1};
     for (int k = 0; k < 3; ++k) {
@@ -683,7 +763,7 @@ inline void lit_vjp(__global const real *col, __global const real *light, const 
 #if SR_LIGHTING == 1
     realv lit = fmax(L.n_dot_l, R(0));
     realv g_ndl = select((realv)R(0), gs[0] * light[3] + gs[1] * light[4] + gs[2] * light[5],
-                         L.n_dot_l > R(0));
+                         TO_MASK(L.n_dot_l > R(0)));
     for (int c = 0; c < 3; ++c) {
         acc->glight[c] += gs[c];
         acc->glight[3 + c] += gs[c] * lit;
@@ -770,7 +850,7 @@ inline void pair_vjp(const Face *f, const Frag *r, const PixelIn *in, const Para
 #if SR_OUT_ALPHA && SR_ALPHA_AGG == 0
     /* dA/dD_j = prod_{k != j} (1 - D_k), from the saved sums with the smallest term apart */
     realv l1m = log_1mD;
-    realv l_excl = select(in->l_rest + in->l_min - l1m, in->l_rest, in->min_id == (idv)face);
+    realv l_excl = select(in->l_rest + in->l_min - l1m, in->l_rest, TO_MASK(in->min_id == (idv)face));
     g_x += keep(in->g_alpha * exp(l_excl + log_D + l1m), valid);
 #elif SR_OUT_ALPHA && SR_ALPHA_AGG == 1
     g_x += keep(in->g_alpha * exp(log_D + log_1mD), valid & (in->sumD < R(1)));
@@ -802,7 +882,7 @@ inline void pair_vjp(const Face *f, const Frag *r, const PixelIn *in, const Para
     /* distance: x = +-d^2 / sigma */
     realv g_d2 = g_x * select((realv)(-p->inv_sigma), (realv)p->inv_sigma, r->inside);
 #if SR_METRIC_BARY
-    maskv min0 = ~(r->min1 | r->min2);
+    maskv min0 = MASK_NOT(r->min1 | r->min2);
     const maskv is_min[3] = {min0, r->min1, r->min2};
     for (int k = 0; k < 3; ++k)
         gb[k] += select((realv)R(0), R(2) * g_d2 * r->b[k], is_min[k]);
@@ -842,6 +922,21 @@ inline void add_face_texel_grads(const Frag *r, const realv gC[3], int tex_res,
     }
 }
 #elif SR_GRAD_COLOR && SR_TEXTURE == 2
+/* *sum += q atomically. Without cl_khr_int64_base_atomics (SR_INT64_ATOMICS 0): two 32-bit atomic
+ * adds on the little-endian words, the low word's carry going into the high word. Every carry is
+ * counted once, so when all adds are done the 64-bit sum is exact, the same in any order. */
+inline void add_fixed_point(__global long *sum, const long q)
+{
+#if SR_INT64_ATOMICS
+    atom_add(sum, q);
+#else
+    volatile __global uint *word = (volatile __global uint *)sum;
+    const uint lo = (uint)q, hi = (uint)((ulong)q >> 32);
+    const uint old = atomic_add(word, lo);
+    atomic_add(word + 1, hi + (uint)(old + lo < old));
+#endif
+}
+
 /* uv-map texels are shared between faces: integer (fixed-point) atomics, whose sums do not
  * depend on the order of the adds, keep the result deterministic. */
 inline void add_uv_texel_grads(const Frag *r, const realv gC[3], __global const real *uv,
@@ -863,20 +958,72 @@ inline void add_uv_texel_grads(const Frag *r, const realv gC[3], __global const 
             for (int c = 0; c < 3; ++c) {
                 long q = convert_long_rte(g[c][l] * taps.weight[k] * scale);
                 if (q != 0)
-                    atom_add(tex_grad + taps.offset[k] + c, q);
+                    add_fixed_point(tex_grad + taps.offset[k] + c, q);
             }
     }
 }
 #endif
 
-__kernel void soft_raster_bwd(GEOMETRY_ARGS,
-                              __global const real *grad_rgb, __global const real *grad_alpha,
-                              __global const real *grad_depth, __global const real *g_dot_img,
-                              __global const real *color_state, __global const real *alpha_state,
-                              __global const int *id_state,
-                              const real tex_grad_scale,
-                              __global real *slot_pos, __global real *slot_attr,
-                              __global real *slot_light, __global long *tex_grad)
+/* The backward kernels' arguments after GEOMETRY_ARGS: cotangent planes, forward state, the uv
+ * fixed-point scale and the outputs (slots per tile-list entry, uv texel sums). */
+#define BACKWARD_ARGS \
+    __global const real *grad_rgb, __global const real *grad_alpha, \
+    __global const real *grad_depth, __global const real *g_dot_img, \
+    __global const real *color_state, __global const real *alpha_state, \
+    __global const int *id_state, const real tex_grad_scale, \
+    __global real *slot_pos, __global real *slot_attr, __global real *slot_light, __global long *tex_grad
+
+inline void accum_zero(Accum *acc)
+{
+    for (int i = 0; i < 3; ++i)
+        acc->gx[i] = acc->gy[i] = acc->gz[i] = (realv)R(0);
+    for (int i = 0; i < CORNER_COLORS; ++i)
+        acc->gcol[i] = (realv)R(0);
+#if SR_LIGHTING
+    for (int i = 0; i < CORNER_COLORS; ++i)
+        acc->gnrm[i] = (realv)R(0);
+    for (int i = 0; i < LIGHT_PARAMS; ++i)
+        acc->glight[i] = (realv)R(0);
+#endif
+}
+
+/* The terms of one (face, pixels) pair: pair_vjp into acc, then the colour gradients (into acc,
+ * the entry's face-texel slot slot_tex, or the batch item's uv texel sums tex_grad). */
+inline void add_pair(const Face *f, const Frag *r, const PixelIn *in, const Params *p, int face,
+                     __global const real *attr, __global const real *image, __global const real *light,
+                     int tex_res, int tex_h, int tex_w, real tex_grad_scale, Accum *acc,
+                     __global real *slot_tex, __global long *tex_grad)
+{
+    realv gC[3];
+    pair_vjp(f, r, in, p, face, attr, image, light, tex_res, tex_h, tex_w, acc, gC);
+#if SR_GRAD_COLOR && SR_TEXTURE == 0 && !SR_LIGHTING
+    add_vertex_color_grads(r, gC, r->valid, acc);
+#elif SR_GRAD_COLOR && SR_TEXTURE == 1
+    add_face_texel_grads(r, gC, tex_res, slot_tex);
+#elif SR_GRAD_COLOR && SR_TEXTURE == 2
+    add_uv_texel_grads(r, gC, attr + face * UV_ATTRS, tex_h, tex_w, tex_grad_scale, tex_grad);
+#endif
+}
+
+/* The summed terms of tile-list entry `slot` (lanes added in order) into its slot rows. */
+inline void write_slots(const Accum *acc, int slot, __global real *slot_pos, __global real *slot_attr,
+                        __global real *slot_light)
+{
+#if SR_GRAD_POS
+    const realv pos[9] = {acc->gx[0], acc->gy[0], acc->gz[0], acc->gx[1], acc->gy[1], acc->gz[1],
+                          acc->gx[2], acc->gy[2], acc->gz[2]};
+    lane_sums(pos, 9, slot_pos + slot * 9);
+#endif
+#if SR_GRAD_COLOR && SR_TEXTURE == 0
+    lane_sums(acc->gcol, CORNER_COLORS, slot_attr + slot * VERTEX_ATTR);
+#endif
+#if SR_GRAD_COLOR && SR_LIGHTING
+    lane_sums(acc->gnrm, CORNER_COLORS, slot_attr + slot * VERTEX_ATTR + CORNER_COLORS);
+    lane_sums(acc->glight, LIGHT_PARAMS, slot_light + slot * LIGHT_PARAMS);
+#endif
+}
+
+__kernel void soft_raster_bwd(GEOMETRY_ARGS, BACKWARD_ARGS)
 {
     const int cb = get_global_id(0), tile_row = get_global_id(1), batch = get_global_id(2);
     if (cb >= ntx)                /* work-items of the last group beyond the image */
@@ -887,6 +1034,7 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
     const realv px = ((real)(cb * SR_VEC) - R(0.5) * W + LANE_OFFSETS) * pix_scale;
     const int rows = min(TILE_H, H - tile_row * TILE_H);
     __global const real *image = tex_image + (size_t)batch * tex_h * tex_w * 3;
+    __global long *item_tex_grad = tex_grad + (size_t)batch * tex_h * tex_w * 3;
     /* bit dr: row dr of the tile has a non-zero cotangent (a fit's masked loss leaves many without) */
     uint live_rows = 0;
     for (int dr = 0; dr < rows; ++dr) {
@@ -899,53 +1047,80 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS,
         const int face = tile_faces[k], slot = k;
         const Face f = load_face(geom, face);
         Accum acc;
-        for (int i = 0; i < 3; ++i)
-            acc.gx[i] = acc.gy[i] = acc.gz[i] = (realv)R(0);
-        for (int i = 0; i < CORNER_COLORS; ++i)
-            acc.gcol[i] = (realv)R(0);
-#if SR_LIGHTING
-        for (int i = 0; i < CORNER_COLORS; ++i)
-            acc.gnrm[i] = (realv)R(0);
-        for (int i = 0; i < LIGHT_PARAMS; ++i)
-            acc.glight[i] = (realv)R(0);
-#endif
-
+        accum_zero(&acc);
         for (int dr = 0; dr < rows; ++dr) {
             const int row = tile_row * TILE_H + dr;
             const real py = (R(0.5) * H - row - R(0.5)) * pix_scale;
-            if (!(live_rows >> dr & 1u) || outside_footprint(geom, face, px.s0, LAST_LANE(px), py))
+            if (!(live_rows >> dr & 1u) || outside_footprint(geom, face, FIRST_LANE(px), LAST_LANE(px), py))
                 continue;
             const Frag r = eval_frag(&f, px, py, &p);
-            if (!any(r.valid))
+            if (!ANY(r.valid))
                 continue;
             const size_t pix = ((size_t)batch * Hp + row) * Wp + cb * SR_VEC;
             const PixelIn in = load_pixel(grad_rgb, grad_alpha, grad_depth, g_dot_img,
                                           color_state, alpha_state, id_state, pix, npix);
-            realv gC[3];
-            pair_vjp(&f, &r, &in, &p, face, attr, image, light, tex_res, tex_h, tex_w, &acc, gC);
-#if SR_GRAD_COLOR && SR_TEXTURE == 0 && !SR_LIGHTING
-            add_vertex_color_grads(&r, gC, r.valid, &acc);
-#elif SR_GRAD_COLOR && SR_TEXTURE == 1
-            add_face_texel_grads(&r, gC, tex_res, slot_attr + (size_t)slot * tex_res * tex_res * 3);
-#elif SR_GRAD_COLOR && SR_TEXTURE == 2
-            add_uv_texel_grads(&r, gC, attr + face * UV_ATTRS, tex_h, tex_w, tex_grad_scale,
-                               tex_grad + (size_t)batch * tex_h * tex_w * 3);
-#endif
+            add_pair(&f, &r, &in, &p, face, attr, image, light, tex_res, tex_h, tex_w, tex_grad_scale,
+                     &acc, slot_attr + (size_t)slot * tex_res * tex_res * 3, item_tex_grad);
         }
-#if SR_GRAD_POS
-        const realv pos[9] = {acc.gx[0], acc.gy[0], acc.gz[0], acc.gx[1], acc.gy[1], acc.gz[1],
-                              acc.gx[2], acc.gy[2], acc.gz[2]};
-        lane_sums(pos, 9, slot_pos + slot * 9);
-#endif
-#if SR_GRAD_COLOR && SR_TEXTURE == 0
-        lane_sums(acc.gcol, CORNER_COLORS, slot_attr + slot * VERTEX_ATTR);
-#endif
-#if SR_GRAD_COLOR && SR_LIGHTING
-        lane_sums(acc.gnrm, CORNER_COLORS, slot_attr + slot * VERTEX_ATTR + CORNER_COLORS);
-        lane_sums(acc.glight, LIGHT_PARAMS, slot_light + slot * LIGHT_PARAMS);
-#endif
+        write_slots(&acc, slot, slot_pos, slot_attr, slot_light);
     }
 }
+
+#if SR_VEC == 1
+/* GPU layout backward: one work-group of GPU_BWD_GROUP work-items per tile. The tile's cotangents
+ * and forward state go into local memory once; then each work-item owns the tile-list entries
+ * first + lid, first + lid + GPU_BWD_GROUP, ...: for each, it adds its face's terms at every pixel
+ * of the tile in row-major order and writes the entry's slot rows, which kernels/grad_sums.cl sums
+ * per face in a fixed order. No two work-items write one slot (no float atomics), so reruns are
+ * bit-identical; the sums group the terms by pixel, not by lane, so their last bits differ from
+ * the CPU layout's. */
+#define TILE_PIXELS (GPU_TILE_W * TILE_H)
+
+__kernel __attribute__((reqd_work_group_size(GPU_BWD_GROUP, 1, 1)))
+void soft_raster_bwd_tile(GEOMETRY_ARGS, BACKWARD_ARGS)
+{
+    __local PixelIn pixels[TILE_PIXELS];
+    __local int live[TILE_PIXELS];   /* the pixel is in the image and has a non-zero cotangent */
+    const int lid = get_local_id(0), tx = get_group_id(0), tile_row = get_group_id(1);
+    const int batch = get_global_id(2);
+    const int tile = (batch * nty + tile_row) * ntx + tx;
+    const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
+    for (int i = lid; i < TILE_PIXELS; i += GPU_BWD_GROUP) {
+        const int dr = i / GPU_TILE_W, row = tile_row * TILE_H + dr;   /* no %: see stage_records */
+        const size_t pix = ((size_t)batch * Hp + row) * Wp + tx * GPU_TILE_W + i - dr * GPU_TILE_W;
+        live[i] = row < H && has_cotangent(grad_rgb, grad_alpha, grad_depth, g_dot_img, pix, npix);
+        if (live[i])
+            pixels[i] = load_pixel(grad_rgb, grad_alpha, grad_depth, g_dot_img,
+                                   color_state, alpha_state, id_state, pix, npix);
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+
+    const Params p = make_params(inv_sigma, x_cut, inv_gamma, near, far);
+    __global const real *image = tex_image + (size_t)batch * tex_h * tex_w * 3;
+    __global long *item_tex_grad = tex_grad + (size_t)batch * tex_h * tex_w * 3;
+    for (int k = tile_start[tile] + lid; k < tile_start[tile + 1]; k += GPU_BWD_GROUP) {
+        const int face = tile_faces[k], slot = k;
+        const Face f = load_face(geom, face);
+        Accum acc;
+        accum_zero(&acc);
+        for (int i = 0; i < TILE_PIXELS; ++i) {
+            const int dr = i / GPU_TILE_W, row = tile_row * TILE_H + dr;
+            const int col = tx * GPU_TILE_W + i - dr * GPU_TILE_W;
+            const real px = ((real)col - R(0.5) * W + LANE_OFFSETS) * pix_scale;
+            const real py = (R(0.5) * H - row - R(0.5)) * pix_scale;
+            if (!live[i] || outside_footprint(geom, face, px, px, py))
+                continue;
+            const Frag r = eval_frag(&f, px, py, &p);
+            if (!ANY(r.valid))
+                continue;
+            const PixelIn in = pixels[i];
+            add_pair(&f, &r, &in, &p, face, attr, image, light, tex_res, tex_h, tex_w, tex_grad_scale,
+                     &acc, slot_attr + (size_t)slot * tex_res * tex_res * 3, item_tex_grad);
+        }
+        write_slots(&acc, slot, slot_pos, slot_attr, slot_light);
+    }
+}
+#endif
 
 /* ---- layout: the padded planes (n, B, Hp, Wp) <-> interleaved (B, H, W, n) arrays ------------- */
 /* The host hands images and cotangents over as numpy's interleaved arrays; transposing them on

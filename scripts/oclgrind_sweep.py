@@ -18,6 +18,7 @@ whose name contains it.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import os
 import sys
@@ -29,6 +30,7 @@ import pyopencl as cl
 from softras_cl import RasterSettings, SoftRasterizer
 from softras_cl.cl.device import ENV_VAR, select_device
 from softras_cl.errors import InputError
+from softras_cl.raster import rasterizer
 from softras_cl.raster.reduce import GradSums
 from softras_cl.scene.camera import Camera
 from softras_cl.scene.meshes import icosphere
@@ -114,12 +116,17 @@ def skip_pyopencl_nvidia_probe() -> None:
     characterize.nv_compute_capability = nvidia_only
 
 
-def raster_scene(batch: int, texture: str, tex_res: int = 2, seed: int = 0) -> tuple:
-    """(vertices (B, V, 3), faces (F, 3), colour inputs for `texture`): FACES, each face moved
-    a little in x, y after the first item (a shift keeps degenerate faces degenerate)."""
+def raster_scene(batch: int, texture: str, tex_res: int = 2, seed: int = 0, crowd: int = 0) -> tuple:
+    """(vertices (B, V, 3), faces (F, 3), colour inputs for `texture`): FACES and `crowd` more small
+    faces over the top-left 16 x 8 pixels, each face moved a little in x, y after the first item
+    (a shift keeps degenerate faces degenerate)."""
     rng = np.random.default_rng(seed)
     base = np.array([corner for _, corners in FACES for corner in corners], np.float64)
-    n_v, n_f = len(base), len(FACES)
+    if crowd:
+        centres = np.array(pixel_centre(4, 3)) + rng.uniform(-0.3, 0.3, (crowd, 1, 2))
+        xy = centres + rng.uniform(-0.2, 0.2, (crowd, 3, 2))
+        base = np.concatenate([base, np.dstack([xy, rng.uniform(1.5, 5.0, (crowd, 3, 1))]).reshape(-1, 3)])
+    n_v, n_f = len(base), len(base) // 3
     vertices = np.repeat(base[None], batch, 0)
     shift = rng.normal(scale=0.02, size=(batch - 1, n_f, 1, 2))
     vertices[1:, :, :2] += np.broadcast_to(shift, (batch - 1, n_f, 3, 2)).reshape(batch - 1, n_v, 2)
@@ -179,13 +186,28 @@ def roi_mask(batch: int, per_item: bool) -> np.ndarray:
     return mask if per_item else mask[0]
 
 
+@contextlib.contextmanager
+def without_int64_atomics():
+    """Build the rasteriser's kernels as for a device without cl_khr_int64_base_atomics."""
+    real = rasterizer.has_int64_atomics
+    rasterizer.has_int64_atomics = lambda device: False
+    try:
+        yield
+    finally:
+        rasterizer.has_int64_atomics = real
+
+
 def run_raster(batch: int, grads: tuple, tex_res: int = 2, skip_cot: tuple = (),
                faces_per_item: bool = False, roi: str | None = None, lanes: int | None = None,
-               float_sums: bool = False, **kw) -> None:
+               float_sums: bool = False, crowd: int = 0, int64_atomics: bool = True, **kw) -> None:
     """One SoftRasterizer forward (and backward when grads); float_sums: the gradient reductions
-    accumulate in the kernel dtype, as on a device without cl_khr_fp64."""
+    accumulate in the kernel dtype, as on a device without cl_khr_fp64; crowd: that many more
+    faces in one tile (raster_scene); int64_atomics False: the uv texel gradients' fallback."""
+    if not int64_atomics:
+        with without_int64_atomics():
+            return run_raster(batch, grads, tex_res, skip_cot, faces_per_item, roi, lanes, float_sums, crowd, **kw)
     s = raster_settings(**kw)
-    vertices, faces, colors = raster_scene(batch, s.texture, tex_res)
+    vertices, faces, colors = raster_scene(batch, s.texture, tex_res, crowd=crowd)
     if "rgb" not in s.outputs:
         colors = {}
     if s.lighting != "none":
@@ -219,7 +241,8 @@ RENDER_LIGHTS = {
 
 
 def run_render(batch: int, shading: str, light: str | None, texture: str = "vertex",
-               projection: str = "perspective", dtype: str = "float32", roi: bool = False) -> None:
+               projection: str = "perspective", dtype: str = "float32", roi: bool = False,
+               layout: str = "auto") -> None:
     rng = np.random.default_rng(4)
     v, f = icosphere(0, radius=0.6)
     v = v + rng.normal(scale=0.03, size=v.shape)
@@ -230,7 +253,7 @@ def run_render(batch: int, shading: str, light: str | None, texture: str = "vert
         cams = [Camera.orthographic(e, (0.0, 0.05, 0.0), scale=0.8, image_size=(H, W)) for e in eyes]
     cameras = cams[0] if batch == 1 else cams
     s = RasterSettings(image_size=(H, W), sigma=1e-3, gamma=1e-2, near=0.5, far=10.0,
-                       outputs=("rgb", "alpha", "depth"), dtype=dtype)
+                       outputs=("rgb", "alpha", "depth"), dtype=dtype, layout=layout)
     inputs = dict(albedo=rng.uniform(0.2, 0.9, v.shape))
     if shading == "none" and texture == "face":
         inputs = dict(face_textures=rng.uniform(0, 1, (batch, len(f), 2, 2, 3)))
@@ -246,6 +269,45 @@ def run_render(batch: int, shading: str, light: str | None, texture: str = "vert
     _drawn(out, s)
     g = renderer.backward(out, **_cotangents(out, rng))
     _finite("render gradients", g)
+
+
+def gpu_layout_variants() -> list[tuple[str, callable]]:
+    """The GPU layout's kernels (one pixel per work-item, tiles staged in local memory): the
+    build-time flags in 18 combinations, then lighting, outputs, regions of interest, a tile with
+    more faces than one local-memory chunk, the uv gradients without 64-bit atomics, renders."""
+    out = []
+    both = ("vertices", "colors")
+    for i, (dtype, texture, (color_agg, alpha_agg)) in enumerate(itertools.product(
+            ("float32", "float64"), ("vertex", "face", "uv"),
+            (("softmax", "occupancy"), ("hard", "sum"), ("softmax", "hard")))):
+        kw = dict(dtype=dtype, metric=("euclidean", "barycentric")[i % 2], texture=texture,
+                  color_agg=color_agg, alpha_agg=alpha_agg, perspective_correct=i % 3 != 0)
+        batch = 1 + i % 2
+        name = (f"gpu-layout raster {dtype} {kw['metric']} {texture} {color_agg}/{alpha_agg} B={batch}"
+                + ("" if kw["perspective_correct"] else " linear"))
+        out.append((name, lambda b=batch, kw=kw: run_raster(b, both, layout="gpu", **kw)))
+    extra = [
+        ("lambert per-pixel", 2, both, dict(lighting="lambert")),
+        ("sh per-pixel", 1, both, dict(lighting="sh", dtype="float64")),
+        ("outputs alpha", 2, ("vertices",), dict(outputs=("alpha",))),
+        ("outputs depth hard", 1, ("vertices",), dict(outputs=("depth",), color_agg="hard")),
+        ("face texture R=1", 2, both, dict(texture="face", tex_res=1)),
+        ("no rgb cotangent", 2, both, dict(skip_cot=("rgb",))),
+        ("region of interest per item uv", 2, both, dict(roi="per item", texture="uv")),
+        ("crowded tile", 1, both, dict(crowd=300)),
+        ("crowded tile float64 face texture", 2, both, dict(crowd=150, dtype="float64", texture="face")),
+        ("uv without int64 atomics", 2, both, dict(texture="uv", int64_atomics=False)),
+        ("forward only", 2, (), dict()),
+    ]
+    for label, batch, grads, kw in extra:
+        out.append((f"gpu-layout raster {label} B={batch}",
+                    lambda b=batch, g=grads, kw=kw: run_raster(b, g, layout="gpu", **kw)))
+    for label, batch, shading, light, texture in [("pixel sh", 2, "pixel", "sh", "vertex"),
+                                                  ("unlit uv texture", 1, "none", None, "uv")]:
+        out.append((f"gpu-layout render {label} B={batch}",
+                    lambda b=batch, sh=shading, li=light, t=texture:
+                    run_render(b, sh, li, t, layout="gpu")))
+    return out
 
 
 def variants() -> list[tuple[str, callable]]:
@@ -270,6 +332,7 @@ def variants() -> list[tuple[str, callable]]:
                              ("region of interest per item", 2, dict(roi="per item"))]:
         out.append((f"raster float32 16 lanes {label} B={batch}",
                     lambda b=batch, kw=kw: run_raster(b, both, dtype="float32", lanes=16, **kw)))
+    out += gpu_layout_variants()
     # the gradient sums as a device without cl_khr_fp64 builds them (float accumulation)
     for label, batch, kw in [("sh per-pixel", 2, dict(lighting="sh")), ("face texture", 1, dict(texture="face"))]:
         out.append((f"raster float32 float gradient sums {label} B={batch}",

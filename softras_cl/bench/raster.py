@@ -4,7 +4,7 @@ Scene: `meshes.screen_space_sphere` (icosphere, radius 0.8, depth 2..3.6, vertex
 1280..81920 faces at 256^2 and 1024^2, sigma 1e-5, gamma 1e-4, dist_eps 1e-4, rgb + alpha.
 
 Three results, printed as aligned tables and written to OUT/raster.json and OUT/raster.png:
-1. per (faces, size): median forward and forward+backward ms, pixel-face pairs inside the
+1. per (faces, size, kernel layout): median forward and forward+backward ms, pixel-face pairs inside the
    cut-off (counted exactly on the host with the formulas of `reference.py`), ns per pair,
    pairs/(H*W*F), (tile, face) bin entries, bytes kept for backward, process peak RSS;
 2. the dense float64 reference's forward time and our speed-up, where it fits in memory;
@@ -33,6 +33,7 @@ from softras_cl.provenance import provenance
 SIZES = (256, 1024)
 FACES = (1280, 5120, 20480, 81920)
 REPEATS = 5
+LAYOUTS = ("auto",)                              # RasterSettings.layout values timed (--layout)
 BASE_SETTINGS = dict(sigma=1e-5, gamma=1e-4, dist_eps=1e-4, outputs=("rgb", "alpha"))
 GRADS = ("vertices", "colors")
 ACCURACY_SCENE = (5120, 256)                     # (faces, image size)
@@ -82,6 +83,17 @@ def settings_for(size: int, **changes):
     from softras_cl.raster.settings import RasterSettings
 
     return RasterSettings(image_size=(size, size), **{**BASE_SETTINGS, **changes})
+
+
+def layout_list(text: str) -> tuple[str, ...]:
+    """'cpu,gpu' -> ("cpu", "gpu"), for argparse: RasterSettings.layout values."""
+    from softras_cl.raster.settings import LAYOUTS as KNOWN
+
+    layouts = tuple(t.strip() for t in text.split(",") if t.strip())
+    bad = [t for t in layouts if t not in KNOWN]
+    if bad or not layouts:
+        raise argparse.ArgumentTypeError(f"--layout takes a comma-separated list of {', '.join(KNOWN)}, got {text!r}")
+    return layouts
 
 
 # ---- measurements ------------------------------------------------------------------------
@@ -240,27 +252,31 @@ def reference_skip_reason(n_faces: int, size: int) -> str | None:
     return None
 
 
-def reference_result(scene: Scene, settings, ours) -> dict:
-    """Time the dense float64 reference forward once; its speed ratio and max error against ours."""
+def reference_results(scene: Scene, settings, ours: list[dict]) -> list[dict]:
+    """Time the dense float64 reference forward once; its speed ratio and max error against each
+    of `ours` (time_raster results of the scene, one per layout)."""
     from softras_cl.raster import reference as ref
 
     t0 = time.perf_counter()
     expected = ref.soft_rasterize(scene.vertices, scene.faces, settings, colors=scene.colors)
     ref_ms = 1e3 * (time.perf_counter() - t0)
-    err = max(float(np.abs(ours["out"].rgb - expected["rgb"]).max()),
-              float(np.abs(ours["out"].alpha - expected["alpha"]).max()))
-    return dict(ref_ms=ref_ms, ref_ratio=ref_ms / ours["fwd_ms"], ref_max_err=err)
+    return [dict(ref_ms=ref_ms, ref_ratio=ref_ms / timing["fwd_ms"],
+                 ref_max_err=max(float(np.abs(timing["out"].rgb - expected["rgb"]).max()),
+                                 float(np.abs(timing["out"].alpha - expected["alpha"]).max())))
+            for timing in ours]
 
 
 # ---- the three parts ---------------------------------------------------------------------
-def raster_row(scene: Scene, repeats: int) -> tuple[dict, dict]:
-    """Speed/memory row of one config (and the timing result, for the reference comparison)."""
+def raster_row(scene: Scene, repeats: int, layout: str, pairs: int) -> tuple[dict, dict]:
+    """Speed/memory row of one config with RasterSettings.layout `layout` (the row's "layout" is
+    the one it resolved to) and the timing result, for the reference comparison. pairs:
+    count_pairs of the scene."""
     from softras_cl.raster.rasterizer import SoftRasterizer
 
-    settings = settings_for(scene.size)
-    timing = time_raster(SoftRasterizer(settings), scene, repeats)
-    pairs = count_pairs(scene, settings)
-    row = dict(faces=scene.n_faces, size=scene.size, fwd_ms=timing["fwd_ms"], fwdbwd_ms=timing["fwdbwd_ms"],
+    raster = SoftRasterizer(settings_for(scene.size, layout=layout))
+    timing = time_raster(raster, scene, repeats)
+    row = dict(faces=scene.n_faces, size=scene.size, layout=raster.layout, layout_asked=layout,
+               fwd_ms=timing["fwd_ms"], fwdbwd_ms=timing["fwdbwd_ms"],
                fwdbwd_cpu_ms=timing["fwdbwd_cpu_ms"], load_avg=os.getloadavg()[0],
                stage_ms=timing["stage_ms"], **{f"{k}_ms": v for k, v in timing["stage_ms"].items()},
                pairs=pairs, ns_per_pair=1e6 * timing["fwdbwd_ms"] / pairs if pairs else None,
@@ -314,13 +330,14 @@ def accuracy_rows(scene: Scene, variants: list[tuple], repeats: int, progress) -
 
 
 # ---- output --------------------------------------------------------------------------------
-RASTER_COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("fwd ms", "fwd_ms", ".2f"),
+RASTER_COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("layout", "layout", "s"), ("fwd ms", "fwd_ms", ".2f"),
                   ("fwd+bwd ms", "fwdbwd_ms", ".2f"), ("fwd+bwd CPU ms", "fwdbwd_cpu_ms", ".2f"),
                   ("load", "load_avg", ".1f"), ("pairs", "pairs", ",d"), ("ns/pair", "ns_per_pair", ".2f"),
                   ("pairs/(HWF)", "pairs_frac", ".2e"), ("bin entries", "bin_entries", ",d"),
                   ("saved MiB", "saved_mib", ".1f"), ("peak RSS MiB", "peak_rss_mib", ".0f"),
                   ("ref ms", "ref_ms", ".0f"), ("ref/fwd", "ref_ratio", ",.0f"), ("ref err", "ref_max_err", ".1e")]
-STAGE_COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("fwd+bwd ms", "fwdbwd_ms", ".2f"),
+STAGE_COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("layout", "layout", "s"),
+                 ("fwd+bwd ms", "fwdbwd_ms", ".2f"),
                  *((name.replace("_", " "), f"{name}_ms", ".2f") for name in STAGES)]
 ACCURACY_COLUMNS = [("dist_eps", "dist_eps", "g"), ("dtype", "dtype", "s"), ("fast_math", "fast_math", ""),
                     ("fwd ms", "fwd_ms", ".2f"), ("fwd+bwd ms", "fwdbwd_ms", ".2f"),
@@ -332,7 +349,7 @@ ACCURACY_COLUMNS = [("dist_eps", "dist_eps", "g"), ("dtype", "dtype", "s"), ("fa
 def report_text(result: dict) -> str:
     """The printed report: both tables, with titles and the reference notes."""
     acc = result["accuracy_scene"]
-    notes = [f"  {r['faces']} faces at {r['size']}^2: reference not run ({r['ref_note']})"
+    notes = [f"  {r['faces']} faces at {r['size']}^2, {r['layout']} layout: reference not run ({r['ref_note']})"
              for r in result["raster"] if r["ref_note"]]
     return "\n".join([
         f"device: {result['device']['name']} ({result['device']['platform_version']})",
@@ -421,7 +438,7 @@ def plan(args: argparse.Namespace) -> dict:
     if args.repeats is not None and args.repeats < 1:
         raise ValueError(f"--repeats must be >= 1, got {args.repeats}")
     speed_only = bool(getattr(args, "speed_only", False))
-    return dict(sizes=args.sizes or quick["sizes"], faces=faces,
+    return dict(sizes=args.sizes or quick["sizes"], faces=faces, layouts=getattr(args, "layout", None) or LAYOUTS,
                 repeats=args.repeats or quick["repeats"], scene=quick["scene"],
                 variants=[] if speed_only else accuracy_variants(args.quick), speed_only=speed_only)
 
@@ -431,22 +448,31 @@ def run_benchmark(p: dict, progress) -> dict:
     settings = {k: v for k, v in asdict(settings_for(1)).items() if k != "image_size"}
     result = dict(device=device_info(), repeats=p["repeats"], settings=settings, raster=[], accuracy=[],
                   accuracy_scene=dict(faces=p["scene"][0], size=p["scene"][1]))
-    to_compare = []                    # (row, timing) of the configs the dense reference runs on
+    to_compare = []                    # (rows, timings) of the configs the dense reference runs on
     for size in p["sizes"]:
         for n in p["faces"]:
-            progress.set_description(f"raster {n} faces {size}^2")
-            row, timing = raster_row(make_scene(n, size), p["repeats"])
-            result["raster"].append(row)
-            if row["ref_note"] is None and not p.get("speed_only"):
-                to_compare.append((row, timing))
+            scene = make_scene(n, size)
+            pairs = count_pairs(scene, settings_for(size))
+            rows, timings = [], []
+            for layout in p["layouts"]:
+                progress.set_description(f"raster {n} faces {size}^2 layout {layout}")
+                row, timing = raster_row(scene, p["repeats"], layout, pairs)
+                rows.append(row)
+                timings.append(timing)
+                progress.update()
+            result["raster"] += rows
+            if rows[0]["ref_note"] is None and not p.get("speed_only"):
+                to_compare.append((rows, timings))
             elif p.get("speed_only"):
-                row["ref_note"] = "--speed-only"
-            progress.update()
-    for row, timing in to_compare:     # after all speed rows: the reference's peak RSS is big
-        progress.set_description(f"dense reference {row['faces']} faces {row['size']}^2")
-        row.update(reference_result(make_scene(row["faces"], row["size"]), settings_for(row["size"]), timing))
+                for row in rows:
+                    row["ref_note"] = "--speed-only"
+    for rows, timings in to_compare:   # after all speed rows: the reference's peak RSS is big
+        progress.set_description(f"dense reference {rows[0]['faces']} faces {rows[0]['size']}^2")
+        scene = make_scene(rows[0]["faces"], rows[0]["size"])
+        for row, ref in zip(rows, reference_results(scene, settings_for(scene.size), timings)):
+            row.update(ref)
         progress.update()
-    progress.update(len(result["raster"]) - len(to_compare))
+    progress.update(len(p["sizes"]) * len(p["faces"]) - len(to_compare))
     if p["variants"]:
         result["accuracy"] = accuracy_rows(make_scene(*p["scene"]), p["variants"], p["repeats"], progress)
     return result
@@ -459,7 +485,7 @@ def run_raster(args: argparse.Namespace) -> int:
     p = plan(args)
     with OutputFolder(args.out, "bench raster", "--out") as folder:
         out = folder.path
-        steps = 2 * len(p["sizes"]) * len(p["faces"]) + len(p["variants"])
+        steps = (len(p["layouts"]) + 1) * len(p["sizes"]) * len(p["faces"]) + len(p["variants"])
         with tqdm(total=steps, file=sys.stderr, unit="step") as progress:
             result = run_benchmark(p, progress)
         result["tables"] = report_text(result)
@@ -487,6 +513,10 @@ def register(which) -> None:
     p.add_argument("--speed-only", action="store_true",
                    help="speed, memory and the per-stage split only: skip the dense reference and "
                         "the accuracy section (which take minutes)")
+    p.add_argument("--layout", type=layout_list, default=None,
+                   help="kernel work layouts to time, comma-separated: auto (by device type), cpu, gpu "
+                        f"(RasterSettings.layout; default {','.join(LAYOUTS)}); each row records the "
+                        "layout it ran")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of tables")
     p.add_argument("--out", default="out/bench",
                    help="directory for raster.json and raster.png (default out/bench)")

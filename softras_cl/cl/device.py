@@ -151,6 +151,18 @@ def vector_lanes(device: cl.Device, dtype: str) -> int:
     return max([n for n in choices if n <= preferred] or [choices[0]])
 
 
+def kernel_layout(device: cl.Device, layout: str) -> str:
+    """The kernels' work layout for RasterSettings.layout `layout` on `device`: "cpu" or "gpu" as
+    asked; "auto" gives "gpu" on GPU and accelerator devices (one pixel per work-item fills them),
+    "cpu" on the others (vectors of pixels per work-item use a CPU's SIMD lanes) and on devices
+    that say they are a CPU as well (Oclgrind's simulator claims every type)."""
+    if layout != "auto":
+        return layout
+    if device.type & cl.device_type.CPU:
+        return "cpu"
+    return "gpu" if device.type & (cl.device_type.GPU | cl.device_type.ACCELERATOR) else "cpu"
+
+
 def has_int64_atomics(device: cl.Device) -> bool:
     """True if the device supports 64-bit integer atomics (cl_khr_int64_base_atomics)."""
     return "cl_khr_int64_base_atomics" in device.extensions.split()
@@ -159,8 +171,9 @@ def has_int64_atomics(device: cl.Device) -> bool:
 def list_devices() -> list[dict]:
     """Every OpenCL device, one dict each with keys: platform_index, device_index (int),
     platform_name, platform_version, device_name, type ("CPU"/"GPU"/"ACCELERATOR"/"OTHER"),
-    compute_units (int), fp64, int64_atomics, chosen (bool; True for the one `select_device`
-    returns, none if the environment variable names no device)."""
+    compute_units (int), fp64, int64_atomics, local_mem_bytes (int), layout (the kernels' work
+    layout RasterSettings.layout="auto" picks there: "cpu" or "gpu"), chosen (bool; True for the
+    one `select_device` returns, none if the environment variable names no device)."""
     entries = _entries()
     try:
         chosen = _select(entries)
@@ -169,7 +182,8 @@ def list_devices() -> list[dict]:
     return [dict(platform_index=pi, device_index=di, platform_name=p.name,
                  platform_version=p.version, device_name=d.name, type=_type_name(d),
                  compute_units=d.max_compute_units, fp64=has_fp64(d),
-                 int64_atomics=has_int64_atomics(d),
+                 int64_atomics=has_int64_atomics(d), local_mem_bytes=d.local_mem_size,
+                 layout=kernel_layout(d, "auto"),
                  chosen=chosen is not None and chosen[:2] == (pi, di))
             for pi, di, p, d in entries]
 

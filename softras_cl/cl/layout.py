@@ -8,6 +8,11 @@ Tiles: the padded image is cut into tiles of (vector width) x TILE_H pixels; the
 is the kernel's SR_VEC, one of LANES[dtype] (4 doubles; 8 or 16 floats, by device:
 softras_cl.cl.device.vector_lanes).
 
+GPU layout (RasterSettings.layout): tiles of GPU_TILE_W x TILE_H pixels, one work-item per pixel
+in the forward (a work-group per tile, its face records staged in local memory GPU_CHUNK faces at
+a time) and GPU_BWD_GROUP work-items per tile in the backward (one per (tile, face) entry).
+GPU_TILE_W is the widest CPU vector, so both layouts pad images alike.
+
 Per-face record: geometry buffer row of FACE_STRIDE reals per face (kernel dtype), written by
 softras_cl.raster.binning.face_setup and read by load_face / outside_footprint in the kernel:
 
@@ -28,6 +33,9 @@ Lighting parameters: LIGHT_PARAMS reals (docs/conventions.md).
 from __future__ import annotations
 
 TILE_H = 8
+GPU_TILE_W = 16
+GPU_CHUNK = 128
+GPU_BWD_GROUP = 32
 LANES = {"float64": (4,), "float32": (8, 16)}     # pixels per kernel vector, narrowest first
 FACE_STRIDE = 28
 FACE_XY = 0
@@ -42,7 +50,8 @@ UV_ATTRS = 6
 LIGHT_PARAMS = 27
 
 # name -> value of every constant the kernels receive as -DNAME=value
-LAYOUT = dict(TILE_H=TILE_H, FACE_STRIDE=FACE_STRIDE, FACE_XY=FACE_XY, FACE_M=FACE_M,
+LAYOUT = dict(TILE_H=TILE_H, GPU_TILE_W=GPU_TILE_W, GPU_CHUNK=GPU_CHUNK, GPU_BWD_GROUP=GPU_BWD_GROUP,
+              FACE_STRIDE=FACE_STRIDE, FACE_XY=FACE_XY, FACE_M=FACE_M,
               FACE_Z=FACE_Z, FACE_INV_Z=FACE_INV_Z, FACE_INV_LEN2=FACE_INV_LEN2,
               FACE_BOX=FACE_BOX, CORNER_COLORS=CORNER_COLORS, LIT_CORNER_ATTRS=LIT_CORNER_ATTRS,
               UV_ATTRS=UV_ATTRS, LIGHT_PARAMS=LIGHT_PARAMS)

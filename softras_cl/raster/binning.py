@@ -57,10 +57,10 @@ class Grid:
         return self.nty * TILE_H
 
 
-def tile_grid(s: RasterSettings, lanes: int) -> Grid:
-    """The tiling for the settings: one tile row is one kernel vector of `lanes` pixels
-    (SoftRasterizer.lanes)."""
-    return Grid(lanes, -(-s.width // lanes), -(-s.height // TILE_H))
+def tile_grid(s: RasterSettings, tile_w: int) -> Grid:
+    """The tiling for the settings with tiles `tile_w` pixels wide: one kernel vector
+    (SoftRasterizer.lanes) in the CPU layout, GPU_TILE_W in the GPU layout."""
+    return Grid(tile_w, -(-s.width // tile_w), -(-s.height // TILE_H))
 
 
 def face_setup(mesh: MeshInputs, s: RasterSettings) -> tuple[np.ndarray, np.ndarray]:

@@ -33,7 +33,7 @@ class DeviceSetup:
     def __init__(self, ctx: cl.Context, queue: cl.CommandQueue, pool: BufferPool, grid: Grid, real: np.dtype):
         self.ctx, self.queue, self.pool = ctx, queue, pool
         self.real = np.dtype(real)
-        self._defines = dict(SR_DOUBLE=self.real == np.float64, SR_LANES=grid.tile_w)   # tiles: SR_VEC wide
+        self._defines = dict(SR_DOUBLE=self.real == np.float64, SR_TILE_W=grid.tile_w)
         self._kernel: cl.Kernel | None = None
         self._args_of: tuple | None = None      # (settings, their kernel arguments): the last ones
         self._scratch = ScratchArrays()

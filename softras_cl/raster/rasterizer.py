@@ -16,8 +16,9 @@ from dataclasses import dataclass, fields
 import numpy as np
 import pyopencl as cl
 
-from softras_cl.cl.device import has_fp64, has_int64_atomics, resolve_context, vector_lanes
-from softras_cl.cl.layout import CORNER_COLORS, LANES, LIGHT_PARAMS, vertex_attr_width
+from softras_cl.cl.device import has_fp64, has_int64_atomics, kernel_layout, resolve_context, vector_lanes
+from softras_cl.cl.layout import (CORNER_COLORS, FACE_STRIDE, GPU_BWD_GROUP, GPU_CHUNK, GPU_TILE_W, LANES,
+                                  LIGHT_PARAMS, TILE_H, vertex_attr_width)
 from softras_cl.cl.program import build_kernel, launch
 from softras_cl.raster.binning import Bins, RoiTiles, bin_tiles, face_setup, face_tiles, tile_grid
 from softras_cl.raster.device_setup import DeviceSetup
@@ -144,9 +145,11 @@ class SoftRasterizer:
     settings: RasterSettings. device, context, queue: optional pyopencl Device, Context and
     in-order CommandQueue to run on (see softras_cl.cl.device.resolve_context); by default the
     cached context of softras_cl.cl.device.select_device(). lanes: pixels per kernel vector
-    (and tile width), one of softras_cl.cl.layout.LANES[settings.dtype]; None picks the device's
-    (softras_cl.cl.device.vector_lanes). Images are the same at any width; gradient sums are
-    grouped by tile, so their last bits depend on it.
+    (and tile width) of the CPU layout, one of softras_cl.cl.layout.LANES[settings.dtype]; None
+    picks the device's (softras_cl.cl.device.vector_lanes). Images are the same at any width;
+    gradient sums are grouped by tile, so their last bits depend on it. settings.layout picks the
+    kernels' work layout (`layout`: "cpu" or "gpu", softras_cl.cl.device.kernel_layout); the GPU
+    layout has one pixel per work-item (lanes is then 1) on tiles GPU_TILE_W wide.
 
     One rasteriser renders at any sigma, gamma, near and far (forward's RUN_FIELDS arguments);
     the other settings are fixed: they select the kernel variant, the tiling and the buffers.
@@ -163,10 +166,19 @@ class SoftRasterizer:
             raise ValueError(f"settings.dtype='float64' but device {self.device.name!r} has no "
                              "cl_khr_fp64; use dtype='float32' or another device")
         self.real = np.dtype(settings.dtype)
+        self.layout = kernel_layout(self.device, settings.layout)
+        if lanes is not None and self.layout == "gpu":
+            raise ValueError(f"lanes applies to layout 'cpu' only; settings.layout={settings.layout!r} "
+                             f"runs the 'gpu' layout on {self.device.name!r} (one pixel per work-item)")
         if lanes is not None and lanes not in LANES[settings.dtype]:
             raise ValueError(f"lanes must be one of {LANES[settings.dtype]} for dtype={settings.dtype!r}, got {lanes!r}")
-        self.lanes = lanes or vector_lanes(self.device, settings.dtype)
-        self.grid = tile_grid(settings, self.lanes)
+        if self.layout == "gpu":
+            _check_local_memory(self.device, self.real.itemsize)
+            self.lanes = 1
+            self.grid = tile_grid(settings, GPU_TILE_W)
+        else:
+            self.lanes = lanes or vector_lanes(self.device, settings.dtype)
+            self.grid = tile_grid(settings, self.lanes)
         self.roi_tiles = RoiTiles(self.grid, settings)
         # device buffers and host staging reused from call to call (softras_cl.raster.pool)
         self.pool = BufferPool(self.ctx)
@@ -222,9 +234,10 @@ class SoftRasterizer:
         if grads:
             check_float32_gradients(s)
         mesh = check_inputs(s, vertices, faces, colors, face_textures, texture_image, uvs, normals, light)
-        if "colors" in grads and s.texture == "uv" and not has_int64_atomics(self.device):
-            raise ValueError(f"uv-texture gradients need cl_khr_int64_base_atomics, which device "
-                             f"{self.device.name!r} lacks")
+        if ("colors" in grads and s.texture == "uv" and not has_int64_atomics(self.device)
+                and not self.device.endian_little):
+            raise ValueError(f"texture='uv' gradients need cl_khr_int64_base_atomics or a little-endian "
+                             f"device (32-bit word pairs); device {self.device.name!r} has neither")
         check_forward_memory(s, self.device, mesh.batch, mesh.n_faces, grads, mesh.tex_res, mesh.tex_shape)
         tiles = self.roi_tiles(roi, mesh.batch)
         geom, ranges = self._face_setup(mesh, s)
@@ -307,6 +320,7 @@ class SoftRasterizer:
             SR_PERSPECTIVE=s.perspective_correct,
             SR_LIGHTING=("none", "lambert", "sh").index(s.lighting),
             SR_SAVE_STATE=save_state, SR_ROWS=FWD_ROWS,
+            SR_INT64_ATOMICS=has_int64_atomics(self.device),
             SR_GRAD_POS="vertices" in grads,
             SR_GRAD_COLOR="colors" in grads and "rgb" in s.outputs)
         return build_kernel(self.ctx, "soft_raster.cl", name, defines, s.fast_math)
@@ -334,9 +348,13 @@ class SoftRasterizer:
                       depth=int("depth" in s.outputs))
         out = {n: self.pool.take(npix * k * real.itemsize) for n, k in planes.items() if k}
         dummy = self._dummy()
-        knl = self._kernel("soft_raster_fwd", (), state is not None)
-        launch(knl, self.queue, (_round_up(g.ntx), g.hp // FWD_ROWS, mesh.batch), GROUP,
-               *self._geometry_args(s, mesh, bufs),
+        if self.layout == "gpu":
+            knl = self._kernel("soft_raster_fwd_tile", (), state is not None)
+            shape = (g.wp, g.hp, mesh.batch), (GPU_TILE_W, TILE_H, 1)
+        else:
+            knl = self._kernel("soft_raster_fwd", (), state is not None)
+            shape = (_round_up(g.ntx), g.hp // FWD_ROWS, mesh.batch), GROUP
+        launch(knl, self.queue, *shape, *self._geometry_args(s, mesh, bufs),
                *(real.type(c) for c in s.background),
                *(out.get(n, dummy) for n in ("rgb", "alpha", "depth")), *self._state_args(state))
         return out
@@ -380,10 +398,15 @@ class SoftRasterizer:
                 # initialising memory (and the copy is cheap: calloc's pages are not touched)
                 self._transfers.append(cl.enqueue_copy(self.queue, buf, np.zeros(nbytes[k], np.uint8),
                                                        is_blocking=False))
-        knl = self._kernel("soft_raster_bwd", kernel_grads, True)
+        if self.layout == "gpu":
+            knl = self._kernel("soft_raster_bwd_tile", kernel_grads, True)
+            shape = (g.ntx * GPU_BWD_GROUP, g.nty, mesh.batch), (GPU_BWD_GROUP, 1, 1)
+        else:
+            knl = self._kernel("soft_raster_bwd", kernel_grads, True)
+            shape = (_round_up(g.ntx), g.nty, mesh.batch), GROUP
         t = self._stage("backward_prep", t, finish=True)
         dummy = self._dummy()
-        launch(knl, self.queue, (_round_up(g.ntx), g.nty, mesh.batch), GROUP, *self._geometry_args(s, mesh, saved.buffers),
+        launch(knl, self.queue, *shape, *self._geometry_args(s, mesh, saved.buffers),
                *(cot_bufs.get(n, dummy) for n in ("grad_rgb", "grad_alpha", "grad_depth")),
                dummy if g_dot is None else g_dot, *self._state_args(saved.state), real.type(scale),
                *(out_bufs.get(k, dummy) for k in ("pos", "attr", "light", "tex")))
@@ -560,16 +583,17 @@ class SoftRasterizer:
         hosts = {n: np.empty((batch, s.height, s.width) + ((3,) if n == "rgb" else ()), self.real) for n in images}
         packed = {n: self.pool.take(a.nbytes) for n, a in hosts.items()}
         dummy, names = self._dummy(), ("rgb", "alpha", "depth")
-        launch(self._kernel("planes_to_pixels", (), save_state), self.queue, (_round_up(g.ntx), s.height, batch),
+        launch(self._kernel("planes_to_pixels", (), save_state), self.queue, (_round_up(g.wp // self.lanes), s.height, batch),
                GROUP, *self._layout_args(), *(images.get(n, dummy) for n in names), *(packed.get(n, dummy) for n in names))
         for n, host in hosts.items():
             self._transfers.append(cl.enqueue_copy(self.queue, host, packed[n], is_blocking=False))
         return hosts, packed
 
     def _layout_args(self) -> list:
-        """W, H, Wp, Hp, ntx: the first arguments of kernels planes_to_pixels and soft_raster_cotangents."""
+        """W, H, Wp, Hp and kernel vectors per padded row: the first arguments of kernels
+        planes_to_pixels and soft_raster_cotangents."""
         s, g, i32 = self.settings, self.grid, np.int32
-        return [i32(s.width), i32(s.height), i32(g.wp), i32(g.hp), i32(g.ntx)]
+        return [i32(s.width), i32(s.height), i32(g.wp), i32(g.hp), i32(g.wp // self.lanes)]
 
     def _sync(self) -> None:
         """Wait for everything queued, then let go of the finished transfers."""
@@ -591,7 +615,7 @@ class SoftRasterizer:
         uploaded, sources = self._upload_parts("cotangents", {n: (cot[n], self.real) for n in names if cot[n] is not None})
         dummy, all_names = self._dummy(), ("grad_rgb", "grad_alpha", "grad_depth")
         launch(self._kernel("soft_raster_cotangents", kernel_grads, True), self.queue,
-               (_round_up(g.ntx), g.hp, batch), GROUP, *self._layout_args(),
+               (_round_up(g.wp // self.lanes), g.hp, batch), GROUP, *self._layout_args(),
                *(np.int32(n in sources) for n in all_names), *(sources.get(n, dummy) for n in all_names),
                saved.images.get("rgb", dummy), saved.images.get("depth", dummy),
                *(planes.get(n) or dummy for n in (*all_names, "g_dot")))
@@ -613,6 +637,16 @@ def _own_context(raster: SoftRasterizer, output) -> RasterContext:
                          f"(image_size={mine.image_size}, dtype={mine.dtype!r}): call backward on the "
                          "rasteriser whose forward made it")
     return saved
+
+
+def _check_local_memory(device: cl.Device, real_size: int) -> None:
+    """ValueError when `device` has less local memory than the GPU layout's kernels declare."""
+    # what kernels/soft_raster.cl declares: the forward GPU_CHUNK face records and their indices,
+    # the backward a PixelIn (10 reals and 2 masks as wide) and a flag per tile pixel
+    need = max(GPU_CHUNK * (FACE_STRIDE * real_size + 4), GPU_TILE_W * TILE_H * (12 * real_size + 4))
+    if device.local_mem_size < need:
+        raise ValueError(f"layout='gpu' needs {need} bytes of local memory per work-group; device "
+                         f"{device.name!r} has {device.local_mem_size}: use layout='cpu'")
 
 
 def _round_up(n: int) -> int:

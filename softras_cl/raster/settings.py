@@ -16,6 +16,7 @@ TEXTURES = ("vertex", "face", "uv")
 LIGHTINGS = ("none", "lambert", "sh")
 OUTPUTS = ("rgb", "alpha", "depth")
 DTYPES = ("float32", "float64")
+LAYOUTS = ("auto", "cpu", "gpu")
 # Largest magnitude a float32 kernel takes: 2^64, the square root of float32's largest value
 # (~3.4e38). The kernels square depths and distances, so depths up to this bound keep images
 # and gradients finite (measured: z = 1.8e19 finite, 1e20 gives NaN vertex gradients).
@@ -64,6 +65,9 @@ class RasterSettings:
                            "none, lambert or sh (texture='vertex' only)", default="none")
     dtype: str = _build("kernel precision: float32 or float64 (needs cl_khr_fp64)", default="float32")
     fast_math: bool = _build("build with -cl-fast-relaxed-math (an accuracy knob: measure it)", default=False)
+    layout: str = _build("work layout of the kernels: cpu (vectors of pixels per work-item), gpu (one "
+                         "pixel per work-item, tiles staged in local memory) or auto (gpu on GPU and "
+                         "accelerator devices, else cpu); same maths, gradients' last bits differ", default="auto")
 
     def __post_init__(self):
         _check_settings(self)
@@ -121,6 +125,7 @@ def _check_settings(s: RasterSettings) -> None:
     _choice("texture", s.texture, TEXTURES)
     _choice("dtype", s.dtype, DTYPES)
     _choice("lighting", s.lighting, LIGHTINGS)
+    _choice("layout", s.layout, LAYOUTS)
     if s.lighting != "none" and s.texture != "vertex":
         raise ValueError(f"lighting={s.lighting!r} (per-pixel) needs texture='vertex', got {s.texture!r}")
     if s.dtype == "float32":

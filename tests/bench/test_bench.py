@@ -38,6 +38,7 @@ def test_quick_speed_row(quick_run):
     assert row["ns_per_pair"] == pytest.approx(1e6 * row["fwdbwd_ms"] / row["pairs"])
     assert row["pairs_frac"] == pytest.approx(row["pairs"] / (64 * 64 * 1280))
     assert row["saved_mib"] > 0 and row["peak_rss_mib"] > 0
+    assert (row["layout_asked"], row["layout"]) == ("auto", "cpu")      # PoCL: a CPU device
     # 1280 faces at 64^2 is within the dense reference's range: it ran, and agrees with float32
     assert row["ref_note"] is None and row["ref_ms"] > 0 and row["ref_ratio"] > 0
     assert row["ref_max_err"] < 1e-3
@@ -93,3 +94,18 @@ def test_bad_face_count_is_rejected(run_cli):
     result = run_cli("bench", "raster", "--faces", "1000")
     assert result.code == 2
     assert "--faces" in result.err
+
+
+@pytest.mark.slow
+def test_layouts_are_timed_side_by_side(tmp_path):
+    assert main(["bench", "raster", "--quick", "--speed-only", "--layout", "gpu,cpu", "--json",
+                 "--out", str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / "raster.json").read_text())["raster"]
+    assert [(r["layout_asked"], r["layout"]) for r in rows] == [("gpu", "gpu"), ("cpu", "cpu")]
+    assert rows[0]["pairs"] == rows[1]["pairs"] and rows[0]["bin_entries"] == rows[1]["bin_entries"]
+
+
+def test_bad_layout_is_rejected(run_cli):
+    result = run_cli("bench", "raster", "--layout", "cpu,vulkan")
+    assert result.code == 2
+    assert "--layout takes a comma-separated list of auto, cpu, gpu, got 'cpu,vulkan'" in result.err

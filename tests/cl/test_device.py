@@ -22,6 +22,8 @@ def test_list_devices_has_one_chosen():
     for r in rows:
         assert r["type"] in ("CPU", "GPU", "ACCELERATOR", "OTHER")
         assert isinstance(r["fp64"], bool) and isinstance(r["int64_atomics"], bool)
+        assert r["layout"] == ("gpu" if r["type"] in ("GPU", "ACCELERATOR") else "cpu")
+        assert r["local_mem_bytes"] > 0
     assert _same(device.select_device(), next(r for r in rows if r["chosen"]))
 
 

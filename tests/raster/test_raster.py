@@ -49,13 +49,18 @@ VARIANTS = [
 ]
 
 
+# kernel work layouts (RasterSettings.layout): both run on any device, so both are tested here
+LAYOUTS = ("cpu", "gpu")
+
+
 def _ids(variants):
     return [",".join(f"{k}={v}" for k, v in d.items()) or "default" for d in variants]
 
 
+@pytest.mark.parametrize("layout", LAYOUTS)
 @pytest.mark.parametrize("variant", VARIANTS, ids=_ids(VARIANTS))
-def test_forward_matches_reference_float64(variant):
-    s = settings(**variant)
+def test_forward_matches_reference_float64(variant, layout):
+    s = settings(layout=layout, **variant)
     vertices, faces, colors = random_scene(0, texture=s.texture)
     colors = colors if "rgb" in s.outputs else {}
     out = SoftRasterizer(s).forward(vertices, faces, **colors)
@@ -68,12 +73,13 @@ def test_forward_matches_reference_float64(variant):
     assert 0.01 < ref["alpha" if "alpha" in s.outputs else s.outputs[0]].std()  # scene not empty
 
 
+@pytest.mark.parametrize("layout", LAYOUTS)
 @pytest.mark.parametrize("gamma", [3e-2, 1e-4])
-def test_float32_matches_float64(gamma):
+def test_float32_matches_float64(gamma, layout):
     """float32 kernels within 1e-4 of the float64 reference at gamma = 3e-2. At gamma = 1e-4 the
     exponent zn / gamma (up to 1e4) carries float32's rounding (1e4 * 6e-8 = 6e-4 relative) into
     the softmax weights, so there the stated tolerance is 2e-3."""
-    s = settings(dtype="float32", gamma=gamma)
+    s = settings(dtype="float32", gamma=gamma, layout=layout)
     vertices, faces, colors = random_scene(1)
     out = SoftRasterizer(s).forward(vertices, faces, **colors)
     ref = reference.soft_rasterize(vertices, faces, s, **colors)
@@ -134,9 +140,10 @@ def _color_key(s):
     return {"vertex": "colors", "face": "face_textures", "uv": "texture_image"}[s.texture]
 
 
+@pytest.mark.parametrize("layout", LAYOUTS)
 @pytest.mark.parametrize("variant", VARIANTS, ids=_ids(VARIANTS))
-def test_gradients_match_finite_differences(variant):
-    s = settings(**variant)
+def test_gradients_match_finite_differences(variant, layout):
+    s = settings(layout=layout, **variant)
     vertices, faces, colors = random_scene(4, texture=s.texture)
     colors = colors if "rgb" in s.outputs else {}
     raster = SoftRasterizer(s)
@@ -175,9 +182,10 @@ def test_occluded_faces_receive_gradients():
     assert np.abs(g[3:, 2]).max() > 1e-6     # hidden face: depth
 
 
-def test_results_are_bit_identical_run_to_run():
-    for texture in ("vertex", "uv"):
-        s = settings(texture=texture, dtype="float32", dist_eps=1e-4)
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_results_are_bit_identical_run_to_run(layout):
+    for texture in ("vertex", "face", "uv"):
+        s = settings(texture=texture, dtype="float32", dist_eps=1e-4, layout=layout)
         vertices, faces, colors = random_scene(7, texture=texture)
         raster = SoftRasterizer(s)
         cot = _cotangents(s, 8)
@@ -233,12 +241,13 @@ def test_fast_math_variant_stays_close_to_exact_maths():
         np.testing.assert_allclose(getattr(fast, name), getattr(exact, name), rtol=1e-4, atol=1e-4)
 
 
+@pytest.mark.parametrize("layout", LAYOUTS)
 @pytest.mark.parametrize("lighting", ["lambert", "sh"])
-def test_per_pixel_lighting_forward_and_gradients(lighting):
+def test_per_pixel_lighting_forward_and_gradients(lighting, layout):
     """Albedo and normals interpolated per pixel and lit in the kernel: forward against the
     reference, and gradients for positions, albedo, normals and the 27 light parameters
     against finite differences."""
-    s = settings(lighting=lighting)
+    s = settings(lighting=lighting, layout=layout)
     vertices, faces, colors = random_scene(12)
     rng = np.random.default_rng(13)
     normals = rng.normal(size=(2, 12, 3))
@@ -260,9 +269,10 @@ def test_per_pixel_lighting_forward_and_gradients(lighting):
         np.testing.assert_allclose(got, num, rtol=0, atol=1e-6 * np.abs(num).max(), err_msg=key)
 
 
-def test_flat_face_colors_fast_path():
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_flat_face_colors_fast_path(layout):
     """R = 1 face textures (flat colour per face) take a lookup-free path in both kernels."""
-    s = settings(texture="face")
+    s = settings(texture="face", layout=layout)
     vertices, faces, _ = random_scene(16)
     textures = np.random.default_rng(17).uniform(0, 1, (2, len(faces), 1, 1, 3))
     raster = SoftRasterizer(s)
@@ -276,13 +286,14 @@ def test_flat_face_colors_fast_path():
     np.testing.assert_allclose(g["colors"].ravel(), num, rtol=0, atol=1e-6 * np.abs(num).max())
 
 
+@pytest.mark.parametrize("layout", LAYOUTS)
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
-def test_region_of_interest_renders_its_tiles_bit_identically(dtype):
+def test_region_of_interest_renders_its_tiles_bit_identically(dtype, layout):
     """roi: pixels in the tiles holding the region are bit-identical to a full render, the rest
     is background; with cotangents zero outside those tiles the gradients are bit-identical too."""
     from softras_cl.raster.binning import roi_tiles
 
-    s = settings(dtype=dtype, dist_eps=1e-4, sigma=1e-3, image_size=(40, 45))
+    s = settings(dtype=dtype, dist_eps=1e-4, sigma=1e-3, image_size=(40, 45), layout=layout)
     vertices, faces, colors = random_scene(11, n_vertices=30, n_faces=60)
     h, w = s.image_size
     roi = np.zeros((h, w), bool)
@@ -339,12 +350,13 @@ def test_lanes_must_suit_the_dtype():
 
 @pytest.mark.parametrize("variant", [dict(), dict(color_agg="hard", alpha_agg="sum", sigma=1e-4),
                                      dict(outputs=("alpha",))], ids=_ids([{}, {"hard": 1}, {"alpha": 1}]))
-def test_rows_without_cotangents_are_skipped_exactly(variant):
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_rows_without_cotangents_are_skipped_exactly(variant, layout):
     """The backward skips rows whose cotangents are all zero: each output's cotangent is non-zero
     on its own rows only (a skip that ignored one output's plane would lose its rows), batch item
     1 has a whole tile row of zeros but for one pixel (a check of one lane would lose it), and
     everything zero gives exactly zero gradients."""
-    s = settings(**variant)
+    s = settings(layout=layout, **variant)
     vertices, faces, colors = random_scene(4, texture=s.texture)
     colors = colors if "rgb" in s.outputs else {}
     raster = SoftRasterizer(s)
