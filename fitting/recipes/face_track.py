@@ -424,6 +424,10 @@ class FrameTracker:
         """(68, 2) frame pixels of the model's own 68 landmarks (not moved by the detector offsets) at a frame's values."""
         return project_landmarks(self.model_basis, self.camera, values)[0]
 
+    def world_vertices(self, values: dict) -> np.ndarray:
+        """(V, 3) float64 vertices of the face at a frame's values, in the camera's frame (FaceScene's world)."""
+        return self.scene.geometry(self.full_values(values))[0]
+
     def step(self, landmarks, time_s: float, index: int) -> FrameResult:
         """Fit one frame at ``time_s`` seconds from its landmarks (68, 2) frame pixels, or hold
         the previous values when None (a frame before any face: NaN values, held).

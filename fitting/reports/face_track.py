@@ -12,7 +12,11 @@
   line per frame; ``chunks/overlay_NNNN.mp4``: the chunk's overlay frames;
 - at the end: ``frames.npz`` / ``frames.jsonl`` (all chunks), ``overlay.mp4`` (each frame, and
   beside it the fitted face drawn over it; no audio), ``track.png`` (head angles, expression and
-  the loss terms over time, frames without a face shaded).
+  the loss terms over time, frames without a face shaded);
+- with ``--export-meshes FORMAT``: ``meshes/frame_NNNNNN.FORMAT`` (ply or obj; N the frame's
+  index), the fitted face of each frame in the camera's frame (the world of FaceScene: the model
+  turned and moved by the frame's rotation and translation), albedo vertex colours, written as
+  each frame is done (a held frame: the held pose; none before the first face).
 """
 from __future__ import annotations
 
@@ -26,10 +30,11 @@ from softras_cl.fitting.recipes.face_track import FRAME_BLOCKS, FrameResult, Ide
 from softras_cl.io.meshes import save_mesh
 from softras_cl.io.outputs import atomic_path, json_safe, write_bytes, write_figure
 
-__all__ = ["CHUNKS", "OVERLAY_MAX", "write_identity", "read_identity", "chunk_path", "write_chunk",
+__all__ = ["CHUNKS", "MESHES", "OVERLAY_MAX", "MeshExporter", "write_identity", "read_identity", "chunk_path", "write_chunk",
            "read_chunk", "OverlayDrawer", "finish_outputs", "TERMS"]
 
 CHUNKS = "chunks"
+MESHES = "meshes"
 OVERLAY_MAX = 320         # the overlay video's halves: the frame downscaled to at most this many pixels a side
 TERMS = ("landmarks", "exp_prior", "smooth_pose", "smooth_exp")
 
@@ -103,6 +108,26 @@ def read_chunk(folder: Path, k: int) -> tuple[dict, TrackerState] | None:
         arrays = {name: np.array(z[name]) for name in z.files}
     state = {name.removeprefix("state_"): arrays.pop(name) for name in list(arrays) if name.startswith("state_")}
     return arrays, TrackerState.from_arrays(state)
+
+
+class MeshExporter:
+    """Writes ``meshes/frame_NNNNNN.FORMAT`` (module docstring) for each frame :meth:`write` is
+    given: tracker, the run's fitting.recipes.face_track.FrameTracker; fmt "ply" or "obj"."""
+
+    def __init__(self, folder: Path, tracker, fmt: str):
+        self.folder, self.tracker, self.fmt = Path(folder) / MESHES, tracker, fmt
+        model = tracker.model
+        self.colors = np.clip(model.albedo(tracker.identity.albedo)[0], 0.0, 1.0)
+        self.folder.mkdir(exist_ok=True)
+
+    def path(self, index: int) -> Path:
+        return self.folder / f"frame_{index:06d}.{self.fmt}"
+
+    def write(self, result: FrameResult) -> None:
+        """The mesh of one frame; nothing for a frame before the first face (no pose yet)."""
+        if np.all(np.isfinite(result.values["rotation"])):
+            save_mesh(self.path(result.index), self.tracker.world_vertices(result.values),
+                      self.tracker.model.faces, colors=self.colors)
 
 
 class OverlayDrawer:

@@ -27,7 +27,8 @@ parameters and landmarks as .npz and JSON lines, and the overlay video's part; e
 written when done), then frames.npz and frames.jsonl (every frame: time, held, rotation,
 translation, expression, light, detected and fitted landmarks, the loss terms), overlay.mp4 (each
 frame beside the fitted face drawn over it; no audio), track.png (pose, expression and the loss
-terms over time), run.json and, last, complete.json. Ctrl-C or SIGTERM keeps the chunks done
+terms over time), with --export-meshes a mesh per frame in meshes/, run.json and, last,
+complete.json. Ctrl-C or SIGTERM keeps the chunks done
 (exit 130); --resume goes on at the first unfinished chunk."""
 
 
@@ -210,7 +211,7 @@ def _track_chunks(args, source, model, identity, config, face_box, folder: Path,
     try:
         while broken is None and (head := next(frames, None)) is not None:
             if following is None:
-                following = _Following(args, model, identity, config, face_box, head.image.shape, state)
+                following = _Following(args, model, identity, config, face_box, head.image.shape, state, folder)
             results = []
             with atomic_path(chunk_path(folder, k, ".mp4", "overlay")) as tmp, VideoWriter(tmp, source.fps or 30.0) as video:
                 try:
@@ -232,17 +233,21 @@ def _track_chunks(args, source, model, identity, config, face_box, folder: Path,
 class _Following:
     """The tracker, the face follower and the overlay of one run: :meth:`step` does a frame."""
 
-    def __init__(self, args, model, identity, config, face_box, frame_shape, state):
+    def __init__(self, args, model, identity, config, face_box, frame_shape, state, folder: Path):
         from softras_cl.fitting.recipes.face_track import FaceFollower, FrameTracker
-        from softras_cl.fitting.reports.face_track import OverlayDrawer
+        from softras_cl.fitting.reports.face_track import MeshExporter, OverlayDrawer
 
         self.tracker = FrameTracker(model, identity, frame_shape, config, state)
         self.follower = FaceFollower(args.face, face_box)
         self.follower.started = self.tracker.state.values is not None     # resumed: the face was chosen
         self.drawer = OverlayDrawer(model, identity, frame_shape)
+        self.meshes = None if args.export_meshes is None else MeshExporter(folder, self.tracker, args.export_meshes)
 
     def step(self, frame, video):
-        """Find, fit and draw one frame (into the VideoWriter ``video``); its FrameResult."""
+        """Find, fit and draw one frame (into the VideoWriter ``video``; its mesh with
+        --export-meshes); its FrameResult."""
         result = self.tracker.follow(self.follower, frame.image, frame.time, frame.index)
         video.write(self.drawer.draw(frame.image, result), frame.time)
+        if self.meshes is not None:
+            self.meshes.write(result)
         return result

@@ -34,7 +34,7 @@ def tiny_budget(monkeypatch):
 @pytest.mark.slow
 def test_track_face_writes_every_output_and_resumes_after_ctrl_c(video, tmp_path, run_cli, tiny_budget, monkeypatch):
     whole = tmp_path / "whole"
-    result = run_cli("track-face", video["path"], "--out", whole, *FAST)
+    result = run_cli("track-face", video["path"], "--out", whole, *FAST, "--export-meshes", "ply")
     assert result.code == 0, result.err
     for name in ("identity.npz", "identity.ply", "frames.npz", "frames.jsonl", "overlay.mp4", "track.png",
                  "complete.json", "chunks/chunk_0000.npz", "chunks/chunk_0002.jsonl", "chunks/overlay_0001.mp4"):
@@ -65,14 +65,14 @@ def test_track_face_writes_every_output_and_resumes_after_ctrl_c(video, tmp_path
         return step(self, landmarks, time_s, index)
 
     monkeypatch.setattr(FrameTracker, "step", interrupted_step)
-    result = run_cli("track-face", video["path"], "--out", parted, *FAST)
+    result = run_cli("track-face", video["path"], "--out", parted, *FAST, "--export-meshes", "ply")
     assert result.code == 130 and "1 chunk(s)" in result.err
     assert (parted / "chunks/chunk_0000.npz").is_file() and not (parted / "chunks/chunk_0001.npz").exists()
     assert not (parted / "complete.json").exists()
     first_chunk = (parted / "chunks/chunk_0000.npz").read_bytes()
 
     monkeypatch.setattr(FrameTracker, "step", step)
-    result = run_cli("track-face", video["path"], "--out", parted, *FAST, "--resume")
+    result = run_cli("track-face", video["path"], "--out", parted, *FAST, "--export-meshes", "ply", "--resume")
     assert result.code == 0, result.err
     assert (parted / "chunks/chunk_0000.npz").read_bytes() == first_chunk        # not done again
     resumed = json.loads((parted / "complete.json").read_text())
@@ -80,6 +80,12 @@ def test_track_face_writes_every_output_and_resumes_after_ctrl_c(video, tmp_path
     with np.load(parted / "frames.npz") as z:
         for name in ("rotation", "translation", "exp", "fitted", "detected"):
             np.testing.assert_allclose(z[name], frames[name], rtol=0, atol=1e-9, err_msg=name)
+    # a mesh per frame, written as the frames go: the resumed run's are the uninterrupted run's
+    meshes = sorted(p.name for p in (parted / "meshes").iterdir())
+    assert meshes == [f"frame_{k:06d}.ply" for k in range(FRAMES)]
+    assert sorted(p.name for p in (whole / "meshes").iterdir()) == meshes
+    for name in (meshes[0], meshes[-1]):
+        assert (parted / "meshes" / name).read_bytes() == (whole / "meshes" / name).read_bytes(), name
 
 
 @pytest.mark.slow

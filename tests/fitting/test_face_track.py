@@ -223,3 +223,26 @@ def test_second_identity_pass_fits_landmarks_corrected_by_the_first_offsets(demo
     assert np.abs(given[1][0] - plain[0]).max() < 0.2 * np.abs(detected[0] - plain[0]).max()
     # across the line of sight (depth is left to the prior by two views 40 degrees apart)
     np.testing.assert_allclose(found.landmark_offsets[:, :2], offsets[:, :2], atol=0.15 * np.abs(offsets).max())
+
+
+@pytest.mark.parametrize("fmt", ["ply", "obj"])
+def test_mesh_exporter_writes_each_frames_face_in_the_camera_frame(demo_face_model, tmp_path, fmt):
+    """--export-meshes: a frame's mesh is the identity at its expression, turned and moved by its
+    pose (computed here from the model itself); a frame before any face writes none."""
+    from softras_cl.fitting.reports.face_track import MeshExporter
+    from softras_cl.io.meshes import load_mesh
+
+    model = demo_face_model
+    identity = truth_identity(model, np.random.default_rng(8))
+    tracker = FrameTracker(model, identity, (SIZE, SIZE), TrackConfig())
+    values = head(15.0, 0.5 * np.ones(model.n_exp))
+    exporter = MeshExporter(tmp_path, tracker, fmt)
+    exporter.write(tracker.step(None, 0.0, 0))                          # before the first face
+    exporter.write(tracker.step(tracker.fitted_landmarks(values), 0.1, 1))
+    assert sorted(p.name for p in (tmp_path / "meshes").iterdir()) == [f"frame_000001.{fmt}"]
+    fitted = tracker.state.values
+    R = axis_angle_to_matrix(fitted["rotation"])
+    expected = model.shape(identity.id, fitted["exp"])[0] @ R.T + fitted["translation"]
+    mesh = load_mesh(tmp_path / "meshes" / f"frame_000001.{fmt}")
+    np.testing.assert_allclose(mesh.vertices, expected, atol=1e-6)
+    np.testing.assert_array_equal(mesh.faces, model.faces)
