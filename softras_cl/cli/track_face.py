@@ -28,8 +28,20 @@ written when done), then frames.npz and frames.jsonl (every frame: time, held, r
 translation, expression, light, detected and fitted landmarks, the loss terms), overlay.mp4 (each
 frame beside the fitted face drawn over it; no audio), track.png (pose, expression and the loss
 terms over time), with --export-meshes a mesh per frame in meshes/, run.json and, last,
-complete.json. Ctrl-C or SIGTERM keeps the chunks done
-(exit 130); --resume goes on at the first unfinished chunk."""
+complete.json. Ctrl-C or SIGTERM keeps the chunks done (exit 130); --resume goes on at the first
+unfinished chunk.
+
+Several videos: give several video files, folders (a folder holding video files: each of them; a
+folder of images: one video of frames) or quoted glob patterns, and/or --manifest CSV (a 'video'
+column, an optional 'name' column, and any option of this command as a column, e.g. face_box or
+fps; empty cells take the command line's value; paths relative to the CSV's folder). Each video is
+tracked into its own folder under --out, named after its file (a hash of the path is appended when
+two share a name), one after the other; --fps applies to the folders of frames among them.
+Running the same command again skips every video whose folder holds a complete run with the same
+inputs and options, goes on with an interrupted one at its first unfinished chunk, and redoes the
+others. --out also gets results.csv and results.jsonl (one row per video: status ok, skipped,
+failed or cancelled, the error, frames, frames held, frames per second). Exit code 0 when every
+video was tracked, 1 when some failed, 130 on Ctrl-C (the chunks done are kept)."""
 
 
 def register(sub) -> None:
@@ -38,7 +50,9 @@ def register(sub) -> None:
 
     p = sub.add_parser("track-face", help="follow a face through a video: one identity, pose and expression "
                        "per frame", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("video", metavar="VIDEO", help="the video file, or a folder of frames (with --fps)")
+    p.add_argument("videos", nargs="*", metavar="VIDEO",
+                   help="the video file, or a folder of frames (with --fps); several videos, folders of "
+                        "videos or of frames, or glob patterns track each into its own folder under --out")
     add_fit_options(p, TRACK, files=True)
     p.add_argument("--out", required=True, help="output directory (created if missing)")
     add_fit_options(p, TRACK, files=False)
@@ -47,24 +61,31 @@ def register(sub) -> None:
                         "refused) at its first unfinished chunk")
     p.add_argument("--overwrite", action="store_true",
                    help="replace a complete run of another video that --out holds (else refused)")
+    p.add_argument("--manifest", default=None, metavar="CSV",
+                   help="CSV of videos: a 'video' column, optional 'name' column, and any option of this "
+                        "command as a column; empty cells take the command line's value; paths relative to "
+                        "the CSV's folder")
     p.add_argument("--no-progress", action="store_true", help="no progress line")
     p.set_defaults(func=run)
 
 
-def _checked(args: argparse.Namespace):
-    """(TrackConfig, the --face-box box or None); InputError naming the option, before any work."""
+def check_options(values: dict):
+    """(TrackConfig, the --face-box box or None) of the options ``values`` (option name -> value,
+    fitting.run_options.TRACK); InputError naming the option, before any work."""
     from softras_cl.fitting.detection import parse_face_box
     from softras_cl.fitting.run_options import TRACK
 
-    config = TRACK.config(fit_values(args, TRACK))
-    for option, value in (("--chunk", args.chunk), ("--scan", args.scan)):
+    config = TRACK.config(values)
+    values = TRACK.values(values)
+    for option, value in (("--chunk", values["chunk"]), ("--scan", values["scan"])):
         if value < 1:
             raise InputError(f"{option} must be an integer >= 1 (frames), got {value}")
-    if args.face is not None and args.face_box is not None:
+    face, face_box = values["face"], values["face_box"]
+    if face is not None and face_box is not None:
         raise InputError("--face and --face-box cannot be combined: give one")
-    if args.face is not None and args.face < 0:
-        raise InputError(f"--face must be >= 0 (0 is the largest face), got {args.face}")
-    return config, None if args.face_box is None else parse_face_box(args.face_box)
+    if face is not None and face < 0:
+        raise InputError(f"--face must be >= 0 (0 is the largest face), got {face}")
+    return config, None if face_box is None else parse_face_box(face_box)
 
 
 def _check_detector() -> None:
@@ -88,7 +109,7 @@ def _input_record(source) -> dict:
     return dict(video=str(source.path), frames_sha256=digest.hexdigest())
 
 
-def _run_record(args, source) -> dict:
+def run_record(args, source) -> dict:
     from softras_cl.fitting.run_options import TRACK
     from softras_cl.io.outputs import file_sha256
 
@@ -115,19 +136,33 @@ class _Progress:
 
 
 def run(args: argparse.Namespace) -> int:
+    """One video into --out itself, or several (files, folders of videos, globs, a manifest)."""
+    from softras_cl.cli.track_videos import is_several, run_several
+
+    if not args.videos and not args.manifest:
+        raise InputError("give a video (or several, folders, glob patterns, or --manifest CSV)")
+    if is_several(args):
+        return run_several(args)
+    args.video = args.videos[0]
+    return run_one(args)
+
+
+def run_one(args: argparse.Namespace) -> int:
+    """Track ``args.video`` into ``args.out``; the exit code."""
     from softras_cl.fitting.model_cache import load_model
     from softras_cl.io.outputs import OutputFolder
     from softras_cl.io.video import open_video
 
     from softras_cl.cl.device import select_device
+    from softras_cl.fitting.run_options import TRACK
 
-    config, face_box = _checked(args)
+    config, face_box = check_options(fit_values(args, TRACK))
     source = open_video(args.video, args.fps)
     _check_detector()
     select_device()       # a bad SOFTRAS_CL_DEVICE: InputError now, not after the face search
     model = load_model("face", args.model, None)
     with OutputFolder(args.out, "track-face", "--out") as out:
-        replacing = out.begin(_run_record(args, source), resume=args.resume, overwrite=args.overwrite)
+        replacing = out.begin(run_record(args, source), resume=args.resume, overwrite=args.overwrite)
         if replacing:
             print(replacing)
         return _track(args, source, model, config, face_box, out)

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from softras_cl.errors import InputError
 from softras_cl.fitting.recipes import face
 from softras_cl.fitting.recipes.face_track import FrameTracker
 
@@ -164,3 +165,122 @@ def test_a_bad_device_is_refused_before_the_face_search(video, tmp_path):
                           timeout=300)
     assert done.returncode == 2 and "matches no OpenCL device" in done.stderr.strip().splitlines()[-1]
     assert not (tmp_path / "o").exists()
+
+
+def _results(folder) -> dict:
+    """results.jsonl of a several-videos run: name -> row."""
+    return {row["name"]: row for row in map(json.loads, (folder / "results.jsonl").read_text().splitlines())}
+
+
+@pytest.mark.slow
+def test_several_videos_each_into_its_folder_skipped_when_done(video, tmp_path, run_cli, tiny_budget):
+    """A video file, the same frames as a folder of PNGs (--fps) and a file that is no video: the
+    two are tracked alike into their own folders, the bad one is a failed row (exit 1); the same
+    command again skips the two done."""
+    from PIL import Image
+
+    from softras_cl.io.video import open_video
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for frame in open_video(video["path"]).frames():
+        Image.fromarray(frame.image).save(frames / f"{frame.index:03d}.png")
+    (tmp_path / "bad.mp4").write_bytes(b"not a video")
+    out = tmp_path / "out"
+    command = ("track-face", video["path"], frames, tmp_path / "bad.mp4", "--fps", FPS, "--out", out, *FAST)
+    result = run_cli(*command)
+    assert result.code == 1 and "1 of 3 videos failed" in result.err, result.err
+    rows = _results(out)
+    assert [rows[n]["status"] for n in ("head", "frames", "bad")] == ["ok", "ok", "failed"]
+    assert "bad.mp4" in rows["bad"]["error"] and rows["head"]["metrics"]["frames"] == FRAMES
+    with np.load(out / "head/frames.npz") as a, np.load(out / "frames/frames.npz") as b:
+        np.testing.assert_allclose(a["time"], b["time"])
+        np.testing.assert_allclose(a["rotation"], b["rotation"], atol=1e-9)     # the same frames, the same fit
+    chunk = (out / "frames/chunks/chunk_0000.npz").stat().st_mtime_ns
+
+    again = run_cli(*command)
+    assert again.code == 1
+    assert [_results(out)[n]["status"] for n in ("head", "frames", "bad")] == ["skipped", "skipped", "failed"]
+    assert (out / "frames/chunks/chunk_0000.npz").stat().st_mtime_ns == chunk
+
+
+@pytest.mark.slow
+def test_several_videos_go_on_after_ctrl_c_at_the_first_unfinished_chunk(video, tmp_path, run_cli, tiny_budget,
+                                                                           monkeypatch):
+    """Ctrl-C in the first of two videos: exit 130, its first chunk kept and the other cancelled;
+    the same command again goes on with the first at its second chunk and tracks the other."""
+    import shutil
+
+    for name in ("a", "b"):
+        shutil.copy(video["path"], tmp_path / f"{name}.mp4")
+    out = tmp_path / "out"
+    command = ("track-face", tmp_path / "a.mp4", tmp_path / "b.mp4", "--out", out, *FAST)
+    step = FrameTracker.step
+
+    def interrupted_step(self, landmarks, time_s, index):
+        if index == 6:
+            raise KeyboardInterrupt
+        return step(self, landmarks, time_s, index)
+
+    monkeypatch.setattr(FrameTracker, "step", interrupted_step)
+    assert run_cli(*command).code == 130
+    assert [_results(out)[n]["status"] for n in ("a", "b")] == ["cancelled", "cancelled"]
+    first_chunk = (out / "a/chunks/chunk_0000.npz").stat().st_mtime_ns
+    monkeypatch.setattr(FrameTracker, "step", step)
+    result = run_cli(*command)
+    assert result.code == 0, result.err
+    assert [_results(out)[n]["status"] for n in ("a", "b")] == ["ok", "ok"]
+    assert (out / "a/chunks/chunk_0000.npz").stat().st_mtime_ns == first_chunk      # not done again
+    with np.load(out / "a/frames.npz") as a, np.load(out / "b/frames.npz") as b:
+        np.testing.assert_allclose(a["rotation"], b["rotation"], atol=1e-9)
+
+
+def test_several_videos_from_a_manifest_with_options_per_video(video, tmp_path, monkeypatch):
+    """A manifest's video, name and option columns (paths relative to it) become each video's
+    options over the command line's; --fps reaches the folders of frames only."""
+    import argparse
+    import shutil
+
+    from softras_cl.cli.track_videos import video_items
+
+    (tmp_path / "clips").mkdir()
+    shutil.copy(video["path"], tmp_path / "clips/one.mp4")
+    (tmp_path / "stills").mkdir()
+    (tmp_path / "manifest.csv").write_text("video,name,face_box,frame_iters\nclips/one.mp4,first,1,2,30,40,\n"
+                                           "stills,,,12\n")
+    args = argparse.Namespace(videos=[], manifest=str(tmp_path / "manifest.csv"), resume=False,
+                              **{**_defaults(), "fps": 25.0, "frame_iters": 7})
+    with pytest.raises(InputError, match="more cells than the header"):
+        video_items(args)
+    (tmp_path / "manifest.csv").write_text('video,name,face_box,frame_iters\nclips/one.mp4,first,"1,2,30,40",\n'
+                                           "stills,,,12\n")
+    first, stills = video_items(args)
+    assert (first.name, first.photo, stills.name) == ("first", str(tmp_path / "clips/one.mp4"), "stills")
+    assert first.opts["face_box"] == "1,2,30,40" and first.opts["frame_iters"] == 7 and "fps" not in first.opts
+    assert stills.opts["frame_iters"] == 12 and stills.opts["fps"] == 25.0
+
+
+def _defaults() -> dict:
+    from softras_cl.fitting.run_options import TRACK
+
+    return TRACK.values({})
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--resume"], "--resume goes with one video"),
+    (["--face-box", "1,2,3,4"], "--face-box names a box in one video"),
+    (["--frame-iters", "0"], "--frame-iters must be"),
+])
+def test_several_videos_bad_options_exit_2_before_any_work(video, tmp_path, run_cli, extra, message):
+    result = run_cli("track-face", video["path"], video["path"].parent, "--out", tmp_path / "o", *extra)
+    assert result.code == 2 and message in result.err, result.err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_manifest_row_with_a_bad_option_is_named(video, tmp_path, run_cli):
+    (tmp_path / "m.csv").write_text(f"video,chunk\n{video['path']},0\n")
+    result = run_cli("track-face", "--manifest", tmp_path / "m.csv", "--out", tmp_path / "o")
+    assert result.code == 2 and "--chunk must be" in result.err and "head.mp4" in result.err, result.err
+    (tmp_path / "m.csv").write_text(f"photo\n{video['path']}\n")
+    result = run_cli("track-face", "--manifest", tmp_path / "m.csv", "--out", tmp_path / "o")
+    assert result.code == 2 and "no video (a 'video' column is required)" in result.err, result.err
