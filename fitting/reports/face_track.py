@@ -36,7 +36,7 @@ __all__ = ["CHUNKS", "MESHES", "OVERLAY_MAX", "MeshExporter", "write_identity", 
 CHUNKS = "chunks"
 MESHES = "meshes"
 OVERLAY_MAX = 320         # the overlay video's halves: the frame downscaled to at most this many pixels a side
-TERMS = ("landmarks", "exp_prior", "smooth_pose", "smooth_exp")
+TERMS = ("landmarks", "exp_prior", "smooth_pose", "smooth_exp", "light_residual")
 
 
 def write_identity(folder: Path, identity: Identity, model) -> None:

@@ -60,10 +60,10 @@ def test_track_face_writes_every_output_and_resumes_after_ctrl_c(video, tmp_path
     parted = tmp_path / "parted"
     step = FrameTracker.step
 
-    def interrupted_step(self, landmarks, time_s, index):
+    def interrupted_step(self, landmarks, time_s, index, *image):
         if index == 6:
             raise KeyboardInterrupt
-        return step(self, landmarks, time_s, index)
+        return step(self, landmarks, time_s, index, *image)
 
     monkeypatch.setattr(FrameTracker, "step", interrupted_step)
     result = run_cli("track-face", video["path"], "--out", parted, *FAST, "--export-meshes", "ply")
@@ -217,10 +217,10 @@ def test_several_videos_go_on_after_ctrl_c_at_the_first_unfinished_chunk(video, 
     command = ("track-face", tmp_path / "a.mp4", tmp_path / "b.mp4", "--out", out, *FAST)
     step = FrameTracker.step
 
-    def interrupted_step(self, landmarks, time_s, index):
+    def interrupted_step(self, landmarks, time_s, index, *image):
         if index == 6:
             raise KeyboardInterrupt
-        return step(self, landmarks, time_s, index)
+        return step(self, landmarks, time_s, index, *image)
 
     monkeypatch.setattr(FrameTracker, "step", interrupted_step)
     assert run_cli(*command).code == 130

@@ -246,3 +246,45 @@ def test_mesh_exporter_writes_each_frames_face_in_the_camera_frame(demo_face_mod
     mesh = load_mesh(tmp_path / "meshes" / f"frame_000001.{fmt}")
     np.testing.assert_allclose(mesh.vertices, expected, atol=1e-6)
     np.testing.assert_array_equal(mesh.faces, model.faces)
+
+
+def _appearance_error(model, truth, world, sh) -> float:
+    """RMS (linear RGB) of albedo x SH shading at the vertices facing the camera, sh against the truth's."""
+    from softras_cl.scene.shading import SH_A, sh_basis, vertex_normals
+
+    normals = vertex_normals(world[None], model.faces)[0][0]
+    seen = np.einsum("vi,vi->v", normals, -world) / np.linalg.norm(world, axis=1) > 0.3
+    basis = sh_basis(normals[seen]) * SH_A
+    albedo = model.albedo(truth["albedo"])[0][seen]
+    return float(np.sqrt(np.mean((albedo * (basis @ (sh - truth["sh"]).T)) ** 2)))
+
+
+def test_frame_light_is_fitted_to_the_frames_pixels(demo_face_model):
+    """A face rendered under a light other than the identity's: the frame's fitted light shades
+    it within a fifth of the identity light's error; with light_speed 0 the identity's is kept;
+    the next frame's light is drawn towards the last one by the temporal prior."""
+    from softras_cl.bench.face import random_truth
+    from softras_cl.bench.track import render_frames
+
+    model = demo_face_model
+    rng = np.random.default_rng(11)
+    truth = random_truth(model, rng, SIZE)
+    images, landmarks, worlds = render_frames(model, [truth], np.full((SIZE, SIZE, 3), 0.2))
+    wrong = truth["sh"].copy()
+    wrong[:, 1:4] -= 0.4 * truth["sh"][0, 0] * np.array([1.0, -0.5, 0.3])      # the light from elsewhere
+    identity = Identity(truth["id"], truth["albedo"], wrong, float(truth["focal"][0]), 1.0, (0,))
+    tracker = FrameTracker(model, identity, (SIZE, SIZE), TrackConfig())
+    first = tracker.step(landmarks[0], 0.0, 0, images[0])
+    before = _appearance_error(model, truth, worlds[0], wrong)
+    after = _appearance_error(model, truth, worlds[0], first.values["sh"])
+    assert after < 0.2 * before, (after, before)
+    assert 0 < first.terms["light_residual"] < 0.03
+
+    held = FrameTracker(model, identity, (SIZE, SIZE), TrackConfig(light_speed=0)).step(landmarks[0], 0.0, 0, images[0])
+    np.testing.assert_array_equal(held.values["sh"], wrong)
+
+    slow = FrameTracker(model, identity, (SIZE, SIZE), TrackConfig(light_speed=1e-3))
+    slow.step(landmarks[0], 0.0, 0, images[0])
+    slow.state.values["sh"] = wrong                                    # as if the last frame had the wrong light
+    steady = slow.step(landmarks[0], 1 / 30, 1, images[0]).values["sh"]
+    assert np.abs(steady - wrong).max() < 0.1 * np.abs(first.values["sh"] - wrong).max()
