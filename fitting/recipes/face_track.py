@@ -44,7 +44,7 @@ from softras_cl.fitting.solver import Stage, fit
 from softras_cl.scene.rotation import axis_angle_to_matrix, rodrigues, rodrigues_vjp
 
 __all__ = ["FaceFollower", "TrackConfig", "Identity", "LandmarkBasis", "FrameObjective", "FrameResult", "FrameTracker",
-           "TrackerState", "project_landmarks", "choose_keyframes", "fit_identity", "detector_offsets", "identity_from_video", "head_angles_deg", "FRAME_BLOCKS"]
+           "TrackerState", "FrameLight", "FixedLagSmoother", "world_vertices", "project_landmarks", "choose_keyframes", "fit_identity", "detector_offsets", "identity_from_video", "head_angles_deg", "FRAME_BLOCKS"]
 
 FRAME_BLOCKS = ("rotation", "translation", "exp")     # fitted per frame
 OFFSET_PRIOR_M = 0.01   # detector_offsets' prior: a detector's landmark within about a centimetre of the model's
@@ -66,6 +66,7 @@ class TrackConfig:
         carry on (0: a random walk around the last values).
     light_speed: each frame's light (FrameLight) as a random walk of this fraction of the
         identity's ambient light per square-root second; 0: the identity's light for every frame.
+    smooth_lag: frames of the fixed-lag smoothing pass (FixedLagSmoother; 0: none).
 
     The speeds' defaults: on bench track's trajectories (60 frames at 30 fps, true identity,
     1.5 px landmark noise) translation 0.005 m lagged the head's depth by 11 mm (vertex error 9 mm);
@@ -84,12 +85,13 @@ class TrackConfig:
     exp_speed: float = 1.0
     momentum: float = 1.0
     light_speed: float = 0.1
+    smooth_lag: int = 3
 
     def __post_init__(self):
-        for name in ("keyframes", "identity_passes", "frame_iters"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise InputError(f"{name} must be an integer >= 1, got {value!r}")
+        for name in ("keyframes", "identity_passes", "frame_iters", "smooth_lag"):
+            value, least = getattr(self, name), 0 if name == "smooth_lag" else 1
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+                raise InputError(f"{name} must be an integer >= {least}, got {value!r}")
         for name in ("landmark_weight", "exp_prior", "rotation_speed", "translation_speed", "exp_speed"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -140,6 +142,13 @@ class Identity:
         return cls(np.asarray(arrays["id"], np.float64), np.asarray(arrays["albedo"], np.float64),
                    np.asarray(arrays["sh"], np.float64), float(arrays["focal"]), float(arrays["pixel_scale"]),
                    tuple(int(k) for k in arrays["keyframes"]), np.asarray(arrays["landmark_offsets"], np.float64))
+
+
+def world_vertices(model, identity: Identity, values: dict) -> np.ndarray:
+    """(V, 3) float64 vertices of the identity's face at a frame's values (rotation, translation,
+    exp), in the camera's frame (FaceScene.geometry's world)."""
+    shape = model.shape(identity.id, values["exp"])[0]
+    return shape @ rodrigues(values["rotation"])[0].T + values["translation"]
 
 
 def head_angles_deg(rotation) -> tuple[float, float, float]:
@@ -373,60 +382,80 @@ class FrameLight:
 
     On a face rendered under another light than the identity's, at the pose fitted to its
     landmarks, the shading error (linear RGB RMS over the facing vertices) went from 0.118 (the
-    identity's light) to 0.010; plain least squares stopped at 0.033 (the unit test's face)."""
+    identity's light) to 0.011; plain least squares stopped at 0.033 (the unit test's face)."""
 
     FACING = 0.3
+    SAMPLE_STRIDE = 2          # every other vertex: some 4000 on the demo face, for 27 unknowns
     PIXEL_NOISE = 0.05
     ROBUST = 0.02
     IRLS_STEPS = 3
     ANCHOR = 1.0
 
     def __init__(self, model, identity: Identity, speed: float):
-        self.albedo = model.albedo(identity.albedo)[0]
+        from scipy.sparse import csr_matrix
+
+        albedo = model.albedo(identity.albedo)[0]
+        self.sample = np.arange(0, len(albedo), self.SAMPLE_STRIDE)
+        self.albedo = albedo[self.sample]
         self.faces, self.identity_sh, self.speed = model.faces, np.asarray(identity.sh, np.float64), float(speed)
         self.ambient = max(abs(float(self.identity_sh[:, 0].mean())), 1e-6)
+        n_faces = len(self.faces)
+        incidence = csr_matrix((np.ones(3 * n_faces), (self.faces.ravel(), np.repeat(np.arange(n_faces), 3))),
+                               shape=(len(albedo), n_faces))        # vertex x face: the faces around each vertex
+        self.incidence = incidence[self.sample]
+
+    def normals(self, world) -> np.ndarray:
+        """(len(sample), 3) area-weighted vertex normals of the sampled vertices (scene.shading
+        vertex_normals' own, 10x faster for one mesh seen again and again: its vertex-face
+        incidence is built once)."""
+        v0, v1, v2 = (world[self.faces[:, i]] for i in range(3))
+        summed = self.incidence @ np.cross(v1 - v0, v2 - v0)
+        length = np.linalg.norm(summed, axis=1, keepdims=True)
+        return np.divide(summed, length, out=np.zeros_like(summed), where=length > 0)
 
     def fit(self, image, world, camera, previous, dt: float) -> tuple[np.ndarray, float]:
         """(sh (3, 9), the median absolute photometric residual, linear RGB) of the frame image
         (H, W, 3) uint8 sRGB for the face's world vertices (V, 3) seen by camera; previous: the
         last frame's sh (None: no temporal prior), dt seconds since it."""
-        from softras_cl.scene.shading import SH_A, sh_basis, vertex_normals
+        from softras_cl.scene.shading import SH_A, sh_basis
 
-        normals = vertex_normals(world[None], self.faces)[0][0]
+        normals, world = self.normals(world), world[self.sample]
         facing = np.einsum("vi,vi->v", normals, -world) / np.linalg.norm(world, axis=1)
         uv = camera.project_pixels(world)[0]
         h, w = image.shape[:2]
         seen = (facing > self.FACING) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
         if not seen.any():
             return (self.identity_sh if previous is None else previous), float("nan")
-        design = self.albedo[seen, :, None] * (sh_basis(normals[seen]) * SH_A)[:, None, :]     # (n, 3, 9)
-        pixels = _linear_at(image, uv[seen])                                                   # (n, 3)
+        design = self.albedo[seen].T[:, :, None] * (sh_basis(normals[seen]) * SH_A)[None]      # (3, n, 9)
+        pixels = _linear_at(image, uv[seen]).T                                                  # (3, n)
         anchor = 1.0 / (self.ANCHOR * self.ambient) ** 2
         step = 0.0 if previous is None else 1.0 / ((self.speed * self.ambient) ** 2 * max(dt, 1e-3))
         prior = (anchor * self.identity_sh + step * (0.0 if previous is None else np.asarray(previous, np.float64)))
         sh = self.identity_sh if previous is None else np.asarray(previous, np.float64)
         for _ in range(self.IRLS_STEPS):
-            residual = np.einsum("nci,ci->nc", design, sh) - pixels
-            weight = self.PIXEL_NOISE ** -2 / (1.0 + (residual / self.ROBUST) ** 2)
-            normal = np.einsum("nc,nci,ncj->cij", weight, design, design) + (anchor + step) * np.eye(9)
-            sh = np.linalg.solve(normal, (np.einsum("nc,nci,nc->ci", weight, design, pixels) + prior)[..., None])[..., 0]
-        residual = np.einsum("nci,ci->nc", design, sh) - pixels
+            residual = np.matmul(design, sh[..., None])[..., 0] - pixels
+            weighted = design * (self.PIXEL_NOISE ** -2 / (1.0 + (residual / self.ROBUST) ** 2))[..., None]
+            normal = np.matmul(weighted.transpose(0, 2, 1), design) + (anchor + step) * np.eye(9)
+            rhs = np.matmul(weighted.transpose(0, 2, 1), pixels[..., None])[..., 0] + prior
+            sh = np.linalg.solve(normal, rhs[..., None])[..., 0]
+        residual = np.matmul(design, sh[..., None])[..., 0] - pixels
         return sh, float(np.median(np.abs(residual)))
 
 
 def _linear_at(image, uv) -> np.ndarray:
     """(N, 3) linear RGB of image (H, W, 3) uint8 sRGB at uv (N, 2) pixels (0-based centres,
     inside the image), bilinear between the four pixels around each point, each decoded to
-    linear first: only those pixels are decoded, not the frame."""
+    linear first (through a table of the 256 values: the frame itself is not decoded)."""
     from softras_cl.io.images import to_linear
 
+    linear = to_linear(np.arange(256) / 255.0)
     h, w = image.shape[:2]
     x0 = np.clip(np.floor(uv[:, 0]).astype(int), 0, w - 2)
     y0 = np.clip(np.floor(uv[:, 1]).astype(int), 0, h - 2)
     fx, fy = (uv[:, 0] - x0)[:, None], (uv[:, 1] - y0)[:, None]
 
     def at(dy, dx):
-        return to_linear(image[y0 + dy, x0 + dx] / 255.0)
+        return linear[image[y0 + dy, x0 + dx]]
 
     return (1 - fy) * ((1 - fx) * at(0, 0) + fx * at(0, 1)) + fy * ((1 - fx) * at(1, 0) + fx * at(1, 1))
 
@@ -435,7 +464,10 @@ def _linear_at(image, uv) -> np.ndarray:
 class FrameResult:
     """One frame's answer: index, time (s), values (rotation, translation, exp, sh), detected
     (68, 2) frame pixels or None, fitted (68, 2) frame pixels, held (no face: the previous
-    values kept), terms (weighted, at the answer; {} when held), evaluations, seconds (the fit)."""
+    values kept), terms (weighted, at the frame's own fit; {} when held), evaluations, seconds
+    (the fit); fit: the frame's own values before the fixed-lag smoothing (None: not smoothed).
+
+    ``own`` is what the frame's own fit gave (``fit``, else ``values``)."""
     index: int
     time: float
     values: dict
@@ -445,6 +477,68 @@ class FrameResult:
     terms: dict
     evaluations: int
     seconds: float
+    fit: dict | None = None
+
+    @property
+    def own(self) -> dict:
+        return self.values if self.fit is None else self.fit
+
+
+class FixedLagSmoother:
+    """The fixed-lag smoothing pass: each frame's rotation, translation and expression replaced
+    by the value at its time of a quadratic fitted by least squares (in time, so a variable frame
+    rate is weighed right) to the frames' own values from ``lag`` frames before it to ``lag``
+    after it, within its stretch of frames with a face (held frames pass unchanged and end a
+    stretch); the fitted landmarks follow (``landmarks_of(values) -> (68, 2)``). A frame comes out
+    ``lag`` frames after it went in (:meth:`push`), the last ones at :meth:`flush`; ``history``:
+    the last frames that came out before (FrameResults, for a resumed run). The tracker's own
+    warm starts and temporal terms use the unsmoothed values. On uniform frames inside a stretch
+    this is a Savitzky-Golay filter of 2 lag + 1 frames and order 2."""
+
+    def __init__(self, lag: int, landmarks_of, history=()):
+        from collections import deque
+
+        self.lag, self.landmarks_of = int(lag), landmarks_of
+        self.before = deque(history, maxlen=self.lag) if self.lag else deque(maxlen=0)
+        self.pending = deque()
+
+    def push(self, result: FrameResult, extra=None) -> list:
+        """Add a frame (with anything to carry along, ``extra``); the (smoothed FrameResult,
+        extra) pairs now complete, oldest first."""
+        self.pending.append((result, extra))
+        return [self._emit() for _ in range(len(self.pending) - self.lag)]
+
+    def flush(self) -> list:
+        """The frames still held back (the end of the video): their (smoothed FrameResult, extra)."""
+        return [self._emit() for _ in range(len(self.pending))]
+
+    def _emit(self):
+        result, extra = self.pending.popleft()
+        after = [r for r, _ in list(self.pending)[:self.lag]]
+        smoothed = result if result.held or not self.lag else self._smoothed(result, list(self.before), after)
+        if self.lag:
+            self.before.append(result)
+        return smoothed, extra
+
+    def _smoothed(self, result: FrameResult, before: list, after: list) -> FrameResult:
+        window = [result]
+        for r in reversed(before):                 # the stretch: back to a held frame
+            if r.held:
+                break
+            window.insert(0, r)
+        for r in after:
+            if r.held:
+                break
+            window.append(r)
+        if len(window) < 3:
+            return result
+        dt = np.array([r.time - result.time for r in window])
+        design = np.stack([np.ones_like(dt), dt, dt * dt], axis=1)
+        values = dict(result.values)
+        for name in FRAME_BLOCKS:
+            own = np.array([r.own[name] for r in window])
+            values[name] = np.linalg.lstsq(design, own, rcond=None)[0][0]
+        return dataclasses.replace(result, values=values, fitted=self.landmarks_of(values), fit=result.own)
 
 
 @dataclass
@@ -503,8 +597,8 @@ class FrameTracker:
         return project_landmarks(self.model_basis, self.camera, values)[0]
 
     def world_vertices(self, values: dict) -> np.ndarray:
-        """(V, 3) float64 vertices of the face at a frame's values, in the camera's frame (FaceScene's world)."""
-        return self.scene.geometry(self.full_values(values))[0]
+        """:func:`world_vertices` of this tracker's identity at a frame's values."""
+        return world_vertices(self.model, self.identity, values)
 
     def light_of(self, values: dict) -> np.ndarray:
         """(3, 9) the light of a frame's values: its own (per-frame light), else the identity's."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import itertools
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -233,56 +233,90 @@ def _track(args, source, model, config, face_box, out) -> int:
 
 
 def _track_chunks(args, source, model, identity, config, face_box, folder: Path, first: int, state) -> int:
-    """Fit and write the chunks from ``first`` on; returns the number of chunks done. A video that
-    breaks off (VideoReadError) ends with the chunk of the frames read before, then raises."""
-    from softras_cl.fitting.reports.face_track import CHUNKS, chunk_path, write_chunk
-    from softras_cl.io.outputs import atomic_path
-    from softras_cl.io.video import VideoReadError, VideoWriter
+    """Fit and write the chunks from ``first`` on; returns the number of chunks done. Each frame
+    is fitted, then smoothed (FixedLagSmoother: it comes out --smooth-lag frames later), drawn
+    and written. A video that breaks off (VideoReadError) ends with the chunk of the frames read
+    before, then raises."""
+    from softras_cl.fitting.recipes.face_track import FaceFollower, FixedLagSmoother, FrameTracker
+    from softras_cl.fitting.reports.face_track import read_history
+    from softras_cl.io.video import VideoReadError
 
-    frames, k, broken = source.frames(start=first * args.chunk), first, None
     progress = _Progress(not args.no_progress)
-    following = None
-    (folder / CHUNKS).mkdir(exist_ok=True)
-    try:
-        while broken is None and (head := next(frames, None)) is not None:
-            if following is None:
-                following = _Following(args, model, identity, config, face_box, head.image.shape, state, folder)
-            results = []
-            with atomic_path(chunk_path(folder, k, ".mp4", "overlay")) as tmp, VideoWriter(tmp, source.fps or 30.0) as video:
-                try:
-                    for frame in itertools.chain([head], itertools.islice(frames, args.chunk - 1)):
-                        results.append(following.step(frame, video))
-                        progress.show(frame.index + 1, "held" if results[-1].held else "")
-                except VideoReadError as error:     # keep the frames read before the break
-                    broken = error
-            if results:
-                write_chunk(folder, k, results, following.tracker.state)
-                k += 1
-    finally:
-        progress.close()
+    tracker = smoother = follower = broken = None
+    with _ChunkWriter(args, model, identity, folder, first, source.fps or 30.0) as chunks:
+        try:
+            for frame in source.frames(start=first * args.chunk):
+                if tracker is None:
+                    tracker = FrameTracker(model, identity, frame.image.shape, config, state)
+                    follower = FaceFollower(args.face, face_box)
+                    follower.started = tracker.state.values is not None    # resumed: the face was chosen
+                    smoother = FixedLagSmoother(config.smooth_lag, tracker.fitted_landmarks,
+                                                read_history(folder, first, config.smooth_lag))
+                result = tracker.follow(follower, frame.image, frame.time, frame.index)
+                progress.show(frame.index + 1, "held" if result.held else "")
+                for done, (image, after) in smoother.push(result, (frame.image, tracker.state)):
+                    chunks.add(done, image, after)
+        except VideoReadError as error:         # the frames read before the break are kept
+            broken = error
+        finally:
+            progress.close()
+        for done, (image, after) in smoother.flush() if smoother is not None else ():
+            chunks.add(done, image, after)
+        chunks.end_chunk()
     if broken is not None:
         raise broken
-    return k
+    return chunks.k
 
 
-class _Following:
-    """The tracker, the face follower and the overlay of one run: :meth:`step` does a frame."""
+class _ChunkWriter:
+    """The outputs as the frames come: each frame's overlay (and, with --export-meshes, its mesh);
+    every --chunk frames the chunk's files with the tracker's state after its last frame. Used as
+    a context: an error or Ctrl-C discards the unfinished chunk's overlay."""
 
-    def __init__(self, args, model, identity, config, face_box, frame_shape, state, folder: Path):
-        from softras_cl.fitting.recipes.face_track import FaceFollower, FrameTracker
-        from softras_cl.fitting.reports.face_track import MeshExporter, OverlayDrawer
+    def __init__(self, args, model, identity, folder: Path, k: int, fps: float):
+        from softras_cl.fitting.reports.face_track import CHUNKS
 
-        self.tracker = FrameTracker(model, identity, frame_shape, config, state)
-        self.follower = FaceFollower(args.face, face_box)
-        self.follower.started = self.tracker.state.values is not None     # resumed: the face was chosen
-        self.drawer = OverlayDrawer(model, identity, frame_shape)
-        self.meshes = None if args.export_meshes is None else MeshExporter(folder, self.tracker, args.export_meshes)
+        self.args, self.model, self.identity, self.folder, self.k, self.fps = args, model, identity, folder, k, fps
+        self.stack, self.video, self.results, self.state = contextlib.ExitStack(), None, [], None
+        self.drawer = self.meshes = None
+        (folder / CHUNKS).mkdir(exist_ok=True)
 
-    def step(self, frame, video):
-        """Find, fit and draw one frame (into the VideoWriter ``video``; its mesh with
-        --export-meshes); its FrameResult."""
-        result = self.tracker.follow(self.follower, frame.image, frame.time, frame.index)
-        video.write(self.drawer.draw(frame.image, result), frame.time)
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *error):
+        return self.stack.__exit__(*error)
+
+    def add(self, result, image, state) -> None:
+        """One frame's (smoothed) result, its image (H, W, 3) uint8 and the tracker's state after it."""
+        if self.video is None:
+            self._open(image.shape)
+        self.video.write(self.drawer.draw(image, result), result.time)
         if self.meshes is not None:
             self.meshes.write(result)
-        return result
+        self.results.append(result)
+        self.state = state
+        if len(self.results) == self.args.chunk:
+            self.end_chunk()
+
+    def _open(self, frame_shape) -> None:
+        from softras_cl.fitting.reports.face_track import MeshExporter, OverlayDrawer, chunk_path
+        from softras_cl.io.outputs import atomic_path
+        from softras_cl.io.video import VideoWriter
+
+        if self.drawer is None:
+            self.drawer = OverlayDrawer(self.model, self.identity, frame_shape)
+            if self.args.export_meshes is not None:
+                self.meshes = MeshExporter(self.folder, self.model, self.identity, self.args.export_meshes)
+        tmp = self.stack.enter_context(atomic_path(chunk_path(self.folder, self.k, ".mp4", "overlay")))
+        self.video = self.stack.enter_context(VideoWriter(tmp, self.fps))
+
+    def end_chunk(self) -> None:
+        """Write the chunk of the frames added since the last one (none: nothing)."""
+        from softras_cl.fitting.reports.face_track import write_chunk
+
+        if not self.results:
+            return
+        self.stack.close()                   # the overlay's part, complete
+        write_chunk(self.folder, self.k, self.results, self.state)
+        self.k, self.results, self.video = self.k + 1, [], None

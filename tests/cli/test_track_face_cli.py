@@ -56,12 +56,13 @@ def test_track_face_writes_every_output_and_resumes_after_ctrl_c(video, tmp_path
     overlay = list(open_video(whole / "overlay.mp4").frames())
     assert len(overlay) == FRAMES and overlay[0].image.shape == (SIZE, 2 * SIZE, 3)
 
-    # Ctrl-C at frame 6 (in the second chunk): the first chunk is kept, no complete.json
+    # Ctrl-C at frame 8 (in the third chunk; the smoothing holds back the last 3 fitted): the first
+    # chunk is kept, no complete.json
     parted = tmp_path / "parted"
     step = FrameTracker.step
 
     def interrupted_step(self, landmarks, time_s, index, *image):
-        if index == 6:
+        if index == 8:
             raise KeyboardInterrupt
         return step(self, landmarks, time_s, index, *image)
 
@@ -123,7 +124,8 @@ def test_frames_without_a_face_are_held_and_marked(video, tmp_path, run_cli, tin
     with np.load(tmp_path / "o/frames.npz") as z:
         assert z["held"].tolist() == [k in (4, 5) for k in range(FRAMES)]
         assert np.isnan(z["detected"][4]).all() and np.isfinite(z["detected"][6]).all()
-        np.testing.assert_array_equal(z["rotation"][5], z["rotation"][3])      # the last pose kept
+        np.testing.assert_array_equal(z["rotation"][5], z["fit_rotation"][3])  # the last frame's own fit kept
+        np.testing.assert_array_equal(z["rotation"][4], z["rotation"][5])
         assert np.isnan(z["term_landmarks"][4]) and np.isfinite(z["term_landmarks"][6])
     assert json.loads((tmp_path / "o/complete.json").read_text())["frames_held"] == 2
     assert json.loads((tmp_path / "o/frames.jsonl").read_text().splitlines()[4])["held"] is True
@@ -218,7 +220,7 @@ def test_several_videos_go_on_after_ctrl_c_at_the_first_unfinished_chunk(video, 
     step = FrameTracker.step
 
     def interrupted_step(self, landmarks, time_s, index, *image):
-        if index == 6:
+        if index == 8:
             raise KeyboardInterrupt
         return step(self, landmarks, time_s, index, *image)
 

@@ -236,7 +236,7 @@ def test_mesh_exporter_writes_each_frames_face_in_the_camera_frame(demo_face_mod
     identity = truth_identity(model, np.random.default_rng(8))
     tracker = FrameTracker(model, identity, (SIZE, SIZE), TrackConfig())
     values = head(15.0, 0.5 * np.ones(model.n_exp))
-    exporter = MeshExporter(tmp_path, tracker, fmt)
+    exporter = MeshExporter(tmp_path, model, identity, fmt)
     exporter.write(tracker.step(None, 0.0, 0))                          # before the first face
     exporter.write(tracker.step(tracker.fitted_landmarks(values), 0.1, 1))
     assert sorted(p.name for p in (tmp_path / "meshes").iterdir()) == [f"frame_000001.{fmt}"]
@@ -288,3 +288,50 @@ def test_frame_light_is_fitted_to_the_frames_pixels(demo_face_model):
     slow.state.values["sh"] = wrong                                    # as if the last frame had the wrong light
     steady = slow.step(landmarks[0], 1 / 30, 1, images[0]).values["sh"]
     assert np.abs(steady - wrong).max() < 0.1 * np.abs(first.values["sh"] - wrong).max()
+
+
+def _result(k, values, held=False, time_s=None):
+    from softras_cl.fitting.recipes.face_track import FrameResult
+
+    return FrameResult(k, k / 30 if time_s is None else time_s, values, None, np.zeros((68, 2)), held, {}, 1, 0.0)
+
+
+def test_fixed_lag_smoothing_is_a_savitzky_golay_filter_inside_a_stretch():
+    """Inside a stretch of uniform frames: scipy's Savitzky-Golay filter (2 lag + 1 frames, order
+    2); frames come out lag frames late, the rest at flush; a held frame passes unchanged and
+    ends the stretches on either side of it; a resumed smoother given the frames before gives
+    what an uninterrupted one gives."""
+    from scipy.signal import savgol_filter
+
+    from softras_cl.fitting.recipes.face_track import FixedLagSmoother
+
+    rng = np.random.default_rng(3)
+    lag, n = 3, 40
+    raw = [dict(rotation=rng.normal(size=3), translation=rng.normal(size=3), exp=rng.normal(size=5),
+                sh=np.full((3, 9), float(k))) for k in range(n)]
+    results = [_result(k, v, held=k == 25) for k, v in enumerate(raw)]
+
+    def run(smoother, items):
+        out = []
+        for r in items:
+            done = smoother.push(r, r.index)
+            assert all(extra == r.index - smoother.lag for _, extra in done)        # lag frames late
+            out += done
+        return out + smoother.flush()
+
+    whole = run(FixedLagSmoother(lag, lambda v: np.full((68, 2), v["rotation"][0])), results)
+    assert [extra for _, extra in whole] == list(range(n))
+    smoothed = np.array([r.values["rotation"] for r, _ in whole])
+    reference = savgol_filter(np.array([v["rotation"] for v in raw[:25]]), 2 * lag + 1, 2, axis=0)
+    np.testing.assert_allclose(smoothed[lag:25 - lag], reference[lag:25 - lag], atol=1e-12)
+    assert whole[25][0] is results[25]                                       # held: as it was
+    np.testing.assert_allclose(smoothed[30], savgol_filter(np.array([v["rotation"] for v in raw[26:]]),
+                                                           2 * lag + 1, 2, axis=0)[4], atol=1e-12)
+    first = whole[10][0]
+    assert first.fit is raw[10] and first.fitted[0, 0] == first.values["rotation"][0]
+    np.testing.assert_array_equal(first.values["sh"], raw[10]["sh"])          # the light is not smoothed
+
+    resumed = run(FixedLagSmoother(lag, lambda v: np.zeros((68, 2)), history=results[10:20]), results[20:])
+    for (a, _), (b, _) in zip(resumed, whole[20:]):
+        np.testing.assert_array_equal(a.values["exp"], b.values["exp"])
+    assert all(r is s for (r, _), s in zip(run(FixedLagSmoother(0, None), results), results))

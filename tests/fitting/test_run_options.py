@@ -33,7 +33,7 @@ BODY_SAMPLES = dict(model=FILE, silhouette=None, input="photo", background="0.5,
                     distance="4.5", height="1.1", fov="40", coarse_mesh="0", robust_joints="3")
 TRACK_SAMPLES = dict(model=FILE, fps="25", face="1", face_box="1,2,30,40", chunk="50", scan="60", keyframes="6",
                      identity_passes="1", budget="default", size="128", frame_iters="12", rotation_speed="0.1",
-                     translation_speed="0.01", exp_speed="0.5", momentum="0.5", light_speed="0.3",
+                     translation_speed="0.01", exp_speed="0.5", momentum="0.5", light_speed="0.3", smooth_lag="5",
                      export_meshes="obj")
 CASES = [("face", FACE, face_cli, FACE_SAMPLES, str(DATA / "astronaut.png")),
          ("body", BODY, body_cli, BODY_SAMPLES, str(DATA / "astronaut.png"))]
