@@ -32,6 +32,19 @@ def tiny_budget(monkeypatch):
     monkeypatch.setitem(face.BUDGETS, "fast", TINY)          # seconds, not a real identity fit
 
 
+def _ctrl_c_at_frame(monkeypatch, stop: int):
+    """FrameTracker.step raises KeyboardInterrupt at frame ``stop``; returns the real step."""
+    step = FrameTracker.step
+
+    def interrupted_step(self, landmarks, time_s, index, *image):
+        if index == stop:
+            raise KeyboardInterrupt
+        return step(self, landmarks, time_s, index, *image)
+
+    monkeypatch.setattr(FrameTracker, "step", interrupted_step)
+    return step
+
+
 @pytest.mark.slow
 def test_track_face_writes_every_output_and_resumes_after_ctrl_c(video, tmp_path, run_cli, tiny_budget, monkeypatch):
     whole = tmp_path / "whole"
@@ -59,14 +72,7 @@ def test_track_face_writes_every_output_and_resumes_after_ctrl_c(video, tmp_path
     # Ctrl-C at frame 8 (in the third chunk; the smoothing holds back the last 3 fitted): the first
     # chunk is kept, no complete.json
     parted = tmp_path / "parted"
-    step = FrameTracker.step
-
-    def interrupted_step(self, landmarks, time_s, index, *image):
-        if index == 8:
-            raise KeyboardInterrupt
-        return step(self, landmarks, time_s, index, *image)
-
-    monkeypatch.setattr(FrameTracker, "step", interrupted_step)
+    step = _ctrl_c_at_frame(monkeypatch, 8)
     result = run_cli("track-face", video["path"], "--out", parted, *FAST, "--export-meshes", "ply")
     assert result.code == 130 and "1 chunk(s)" in result.err
     assert (parted / "chunks/chunk_0000.npz").is_file() and not (parted / "chunks/chunk_0001.npz").exists()
@@ -217,14 +223,7 @@ def test_several_videos_go_on_after_ctrl_c_at_the_first_unfinished_chunk(video, 
         shutil.copy(video["path"], tmp_path / f"{name}.mp4")
     out = tmp_path / "out"
     command = ("track-face", tmp_path / "a.mp4", tmp_path / "b.mp4", "--out", out, *FAST)
-    step = FrameTracker.step
-
-    def interrupted_step(self, landmarks, time_s, index, *image):
-        if index == 8:
-            raise KeyboardInterrupt
-        return step(self, landmarks, time_s, index, *image)
-
-    monkeypatch.setattr(FrameTracker, "step", interrupted_step)
+    step = _ctrl_c_at_frame(monkeypatch, 8)
     assert run_cli(*command).code == 130
     assert [_results(out)[n]["status"] for n in ("a", "b")] == ["cancelled", "cancelled"]
     first_chunk = (out / "a/chunks/chunk_0000.npz").stat().st_mtime_ns
