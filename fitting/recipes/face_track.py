@@ -26,7 +26,14 @@ The per-frame objective (every term a sum, as in fitting.recipes.face):
   between frames dt seconds apart, so that a variable frame rate is weighed right. Absent at
   the first frame and after a held one.
 
-Light: the identity fit's, held for the video (per-frame light is not fitted here).
+Light, per frame (:class:`FrameLight`, ``light_speed`` > 0 and the frame's image given): after
+the frame's pose and expression, its SH light from the frame's pixels at the fitted face's
+vertices (robust linear least squares, a slow-light temporal prior; no render).
+
+Fixed-lag smoothing (:class:`FixedLagSmoother`, ``smooth_lag`` frames): what the frames' own
+fits give, smoothed by a quadratic in time over the frames around each one; a frame comes out
+``smooth_lag`` frames after it was fitted. The tracker's warm starts and temporal terms use the
+frames' own fits.
 """
 from __future__ import annotations
 
@@ -43,8 +50,10 @@ from softras_cl.fitting.recipes.face import FaceFitConfig, FaceScene, initial_po
 from softras_cl.fitting.solver import Stage, fit
 from softras_cl.scene.rotation import axis_angle_to_matrix, rodrigues, rodrigues_vjp
 
-__all__ = ["FaceFollower", "TrackConfig", "Identity", "LandmarkBasis", "FrameObjective", "FrameResult", "FrameTracker",
-           "TrackerState", "FrameLight", "FixedLagSmoother", "world_vertices", "project_landmarks", "choose_keyframes", "fit_identity", "detector_offsets", "identity_from_video", "head_angles_deg", "FRAME_BLOCKS"]
+__all__ = ["FaceFollower", "TrackConfig", "Identity", "LandmarkBasis", "FrameObjective", "FrameResult",
+           "FrameTracker", "TrackerState", "FrameLight", "FixedLagSmoother", "world_vertices",
+           "project_landmarks", "choose_keyframes", "fit_identity", "detector_offsets",
+           "identity_from_video", "head_angles_deg", "FRAME_BLOCKS"]
 
 FRAME_BLOCKS = ("rotation", "translation", "exp")     # fitted per frame
 OFFSET_PRIOR_M = 0.01   # detector_offsets' prior: a detector's landmark within about a centimetre of the model's
