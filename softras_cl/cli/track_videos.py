@@ -1,7 +1,8 @@
-"""`softras-cl track-face` on several videos: files, folders of videos or of frames, glob patterns
-and `--manifest CSV` (fitting.batch_items, kind "track"), each tracked into its own folder under
---out by softras_cl.cli.track_face.run_one, one after the other, with results.csv/.jsonl
-(fitting.reports.batch).
+"""What makes a run of `softras-cl track-face`: its options checked (:func:`check_options`) and
+its record (:func:`run_record`); and the command on several videos: files, folders of videos or
+of frames, glob patterns and `--manifest CSV` (fitting.batch_items, kind "track"), each tracked
+into its own folder under --out by the single-video command (softras_cl.cli.track_face.run_one,
+passed in), one after the other, with results.csv/.jsonl (fitting.reports.batch).
 
 One after the other, not on the photo batch's Dask cluster: a video is a long, sequential job
 (each frame is warm-started from the one before), and its identity fit and face search already
@@ -14,11 +15,57 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from softras_cl.cli.runs import fit_values
 from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError, ResultError, SoftrasError
 
-__all__ = ["is_several", "run_several", "video_items"]
+__all__ = ["check_options", "run_record", "is_several", "run_several", "video_items"]
 
 SUMMARY = ("frames", "frames_held", "frame_fit_fps", "end_to_end_fps", "identity_seconds")   # results' metrics
+
+
+def check_options(values: dict):
+    """(TrackConfig, the --face-box box or None) of the options ``values`` (option name -> value,
+    fitting.run_options.TRACK); InputError naming the option, before any work."""
+    from softras_cl.fitting.detection import parse_face_box
+    from softras_cl.fitting.run_options import TRACK
+
+    config = TRACK.config(values)
+    values = TRACK.values(values)
+    for option, value in (("--chunk", values["chunk"]), ("--scan", values["scan"])):
+        if value < 1:
+            raise InputError(f"{option} must be an integer >= 1 (frames), got {value}")
+    face, face_box = values["face"], values["face_box"]
+    if face is not None and face_box is not None:
+        raise InputError("--face and --face-box cannot be combined: give one")
+    if face is not None and face < 0:
+        raise InputError(f"--face must be >= 0 (0 is the largest face), got {face}")
+    return config, None if face_box is None else parse_face_box(face_box)
+
+
+def _input_record(source) -> dict:
+    """The video's digest: the file's SHA-256, or for a folder one over its frames' names and digests."""
+    import hashlib
+
+    from softras_cl.io.outputs import file_sha256
+
+    if not source.is_folder:
+        return dict(video=str(source.path), video_sha256=file_sha256(source.path))
+    digest = hashlib.sha256()
+    for path in source.files:
+        digest.update(f"{path.name}:{file_sha256(path)}\n".encode())
+    return dict(video=str(source.path), frames_sha256=digest.hexdigest())
+
+
+def run_record(args, source) -> dict:
+    """The run record of tracking ``source`` (softras_cl.io.video.VideoSource) with the options of
+    ``args``: its digests (and the model's) and the recorded options."""
+    from softras_cl.fitting.run_options import TRACK
+    from softras_cl.io.outputs import file_sha256
+
+    inputs = _input_record(source)
+    if args.model is not None:
+        inputs["model_sha256"] = file_sha256(args.model)
+    return dict(command="track-face", inputs=inputs, options=TRACK.record_options(fit_values(args, TRACK)))
 
 
 def is_several(args: argparse.Namespace) -> bool:
@@ -35,8 +82,6 @@ def video_items(args: argparse.Namespace) -> list:
     """The videos' fitting.batch_items.Item (kind "track", ``photo`` the video's path) with their
     options: the command line's, a manifest row's cells over them; --fps only for folders of
     frames. InputError naming the video and option that cannot be used, before any work."""
-    from softras_cl.cli.runs import fit_values
-    from softras_cl.cli.track_face import check_options
     from softras_cl.fitting.batch_items import collect_items
     from softras_cl.fitting.run_options import TRACK
 
@@ -67,10 +112,10 @@ def _item_args(args: argparse.Namespace, item, out: Path) -> argparse.Namespace:
                                  "out": str(out / item.name), "resume": False})
 
 
-def _run_item(args: argparse.Namespace, item, out: Path) -> dict:
-    """Track one video (skipped when its folder holds its complete run; resumed when it holds
-    its interrupted one); its results row. KeyboardInterrupt when Ctrl-C stopped it."""
-    from softras_cl.cli.track_face import run_one, run_record
+def _run_item(args: argparse.Namespace, item, out: Path, track_one) -> dict:
+    """Track one video by ``track_one(args) -> exit code`` (skipped when its folder holds its
+    complete run; resumed when it holds its interrupted one); its results row.
+    KeyboardInterrupt when Ctrl-C stopped it."""
     from softras_cl.fitting.batch_task import describe, make_row
     from softras_cl.fitting.run_records import completed
     from softras_cl.io.outputs import RUN_RECORD, json_safe
@@ -86,7 +131,7 @@ def _run_item(args: argparse.Namespace, item, out: Path) -> dict:
             print(f"track-face: {item.name}: done before with these inputs and options (skipped)")
             return make_row(item, "skipped", folder, _summary(done), done.get("seconds"))
         one.resume = _read_json(folder / RUN_RECORD) == json.loads(json.dumps(json_safe(record), default=str))
-        code = run_one(one)
+        code = track_one(one)
     except (SoftrasError, ValueError, OSError) as error:
         print(f"track-face: {item.name}: failed: {describe(error)}")
         return make_row(item, "failed", seconds=time.perf_counter() - start, error=describe(error))
@@ -107,8 +152,9 @@ def _summary(complete: dict) -> dict:
     return {k: complete.get(k) for k in SUMMARY}
 
 
-def run_several(args: argparse.Namespace) -> int:
-    """Track every video into its folder under --out; results.csv/.jsonl; the exit code."""
+def run_several(args: argparse.Namespace, track_one) -> int:
+    """Track every video into its folder under --out by ``track_one(args) -> exit code`` (the
+    single-video command); results.csv/.jsonl; the exit code."""
     from softras_cl.fitting.reports.batch import ResultsTable
     from softras_cl.io.outputs import OutputFolder
 
@@ -117,7 +163,7 @@ def run_several(args: argparse.Namespace) -> int:
         table, interrupted = ResultsTable(folder.path, items), False
         try:
             for item in items:
-                table.add(_run_item(args, item, folder.path))
+                table.add(_run_item(args, item, folder.path, track_one))
         except KeyboardInterrupt:
             interrupted = True
         table.finish(interrupted)

@@ -59,7 +59,7 @@ def test_each_track_option_reaches_a_videos_config_and_record_as_the_single_vide
     config and run record that the single-video command gives (--face-box, a box in one video,
     goes per video in a manifest: the next test)."""
     from softras_cl.cli.runs import fit_values
-    from softras_cl.cli.track_face import check_options, run_record
+    from softras_cl.cli.track_videos import check_options, run_record
     from softras_cl.cli.track_videos import _item_args, video_items
     from softras_cl.io.video import open_video
 
