@@ -248,7 +248,9 @@ def run_tracker(model, sequence: dict, config, follower_factory, scan: int) -> d
 
 
 def run_independent(model, sequence: dict, landmarks: np.ndarray, config, frames: int) -> list:
-    """fit-face on each of the first ``frames`` frames alone, from the given landmarks (T, 68, 2)."""
+    """fit-face on each of the first ``frames`` frames alone, from the given landmarks (T, 68, 2):
+    (its FaceFit, or the ValueError that stopped it (a fit that put the face behind the camera),
+    seconds) per frame."""
     from softras_cl.fitting.recipes.face import fit_face
     from softras_cl.io.images import to_linear
     from softras_cl.io.video import open_video
@@ -258,23 +260,37 @@ def run_independent(model, sequence: dict, landmarks: np.ndarray, config, frames
         if frame.index >= frames:
             break
         start = time.perf_counter()
-        fit = fit_face(to_linear(frame.image / 255.0), landmarks[frame.index], model, config, progress=False)
+        try:
+            fit = fit_face(to_linear(frame.image / 255.0), landmarks[frame.index], model, config, progress=False)
+        except ValueError as error:
+            fit = error
         fits.append((fit, time.perf_counter() - start))
     return fits
 
 
 def independent_measures(model, fits, sequence: dict) -> dict:
-    """The independent fits' errors, jitter, identity ratios and seconds (module docstring)."""
+    """The independent fits' errors, jitter, identity ratios and seconds (module docstring). A
+    frame whose fit failed is counted (``failed``, the first error) and takes the last fit before
+    it (the first fit after it at the start), as the tracker holds a frame without a face."""
     from softras_cl.bench.face_views import identity_ratio
 
     n = len(fits)
-    vertices = np.array([f.scene.geometry(f.values)[0] for f, _ in fits])
-    landmarks = np.array([f.crop.to_full(f.fitted_landmarks()) for f, _ in fits])
-    ratios = [identity_ratio(model, f.values["id"], sequence["truth"][0]["id"]) for f, _ in fits]
+    done = [f for f, _ in fits if not isinstance(f, Exception)]
+    failures = [str(f) for f, _ in fits if isinstance(f, Exception)]
+    if not done:
+        raise ValueError(f"every independent fit failed (first: {failures[0]})")
+    held, last = [], done[0]
+    for f, _ in fits:
+        last = last if isinstance(f, Exception) else f
+        held.append(last)
+    vertices = np.array([f.scene.geometry(f.values)[0] for f in held])
+    landmarks = np.array([f.crop.to_full(f.fitted_landmarks()) for f in held])
+    ratios = [identity_ratio(model, f.values["id"], sequence["truth"][0]["id"]) for f in done]
     seconds = [s for _, s in fits]
     return dict(sequence_errors(vertices, sequence["vertices"][:n], landmarks, sequence["landmarks"][:n]),
                 best_single_ratio=float(min(ratios)), mean_single_ratio=float(np.mean(ratios)),
-                seconds_per_frame=float(np.mean(seconds)))
+                seconds_per_frame=float(np.mean(seconds)), failed=len(failures),
+                first_failure=failures[0] if failures else None)
 
 
 def run_sequence(model, rng, index: int, args, config, face_config, folder: Path) -> dict:
@@ -359,7 +375,8 @@ def summarise(rows: list[dict]) -> dict:
              unsmoothed_landmark_error_px=mean(lambda r: r["unsmoothed_on_independent_frames"]["landmark_error_px"]),
              unsmoothed_jitter_mm=mean(lambda r: r["unsmoothed_on_independent_frames"]["jitter_mm"]),
              light_error=mean(lambda r: r["light_error"]),
-             light_error_identity=mean(lambda r: r["light_error_identity"]))
+             light_error_identity=mean(lambda r: r["light_error_identity"]),
+             independent_failed=int(sum(r["independent"].get("failed", 0) for r in rows)))
     s["targets"] = dict(
         frame_fps=s["frame_fps"] >= TARGET_FPS,
         jitter=(s["tracker_jitter_mm"] <= TARGET_JITTER_RATIO * s["independent_jitter_mm"]
@@ -400,7 +417,8 @@ def format_table(rows: list[dict], s: dict) -> str:
                       f"before the fixed-lag smoothing: jitter {s['unsmoothed_jitter_mm']:.3f} mm/frame^2, vertex "
                       f"{s['unsmoothed_vertex_error_mm']:.2f} mm, landmark {s['unsmoothed_landmark_error_px']:.2f} px",
                       f"appearance error {s['light_error']:.3f} with each frame's light, {s['light_error_identity']:.3f} "
-                      "with the identity's light for every frame"])
+                      "with the identity's light for every frame",
+                      f"independent fits that failed (each held at the fit before it): {s['independent_failed']}"])
 
 
 def save_pictures(rows: list[dict], folder: Path) -> None:
