@@ -105,3 +105,27 @@ def test_appearance_error_is_relative_to_the_truths_colour(demo_face_model):
     brighter = track.appearance_error(model, world, albedo, 1.1 * truth["sh"], truth, world)
     assert 0.1 * 0.9 < brighter < 0.1 * 1.5          # RMS over mean of positive colours: a little above 1
     assert track.appearance_error(model, world, 0.5 * albedo, truth["sh"], truth, world) > 4 * brighter
+
+
+def test_a_failed_independent_fit_is_counted_and_held(demo_face_model):
+    """A frame whose independent fit raised takes the fit before it (the first one after it at
+    the start), is left out of the identity ratios and is counted with its message."""
+    from types import SimpleNamespace
+
+    model = demo_face_model
+    truth_id = np.zeros(model.n_id)
+
+    def fake(k):
+        world = np.full((4, 3), float(k))
+        return SimpleNamespace(scene=SimpleNamespace(geometry=lambda values: (world, None)),
+                               crop=SimpleNamespace(to_full=lambda points: points),
+                               fitted_landmarks=lambda: np.full((68, 2), float(k)), values=dict(id=truth_id))
+
+    fits = [(ValueError("behind the camera"), 1.0), (fake(1), 1.0), (ValueError("again"), 1.0), (fake(3), 1.0)]
+    sequence = dict(vertices=np.zeros((4, 4, 3)), landmarks=np.zeros((4, 68, 2)), truth=[dict(id=truth_id)])
+    measured = track.independent_measures(model, fits, sequence)
+    assert measured["failed"] == 2 and measured["first_failure"] == "behind the camera"
+    held = np.array([1.0, 1.0, 1.0, 3.0])                       # frames 0 and 2 held
+    assert measured["landmark_error_px"] == pytest.approx(np.mean(held * np.sqrt(2)))
+    with pytest.raises(ValueError, match="every independent fit failed"):
+        track.independent_measures(model, [fits[0]], sequence)
