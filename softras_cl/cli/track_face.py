@@ -16,11 +16,14 @@ Follow one face through a video (mp4/mov/avi/webm/mkv through PyAV, the "video" 
 of frames with --fps). The face is found in the first frames (MediaPipe Face Mesh, as
 detect-landmarks; --face N / --face-box X,Y,W,H choose it) and followed: each frame is searched
 around the previous frame's fitted landmarks, and over the whole frame again when the face is
-lost. The identity, albedo, light and one focal length are fitted once, jointly on a few keyframes
+lost. The identity, albedo and one focal length are fitted once, jointly on a few keyframes
 chosen among the first --scan frames for pose variety (as fit-face --same-person does); then each
 frame's head pose and expression are fitted to its landmarks, warm-started from the previous
 frame, with temporal terms that keep them steady (--rotation-speed, --translation-speed,
---exp-speed, --momentum). A frame without a face keeps the last pose and is marked "held".
+--exp-speed, --momentum), and its light to its pixels, changing slowly (--light-speed); a
+fixed-lag smoothing pass then steadies pose and expression over --smooth-lag frames either side
+(a frame's outputs come that many frames after its fit). A frame without a face keeps the last
+pose and is marked "held".
 
 Writes into --out: identity.npz / identity.ply, chunks/ (per chunk of --chunk frames: the frames'
 parameters and landmarks as .npz and JSON lines, and the overlay video's part; each chunk is
@@ -39,9 +42,10 @@ tracked into its own folder under --out, named after its file (a hash of the pat
 two share a name), one after the other; --fps applies to the folders of frames among them.
 Running the same command again skips every video whose folder holds a complete run with the same
 inputs and options, goes on with an interrupted one at its first unfinished chunk, and redoes the
-others. --out also gets results.csv and results.jsonl (one row per video: status ok, skipped,
-failed or cancelled, the error, frames, frames held, frames per second). Exit code 0 when every
-video was tracked, 1 when some failed, 130 on Ctrl-C (the chunks done are kept)."""
+others. --out also gets results.csv, results.jsonl (one row per video: status ok, skipped,
+failed or cancelled, the error, frames, frames held, frames per second) and summary.png. Exit
+code 0 when every video was tracked, 1 when some failed, 130 on Ctrl-C (the chunks done are
+kept)."""
 
 
 def register(sub) -> None:
