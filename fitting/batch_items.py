@@ -1,6 +1,8 @@
 """The items of a batch of fits: photos (faces) or targets (bodies) named by paths, folders,
 glob patterns and CSV manifests, each an :class:`Item` (plain data, sent to a worker) with its
-options (fitting.run_options) and a stable output folder name."""
+options (fitting.run_options) and a stable output folder name. Kind "track" names videos
+(track-face's several videos: files, folders of videos or of frames, a manifest's 'video'
+column; softras_cl.io.video expand_videos)."""
 from __future__ import annotations
 
 import csv
@@ -11,12 +13,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from softras_cl.errors import InputError
-from softras_cl.fitting.run_options import FITS
+from softras_cl.fitting.run_options import FITS, TRACK
 
 __all__ = ["Item", "KINDS", "IMAGE_SUFFIXES", "expand_paths", "read_manifest", "stable_names",
            "collect_items", "check_names"]
 
 KINDS = tuple(FITS)
+ITEM_OPTIONS = {**FITS, "track": TRACK}          # item kind -> its command's options
+INPUT_COLUMNS = {"face": ("photo", "target"), "body": ("photo", "target"), "track": ("video",)}
+SIDE_COLUMNS = {"face": ("landmarks", "joints"), "body": ("landmarks", "joints"), "track": ()}
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 
 
@@ -62,7 +67,10 @@ def _folder_photos(folder: Path, kind: str) -> list[Path]:
 
 def expand_paths(inputs, kind: str = "face") -> list[Path]:
     """Photos named by ``inputs`` (files, folders, glob patterns), in the order given, each once.
-    InputError when an input names nothing."""
+    InputError when an input names nothing. Kind "track": videos (softras_cl.io.video expand_videos)."""
+    if kind == "track":
+        from softras_cl.io.video import expand_videos
+        return expand_videos(inputs)
     photos: list[Path] = []
     for text in map(str, inputs):
         path = Path(text)
@@ -82,8 +90,8 @@ def expand_paths(inputs, kind: str = "face") -> list[Path]:
 
 def read_manifest(path, kind: str = "face") -> list[dict]:
     """A CSV manifest -> list of dict(photo=Path, landmarks=Path or None, name=str or None,
-    options=dict). Columns: photo (or target), optional landmarks (or joints) and name, and
-    any option of the fit (fitting.run_options.FITS[kind]; dashes or underscores); an empty
+    options=dict). Columns: photo (or target; kind "track": video), optional landmarks (or
+    joints; not for "track") and name, and any option of the fit (ITEM_OPTIONS[kind]; dashes or underscores); an empty
     cell takes the command's value. Relative paths are relative to the manifest's folder."""
     path = Path(path)
     try:
@@ -101,18 +109,28 @@ def _manifest_row(path: Path, line: int, row: dict, kind: str) -> dict:
         raise InputError(f"manifest {path} line {line}: more cells than the header has columns "
                          "(quote a cell that holds a comma)")
     row = {(k or "").strip().lower(): (v or "").strip() for k, v in row.items()}
-    photo = row.pop("photo", "") or row.pop("target", "")
+    photo = _first_cell(row, INPUT_COLUMNS[kind])
     if not photo:
-        raise InputError(f"manifest {path} line {line}: no photo (a 'photo' column is required)")
-    side = row.pop("landmarks", "") or row.pop("joints", "")
+        what = INPUT_COLUMNS[kind][0]
+        raise InputError(f"manifest {path} line {line}: no {what} (a '{what}' column is required)")
+    side = _first_cell(row, SIDE_COLUMNS[kind])
     name = row.pop("name", "") or None
-    fit = FITS[kind]
+    fit = ITEM_OPTIONS[kind]
     options = dict(fit.parse_cell(k, v) for k, v in row.items() if v)
     for key in options:
         if fit[key].file:
             options[key] = str(path.parent / options[key])
     return dict(photo=path.parent / photo, landmarks=(path.parent / side) if side else None,
                 name=name, options=options)
+
+
+def _first_cell(row: dict, columns: tuple) -> str:
+    """The cell of the first of ``columns`` that has one, popped from ``row`` with those before it."""
+    for column in columns:
+        cell = row.pop(column, "")
+        if cell:
+            return cell
+    return ""
 
 
 def stable_names(photos: list[Path]) -> list[str]:
@@ -134,8 +152,8 @@ def collect_items(inputs=(), kind: str = "face", options: dict | None = None, ma
     apply to every item (a manifest's cells override them); ``landmarks``: one landmark/joints
     file, allowed with a single photo only; ``face``: the detected face to fit in every photo
     (None: the largest). InputError on an empty or inconsistent list."""
-    if kind not in KINDS:
-        raise InputError(f"kind must be one of {KINDS}, got {kind!r}")
+    if kind not in ITEM_OPTIONS:
+        raise InputError(f"kind must be one of {tuple(ITEM_OPTIONS)}, got {kind!r}")
     base = _checked_options(kind, options or {})
     rows = [dict(photo=p, landmarks=None, name=None, options={}) for p in expand_paths(inputs, kind)]
     if manifest is not None:
@@ -158,7 +176,7 @@ def collect_items(inputs=(), kind: str = "face", options: dict | None = None, ma
 
 def _checked_options(kind: str, options: dict) -> dict:
     """The options given (not None) of an item; InputError for a name that is not an option."""
-    FITS[kind].values(options)
+    ITEM_OPTIONS[kind].values(options)
     return {k: v for k, v in options.items() if v is not None}
 
 

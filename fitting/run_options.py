@@ -275,6 +275,17 @@ def _track_options() -> tuple[Option, ...]:
                f"square-root second (default {d.exp_speed:g})", field="exp_speed", metavar="STD"),
         Option("momentum", float, d.momentum, "how much of the last frame's motion the temporal terms expect "
                f"to go on, 0-1 (default {d.momentum:g})", field="momentum"),
+        Option("light_speed", float, d.light_speed, "each frame's light, fitted to the frame's pixels on the face, "
+               "as a random walk of this fraction of the video's ambient light per square-root second (default "
+               f"{d.light_speed:g}; 0: the identity fit's light for every frame)", field="light_speed",
+               metavar="FRACTION"),
+        Option("smooth_lag", int, d.smooth_lag, "fixed-lag smoothing: each frame's pose and expression from a "
+               "quadratic in time fitted to its own fit and those of FRAMES frames before and after it (each "
+               f"frame comes out FRAMES frames later; default {d.smooth_lag}; 0: none)", field="smooth_lag",
+               metavar="FRAMES"),
+        Option("export_meshes", str, None, "also write the fitted face of every frame, in the camera's frame "
+               "with albedo colours, to meshes/frame_NNNNNN.FORMAT as each frame is done (default: none)",
+               choices=("ply", "obj"), metavar="{ply,obj}", record_default=False),
     )
 
 

@@ -4,7 +4,9 @@
   fit's metrics as JSON text) and
   ``identity.ply`` (the neutral face of the identity, albedo vertex colours, model frame);
 - ``chunks/chunk_NNNN.npz``: one chunk's frames: index, time (s), held (bool), rotation (N, 3),
-  translation (N, 3), exp (N, K), sh (N, 3, 9), detected and fitted landmarks (N, 68, 2)
+  translation (N, 3), exp (N, K) (after the fixed-lag smoothing; ``fit_rotation``,
+  ``fit_translation``, ``fit_exp``: each frame's own fit, before it), sh (N, 3, 9) (each frame's
+  light), detected and fitted landmarks (N, 68, 2)
   frame pixels, 0-based (detected NaN where no face was found), the weighted loss terms
   (``term_NAME`` (N,), NaN when held), evaluations and seconds of each frame's fit, and the
   tracker's state after the chunk (``state_*``, where --resume goes on). Written last of a
@@ -12,7 +14,11 @@
   line per frame; ``chunks/overlay_NNNN.mp4``: the chunk's overlay frames;
 - at the end: ``frames.npz`` / ``frames.jsonl`` (all chunks), ``overlay.mp4`` (each frame, and
   beside it the fitted face drawn over it; no audio), ``track.png`` (head angles, expression and
-  the loss terms over time, frames without a face shaded).
+  the loss terms over time, frames without a face shaded);
+- with ``--export-meshes FORMAT``: ``meshes/frame_NNNNNN.FORMAT`` (ply or obj; N the frame's
+  index), the fitted face of each frame in the camera's frame (the world of FaceScene: the model
+  turned and moved by the frame's rotation and translation), albedo vertex colours, written as
+  each frame is done (a held frame: the held pose; none before the first face).
 """
 from __future__ import annotations
 
@@ -22,16 +28,18 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.fitting.recipes.face_track import FRAME_BLOCKS, FrameResult, Identity, TrackerState, head_angles_deg
+from softras_cl.fitting.recipes.face_track import (FRAME_BLOCKS, FrameResult, Identity, TrackerState, head_angles_deg,
+                                                   world_vertices)
 from softras_cl.io.meshes import save_mesh
 from softras_cl.io.outputs import atomic_path, json_safe, write_bytes, write_figure
 
-__all__ = ["CHUNKS", "OVERLAY_MAX", "write_identity", "read_identity", "chunk_path", "write_chunk",
+__all__ = ["CHUNKS", "MESHES", "OVERLAY_MAX", "MeshExporter", "write_identity", "read_identity", "chunk_path", "write_chunk",
            "read_chunk", "OverlayDrawer", "finish_outputs", "TERMS"]
 
 CHUNKS = "chunks"
+MESHES = "meshes"
 OVERLAY_MAX = 320         # the overlay video's halves: the frame downscaled to at most this many pixels a side
-TERMS = ("landmarks", "exp_prior", "smooth_pose", "smooth_exp")
+TERMS = ("landmarks", "exp_prior", "smooth_pose", "smooth_exp", "light_residual")
 
 
 def write_identity(folder: Path, identity: Identity, model) -> None:
@@ -68,6 +76,7 @@ def chunk_arrays(results: list[FrameResult]) -> dict:
                   seconds=stack(lambda r: r.seconds), sh=stack(lambda r: r.values["sh"]))
     for name in FRAME_BLOCKS:
         arrays[name] = stack(lambda r: r.values[name])
+        arrays[f"fit_{name}"] = stack(lambda r: r.own[name])
     for term in TERMS:
         arrays[f"term_{term}"] = stack(lambda r: r.terms.get(term, np.nan))
     return arrays
@@ -94,6 +103,21 @@ def write_chunk(folder: Path, k: int, results: list[FrameResult], state: Tracker
         np.savez(tmp, **arrays)
 
 
+def read_history(folder: Path, k: int, lag: int) -> list[FrameResult]:
+    """The last ``lag`` frames before chunk k (from the chunks before it; fewer at the start) as
+    FrameResults holding what the fixed-lag smoothing needs of them: time, held, and their own
+    fit's values (``fit_*``) as values."""
+    frames: list[FrameResult] = []
+    while k > 0 and len(frames) < lag:
+        k -= 1
+        arrays = read_chunk(folder, k)[0]
+        frames = [FrameResult(int(arrays["index"][i]), float(arrays["time"][i]),
+                              {name: arrays[f"fit_{name}"][i] for name in FRAME_BLOCKS}, None,
+                              arrays["fitted"][i], bool(arrays["held"][i]), {}, 0, 0.0)
+                  for i in range(len(arrays["index"]))] + frames
+    return frames[max(0, len(frames) - lag):] if lag else []
+
+
 def read_chunk(folder: Path, k: int) -> tuple[dict, TrackerState] | None:
     """(chunk k's frame arrays, the tracker's state after it), or None when it is not done."""
     path = chunk_path(folder, k)
@@ -103,6 +127,25 @@ def read_chunk(folder: Path, k: int) -> tuple[dict, TrackerState] | None:
         arrays = {name: np.array(z[name]) for name in z.files}
     state = {name.removeprefix("state_"): arrays.pop(name) for name in list(arrays) if name.startswith("state_")}
     return arrays, TrackerState.from_arrays(state)
+
+
+class MeshExporter:
+    """Writes ``meshes/frame_NNNNNN.FORMAT`` (module docstring) for each frame :meth:`write` is
+    given: model and identity, the video's; fmt "ply" or "obj"."""
+
+    def __init__(self, folder: Path, model, identity: Identity, fmt: str):
+        self.folder, self.model, self.identity, self.fmt = Path(folder) / MESHES, model, identity, fmt
+        self.colors = np.clip(model.albedo(identity.albedo)[0], 0.0, 1.0)
+        self.folder.mkdir(exist_ok=True)
+
+    def path(self, index: int) -> Path:
+        return self.folder / f"frame_{index:06d}.{self.fmt}"
+
+    def write(self, result: FrameResult) -> None:
+        """The mesh of one frame; nothing for a frame before the first face (no pose yet)."""
+        if np.all(np.isfinite(result.values["rotation"])):
+            save_mesh(self.path(result.index), world_vertices(self.model, self.identity, result.values),
+                      self.model.faces, colors=self.colors)
 
 
 class OverlayDrawer:

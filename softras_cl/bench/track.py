@@ -14,7 +14,11 @@ landmarks). Reported per sequence and over all: vertex error (mm; fitted minus t
 after one similarity per sequence), landmark error (px, against the true landmarks), jitter (RMS of
 the second temporal difference of the fitted minus the true vertices, mm per frame^2), the
 identity's shape error (neutral face RMSE over the mean face's, as bench face-views), frames per
-second end to end (decode, detection, identity fit, per-frame fits) and of the per-frame stage alone.
+second end to end (decode, detection, identity fit, per-frame fits) and of the per-frame stage alone
+(each frame's fit, its light and the fixed-lag smoothing); the tracker's errors before its fixed-lag
+smoothing (each frame's own fit); and the appearance error (the fitted face's colour, albedo times
+SH shading, against the truth's, relative RMS over the vertices facing the camera) with each
+frame's fitted light and with the identity's light held for the video.
 Targets (never lowered): per-frame stage >= 10 frames/s; jitter <= 1/3 of the independent fits' with
 vertex and landmark errors no worse; identity error no worse than the best single frame's and >= 30%
 below the mean single frame's.
@@ -158,15 +162,36 @@ def sequence_errors(fitted_vertices: np.ndarray, true_vertices: np.ndarray, fitt
                 landmark_error_px=float(np.linalg.norm(fitted_landmarks - true_landmarks, axis=2).mean()))
 
 
-def tracked_vertices(model, identity, results) -> np.ndarray:
-    """(T, V, 3) world vertices of the tracker's frames."""
-    from softras_cl.scene.rotation import rodrigues
+def appearance_error(model, world: np.ndarray, albedo, sh, truth: dict, true_world: np.ndarray) -> float:
+    """The face's colour (albedo (V, 3) x SH shading of sh (3, 9) at the normals of world (V, 3))
+    against the truth's (its albedo and light at the true vertices), linear-RGB RMS over the
+    vertices facing the camera in the truth, over the truth's mean colour there."""
+    from softras_cl.scene.shading import SH_A, sh_basis, vertex_normals
 
-    out = []
-    for r in results:
-        shape = model.shape(identity.id, r.values["exp"])[0]
-        out.append(shape @ rodrigues(r.values["rotation"])[0].T + r.values["translation"])
-    return np.array(out)
+    def colours(vertices, albedo, sh):
+        normals = vertex_normals(vertices[None], model.faces)[0][0]
+        return albedo * ((sh_basis(normals) * SH_A) @ np.asarray(sh).T), normals
+
+    true, normals = colours(true_world, model.albedo(truth["albedo"])[0], truth["sh"])
+    seen = np.einsum("vi,vi->v", normals, -true_world) / np.linalg.norm(true_world, axis=1) > 0.3
+    fitted = colours(world, albedo, sh)[0]
+    return float(np.sqrt(np.mean((fitted[seen] - true[seen]) ** 2)) / np.mean(true[seen]))
+
+
+def light_errors(model, identity, results, sequence: dict, every: int = 4) -> dict:
+    """Mean appearance_error over every ``every``-th frame with a face: with each frame's fitted
+    light and with the identity's (the light held for the video)."""
+    from softras_cl.fitting.recipes.face_track import world_vertices
+
+    albedo = model.albedo(identity.albedo)[0]
+    frames = [r for r in results[::every] if not r.held]
+    errors = {name: [] for name in ("frame", "identity")}
+    for r in frames:
+        world = world_vertices(model, identity, r.values)
+        args = (sequence["truth"][r.index], sequence["vertices"][r.index])
+        errors["frame"].append(appearance_error(model, world, albedo, r.values["sh"], *args))
+        errors["identity"].append(appearance_error(model, world, albedo, identity.sh, *args))
+    return dict(light_error=float(np.mean(errors["frame"])), light_error_identity=float(np.mean(errors["identity"])))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -195,27 +220,37 @@ def follower_for(mode: str, sequence: dict, rng: np.random.Generator):
 
 
 def run_tracker(model, sequence: dict, config, follower_factory, scan: int) -> dict:
-    """Track one sequence from its mp4; its results, identity, the landmarks it used and timings."""
-    from softras_cl.fitting.recipes.face_track import FrameTracker, identity_from_video
+    """Track one sequence from its mp4 as track-face does (the per-frame fits, then the fixed-lag
+    smoothing); its results, identity and timings (the per-frame stage: the frames' fits, light
+    included, and the smoothing)."""
+    from softras_cl.fitting.recipes.face_track import FixedLagSmoother, FrameTracker, identity_from_video
     from softras_cl.io.video import open_video
 
     start = time.perf_counter()
     source = open_video(sequence["path"])
     identity = identity_from_video(source, model, config, follower_factory(), scan)
     identity_seconds = time.perf_counter() - start
-    follower, tracker, results = follower_factory(), None, []
+    follower, tracker, results, smoothing = follower_factory(), None, [], 0.0
     for frame in source.frames():
-        tracker = tracker or FrameTracker(model, identity, frame.image.shape, config)
-        results.append(tracker.follow(follower, frame.image, frame.time, frame.index))
+        if tracker is None:
+            tracker = FrameTracker(model, identity, frame.image.shape, config)
+            smoother = FixedLagSmoother(config.smooth_lag, tracker.fitted_landmarks)
+        result = tracker.follow(follower, frame.image, frame.time, frame.index)
+        begin = time.perf_counter()
+        results += [done for done, _ in smoother.push(result)]
+        smoothing += time.perf_counter() - begin
+    results += [done for done, _ in smoother.flush()]
     total = time.perf_counter() - start
-    frame_seconds = sum(r.seconds for r in results)
+    frame_seconds = sum(r.seconds for r in results) + smoothing
     return dict(identity=identity, results=results, identity_seconds=identity_seconds, seconds=total,
                 frame_fps=len(results) / frame_seconds if frame_seconds else None,
                 end_to_end_fps=len(results) / total)
 
 
 def run_independent(model, sequence: dict, landmarks: np.ndarray, config, frames: int) -> list:
-    """fit-face on each of the first ``frames`` frames alone, from the given landmarks (T, 68, 2)."""
+    """fit-face on each of the first ``frames`` frames alone, from the given landmarks (T, 68, 2):
+    (its FaceFit, or the ValueError that stopped it (a fit that put the face behind the camera),
+    seconds) per frame."""
     from softras_cl.fitting.recipes.face import fit_face
     from softras_cl.io.images import to_linear
     from softras_cl.io.video import open_video
@@ -225,28 +260,43 @@ def run_independent(model, sequence: dict, landmarks: np.ndarray, config, frames
         if frame.index >= frames:
             break
         start = time.perf_counter()
-        fit = fit_face(to_linear(frame.image / 255.0), landmarks[frame.index], model, config, progress=False)
+        try:
+            fit = fit_face(to_linear(frame.image / 255.0), landmarks[frame.index], model, config, progress=False)
+        except ValueError as error:
+            fit = error
         fits.append((fit, time.perf_counter() - start))
     return fits
 
 
 def independent_measures(model, fits, sequence: dict) -> dict:
-    """The independent fits' errors, jitter, identity ratios and seconds (module docstring)."""
+    """The independent fits' errors, jitter, identity ratios and seconds (module docstring). A
+    frame whose fit failed is counted (``failed``, the first error) and takes the last fit before
+    it (the first fit after it at the start), as the tracker holds a frame without a face."""
     from softras_cl.bench.face_views import identity_ratio
 
     n = len(fits)
-    vertices = np.array([f.scene.geometry(f.values)[0] for f, _ in fits])
-    landmarks = np.array([f.crop.to_full(f.fitted_landmarks()) for f, _ in fits])
-    ratios = [identity_ratio(model, f.values["id"], sequence["truth"][0]["id"]) for f, _ in fits]
+    done = [f for f, _ in fits if not isinstance(f, Exception)]
+    failures = [str(f) for f, _ in fits if isinstance(f, Exception)]
+    if not done:
+        raise ValueError(f"every independent fit failed (first: {failures[0]})")
+    held, last = [], done[0]
+    for f, _ in fits:
+        last = last if isinstance(f, Exception) else f
+        held.append(last)
+    vertices = np.array([f.scene.geometry(f.values)[0] for f in held])
+    landmarks = np.array([f.crop.to_full(f.fitted_landmarks()) for f in held])
+    ratios = [identity_ratio(model, f.values["id"], sequence["truth"][0]["id"]) for f in done]
     seconds = [s for _, s in fits]
     return dict(sequence_errors(vertices, sequence["vertices"][:n], landmarks, sequence["landmarks"][:n]),
                 best_single_ratio=float(min(ratios)), mean_single_ratio=float(np.mean(ratios)),
-                seconds_per_frame=float(np.mean(seconds)))
+                seconds_per_frame=float(np.mean(seconds)), failed=len(failures),
+                first_failure=failures[0] if failures else None)
 
 
 def run_sequence(model, rng, index: int, args, config, face_config, folder: Path) -> dict:
     """Make, track and independently fit one sequence; its row."""
     from softras_cl.bench.face_views import identity_ratio
+    from softras_cl.fitting.recipes.face_track import FrameTracker, world_vertices
 
     sequence = make_sequence(model, rng, args.frames, args.size, args.fps, BACKGROUNDS[index % len(BACKGROUNDS)],
                              folder / f"sequence_{index}.mp4")
@@ -255,11 +305,13 @@ def run_sequence(model, rng, index: int, args, config, face_config, folder: Path
     factory = (lambda: given) if args.landmarks == "noisy" else (lambda: follower_for("detected", sequence, noise_rng))
     tracked = run_tracker(model, sequence, config, factory, args.scan)
     results, identity = tracked["results"], tracked["identity"]
+    tracker = FrameTracker(model, identity, (args.size, args.size), config)
     used = np.array([r.detected if r.detected is not None else np.full((68, 2), np.nan) for r in results])
     n = min(args.independent, len(results))
     independent = independent_measures(model, run_independent(model, sequence, _filled(used), face_config, n), sequence)
     fitted = np.array([r.fitted for r in results])
-    vertices = tracked_vertices(model, identity, results)
+    vertices = np.array([world_vertices(model, identity, r.values) for r in results])
+    own = [dataclasses.replace(r, values=r.own) for r in results]          # before the smoothing
     row = dict(sequence=index, background=BACKGROUNDS[index % len(BACKGROUNDS)], frames=len(results),
                held=int(sum(r.held for r in results)), keyframes=list(identity.keyframes),
                identity_ratio=identity_ratio(model, identity.id, sequence["truth"][0]["id"]),
@@ -268,6 +320,10 @@ def run_sequence(model, rng, index: int, args, config, face_config, folder: Path
                tracker=sequence_errors(vertices, sequence["vertices"], fitted, sequence["landmarks"]),
                tracker_on_independent_frames=sequence_errors(vertices[:n], sequence["vertices"][:n], fitted[:n],
                                                              sequence["landmarks"][:n]),
+               unsmoothed_on_independent_frames=sequence_errors(
+                   np.array([world_vertices(model, identity, r.values) for r in own[:n]]), sequence["vertices"][:n],
+                   np.array([tracker.fitted_landmarks(r.values) for r in own[:n]]), sequence["landmarks"][:n]),
+               **light_errors(model, identity, results, sequence),
                independent=independent, independent_frames=n)
     row["identity_reduction_vs_mean"] = 1.0 - row["identity_ratio"] / independent["mean_single_ratio"]
     row["jitter_ratio"] = row["tracker_on_independent_frames"]["jitter_mm"] / independent["jitter_mm"]
@@ -314,7 +370,13 @@ def summarise(rows: list[dict]) -> dict:
              best_single_ratio=mean(lambda r: r["independent"]["best_single_ratio"]),
              mean_single_ratio=mean(lambda r: r["independent"]["mean_single_ratio"]),
              identity_seconds=mean(lambda r: r["identity_seconds"]),
-             independent_seconds_per_frame=mean(lambda r: r["independent"]["seconds_per_frame"]))
+             independent_seconds_per_frame=mean(lambda r: r["independent"]["seconds_per_frame"]),
+             unsmoothed_vertex_error_mm=mean(lambda r: r["unsmoothed_on_independent_frames"]["vertex_error_mm"]),
+             unsmoothed_landmark_error_px=mean(lambda r: r["unsmoothed_on_independent_frames"]["landmark_error_px"]),
+             unsmoothed_jitter_mm=mean(lambda r: r["unsmoothed_on_independent_frames"]["jitter_mm"]),
+             light_error=mean(lambda r: r["light_error"]),
+             light_error_identity=mean(lambda r: r["light_error_identity"]),
+             independent_failed=int(sum(r["independent"].get("failed", 0) for r in rows)))
     s["targets"] = dict(
         frame_fps=s["frame_fps"] >= TARGET_FPS,
         jitter=(s["tracker_jitter_mm"] <= TARGET_JITTER_RATIO * s["independent_jitter_mm"]
@@ -351,7 +413,12 @@ def format_table(rows: list[dict], s: dict) -> str:
                       f"independent (target <= 1/3 with vertex and landmark errors no worse: {said(t['jitter'])})",
                       f"identity ratio {s['identity_ratio']:.3f}, best single frame {s['best_single_ratio']:.3f}, "
                       f"mean single {s['mean_single_ratio']:.3f} (target: no worse than the best and >= 30% below "
-                      f"the mean: {said(t['identity'])})"])
+                      f"the mean: {said(t['identity'])})",
+                      f"before the fixed-lag smoothing: jitter {s['unsmoothed_jitter_mm']:.3f} mm/frame^2, vertex "
+                      f"{s['unsmoothed_vertex_error_mm']:.2f} mm, landmark {s['unsmoothed_landmark_error_px']:.2f} px",
+                      f"appearance error {s['light_error']:.3f} with each frame's light, {s['light_error_identity']:.3f} "
+                      "with the identity's light for every frame",
+                      f"independent fits that failed (each held at the fit before it): {s['independent_failed']}"])
 
 
 def save_pictures(rows: list[dict], folder: Path) -> None:
@@ -387,7 +454,7 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(f"--{name} must be >= 1, got {getattr(args, name)}")
     if args.frames < 3:
         raise InputError(f"--frames must be >= 3 (jitter is a second difference), got {args.frames}")
-    config = TrackConfig(size=min(256, args.size))
+    config = TrackConfig(size=min(256, args.size), light_speed=args.light_speed, smooth_lag=args.smooth_lag)
     face_config = FaceFitConfig.from_budget(args.budget, size=min(256, args.size))
     with OutputFolder(args.out, "bench track", "--out") as folder:
         model = load_demo_face_model()
@@ -410,6 +477,8 @@ def run(args: argparse.Namespace) -> int:
 
 def register(which) -> None:
     """Add `track` to the `softras-cl bench` subparsers."""
+    from softras_cl.fitting.recipes.face_track import TrackConfig
+
     p = which.add_parser("track", help="the face tracker on synthetic talking heads against per-frame fits",
                          description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1])
     p.add_argument("--sequences", type=int, default=3, help="synthetic sequences, one identity each (default 3)")
@@ -422,6 +491,10 @@ def register(which) -> None:
     p.add_argument("--scan", type=int, default=150, help="keyframes are chosen among the first FRAMES (default 150)")
     p.add_argument("--landmarks", choices=("detected", "noisy"), default="detected",
                    help=f"detected: MediaPipe's, as track-face (default); noisy: the true ones + {LANDMARK_NOISE_PX} px noise")
+    p.add_argument("--light-speed", type=float, default=TrackConfig.light_speed,
+                   help=f"the tracker's --light-speed (default {TrackConfig.light_speed:g}; 0: the identity's light)")
+    p.add_argument("--smooth-lag", type=int, default=TrackConfig.smooth_lag,
+                   help=f"the tracker's --smooth-lag (default {TrackConfig.smooth_lag}; 0: no smoothing)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--quick", action="store_true", help="1 sequence of 24 frames at 160 px, 12 fitted independently")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")

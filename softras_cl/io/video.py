@@ -17,6 +17,7 @@ given time (times in milliseconds, so a variable rate stays variable).
 from __future__ import annotations
 
 import contextlib
+import glob
 import math
 from dataclasses import dataclass
 from fractions import Fraction
@@ -28,7 +29,7 @@ import numpy as np
 from softras_cl.errors import InputError
 from softras_cl.io.images import read_rgb8
 
-__all__ = ["Frame", "VideoSource", "VideoReadError", "VideoWriter", "open_video", "IMAGE_SUFFIXES",
+__all__ = ["Frame", "VideoSource", "VideoReadError", "VideoWriter", "open_video", "expand_videos", "IMAGE_SUFFIXES",
            "VIDEO_SUFFIXES", "INSTALL_HINT", "upright"]
 
 VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".avi", ".webm", ".mkv")
@@ -190,9 +191,38 @@ def open_video(path, fps: float | None = None) -> VideoSource:
     return VideoSource(path, (), rate, count)
 
 
+def _files(folder: Path, suffixes: tuple) -> list[Path]:
+    """The files of ``folder`` (not its subfolders) with one of ``suffixes``, hidden ones left out, sorted."""
+    return sorted(p for p in folder.iterdir()
+                  if p.is_file() and p.suffix.lower() in suffixes and not p.name.startswith("."))
+
+
+def expand_videos(inputs) -> list[Path]:
+    """The videos named by ``inputs`` (str or Path each), in the order given, each once: a file
+    (a video, checked when it is opened); a folder holding video files (VIDEO_SUFFIXES): those,
+    by name; any other folder: one video of frames (checked when opened: images and --fps); a
+    glob pattern: the files and folders it matches, by name. InputError when an input names
+    nothing."""
+    videos: list[Path] = []
+    for text in map(str, inputs):
+        path = Path(text)
+        if path.is_dir():
+            found = _files(path, VIDEO_SUFFIXES) or [path]
+        elif path.is_file():
+            found = [path]
+        elif glob.has_magic(text):
+            found = [Path(p) for p in sorted(glob.glob(text))]
+            if not found:
+                raise InputError(f"no videos or folders match {text}")
+        else:
+            raise InputError(f"video not found: {text} (expected a video file, a folder of videos or of "
+                             "frames, or a glob pattern)")
+        videos += [p for p in found if p not in videos]
+    return videos
+
+
 def _folder_source(path: Path, fps: float | None) -> VideoSource:
-    files = tuple(sorted(p for p in path.iterdir()
-                         if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")))
+    files = tuple(_files(path, IMAGE_SUFFIXES))
     if not files:
         raise InputError(f"no frames in the folder {path} (looked for {', '.join(IMAGE_SUFFIXES)})")
     if fps is None:

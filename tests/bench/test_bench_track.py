@@ -57,6 +57,7 @@ def test_jitter_is_the_rms_second_difference_of_the_error():
 def _summary_row(jitter_t, jitter_i, vertex_t=1.0, vertex_i=2.0, identity=0.5, best=0.6, mean=0.8, fps=20.0):
     errors = lambda v, j: dict(vertex_error_mm=v, landmark_error_px=1.0, jitter_mm=j)   # noqa: E731
     return dict(frame_fps=fps, end_to_end_fps=5.0, tracker_on_independent_frames=errors(vertex_t, jitter_t),
+                unsmoothed_on_independent_frames=errors(vertex_t, 2 * jitter_t), light_error=0.1, light_error_identity=0.2,
                 independent=dict(errors(vertex_i, jitter_i), best_single_ratio=best, mean_single_ratio=mean,
                                  seconds_per_frame=2.0), identity_ratio=identity, identity_seconds=10.0)
 
@@ -87,4 +88,44 @@ def test_bench_track_runs_end_to_end(tmp_path, run_cli, monkeypatch):
     assert "cpu" in json.dumps(doc["provenance"]).lower()
     for name in ("track_strip.png", "track_jitter.png", "sequence_0.mp4"):
         assert (tmp_path / name).is_file()
-    assert "per-frame stage" in result.out
+    assert "per-frame stage" in result.out and "before the fixed-lag smoothing" in result.out
+    assert row["light_error"] >= 0 and row["unsmoothed_on_independent_frames"]["jitter_mm"] >= 0
+
+
+def test_appearance_error_is_relative_to_the_truths_colour(demo_face_model):
+    """The truth's own colours: 0; its light 10% brighter: 0.1 x RMS / mean of the true colours."""
+    from softras_cl.bench.face import random_truth
+    from softras_cl.fitting.recipes.face import FaceScene
+
+    model = demo_face_model
+    truth = random_truth(model, np.random.default_rng(2), 128)
+    world = FaceScene(model, (128, 128)).geometry(truth)[0]
+    albedo = model.albedo(truth["albedo"])[0]
+    assert track.appearance_error(model, world, albedo, truth["sh"], truth, world) == pytest.approx(0.0, abs=1e-12)
+    brighter = track.appearance_error(model, world, albedo, 1.1 * truth["sh"], truth, world)
+    assert 0.1 * 0.9 < brighter < 0.1 * 1.5          # RMS over mean of positive colours: a little above 1
+    assert track.appearance_error(model, world, 0.5 * albedo, truth["sh"], truth, world) > 4 * brighter
+
+
+def test_a_failed_independent_fit_is_counted_and_held(demo_face_model):
+    """A frame whose independent fit raised takes the fit before it (the first one after it at
+    the start), is left out of the identity ratios and is counted with its message."""
+    from types import SimpleNamespace
+
+    model = demo_face_model
+    truth_id = np.zeros(model.n_id)
+
+    def fake(k):
+        world = np.full((4, 3), float(k))
+        return SimpleNamespace(scene=SimpleNamespace(geometry=lambda values: (world, None)),
+                               crop=SimpleNamespace(to_full=lambda points: points),
+                               fitted_landmarks=lambda: np.full((68, 2), float(k)), values=dict(id=truth_id))
+
+    fits = [(ValueError("behind the camera"), 1.0), (fake(1), 1.0), (ValueError("again"), 1.0), (fake(3), 1.0)]
+    sequence = dict(vertices=np.zeros((4, 4, 3)), landmarks=np.zeros((4, 68, 2)), truth=[dict(id=truth_id)])
+    measured = track.independent_measures(model, fits, sequence)
+    assert measured["failed"] == 2 and measured["first_failure"] == "behind the camera"
+    held = np.array([1.0, 1.0, 1.0, 3.0])                       # frames 0 and 2 held
+    assert measured["landmark_error_px"] == pytest.approx(np.mean(held * np.sqrt(2)))
+    with pytest.raises(ValueError, match="every independent fit failed"):
+        track.independent_measures(model, [fits[0]], sequence)

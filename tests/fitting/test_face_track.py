@@ -223,3 +223,115 @@ def test_second_identity_pass_fits_landmarks_corrected_by_the_first_offsets(demo
     assert np.abs(given[1][0] - plain[0]).max() < 0.2 * np.abs(detected[0] - plain[0]).max()
     # across the line of sight (depth is left to the prior by two views 40 degrees apart)
     np.testing.assert_allclose(found.landmark_offsets[:, :2], offsets[:, :2], atol=0.15 * np.abs(offsets).max())
+
+
+@pytest.mark.parametrize("fmt", ["ply", "obj"])
+def test_mesh_exporter_writes_each_frames_face_in_the_camera_frame(demo_face_model, tmp_path, fmt):
+    """--export-meshes: a frame's mesh is the identity at its expression, turned and moved by its
+    pose (computed here from the model itself); a frame before any face writes none."""
+    from softras_cl.fitting.reports.face_track import MeshExporter
+    from softras_cl.io.meshes import load_mesh
+
+    model = demo_face_model
+    identity = truth_identity(model, np.random.default_rng(8))
+    tracker = FrameTracker(model, identity, (SIZE, SIZE), TrackConfig())
+    values = head(15.0, 0.5 * np.ones(model.n_exp))
+    exporter = MeshExporter(tmp_path, model, identity, fmt)
+    exporter.write(tracker.step(None, 0.0, 0))                          # before the first face
+    exporter.write(tracker.step(tracker.fitted_landmarks(values), 0.1, 1))
+    assert sorted(p.name for p in (tmp_path / "meshes").iterdir()) == [f"frame_000001.{fmt}"]
+    fitted = tracker.state.values
+    R = axis_angle_to_matrix(fitted["rotation"])
+    expected = model.shape(identity.id, fitted["exp"])[0] @ R.T + fitted["translation"]
+    mesh = load_mesh(tmp_path / "meshes" / f"frame_000001.{fmt}")
+    np.testing.assert_allclose(mesh.vertices, expected, atol=1e-6)
+    np.testing.assert_array_equal(mesh.faces, model.faces)
+
+
+def _appearance_error(model, truth, world, sh) -> float:
+    """RMS (linear RGB) of albedo x SH shading at the vertices facing the camera, sh against the truth's."""
+    from softras_cl.scene.shading import SH_A, sh_basis, vertex_normals
+
+    normals = vertex_normals(world[None], model.faces)[0][0]
+    seen = np.einsum("vi,vi->v", normals, -world) / np.linalg.norm(world, axis=1) > 0.3
+    basis = sh_basis(normals[seen]) * SH_A
+    albedo = model.albedo(truth["albedo"])[0][seen]
+    return float(np.sqrt(np.mean((albedo * (basis @ (sh - truth["sh"]).T)) ** 2)))
+
+
+def test_frame_light_is_fitted_to_the_frames_pixels(demo_face_model):
+    """A face rendered under a light other than the identity's: the frame's fitted light shades
+    it within a fifth of the identity light's error; with light_speed 0 the identity's is kept;
+    the next frame's light is drawn towards the last one by the temporal prior."""
+    from softras_cl.bench.face import random_truth
+    from softras_cl.bench.track import render_frames
+
+    model = demo_face_model
+    rng = np.random.default_rng(11)
+    truth = random_truth(model, rng, SIZE)
+    images, landmarks, worlds = render_frames(model, [truth], np.full((SIZE, SIZE, 3), 0.2))
+    wrong = truth["sh"].copy()
+    wrong[:, 1:4] -= 0.4 * truth["sh"][0, 0] * np.array([1.0, -0.5, 0.3])      # the light from elsewhere
+    identity = Identity(truth["id"], truth["albedo"], wrong, float(truth["focal"][0]), 1.0, (0,))
+    tracker = FrameTracker(model, identity, (SIZE, SIZE), TrackConfig())
+    first = tracker.step(landmarks[0], 0.0, 0, images[0])
+    before = _appearance_error(model, truth, worlds[0], wrong)
+    after = _appearance_error(model, truth, worlds[0], first.values["sh"])
+    assert after < 0.2 * before, (after, before)
+    assert 0 < first.terms["light_residual"] < 0.03
+
+    held = FrameTracker(model, identity, (SIZE, SIZE), TrackConfig(light_speed=0)).step(landmarks[0], 0.0, 0, images[0])
+    np.testing.assert_array_equal(held.values["sh"], wrong)
+
+    slow = FrameTracker(model, identity, (SIZE, SIZE), TrackConfig(light_speed=1e-3))
+    slow.step(landmarks[0], 0.0, 0, images[0])
+    slow.state.values["sh"] = wrong                                    # as if the last frame had the wrong light
+    steady = slow.step(landmarks[0], 1 / 30, 1, images[0]).values["sh"]
+    assert np.abs(steady - wrong).max() < 0.1 * np.abs(first.values["sh"] - wrong).max()
+
+
+def _result(k, values, held=False, time_s=None):
+    from softras_cl.fitting.recipes.face_track import FrameResult
+
+    return FrameResult(k, k / 30 if time_s is None else time_s, values, None, np.zeros((68, 2)), held, {}, 1, 0.0)
+
+
+def test_fixed_lag_smoothing_is_a_savitzky_golay_filter_inside_a_stretch():
+    """Inside a stretch of uniform frames: scipy's Savitzky-Golay filter (2 lag + 1 frames, order
+    2); frames come out lag frames late, the rest at flush; a held frame passes unchanged and
+    ends the stretches on either side of it; a resumed smoother given the frames before gives
+    what an uninterrupted one gives."""
+    from scipy.signal import savgol_filter
+
+    from softras_cl.fitting.recipes.face_track import FixedLagSmoother
+
+    rng = np.random.default_rng(3)
+    lag, n = 3, 40
+    raw = [dict(rotation=rng.normal(size=3), translation=rng.normal(size=3), exp=rng.normal(size=5),
+                sh=np.full((3, 9), float(k))) for k in range(n)]
+    results = [_result(k, v, held=k == 25) for k, v in enumerate(raw)]
+
+    def run(smoother, items):
+        out = []
+        for r in items:
+            done = smoother.push(r, r.index)
+            assert all(extra == r.index - smoother.lag for _, extra in done)        # lag frames late
+            out += done
+        return out + smoother.flush()
+
+    whole = run(FixedLagSmoother(lag, lambda v: np.full((68, 2), v["rotation"][0])), results)
+    assert [extra for _, extra in whole] == list(range(n))
+    smoothed = np.array([r.values["rotation"] for r, _ in whole])
+    reference = savgol_filter(np.array([v["rotation"] for v in raw[:25]]), 2 * lag + 1, 2, axis=0)
+    np.testing.assert_allclose(smoothed[lag:25 - lag], reference[lag:25 - lag], atol=1e-12)
+    assert whole[25][0] is results[25]                                       # held: as it was
+    np.testing.assert_allclose(smoothed[30], savgol_filter(np.array([v["rotation"] for v in raw[26:]]),
+                                                           2 * lag + 1, 2, axis=0)[4], atol=1e-12)
+    first = whole[10][0]
+    assert first.fit is raw[10] and first.fitted[0, 0] == first.values["rotation"][0]
+    np.testing.assert_array_equal(first.values["sh"], raw[10]["sh"])          # the light is not smoothed
+
+    resumed = run(FixedLagSmoother(lag, lambda v: np.zeros((68, 2)), history=results[10:20]), results[20:])
+    for (a, _), (b, _) in zip(resumed, whole[20:]):
+        np.testing.assert_array_equal(a.values["exp"], b.values["exp"])
+    assert all(r is s for (r, _), s in zip(run(FixedLagSmoother(0, None), results), results))

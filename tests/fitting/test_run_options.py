@@ -18,7 +18,7 @@ from softras_cl.cli import fit_face as face_cli
 from softras_cl.errors import InputError
 from softras_cl.fitting.batch_items import collect_items
 from softras_cl.fitting.batch_task import item_config, item_record, run_item
-from softras_cl.fitting.run_options import BODY, FACE
+from softras_cl.fitting.run_options import BODY, FACE, TRACK
 
 REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "examples" / "data"
@@ -31,6 +31,10 @@ FACE_SAMPLES = dict(model=FILE, model_landmarks=FILE, budget="fast", size="128",
                     n_albedo="7")
 BODY_SAMPLES = dict(model=FILE, silhouette=None, input="photo", background="0.5,0.5,0.5", budget="thorough", size="64",
                     distance="4.5", height="1.1", fov="40", coarse_mesh="0", robust_joints="3")
+TRACK_SAMPLES = dict(model=FILE, fps="25", face="1", face_box="1,2,30,40", chunk="50", scan="60", keyframes="6",
+                     identity_passes="1", budget="default", size="128", frame_iters="12", rotation_speed="0.1",
+                     translation_speed="0.01", exp_speed="0.5", momentum="0.5", light_speed="0.3", smooth_lag="5",
+                     export_meshes="obj")
 CASES = [("face", FACE, face_cli, FACE_SAMPLES, str(DATA / "astronaut.png")),
          ("body", BODY, body_cli, BODY_SAMPLES, str(DATA / "astronaut.png"))]
 
@@ -47,6 +51,63 @@ def _cli_args(command: str, photo: str, option=None, text=None):
 
 def test_every_option_has_a_sample():
     assert set(FACE_SAMPLES) == set(FACE.names) and set(BODY_SAMPLES) == set(BODY.names)
+    assert set(TRACK_SAMPLES) == set(TRACK.names)
+
+
+def test_each_track_option_reaches_a_videos_config_and_record_as_the_single_video(tmp_path):
+    """track-face on several videos: each option on the command line gives every video the
+    config and run record that the single-video command gives (--face-box, a box in one video,
+    goes per video in a manifest: the next test)."""
+    from softras_cl.cli.runs import fit_values
+    from softras_cl.cli.track_videos import check_options, run_record
+    from softras_cl.cli.track_videos import _item_args, video_items
+    from softras_cl.io.video import open_video
+
+    from PIL import Image
+
+    video = tmp_path / "frames"              # a folder of frames: --fps reaches it (a video file has its own times)
+    video.mkdir()
+    Image.new("RGB", (8, 8)).save(video / "0.png")
+    video, source = str(video), open_video(video, 30.0)
+
+    def single_and_item(option=None):
+        argv = ["track-face", video, "--out", "unused"]
+        if option is not None:
+            argv += [option.flag, TRACK_SAMPLES[option.name]]
+        args = build_parser("track-face").parse_args(argv)
+        args.video = video
+        item_args = _item_args(args, video_items(args)[0], tmp_path) if option is None or option.name != "face_box" \
+            else None
+        single = (check_options(fit_values(args, TRACK)), run_record(args, source))
+        return single, None if item_args is None else (check_options(fit_values(item_args, TRACK)),
+                                                       run_record(item_args, source))
+
+    (base_config, base_record), item = single_and_item()
+    assert item == (base_config, base_record)
+    for option in TRACK.options:
+        (config, record), item = single_and_item(option)
+        assert item in (None, (config, record)), option.name
+        if option.field is not None or option.name == "budget":
+            assert config != base_config, f"{option.flag} does not change the config"
+        if option.name == "face_box":
+            assert config[1] is not None
+        elif option.recorded or option.file:
+            assert record != base_record, f"{option.flag} is missing from the run record"
+
+
+def test_a_track_manifest_column_reads_like_the_flag(tmp_path):
+    from softras_cl.fitting.run_options import TRACK
+
+    columns = {o.name.replace("_", "-"): TRACK_SAMPLES[o.name] for o in TRACK.options if not o.file}
+    manifest = tmp_path / "videos.csv"
+    with open(manifest, "w", newline="") as f:
+        csv.writer(f).writerows([["video", *columns], ["clip.mp4", *columns.values()]])
+    item = collect_items([], "track", manifest=manifest)[0]
+    assert item.photo == str(tmp_path / "clip.mp4")
+    for name, value in item.opts.items():
+        args = build_parser("track-face").parse_args(["track-face", "v.mp4", "--out", "o", TRACK[name].flag,
+                                                      TRACK_SAMPLES[name]])
+        assert value == getattr(args, name), name
 
 
 def test_an_unknown_option_is_named():

@@ -131,3 +131,24 @@ def test_writer_round_trip(tmp_path):
     assert [round(f.time, 3) for f in frames] == [0.0, 0.05, 0.07]
     assert frames[0].image.shape == (H + 2, W + 2, 3)
     assert abs(int(frames[1].image[30, 40, 0]) - 60) <= 3
+
+
+def test_expand_videos_names_files_folders_of_videos_or_frames_and_globs(tmp_path):
+    from softras_cl.io.video import expand_videos
+
+    (tmp_path / "clips").mkdir()
+    for name in ("b.mp4", "a.MOV", ".hidden.mp4", "notes.txt"):
+        (tmp_path / "clips" / name).write_bytes(b"")
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "frames" / "0001.png").write_bytes(b"")
+    (tmp_path / "one.mkv").write_bytes(b"")
+    clips = [tmp_path / "clips" / "a.MOV", tmp_path / "clips" / "b.mp4"]
+    assert expand_videos([tmp_path / "clips"]) == clips                       # its videos, by name
+    assert expand_videos([tmp_path / "frames"]) == [tmp_path / "frames"]      # one video of frames
+    assert expand_videos([tmp_path / "one.mkv", tmp_path / "clips", str(tmp_path / "clips" / "*.mp4")]) == \
+        [tmp_path / "one.mkv", *clips]                                        # each once, in order
+    assert expand_videos([str(tmp_path / "f*")]) == [tmp_path / "frames"]
+    with pytest.raises(InputError, match="video not found: .*missing.mp4"):
+        expand_videos([tmp_path / "missing.mp4"])
+    with pytest.raises(InputError, match="no videos or folders match"):
+        expand_videos([str(tmp_path / "*.avi")])
