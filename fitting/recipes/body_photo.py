@@ -69,10 +69,12 @@ ROBUST_FRACTION = 0.1           # Geman-McClure scale / the working image's long
 FILM_DIAGONAL_MM = 43.27        # of the 36 x 24 mm frame of "35 mm equivalent" focal lengths
 EXIF_IFD, FOCAL_35MM = 0x8769, 41989
 START_YAWS = (0, 90, 180, -90)  # degrees about the vertical: the torso stage's starts
-# The mask gate: a keypoint inside the photo (seen or not) further than MASK_MARGIN of the photo's
-# longer side from the person mask says the mask misses part of the person (the detector's mask
-# cut a person's legs off over the rocket photo of bench body-photo); with MASK_MISSES or more,
-# the silhouette would push those parts away, and the full objective fits the keypoints alone.
+# The mask gate: a keypoint the fit uses (seen, inside the photo) further than MASK_MARGIN of the
+# photo's longer side from the person mask says the mask misses part of the person (the
+# detector's mask cut a person's legs off over the rocket photo of bench body-photo); with
+# MASK_MISSES or more, the silhouette would push those parts away, and the full objective fits
+# the keypoints alone. (Unseen keypoints do not count: they are often hidden behind something
+# the mask rightly leaves out, as the cameraman's left leg and the astronaut's left hand.)
 MASK_MARGIN = 0.03
 MASK_MISSES = 2
 
@@ -104,20 +106,18 @@ def photo_fov(path, image_size) -> float | None:
     return math.degrees(2 * math.atan(math.tan(half_diagonal) * min(h, w) / math.hypot(h, w)))
 
 
-def mask_misses(layout: KeypointLayout, keypoints: np.ndarray, mask: np.ndarray) -> list[str]:
-    """Names of the layout's entries whose detected point (from the detector's (33, 2) pixel
-    ``keypoints``, whatever their visibility) lies inside the (H, W) photo but further than
-    MASK_MARGIN of its longer side from the person ``mask`` (> 0.5)."""
+def mask_misses(layout: KeypointLayout, keypoints: np.ndarray, weights: np.ndarray, mask: np.ndarray) -> list[str]:
+    """Names of the layout's entries the fit uses (``weights`` (K,) > 0: seen, inside the photo;
+    :func:`keypoint_weights`) whose detected point (from the detector's (33, 2) pixel
+    ``keypoints``) lies further than MASK_MARGIN of the (H, W) photo's longer side from the
+    person ``mask`` (> 0.5)."""
     from scipy import ndimage
 
     h, w = mask.shape
     points = layout.detected(keypoints, np.ones(len(keypoints)))[0]
-    pixel = np.round(points).astype(np.int64)
-    inside = (pixel[:, 0] >= 0) & (pixel[:, 0] < w) & (pixel[:, 1] >= 0) & (pixel[:, 1] < h)
-    distance = ndimage.distance_transform_edt(mask <= 0.5)
-    far = np.zeros(len(points), bool)
-    far[inside] = distance[pixel[inside, 1], pixel[inside, 0]] > MASK_MARGIN * max(h, w)
-    return [name for name, miss in zip(layout.names, far) if miss]
+    pixel = np.clip(np.round(points).astype(np.int64), 0, [w - 1, h - 1])
+    distance = ndimage.distance_transform_edt(mask <= 0.5)[pixel[:, 1], pixel[:, 0]]
+    return [name for name, d, used in zip(layout.names, distance, weights > 0) if used and d > MASK_MARGIN * max(h, w)]
 
 
 def camera_distance(model, layout: KeypointLayout, points: np.ndarray, weights: np.ndarray,
@@ -328,7 +328,7 @@ def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFit
     faces = None if config.coarse_mesh is None else coarse_faces(model.v_template, model.faces, config.coarse_mesh)
     depth = None if detection.depth is None else detection.depth[layout.detector].mean(1)
     objective_fn = BodyPhotoObjective(scene, data, layout, keypoints, seen, robust, faces, depth)
-    missed = mask_misses(layout, detection.keypoints, detection.mask)
+    missed = mask_misses(layout, detection.keypoints, seen, detection.mask)
     if objective == "full" and len(missed) >= MASK_MISSES:
         objective = "keypoints"
         if progress:

@@ -296,14 +296,19 @@ def test_mask_misses_names_the_keypoints_far_outside_the_mask(demo_body_model):
     from softras_cl.fitting.recipes.body_photo import mask_misses
 
     layout = keypoint_layout(demo_body_model)
+    used = np.ones(len(layout.names))
     whole = _person(layout, slice(5, 110))
-    assert mask_misses(layout, whole.keypoints, whole.mask) == []
+    assert mask_misses(layout, whole.keypoints, used, whole.mask) == []
     legless = _person(layout, slice(5, 65))              # cut at the hips: knees, ankles, feet far outside
-    assert set(mask_misses(layout, legless.keypoints, legless.mask)) == {
-        "left_knee", "right_knee", "left_ankle", "right_ankle", "left_foot", "right_foot"}
+    legs = {"left_knee", "right_knee", "left_ankle", "right_ankle", "left_foot", "right_foot"}
+    assert set(mask_misses(layout, legless.keypoints, used, legless.mask)) == legs
+    unseen = np.array([0.0 if name in ("left_ankle", "left_foot") else 1.0 for name in layout.names])
+    assert set(mask_misses(layout, legless.keypoints, unseen, legless.mask)) == legs - {"left_ankle", "left_foot"}
 
 
 def test_a_mask_that_misses_the_legs_leaves_the_fit_to_the_keypoints(demo_body_model):
+    from dataclasses import replace
+
     from softras_cl.fitting.recipes.body_photo import fit_body_photo
 
     layout = keypoint_layout(demo_body_model)
@@ -313,3 +318,6 @@ def test_a_mask_that_misses_the_legs_leaves_the_fit_to_the_keypoints(demo_body_m
     legless = fit_body_photo((120, 80), _person(layout, slice(5, 65)), demo_body_model, config, "fast", progress=False)
     assert not any(name.startswith("silhouette") for name in legless.result.outcomes)
     assert legless.metrics()["mask_misses"] == 6 and len(legless.mask_misses) == 6
+    hidden_legs = replace(_person(layout, slice(5, 65)), visibility=np.where(np.arange(33) >= 25, 0.1, 1.0))
+    hidden = fit_body_photo((120, 80), hidden_legs, demo_body_model, config, "fast", progress=False)
+    assert any(name.startswith("silhouette") for name in hidden.result.outcomes) and not hidden.mask_misses
