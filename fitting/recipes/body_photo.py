@@ -224,7 +224,8 @@ def photo_stages(budget: str, objective: str = "full", weights: dict | None = No
 @dataclass
 class BodyPhotoFit(BodyFit):
     """BodyFit of a photo, with the keypoints used: layout, keypoints (K, 2) and weights (K,) in
-    working pixels, the detection (PersonDetection) and the field of view used with its source."""
+    working pixels, the detection (PersonDetection), the field of view used with its source and
+    the names of the used keypoints the person mask misses (:func:`mask_misses`)."""
     layout: KeypointLayout = None
     keypoints: np.ndarray = None
     weights: np.ndarray = None
