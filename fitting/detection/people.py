@@ -8,12 +8,14 @@ Finding the person (:func:`detect_person`):
 
 1. selfie segmentation (the general 256 px model) on the whole photo; its mask > 0.5, split
    into connected regions, each region of at least MIN_REGION of the photo a candidate person;
-2. with at most one region, the pose model on the whole photo; with several (or when the whole
-   photo gave nothing), the pose model on each region's box (widened by REGION_MARGIN of its
-   size on every side) and the person with the largest keypoint box is kept (MediaPipe's pose
-   model itself finds one person per image, not necessarily the largest; on a crop it is not
-   distracted by faces elsewhere, e.g. an animal's). What was done is said in
-   ``PersonDetection.note``;
+2. the pose model on each region's box widened by each of REGION_MARGINS of its size on every
+   side (and, with at most one region, on the whole photo too); of one region's passes the one
+   whose own person mask agrees best with the region's selfie mask (IoU) is kept, and of the
+   regions the person with the largest keypoint box (MediaPipe's pose model itself finds one
+   person per image, not necessarily the largest; on a crop it is not distracted by faces
+   elsewhere, e.g. an animal's; a loose crop or the whole photo can make it take an object
+   beside the person for part of a smaller one, whose mask then disagrees with the selfie
+   mask). What was done is said in ``PersonDetection.note``;
 3. the pose model's own segmentation mask of that person is the person mask;
 4. no pose found anywhere: :class:`NoPersonError` (exit 1), naming the photo.
 
@@ -50,7 +52,7 @@ MP33_NAMES = ("nose", "left_eye_inner", "left_eye", "left_eye_outer", "right_eye
 TORSO = (11, 12, 23, 24)                # shoulders and hips: the score's keypoints
 MIN_SCORE = 0.5                         # pose detector confidence
 MIN_REGION = 0.02                       # a selfie-mask region of at least this share of the photo
-REGION_MARGIN = 0.25                    # a region's crop: its box widened by this on each side
+REGION_MARGINS = (0.1, 0.25)            # a region's crops: its box widened by these on each side
 
 
 class NoPersonError(ResultError):
@@ -65,7 +67,9 @@ class PersonDetection:
     (the model's estimate that the point is in the photo and not hidden); mask (H, W) float64
     in [0, 1] (the pose model's segmentation of this person); box (4,) float64 (x, y, w, h) of
     the keypoints inside the photo; score: mean visibility of the shoulders and hips; people:
-    person-like regions of the selfie mask; note: what was done to find and choose the person.
+    person-like regions of the selfie mask; note: what was done to find and choose the person;
+    depth (33,) float64 or None: the pose model's metric estimate of each keypoint's depth in
+    metres, relative to the hips' midpoint, larger further from the camera (its "world" z).
     """
     keypoints: np.ndarray
     visibility: np.ndarray
@@ -74,12 +78,14 @@ class PersonDetection:
     score: float
     people: int
     note: str
+    depth: np.ndarray | None = None
 
     def to_json(self) -> dict:
         """The detection without its mask, for params.json."""
         return dict(keypoints=self.keypoints.round(2).tolist(), visibility=self.visibility.round(3).tolist(),
                     names=list(MP33_NAMES), box=self.box.round(1).tolist(), score=round(self.score, 4),
-                    people=self.people, note=self.note, detector="mediapipe pose (full) + segmentation")
+                    people=self.people, note=self.note, detector="mediapipe pose (full) + segmentation",
+                    depth=None if self.depth is None else self.depth.round(3).tolist())
 
 
 def people_available() -> bool:
@@ -109,7 +115,8 @@ def _selfie():
 
 def _pose_in(image: np.ndarray, x0: int, y0: int, full_shape) -> tuple | None:
     """The pose model on ``image`` (a crop at (x0, y0) of a photo of ``full_shape``): (keypoints
-    (33, 2) and visibility (33,) in the photo's pixels, the mask (H, W) of the photo) or None."""
+    (33, 2) and visibility (33,) in the photo's pixels, the mask (H, W) of the photo, depth
+    (33,) in metres from the hips' midpoint) or None."""
     result = _pose().process(np.ascontiguousarray(image))
     if result.pose_landmarks is None:
         return None
@@ -117,10 +124,11 @@ def _pose_in(image: np.ndarray, x0: int, y0: int, full_shape) -> tuple | None:
     marks = result.pose_landmarks.landmark
     points = np.array([[p.x * w + x0 - 0.5, p.y * h + y0 - 0.5] for p in marks], np.float64)
     visibility = np.array([p.visibility for p in marks], np.float64)
+    depth = np.array([p.z for p in result.pose_world_landmarks.landmark], np.float64)
     mask = np.zeros(full_shape[:2])
     if result.segmentation_mask is not None:
         mask[y0:y0 + h, x0:x0 + w] = np.clip(result.segmentation_mask, 0.0, 1.0)
-    return points, visibility, mask
+    return points, visibility, mask, depth
 
 
 def person_regions(mask: np.ndarray) -> list[tuple[int, int, int, int]]:
@@ -144,10 +152,10 @@ def keypoint_box(points: np.ndarray, shape) -> np.ndarray:
     return np.concatenate([lo, hi - lo])
 
 
-def _crop(shape, region) -> tuple[int, int, int, int]:
-    """A region's box widened by REGION_MARGIN on each side, clipped: (x0, y0, x1, y1)."""
+def _crop(shape, region, margin: float) -> tuple[int, int, int, int]:
+    """A region's box widened by ``margin`` of its size on each side, clipped: (x0, y0, x1, y1)."""
     x, y, w, h = region
-    dx, dy = round(REGION_MARGIN * w), round(REGION_MARGIN * h)
+    dx, dy = round(margin * w), round(margin * h)
     return max(0, x - dx), max(0, y - dy), min(shape[1], x + w + dx), min(shape[0], y + h + dy)
 
 
@@ -157,31 +165,55 @@ def detect_person(image, name: str = "the photo") -> PersonDetection:
     if not people_available():
         raise DetectorUnavailableError(PEOPLE_INSTALL_HINT)
     image = as_rgb8(image)
-    regions = person_regions(_selfie().process(image).segmentation_mask)
-    found, note = None, "pose model on the whole photo"
+    selfie = _selfie().process(image).segmentation_mask > 0.5
+    regions = person_regions(selfie)
+    found, how = None, ""
     if len(regions) <= 1:
-        found = _pose_in(image, 0, 0, image.shape)
-    if found is None and regions:
-        found = _largest_in_regions(image, regions)
-        note = "pose model on each person-like region's crop, the largest keypoint box kept"
-    note = f"{len(regions)} person-like region(s) in the selfie mask; {note}"
+        found, how = _pose_in(image, 0, 0, image.shape), "the whole photo"
+    if regions:
+        found, how = _largest_in_regions(image, regions, selfie, found if len(regions) == 1 else None)
     if found is None:
         raise NoPersonError(f"no person found in {name} (MediaPipe pose); give a photo of a person, "
                             f"or a part-coloured target or mask with --input parts|mask")
-    points, visibility, mask = found
+    points, visibility, mask, depth = found
+    note = f"{len(regions)} person-like region(s) in the selfie mask; pose model on {how}"
     return PersonDetection(points, visibility, mask, keypoint_box(points, image.shape),
-                           float(visibility[list(TORSO)].mean()), len(regions), note)
+                           float(visibility[list(TORSO)].mean()), len(regions), note, depth)
 
 
-def _largest_in_regions(image: np.ndarray, regions) -> tuple | None:
-    """The pose (as _pose_in) of the largest keypoint box among the regions' crops, or None."""
-    best, best_area = None, -1.0
+def _largest_in_regions(image: np.ndarray, regions, selfie: np.ndarray, whole) -> tuple:
+    """(the pose (as _pose_in) of the largest keypoint box among the regions' best passes, or
+    None; what it was run on). A region's best pass: of its crops (REGION_MARGINS) and ``whole``
+    (the whole photo's pose, or None), the one whose mask agrees best with the region's part of
+    the ``selfie`` mask (H, W) bool."""
+    best, best_area, best_how = None, -1.0, ""
     for region in regions:
-        x0, y0, x1, y1 = _crop(image.shape, region)
-        pose = _pose_in(image[y0:y1, x0:x1], x0, y0, image.shape)
-        if pose is not None and _area(pose[0], image.shape) > best_area:
-            best, best_area = pose, _area(pose[0], image.shape)
-    return best
+        passes = [] if whole is None else [(whole, "the whole photo")]
+        for margin in REGION_MARGINS:
+            x0, y0, x1, y1 = _crop(image.shape, region, margin)
+            passes.append((_pose_in(image[y0:y1, x0:x1], x0, y0, image.shape),
+                           f"a person-like region's crop (margin {margin:g})"))
+        passes = [(pose, how) for pose, how in passes if pose is not None]
+        if not passes:
+            continue
+        mine = _region_mask(selfie, region)
+        pose, how = max(passes, key=lambda p: _agreement(p[0][2] > 0.5, mine))
+        if _area(pose[0], image.shape) > best_area:
+            best, best_area, best_how = pose, _area(pose[0], image.shape), how
+    return best, best_how
+
+
+def _region_mask(selfie: np.ndarray, region) -> np.ndarray:
+    """The part of the selfie mask (H, W) bool inside the region's box (x, y, w, h)."""
+    x, y, w, h = region
+    out = np.zeros_like(selfie)
+    out[y:y + h, x:x + w] = selfie[y:y + h, x:x + w]
+    return out
+
+
+def _agreement(mask: np.ndarray, selfie: np.ndarray) -> float:
+    """IoU of two (H, W) bool masks (0 when both are empty)."""
+    return float((mask & selfie).sum() / max((mask | selfie).sum(), 1))
 
 
 def _area(points: np.ndarray, shape) -> float:

@@ -512,14 +512,16 @@ class BodyObjective:
 # parameters, stages, initialisation
 # ---------------------------------------------------------------------------------------------
 
-def body_params(model, init: dict) -> ParamSet:
+def body_params(model, init: dict, translation_bound: float | None = None) -> ParamSet:
     """The four blocks from ``init`` (betas, body_pose, global_rotation, translation), scaled so
-    one optimiser unit is a sensible step: betas within +-4 std, joint angles within +-pi."""
+    one optimiser unit is a sensible step: betas within +-4 std, joint angles within +-pi, the
+    translation unbounded or within +-``translation_bound`` metres on each axis."""
+    bound = None if translation_bound is None else float(translation_bound)
     return ParamSet([
         Block("betas", init["betas"], -4.0, 4.0),
         Block("body_pose", init["body_pose"], -np.pi, np.pi, scale=0.3),
         Block("global_rotation", init["global_rotation"], -np.pi, np.pi, scale=0.3),
-        Block("translation", init["translation"], scale=0.1),
+        Block("translation", init["translation"], None if bound is None else -bound, bound, scale=0.1),
     ])
 
 

@@ -62,10 +62,11 @@ def _objective(model, size=(40, 32)):
                                  model.n_joints)
     keypoints = rng.uniform(5, 30, (len(layout.names), 2))
     weights = rng.uniform(0.2, 1.0, len(layout.names))
-    return BodyPhotoObjective(scene, target, layout, keypoints, weights, robust_px=4.0)
+    depth = rng.normal(0.0, 0.3, len(layout.names))
+    return BodyPhotoObjective(scene, target, layout, keypoints, weights, robust_px=4.0, depth=depth)
 
 
-@pytest.mark.parametrize("term", ["keypoints", "torso"])
+@pytest.mark.parametrize("term", ["keypoints", "torso", "depth"])
 def test_keypoint_terms_match_central_differences(demo_body_model, term):
     objective = _objective(demo_body_model)
     rng = np.random.default_rng(0)
@@ -92,6 +93,7 @@ def test_stages_follow_the_objective():
     torso = photo_stages("default")[0]
     assert set(torso.free) == {"global_rotation", "translation"} and set(torso.weights) == {"torso", "translation_prior"}
     assert all(s.sigma is not None and "silhouette" in s.weights for s in photo_stages("default")[2:])
+    assert all(s.weights["depth"] > 0 for s in photo_stages("default")[1:])
     with pytest.raises(InputError, match="objective must be one of"):
         photo_stages("fast", "both")
 
@@ -199,3 +201,123 @@ def test_an_empty_person_mask_is_a_result_error(demo_body_model):
                             1.0, 1, "test")
     with pytest.raises(ResultError, match="person mask is empty"):
         fit_body_photo((40, 40), empty, demo_body_model, body.BodyFitConfig(size=32), "fast", progress=False)
+
+
+def test_a_regions_pass_whose_mask_agrees_with_the_selfie_mask_is_kept(monkeypatch):
+    from softras_cl.fitting.detection import people
+
+    selfie = np.zeros((100, 100), bool)
+    selfie[20:80, 40:60] = True                           # the person-like region
+    region = people.person_regions(selfie)[0]
+
+    def pose_at(box, points_value):
+        """A fake pose: keypoints all at ``points_value``, its mask the box (x0, y0, x1, y1)."""
+        mask = np.zeros((100, 100))
+        mask[box[1]:box[3], box[0]:box[2]] = 1.0
+        return np.full((33, 2), float(points_value)), np.ones(33), mask, np.zeros(33)
+
+    passes = {0.1: pose_at((40, 20, 60, 80), 1), 0.25: pose_at((20, 10, 90, 95), 2)}   # tight: right, loose: wrong
+    monkeypatch.setattr(people, "_pose_in", lambda crop, x0, y0, shape: passes[
+        min(passes, key=lambda m: abs(people._crop(shape, region, m)[0] - x0))])
+    wrong_whole = pose_at((0, 0, 100, 100), 3)
+    found, how = people._largest_in_regions(np.zeros((100, 100, 3), np.uint8), [region], selfie, wrong_whole)
+    assert found[0][0, 0] == 1 and how == "a person-like region's crop (margin 0.1)"
+    passes[0.1] = None                                    # no pose on the tight crop: the better of the others
+    found, how = people._largest_in_regions(np.zeros((100, 100, 3), np.uint8), [region], selfie, wrong_whole)
+    assert found[0][0, 0] == 2 and "margin 0.25" in how
+
+
+@pytest.mark.detect
+def test_detects_the_person_in_front_of_the_coffee_cup(demo_body_model):
+    """The whole photo and the loose crop take the cup for part of a smaller person there (median
+    keypoint error ~90 px); the tight crop finds the person (bench body-photo seed 0, photo 2)."""
+    from softras_cl.bench.body_photo import synthetic_photo
+    from softras_cl.fitting.detection.people import detect_person
+
+    rng = np.random.default_rng(0)
+    synthetic_photo(demo_body_model, rng, 256, 30.0)
+    sample = synthetic_photo(demo_body_model, rng, 256, 30.0)
+    assert sample["background"] == "coffee"
+    found = detect_person(sample["image"])
+    layout = keypoint_layout(demo_body_model)
+    truth = sample["camera"].project_pixels(layout.points(sample["joints_3d"], sample["vertices"]))[0]
+    error = np.linalg.norm(layout.detected(found.keypoints, found.visibility)[0] - truth, axis=1)
+    assert np.median(error) < 10.0 and "margin 0.1" in found.note, (np.median(error), found.note)
+    mask = found.mask > 0.5
+    assert (mask & sample["mask"]).sum() / (mask | sample["mask"]).sum() > 0.8
+
+
+def test_the_depth_term_is_zero_at_the_detected_depths_and_grows_away_from_them(demo_body_model):
+    objective = _objective(demo_body_model)
+    values = body.rest_values(demo_body_model)
+    stage = Stage("s", ("body_pose",), {"depth": 1.0})
+    state, _ = objective.scene.pose(values)
+    axis = objective.scene.camera.rotation_matrix()[2]
+    depth = objective.layout.points(state.joints, state.vertices) @ axis
+    objective.depth = depth - depth[objective.hips].mean()
+    assert objective(values, stage)[0] == pytest.approx(0.0, abs=1e-12)
+    objective.depth = objective.depth + np.where(objective.layout.torso, 0.0, 0.2)   # limbs 20 cm further
+    assert objective(values, stage)[0] > 1.0
+    objective.depth = None                              # a detection without depths: no term
+    assert objective(values, stage)[0] == 0.0
+
+
+def test_photo_params_keep_the_body_within_half_the_camera_distance(demo_body_model):
+    from softras_cl.fitting.recipes.body_photo import photo_params
+
+    scene = body.BodyScene(demo_body_model, (40, 32), body.BodyFitConfig(size=40, distance=4.0))
+    values = body.rest_values(demo_body_model)
+    values["translation"] = np.array([0.1, -0.2, 9.0])            # a start behind the camera
+    params = photo_params(demo_body_model, values, scene)
+    lower, upper = params.block_bounds("translation")
+    assert np.allclose(lower, -2.0) and np.allclose(upper, 2.0)
+    assert np.allclose(params.values()["translation"], [0.1, -0.2, 2.0])
+    lower, upper = body.body_params(demo_body_model, values).block_bounds("translation")   # the body recipe's: free
+    assert np.all(np.isinf(lower)) and np.all(np.isinf(upper))
+
+
+def _person(layout, mask_rows):
+    """A detection of a standing stick person 100 px tall in a 120 x 80 photo, its mask the rows
+    ``mask_rows`` (a slice) of its box."""
+    from softras_cl.fitting.detection.people import PersonDetection
+
+    keypoints = np.zeros((33, 2))
+    heights = {11: 30, 12: 30, 13: 45, 14: 45, 15: 58, 16: 58, 17: 62, 18: 62, 19: 62, 20: 62, 23: 60, 24: 60,
+               25: 80, 26: 80, 27: 100, 28: 100, 31: 104, 32: 104, 0: 14, 7: 12, 8: 12}
+    for k, y in heights.items():
+        keypoints[k] = (40 + (6 if k % 2 else -6), y)
+    mask = np.zeros((120, 80))
+    mask[mask_rows, 30:51] = 1.0
+    return PersonDetection(keypoints, np.ones(33), mask, np.array([30, 10, 21, 100.0]), 1.0, 1, "test",
+                           np.zeros(33))
+
+
+def test_mask_misses_names_the_keypoints_far_outside_the_mask(demo_body_model):
+    from softras_cl.fitting.recipes.body_photo import mask_misses
+
+    layout = keypoint_layout(demo_body_model)
+    used = np.ones(len(layout.names))
+    whole = _person(layout, slice(5, 110))
+    assert mask_misses(layout, whole.keypoints, used, whole.mask) == []
+    legless = _person(layout, slice(5, 65))              # cut at the hips: knees, ankles, feet far outside
+    legs = {"left_knee", "right_knee", "left_ankle", "right_ankle", "left_foot", "right_foot"}
+    assert set(mask_misses(layout, legless.keypoints, used, legless.mask)) == legs
+    unseen = np.array([0.0 if name in ("left_ankle", "left_foot") else 1.0 for name in layout.names])
+    assert set(mask_misses(layout, legless.keypoints, unseen, legless.mask)) == legs - {"left_ankle", "left_foot"}
+
+
+def test_a_mask_that_misses_the_legs_leaves_the_fit_to_the_keypoints(demo_body_model):
+    from dataclasses import replace
+
+    from softras_cl.fitting.recipes.body_photo import fit_body_photo
+
+    layout = keypoint_layout(demo_body_model)
+    config = body.BodyFitConfig(size=32)
+    whole = fit_body_photo((120, 80), _person(layout, slice(5, 110)), demo_body_model, config, "fast", progress=False)
+    assert any(name.startswith("silhouette") for name in whole.result.outcomes) and not whole.mask_misses
+    legless = fit_body_photo((120, 80), _person(layout, slice(5, 65)), demo_body_model, config, "fast", progress=False)
+    assert not any(name.startswith("silhouette") for name in legless.result.outcomes)
+    assert legless.metrics()["mask_misses"] == 6 and len(legless.mask_misses) == 6
+    hidden_legs = replace(_person(layout, slice(5, 65)), visibility=np.where(np.arange(33) >= 25, 0.1, 1.0))
+    hidden = fit_body_photo((120, 80), hidden_legs, demo_body_model, config, "fast", progress=False)
+    assert any(name.startswith("silhouette") for name in hidden.result.outcomes) and not hidden.mask_misses
