@@ -19,10 +19,12 @@ end (detection and fit; detection timed once per photo and added to every object
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import statistics
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -37,6 +39,11 @@ TROUSERS = ("hips", "left_thigh", "right_thigh", "left_calf", "right_calf")
 SHOES = ("left_foot", "right_foot")
 HAIR_COLORS = ((0.03, 0.02, 0.01), (0.15, 0.07, 0.03), (0.5, 0.35, 0.15))
 SKIN_TONES = ((0.62, 0.42, 0.32), (0.45, 0.28, 0.18), (0.25, 0.14, 0.09), (0.75, 0.55, 0.45))
+RENDERERS = ("softras", "mitsuba")
+SKY_AMBIENT, SUN_DIRECTIONAL = 0.8, 0.4      # sun_light: shading albedo * (0.8 + 0.4 cos) before shadows
+SUN_SHARE = 0.6                              # of it in the sun (sharp shadows), the rest the sky
+MITSUBA_SPP = 64
+CACHE_VERSION = 1
 
 
 def clothing_colors(model, rng: np.random.Generator) -> np.ndarray:
@@ -94,8 +101,9 @@ def background(name: str, size: int) -> np.ndarray:
 
 
 def synthetic_photo(model, rng: np.random.Generator, size: int, fov_deg: float) -> dict:
-    """One photo: truth blocks, image (size, size, 3) uint8 sRGB, true 3D joints (J, 3), the true
-    person mask (size, size) bool, the background's name."""
+    """One photo drawn by softras-cl: truth blocks, image (size, size, 3) uint8 sRGB, true 3D
+    joints (J, 3) and vertices (V, 3), the camera, the true person mask (size, size) bool, the
+    background's name, the clothing colours albedo (V, 3)."""
     from softras_cl.bench.body import random_pose
     from softras_cl.raster.settings import RasterSettings
     from softras_cl.scene.camera import Camera
@@ -108,15 +116,71 @@ def synthetic_photo(model, rng: np.random.Generator, size: int, fov_deg: float) 
     camera = Camera.look_at((0.0, height, distance), (0.0, 0.85, 0.0), fov_deg=fov_deg, image_size=(size, size))
     settings = RasterSettings(image_size=(size, size), outputs=("rgb", "alpha"), near=0.5, far=distance + 3.0,
                               double_sided=True, color_agg="hard", alpha_agg="hard")
+    albedo = clothing_colors(model, rng)
     out = Renderer(settings, shading="vertex").forward(state.vertices, model.faces, camera,
-                                                       albedo=clothing_colors(model, rng), sigma=SHARP[0],
+                                                       albedo=albedo, sigma=SHARP[0],
                                                        gamma=SHARP[1])
     name = BACKGROUNDS[rng.integers(len(BACKGROUNDS))]
     alpha = out.alpha[0][..., None]
     image = alpha * out.rgb[0] + (1 - alpha) * background(name, size)
     return dict(truth=truth, image=np.round(255 * to_srgb(np.clip(image, 0, 1))).astype(np.uint8),
                 joints_3d=state.joints, vertices=state.vertices, camera=camera, mask=out.alpha[0] > 0.5,
-                background=name)
+                background=name, albedo=albedo)
+
+
+def sun_light(rng: np.random.Generator) -> np.ndarray:
+    """(3, 9) SH light of a sunny day for mitsuba_photo: a constant SKY_AMBIENT plus a first-order
+    term of SUN_DIRECTIONAL towards a sun 30-60 degrees high and up to 60 degrees to either side
+    of the camera (which looks down -z)."""
+    from softras_cl.scene.shading import SH_A, SH_Y1, sh_ambient
+
+    elevation, azimuth = np.radians(rng.uniform(30, 60)), np.radians(rng.uniform(-60, 60))
+    towards_sun = np.array([np.cos(elevation) * np.sin(azimuth), np.sin(elevation), np.cos(elevation) * np.cos(azimuth)])
+    sh = sh_ambient(SKY_AMBIENT)
+    sh[:, [3, 1, 2]] = SUN_DIRECTIONAL / (SH_A[1] * SH_Y1) * towards_sun     # the basis order is (1, y, z, x, ...)
+    return sh
+
+
+def mitsuba_photo(model, sample: dict, size: int, spp: int, seed: int) -> dict:
+    """dict(image (size, size, 3) linear RGB in [0, 1], alpha (size, size) the person's pixel
+    coverage): ``sample``'s person (synthetic_photo: same vertices, colours,
+    camera and background) path-traced by Mitsuba 3 under sun_light(seed) with SUN_SHARE of it
+    in a sun (sharp shadows: arms on the torso, one leg on the other) and the rest a sky
+    (validate.mitsuba_face.face_scene_dict), only over the true mask's box, composited over the
+    background. ``seed`` draws the sun and the sampler's noise."""
+    from softras_cl.validate.mitsuba import _mitsuba, crop_film
+    from softras_cl.validate.mitsuba_face import composite, face_scene_dict, path_trace
+
+    mi = _mitsuba()
+    rng = np.random.default_rng(seed)
+    scene = face_scene_dict(mi, sample["vertices"], model.faces, sample["albedo"], sample["camera"],
+                            sun_light(rng), spp, SUN_SHARE)
+    rows, cols = np.nonzero(sample["mask"])
+    x, y = crop_film(scene["sensor"], (cols.min(), rows.min(), cols.max() + 1, rows.max() + 1), (size, size))
+    render = path_trace(mi, scene, spp, int(rng.integers(2 ** 31)))
+    image, alpha = background(sample["background"], size), np.zeros((size, size))
+    h, w = render["alpha"].shape
+    image[y:y + h, x:x + w] = composite(render, image[y:y + h, x:x + w])
+    alpha[y:y + h, x:x + w] = render["alpha"]
+    return dict(image=image, alpha=alpha)
+
+
+def cached_mitsuba_photo(model, sample: dict, size: int, spp: int, seed: int, cache: Path) -> np.ndarray:
+    """mitsuba_photo() as (size, size, 3) uint8 sRGB, the PNG kept in ``cache`` (mitsuba_<seed>.png
+    + .json): read back when the stored key (size, spp, CACHE_VERSION, the sample's background
+    and a checksum of its vertices, colours and camera centre) matches, else rendered and stored."""
+    from softras_cl.io.images import read_rgb8, write_image
+
+    person = hashlib.sha256()
+    for block in (sample["vertices"], sample["albedo"], sample["camera"].center()):
+        person.update(np.ascontiguousarray(block, np.float64).tobytes())
+    key = dict(size=size, spp=spp, version=CACHE_VERSION, background=sample["background"], person=person.hexdigest())
+    png, meta = cache / f"mitsuba_{seed}.png", cache / f"mitsuba_{seed}.json"
+    if png.is_file() and meta.is_file() and json.loads(meta.read_text()) == key:
+        return read_rgb8(png)
+    write_image(png, mitsuba_photo(model, sample, size, spp, seed)["image"])
+    write_json(meta, key)
+    return read_rgb8(png)
 
 
 def procrustes_error(pred: np.ndarray, true: np.ndarray) -> float:
@@ -215,6 +279,7 @@ def run(args: argparse.Namespace) -> int:
     from softras_cl.fitting.models.body_loaders import load_body_model, load_demo_body_model
     from softras_cl.fitting.recipes.body import BodyFitConfig
     from softras_cl.fitting.recipes.body_photo import OBJECTIVES, PHOTO_BUDGETS
+    from softras_cl.validate.mitsuba import mitsuba_available
 
     if args.quick:
         args.photos, args.size, args.budget = 1, 192, "fast"
@@ -226,17 +291,26 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--budget must be one of {', '.join(PHOTO_BUDGETS)}, got {args.budget!r}")
     if args.photos < 1 or args.size < 64:
         raise InputError(f"--photos must be >= 1 and --size >= 64, got {args.photos} and {args.size}")
+    if args.renderer not in RENDERERS:
+        raise InputError(f"--renderer must be one of {', '.join(RENDERERS)}, got {args.renderer!r}")
+    if args.renderer == "mitsuba" and not mitsuba_available():
+        raise InputError("--renderer mitsuba needs Mitsuba 3: pip install 'softras-cl[validate]'")
     with OutputFolder(args.out, "bench body-photo", "--out") as folder:
         model = load_demo_body_model() if args.model is None else load_body_model(args.model)
         config = BodyFitConfig.from_budget(args.budget)
         rng = np.random.default_rng(args.seed)
         load_start = os.getloadavg()
+        cache = folder.path / "body_photo_cache"
         per_photo = []
-        for _ in tqdm(range(args.photos), desc="bench body-photo", disable=args.json):
+        for index in tqdm(range(args.photos), desc="bench body-photo", disable=args.json):
             sample = synthetic_photo(model, rng, args.size, config.fov_deg)
+            if args.renderer == "mitsuba":
+                cache.mkdir(exist_ok=True)
+                image = cached_mitsuba_photo(model, sample, args.size, MITSUBA_SPP, 1000 * args.seed + index, cache)
+                sample = dict(sample, image=image)
             per_photo.append(run_photo(model, sample, objectives, config, args.budget))
         summary = {o: summarise([p[o] for p in per_photo]) for o in objectives}
-        doc = dict(photos=args.photos, size=args.size, seed=args.seed, budget=args.budget,
+        doc = dict(photos=args.photos, size=args.size, seed=args.seed, budget=args.budget, renderer=args.renderer,
                    backgrounds=list(BACKGROUNDS), camera=f"distance 3.8-5.0 m, height 0.6-1.2 m, "
                    f"{config.fov_deg} deg across the shorter side (the fit's default --fov)",
                    summary=summary, targets=targets_reached(summary),
@@ -259,6 +333,10 @@ def register(which) -> None:
                    help="comma-separated objectives: full, keypoints (keypoints only), mask (mask only)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the photos (default 0)")
     p.add_argument("--model", default=None, help="body model file (default: the shipped demo model)")
+    p.add_argument("--renderer", default="softras",
+                   help="who draws the people: softras (softras-cl, Gouraud shading, no shadows; the default) or "
+                   f"mitsuba (Mitsuba 3's path tracer, {MITSUBA_SPP} rays per pixel, a sun and a sky: shadows; "
+                   "renders cached in OUT/body_photo_cache)")
     p.add_argument("--quick", action="store_true", help="tiny run for tests: 1 photo at 192 px, fast budget")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
     p.add_argument("--out", default="out/bench", help="directory for body_photo.json")

@@ -312,19 +312,15 @@ def render_face(model, face: dict, skin: dict, frame, spp: int, seed: int) -> tu
     """Mitsuba's path-traced render of one placed face (place_faces) with the skin's texture,
     only over its box (a film crop): (dict rgb (h, w, 3) premultiplied, alpha (h, w)), the
     crop's top-left pixel (x, y))."""
-    from softras_cl.validate.mitsuba import _mitsuba
-    from softras_cl.validate.mitsuba_face import MAX_DEPTH, face_scene_dict
+    from softras_cl.validate.mitsuba import _mitsuba, crop_film
+    from softras_cl.validate.mitsuba_face import face_scene_dict, path_trace
 
     mi = _mitsuba()
-    x0, y0 = (max(int(math.floor(v)) - 2, 0) for v in face["box"][:2])
-    x1, y1 = (min(int(math.ceil(v)) + 3, s) for v, s in zip(face["box"][2:], frame))
     world, truth = face["world"], face["truth"]
     scene = face_scene_dict(mi, world, model.faces, model.albedo(truth["albedo"])[0], face["camera"], truth["sh"], spp)
     scene["mesh"] = textured_mesh(mi, world, model.faces, skin["uvs"], skin["albedo"])
-    scene["sensor"]["film"].update(crop_offset_x=x0, crop_offset_y=y0, crop_width=x1 - x0, crop_height=y1 - y0)
-    path = mi.load_dict({"type": "path", "max_depth": MAX_DEPTH, "hide_emitters": True})
-    image = np.array(mi.render(mi.load_dict(scene), integrator=path, spp=spp, seed=seed), np.float64)
-    return dict(rgb=image[..., :3], alpha=image[..., 3]), (x0, y0)
+    corner = crop_film(scene["sensor"], face["box"], frame)
+    return path_trace(mi, scene, spp, seed), corner
 
 
 def make_frame(model, plan: dict, skins: dict, spp: int) -> dict:

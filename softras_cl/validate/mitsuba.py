@@ -146,6 +146,16 @@ def sensor_dict(camera: Camera, vertices: np.ndarray | None = None, spp: int = 1
     }
 
 
+def crop_film(sensor: dict, box, frame) -> tuple[int, int]:
+    """Restrict ``sensor``'s film (sensor_dict) to the pixel box (x0, y0, x1, y1) of a subject,
+    widened by 2 px (3 px past its far edges) and clipped to ``frame`` (width, height), in
+    place: only the subject's pixels are traced. Returns the crop's top-left pixel (x, y)."""
+    x0, y0 = (max(int(math.floor(v)) - 2, 0) for v in box[:2])
+    x1, y1 = (min(int(math.ceil(v)) + 3, s) for v, s in zip(box[2:], frame))
+    sensor["film"].update(crop_offset_x=x0, crop_offset_y=y0, crop_width=x1 - x0, crop_height=y1 - y0)
+    return x0, y0
+
+
 def _mesh(mi, vertices, faces, albedo, shading: str, texture, uvs):
     """mitsuba Mesh from arrays, with its BSDF (and area emitter when textured)."""
     import drjit as dr

@@ -100,9 +100,15 @@ def render_face_mitsuba(world, faces, albedo, camera, sh, spp: int = DEFAULT_SPP
         raise InputError("albedo must be a (V, 3) array of per-vertex linear RGB, got None")
     world, faces, albedo, _, _ = _check_mesh(world, faces, albedo, None, None)
     mi = _mitsuba()
-    scene = mi.load_dict(face_scene_dict(mi, world, faces, albedo, camera, sh, spp, sun_share))
+    return path_trace(mi, face_scene_dict(mi, world, faces, albedo, camera, sh, spp, sun_share), spp, seed)
+
+
+def path_trace(mi, scene: dict, spp: int, seed: int) -> dict:
+    """Render a scene dict (face_scene_dict, its film RGBA) with the `path` integrator (MAX_DEPTH,
+    emitters hidden): dict(rgb (h, w, 3) linear, premultiplied by alpha; alpha (h, w) the
+    fraction of each pixel's rays that hit the mesh), float64, over the film (or its crop)."""
     path = mi.load_dict({"type": "path", "max_depth": MAX_DEPTH, "hide_emitters": True})
-    image = np.array(mi.render(scene, integrator=path, spp=spp, seed=seed), np.float64)
+    image = np.array(mi.render(mi.load_dict(scene), integrator=path, spp=spp, seed=seed), np.float64)
     return dict(rgb=image[..., :3], alpha=image[..., 3])
 
 

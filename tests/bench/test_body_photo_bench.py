@@ -32,3 +32,39 @@ def test_targets_compare_full_with_keypoints_only():
     assert targets_reached(summary) == dict(pa_mpjpe_le_60mm=True, median_le_5s=True,
                                             better_than_keypoints_only_mm=15.0)
     assert targets_reached(dict(full=dict(pa_mpjpe_mm=61.0, median_seconds=6.0)))["pa_mpjpe_le_60mm"] is False
+
+
+def test_a_mitsuba_photo_is_the_same_person_lit_by_a_sun(demo_body_model, tmp_path):
+    from softras_cl.bench.body_photo import cached_mitsuba_photo, mitsuba_photo
+    from softras_cl.io.images import to_srgb, write_image
+    from softras_cl.validate.mitsuba import mitsuba_available
+    from softras_cl.validate.mitsuba_face import silhouette_iou
+
+    if not mitsuba_available():
+        pytest.skip("Mitsuba 3 is not installed")
+    sample = synthetic_photo(demo_body_model, np.random.default_rng(2), 96, 30.0)
+    render = mitsuba_photo(demo_body_model, sample, 96, 8, seed=5)
+    assert silhouette_iou(render["alpha"], sample["mask"]) > 0.85          # same pose, shape and camera
+    image = np.round(255 * to_srgb(render["image"])).astype(np.uint8)
+    mask = sample["mask"]
+    assert np.abs(image[~mask & (render["alpha"] == 0)].astype(int) - sample["image"][~mask & (render["alpha"] == 0)]).max() <= 1
+    assert np.abs(image[mask].astype(float) - sample["image"][mask]).mean() > 8   # lit and shaded otherwise
+    cached = cached_mitsuba_photo(demo_body_model, sample, 96, 8, 5, tmp_path)
+    assert np.abs(cached.astype(int) - image).max() <= 1                   # the PNG holds the render
+    write_image(tmp_path / "mitsuba_5.png", np.zeros((96, 96, 3)))
+    assert cached_mitsuba_photo(demo_body_model, sample, 96, 8, 5, tmp_path).max() == 0     # read, not re-rendered
+    assert cached_mitsuba_photo(demo_body_model, sample, 96, 4, 5, tmp_path)[mask].max() > 0  # another spp: rendered
+
+
+def test_a_bad_renderer_is_named_before_any_work(tmp_path):
+    import argparse
+
+    from softras_cl.bench.body_photo import register
+    from softras_cl.errors import InputError
+
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    args = parser.parse_args(["body-photo", "--renderer", "blender", "--out", str(tmp_path / "out")])
+    with pytest.raises(InputError, match=r"--renderer must be one of softras, mitsuba, got 'blender'"):
+        args.func(args)
+    assert not (tmp_path / "out").exists()
