@@ -6,7 +6,10 @@ turned up to +-30 degrees about the vertical), dressed by part (skin on the head
 hands, a random shirt colour on the torso and upper arms, random trousers on the hips, thighs and
 calves, dark shoes, hair, eyes and a mouth: paint_face) and drawn with Gouraud (Lambert) shading by softras-cl's hard render, from a
 camera at a random distance (3.8-5.0 m) and height (0.6-1.2 m) with the fitting camera's field
-of view, over a real photo (one of BACKGROUNDS from skimage.data, resized to the frame). The
+of view, over a real photo (one of BACKGROUNDS from skimage.data, resized to the frame). With
+--renderer mitsuba the same person (vertices, colours, camera, background) is path-traced by
+Mitsuba 3 instead (mitsuba_photo: a sun and a sky, so shadows and shading the fit's renderer
+does not make); the true mask stays the sharp softras-cl silhouette. The
 person detector (fitting.detection.people) sees each photo as a user's would; the fit
 (fitting.recipes.body_photo) runs on what it found, with the full objective and its ablations
 (keypoints only, mask only: OBJECTIVES).
