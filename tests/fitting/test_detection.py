@@ -7,7 +7,8 @@ import sys
 
 import numpy as np
 import pytest
-from support.face_scenes import DATA, astronaut, nme, read_pts, small_face_in_large_frame, turned, two_faces
+from support.face_scenes import (DATA, astronaut, nme, read_pts, small_face_in_large_frame,
+                                 tiny_face_in_large_frame, turned, two_faces)
 
 from softras_cl.errors import InputError, ResultError
 from softras_cl.fitting import detection as det
@@ -153,6 +154,7 @@ def test_tiles_cover_the_image_with_overlap():
     assert max(np.diff(starts)) <= mp.TILE_STEP * 256
     tiles = mp.pyramid_tiles(1200, 1600)
     assert {side for _, _, side in tiles} == {256, 512, 1024}
+    assert {side for _, _, side in mp.pyramid_tiles(1200, 1600, mp.FULL_RANGE_TILE)} == {384, 768, 1536}
     assert mp.pyramid_tiles(200, 250) == []
 
 
@@ -278,6 +280,17 @@ def test_small_face_in_large_frame_needs_the_tiles():
     error = nme(found[0].landmarks, points)
     print(f"50 px face in 1600x1200: NME {error:.4f}")
     assert error < MAX_NME_PASTED
+
+
+@pytest.mark.detect
+def test_tiny_face_needs_the_full_range_tiles(monkeypatch):
+    """A face of about 28 px that the short-range tiles miss: the full-range pyramid finds it."""
+    picture, points = tiny_face_in_large_frame()
+    found = det.find_faces(picture)
+    assert len(found) == 1 and found[0].found_by.startswith("full-range detector, 384 px tile")
+    assert nme(found[0].landmarks, points) < MAX_NME_PASTED
+    monkeypatch.setattr(mp, "FULL_RANGE_TILE", None)
+    assert det.find_faces(picture) == []
 
 
 @pytest.mark.detect

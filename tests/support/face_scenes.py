@@ -64,6 +64,12 @@ def small_face_in_large_frame() -> tuple[np.ndarray, np.ndarray]:
     return picture, points
 
 
+def tiny_face_in_large_frame() -> tuple[np.ndarray, np.ndarray]:
+    """The head 44 px wide (the face about 28 px) in a 1600x1200 frame: (picture, its points)."""
+    picture, (points,) = paste_heads(background(1600, 1200), [(1013, 707, 44)])
+    return picture, points
+
+
 def two_faces() -> tuple[np.ndarray, list[np.ndarray]]:
     """The head 240 px and 120 px wide in a 900x600 frame: (picture, [large's, small's points])."""
     return paste_heads(background(900, 600, seed=1), [(60, 80, 240), (600, 300, 120)])
