@@ -22,7 +22,9 @@ second end to end (decode, detection, identity fit, per-frame fits) and of the p
 (each frame's fit, its light and the fixed-lag smoothing); the tracker's errors before its fixed-lag
 smoothing (each frame's own fit); and the appearance error (the fitted face's colour, albedo times
 SH shading, against the truth's, relative RMS over the vertices facing the camera) with each
-frame's fitted light and with the identity's light held for the video.
+frame's fitted light and with the identity's light held for the video (with --renderer mitsuba
+the truth's colour is still the model's albedo, not the skin texture the frames show, so this
+error then mostly measures the texture's difference).
 Targets (never lowered): per-frame stage >= 10 frames/s; jitter <= 1/3 of the independent fits' with
 vertex and landmark errors no worse; identity error no worse than the best single frame's and >= 30%
 below the mean single frame's.
