@@ -326,16 +326,22 @@ def render_face(model, face: dict, skin: dict, frame, spp: int, seed: int) -> tu
 def make_frame(model, plan: dict, skins: dict, spp: int) -> dict:
     """The frame of a plan: image (H, W, 3) linear RGB and its faces (place_faces; the first the
     intended one) with their landmarks; faces drawn smallest first."""
-    from softras_cl.validate.mitsuba_face import composite
-
     rng = np.random.default_rng(plan["seed"])
     faces = place_faces(model, plan, rng)
     image = frame_background(plan["background"], plan["frame"])
     for k, face in reversed(list(enumerate(faces))):
-        render, (x, y) = render_face(model, face, skins[plan["skin"]], plan["frame"], spp, plan["seed"] % 10**6 + k)
-        h, w = render["alpha"].shape
-        image[y:y + h, x:x + w] = composite(render, image[y:y + h, x:x + w])
+        paint_face(image, model, face, skins[plan["skin"]], spp, plan["seed"] % 10**6 + k)
     return dict(image=image, faces=faces)
+
+
+def paint_face(image: np.ndarray, model, face: dict, skin: dict, spp: int, seed: int) -> None:
+    """Composite render_face's render of ``face`` (projected) over ``image`` (H, W, 3) linear
+    RGB, in place, inside the face's box only."""
+    from softras_cl.validate.mitsuba_face import composite
+
+    render, (x, y) = render_face(model, face, skin, image.shape[1::-1], spp, seed)
+    h, w = render["alpha"].shape
+    image[y:y + h, x:x + w] = composite(render, image[y:y + h, x:x + w])
 
 
 def skin_texture(model, name: str, budget: str, cache: Path) -> dict:

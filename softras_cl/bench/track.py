@@ -3,8 +3,12 @@
 Each sequence: one random identity and albedo of the demo face (bench face's generator) whose head
 pose, expression and light follow smooth random trajectories (sums of slow sinusoids: yaw +-25,
 pitch +-10, roll +-6 degrees, the head moving a few centimetres, 10 expression components, the
-light's direction turning), rendered by softras-cl over a real photo (skimage.data) at --size
-pixels and --fps, encoded to H.264 through PyAV and decoded again, so the decode path is part of it.
+light's direction turning), rendered over a real photo (skimage.data) at --size pixels and --fps,
+encoded to H.264 through PyAV and decoded again, so the decode path is part of it. --renderer
+softras: softras-cl's sharp render of the face's albedo and SH light; --renderer mitsuba: Mitsuba
+3's path tracer (bench landmarks' faces: a detail texture read off a shipped photo, the light
+split into an environment and a sun that casts shadows, --spp rays per pixel), frames kept under
+OUT/track_cache so reruns only track.
 Landmarks: MediaPipe's (the tracker's own path, --landmarks detected), or the true ones with 1.5 px
 noise (--landmarks noisy, no detector needed).
 
@@ -18,7 +22,9 @@ second end to end (decode, detection, identity fit, per-frame fits) and of the p
 (each frame's fit, its light and the fixed-lag smoothing); the tracker's errors before its fixed-lag
 smoothing (each frame's own fit); and the appearance error (the fitted face's colour, albedo times
 SH shading, against the truth's, relative RMS over the vertices facing the camera) with each
-frame's fitted light and with the identity's light held for the video.
+frame's fitted light and with the identity's light held for the video (with --renderer mitsuba
+the truth's colour is still the model's albedo, not the skin texture the frames show, so this
+error then mostly measures the texture's difference).
 Targets (never lowered): per-frame stage >= 10 frames/s; jitter <= 1/3 of the independent fits' with
 vertex and landmark errors no worse; identity error no worse than the best single frame's and >= 30%
 below the mean single frame's.
@@ -27,6 +33,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -43,6 +51,9 @@ TARGET_JITTER_RATIO = 1.0 / 3.0
 TARGET_IDENTITY_REDUCTION = 0.30
 LANDMARK_NOISE_PX = 1.5
 N_EXP_MOVING = 10
+RENDERERS = ("softras", "mitsuba")
+DEFAULT_SPP = 16
+MITSUBA_CACHE_VERSION = 1
 
 
 def smooth_signal(rng: np.random.Generator, times: np.ndarray, amplitude, components: int = 3) -> np.ndarray:
@@ -102,7 +113,6 @@ def background(name: str, size: int) -> np.ndarray:
 def render_frames(model, truth: list[dict], back: np.ndarray):
     """(frames (H, W, 3) uint8 sRGB, true landmarks (T, 68, 2) px, true world vertices (T, V, 3))."""
     from softras_cl.fitting.recipes.face import FaceScene
-    from softras_cl.io.images import to_srgb
     from softras_cl.scene.renderer import SHARP
 
     scene = FaceScene(model, back.shape[:2], alpha_agg="hard")
@@ -111,11 +121,50 @@ def render_frames(model, truth: list[dict], back: np.ndarray):
         scene.set_depth_range(values["translation"])
         out = scene.render(values, *SHARP)
         alpha = out.alpha[0][..., None]
-        images.append(np.round(to_srgb(np.clip(alpha * out.rgb[0] + (1 - alpha) * back, 0, 1)) * 255).astype(np.uint8))
+        images.append(srgb8(alpha * out.rgb[0] + (1 - alpha) * back))
         world, _ = scene.geometry(values)
         landmarks.append(scene.camera(values["focal"][0]).project_pixels(model.landmarks(world)[0])[0])
         vertices.append(world)
     return images, np.array(landmarks), np.array(vertices)
+
+
+def srgb8(linear: np.ndarray) -> np.ndarray:
+    """(H, W, 3) linear RGB clipped to [0, 1] -> uint8 sRGB."""
+    from softras_cl.io.images import to_srgb
+
+    return np.round(to_srgb(np.clip(linear, 0, 1)) * 255).astype(np.uint8)
+
+
+def render_frames_mitsuba(model, truth: list[dict], back: np.ndarray, *, skin: dict, spp: int, cache: Path,
+                          seed: int):
+    """render_frames' answer with each face path-traced by Mitsuba (bench landmarks' paint_face:
+    the skin's detail texture, sun and sky, only over the face's box); frame t's sampler seed is
+    seed + t. Each frame is kept in ``cache`` as mitsuba_<key>.png, its key a digest of what
+    makes it (truth, background, skin, spp, seed), and read back when there."""
+    from softras_cl.bench.landmarks import paint_face, projected
+    from softras_cl.io.images import read_rgb8, write_image
+
+    cache.mkdir(parents=True, exist_ok=True)
+    images, landmarks, vertices = [], [], []
+    for t, values in enumerate(truth):
+        face = projected(model, values, back.shape[1::-1])
+        png = cache / f"mitsuba_{_frame_key(model, values, back, skin, spp, seed + t)}.png"
+        if not png.is_file():
+            image = back.copy()
+            paint_face(image, model, face, skin, spp, seed + t)
+            write_image(png, image)
+        images.append(read_rgb8(png))
+        landmarks.append(face["landmarks"])
+        vertices.append(face["world"])
+    return images, np.array(landmarks), np.array(vertices)
+
+
+def _frame_key(model, values: dict, back: np.ndarray, skin: dict, spp: int, seed: int) -> str:
+    """A hex digest of everything a Mitsuba frame depends on."""
+    digest = hashlib.sha1(f"{MITSUBA_CACHE_VERSION} {model.name} {spp} {seed}".encode())
+    for part in [*(np.asarray(values[k], np.float64) for k in sorted(values)), back, skin["albedo"], skin["uvs"]]:
+        digest.update(np.ascontiguousarray(part).tobytes())
+    return digest.hexdigest()[:20]
 
 
 def write_sequence(path: Path, images, fps: float, crf: int = 18) -> None:
@@ -127,10 +176,12 @@ def write_sequence(path: Path, images, fps: float, crf: int = 18) -> None:
             writer.write(image, k / fps)
 
 
-def make_sequence(model, rng: np.random.Generator, frames: int, size: int, fps: float, back: str, path: Path) -> dict:
-    """One synthetic talking head written to ``path`` (mp4): truth, true landmarks and vertices."""
+def make_sequence(model, rng: np.random.Generator, frames: int, size: int, fps: float, back: str, path: Path,
+                  renderer=render_frames) -> dict:
+    """One synthetic talking head written to ``path`` (mp4): truth, true landmarks and vertices.
+    renderer(model, truth, background): render_frames or a render_frames_mitsuba partial."""
     truth = sequence_truth(model, rng, frames, size, fps)
-    images, landmarks, vertices = render_frames(model, truth, background(back, size))
+    images, landmarks, vertices = renderer(model, truth, background(back, size))
     write_sequence(path, images, fps)
     return dict(truth=truth, landmarks=landmarks, vertices=vertices, path=path)
 
@@ -293,13 +344,29 @@ def independent_measures(model, fits, sequence: dict) -> dict:
                 first_failure=failures[0] if failures else None)
 
 
+def frame_renderer(model, args, index: int, folder: Path):
+    """(the renderer make_sequence takes for sequence ``index`` under --renderer, the mp4's name)."""
+    if args.renderer == "softras":
+        return render_frames, f"sequence_{index}.mp4"
+    from softras_cl.bench.face import LANDMARKS_ONLY
+    from softras_cl.bench.landmarks import SKINS, skin_texture
+
+    cache = folder / "track_cache"
+    cache.mkdir(parents=True, exist_ok=True)
+    skin = skin_texture(model, SKINS[index % len(SKINS)], LANDMARKS_ONLY if args.quick else "fast", cache)
+    renderer = functools.partial(render_frames_mitsuba, skin=skin, spp=args.spp, cache=cache,
+                                 seed=args.seed * 10**6 + index * 10**4)
+    return renderer, f"sequence_{index}_mitsuba.mp4"
+
+
 def run_sequence(model, rng, index: int, args, config, face_config, folder: Path) -> dict:
     """Make, track and independently fit one sequence; its row."""
     from softras_cl.bench.face_views import identity_ratio
     from softras_cl.fitting.recipes.face_track import FrameTracker, world_vertices
 
+    renderer, name = frame_renderer(model, args, index, folder)
     sequence = make_sequence(model, rng, args.frames, args.size, args.fps, BACKGROUNDS[index % len(BACKGROUNDS)],
-                             folder / f"sequence_{index}.mp4")
+                             folder / name, renderer)
     noise_rng = np.random.default_rng(rng.integers(2**32))
     given = follower_for(args.landmarks, sequence, noise_rng)
     factory = (lambda: given) if args.landmarks == "noisy" else (lambda: follower_for("detected", sequence, noise_rng))
@@ -447,13 +514,20 @@ def run(args: argparse.Namespace) -> int:
     from softras_cl.fitting.recipes.face import FaceFitConfig
     from softras_cl.fitting.recipes.face_track import TrackConfig
 
+    from softras_cl.validate.mitsuba import mitsuba_available
+
     if args.quick:
         args.sequences, args.frames, args.independent, args.size = 1, 24, 12, min(args.size, 160)
+        args.spp = min(args.spp, 4)
     for name in ("sequences", "frames", "independent", "scan"):
         if getattr(args, name) < 1:
             raise InputError(f"--{name} must be >= 1, got {getattr(args, name)}")
     if args.frames < 3:
         raise InputError(f"--frames must be >= 3 (jitter is a second difference), got {args.frames}")
+    if args.spp < 2:
+        raise InputError(f"--spp must be >= 2 (Mitsuba rays per pixel), got {args.spp}")
+    if args.renderer == "mitsuba" and not mitsuba_available():
+        raise InputError("--renderer mitsuba needs Mitsuba 3: pip install 'softras-cl[validate]'")
     config = TrackConfig(size=min(256, args.size), light_speed=args.light_speed, smooth_lag=args.smooth_lag)
     face_config = FaceFitConfig.from_budget(args.budget, size=min(256, args.size))
     with OutputFolder(args.out, "bench track", "--out") as folder:
@@ -468,6 +542,7 @@ def run(args: argparse.Namespace) -> int:
         save_pictures(rows, folder.path)
         kept = [{k: v for k, v in r.items() if k != "tracker_strip"} for r in rows]
         doc = dict(frames=args.frames, fps=args.fps, size=args.size, seed=args.seed, landmarks=args.landmarks,
+                   renderer=args.renderer, spp=args.spp if args.renderer == "mitsuba" else None,
                    independent_budget=args.budget, tracker=dataclasses.asdict(config),
                    summary=summary, sequences=kept, provenance=provenance(dict(options=args)))
         write_json(folder.path / "track.json", doc)
@@ -495,9 +570,15 @@ def register(which) -> None:
                    help=f"the tracker's --light-speed (default {TrackConfig.light_speed:g}; 0: the identity's light)")
     p.add_argument("--smooth-lag", type=int, default=TrackConfig.smooth_lag,
                    help=f"the tracker's --smooth-lag (default {TrackConfig.smooth_lag}; 0: no smoothing)")
+    p.add_argument("--renderer", choices=RENDERERS, default="softras",
+                   help="who renders the faces: softras (default) or mitsuba (path traced, a detail texture and "
+                        "shadows; needs softras-cl[validate])")
+    p.add_argument("--spp", type=int, default=DEFAULT_SPP,
+                   help=f"Mitsuba rays per pixel with --renderer mitsuba (default {DEFAULT_SPP})")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--quick", action="store_true", help="1 sequence of 24 frames at 160 px, 12 fitted independently")
+    p.add_argument("--quick", action="store_true",
+                   help="1 sequence of 24 frames at 160 px, 12 fitted independently, at most 4 rays per pixel")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
-    p.add_argument("--out", default="out/bench", help="directory for track.json, track_strip.png, track_jitter.png "
-                   "and the sequences' mp4 files")
+    p.add_argument("--out", default="out/bench", help="directory for track.json, track_strip.png, track_jitter.png, "
+                   "the sequences' mp4 files and track_cache (Mitsuba's frames and skin textures)")
     p.set_defaults(func=run)

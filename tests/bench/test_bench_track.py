@@ -129,3 +129,41 @@ def test_a_failed_independent_fit_is_counted_and_held(demo_face_model):
     assert measured["landmark_error_px"] == pytest.approx(np.mean(held * np.sqrt(2)))
     with pytest.raises(ValueError, match="every independent fit failed"):
         track.independent_measures(model, [fits[0]], sequence)
+
+
+@pytest.mark.mitsuba
+def test_mitsuba_frames_differ_from_softras_but_put_the_face_where_the_truth_says(demo_face_model, tmp_path):
+    """Two small frames path-traced by Mitsuba: other pixels than softras-cl's, the same truth,
+    the face covering the same pixels (and its true landmarks), read from the cache when rendered again."""
+    model = demo_face_model
+    rng = np.random.default_rng(3)
+    truth = track.sequence_truth(model, rng, 2, 96, 30.0)
+    back = track.background("coffee", 96)
+    skin = dict(uvs=rng.uniform(0.0, 1.0, (len(model.mean_shape), 2)), albedo=rng.uniform(0.2, 0.9, (8, 8, 3)))
+    soft, soft_marks, soft_world = track.render_frames(model, truth, back)
+    options = dict(skin=skin, spp=4, cache=tmp_path / "cache", seed=5)
+    mits, marks, world = track.render_frames_mitsuba(model, truth, back, **options)
+    np.testing.assert_allclose(marks, soft_marks)
+    np.testing.assert_allclose(world, soft_world)
+    photo = track.srgb8(back).astype(int)
+    for a, b, points in zip(soft, mits, marks):
+        face_a = np.abs(a.astype(int) - photo).max(-1) > 12
+        face_b = np.abs(b.astype(int) - photo).max(-1) > 12
+        assert (face_a & face_b).sum() / (face_a | face_b).sum() > 0.85
+        assert np.abs(a.astype(int) - b.astype(int))[face_a & face_b].mean() > 10
+        inner = np.round(points[17:]).astype(int)             # brows, eyes, nose and mouth: on the face
+        assert face_b[inner[:, 1], inner[:, 0]].mean() > 0.95
+    stored = sorted((tmp_path / "cache").glob("mitsuba_*.png"))
+    assert len(stored) == 2
+    before = [p.stat().st_mtime_ns for p in stored]
+    again = track.render_frames_mitsuba(model, truth, back, **options)[0]
+    assert [p.stat().st_mtime_ns for p in stored] == before
+    np.testing.assert_array_equal(np.array(again), np.array(mits))
+
+
+@pytest.mark.parametrize("options, says", [(("--renderer", "blender"), ("--renderer", "'blender'")),
+                                           (("--renderer", "mitsuba", "--spp", "1"), ("--spp must be >= 2", "got 1"))])
+def test_a_bad_renderer_or_spp_is_refused(tmp_path, run_cli, options, says):
+    result = run_cli("bench", "track", *options, "--out", tmp_path / "b")
+    assert result.code == 2 and all(words in result.err for words in says), result.err
+    assert not (tmp_path / "b").exists()                 # refused before any work
