@@ -17,7 +17,8 @@ The fit, as the paper and its anchors do it, in stages given as data (:func:`def
    factor 2 of a 30 degree field of view: landmarks barely tell focal length from distance),
    identity and expression from the 68 landmarks and the coefficient priors, starting from
    a closed-form scaled-orthographic alignment of the mean face's landmarks
-   (:func:`initial_pose`).
+   (:func:`initial_pose`); with focal free, from a few focal starts, going on from the one
+   that ends lowest (FaceFitConfig.focal_starts, :func:`best_focal_start`).
 2. The SH light, frozen until then, starts from a linear least-squares fit to the visible
    vertices at the initial pose (:func:`initial_light`).
 3. ``photo-k``: identity, expression, albedo, SH light, pose and focal (unless given, with its
