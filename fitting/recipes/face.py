@@ -17,8 +17,7 @@ The fit, as the paper and its anchors do it, in stages given as data (:func:`def
    factor 2 of a 30 degree field of view: landmarks barely tell focal length from distance),
    identity and expression from the 68 landmarks and the coefficient priors, starting from
    a closed-form scaled-orthographic alignment of the mean face's landmarks
-   (:func:`initial_pose`); with focal free, from a few focal starts, going on from the one
-   that ends lowest (FaceFitConfig.focal_starts, :func:`best_focal_start`).
+   (:func:`initial_pose`).
 2. The SH light, frozen until then, starts from a linear least-squares fit to the visible
    vertices at the initial pose (:func:`initial_light`).
 3. ``photo-k``: identity, expression, albedo, SH light, pose and focal (unless given, with its
@@ -159,11 +158,6 @@ class FaceFitConfig:
         model's dense_use marks) relative to one of the 68 landmarks, in every stage that has
         the landmarks; 0: no dense term. Needs a model with dense points (FaceModel.has_dense)
         and the photo's dense points (fit_face's ``dense``).
-    focal_starts: with focal fitted, the landmark stage is run from each of these multiples of
-        the initial focal length (its pose re-solved in closed form for each, the focal prior
-        still centred on the first) and the fit goes on from the lowest final loss (see
-        :func:`best_focal_start`); (1.0,): one start. The sliding contour's loss has several
-        minima along focal length x distance, which landmarks barely tell apart.
     n_id / n_exp / n_albedo: use only the first components of the model (None: all).
     dtype: rasteriser precision; float64 keeps line searches clean.
     """
@@ -183,7 +177,6 @@ class FaceFitConfig:
     mask_erosion: int = 2
     forehead: float = 0.15
     contour_landmarks: str = "sliding"
-    focal_starts: tuple = (1.0, 0.5)
     dense_weight: float = 0.0
     n_id: int | None = None
     n_exp: int | None = None
@@ -230,10 +223,6 @@ def _check_face_config(c: FaceFitConfig) -> None:
     if not 0 < fov < 180:
         raise InputError(f"fov_deg must be in (0, 180) degrees, got {c.fov_deg!r}")
     _int_at_least("landmark_iters", c.landmark_iters, 0)
-    if not c.focal_starts:
-        raise InputError("focal_starts must hold one or more multiples of the initial focal length, got none")
-    for multiple in c.focal_starts:
-        _check(lambda: number("focal_starts", multiple, positive=True))
     for i, stage in enumerate(c.photo_stages):
         if len(stage) not in (3, 4):
             raise InputError(f"photo_stages[{i}] must be (sigma, gamma, evaluations) or (sigma, gamma, "
@@ -878,8 +867,6 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
     objective, crop, params = prepare_fit(photo, landmarks, model, config, dense)
     check_landmark_layout(landmarks)      # after prepare_fit's input checks (shape, area, size)
     stages = default_stages(config, fit_focal=config.focal is None)
-    if config.focal is None and len(config.focal_starts) > 1 and not resume:
-        params.set(best_focal_start(params, objective, stages[0], model, config.focal_starts))
     result = fit(params, objective, stages, out_dir=out_dir, progress=progress, resume=resume)
     if objective.mask is None:      # no photometric stage ran here (e.g. resuming a finished fit)
         objective.set_depth_range(result.values["translation"])
@@ -914,26 +901,6 @@ def prepare_fit(photo, landmarks, model, config: FaceFitConfig,
     sh = initial_light(scene, values, image)
     return objective, crop, face_params(model, focal, rotation, translation, sh)
 
-
-
-def best_focal_start(params: ParamSet, objective: FaceObjective, stage: Stage, model,
-                     multiples) -> dict:
-    """The values (fit_face's blocks) at the end of the landmark ``stage`` run from each focal
-    length ``multiples`` x params' focal (with the closed-form pose for it) that end at the
-    lowest loss; params is left as given. The fit then runs the stage once more from there,
-    which costs a few evaluations where this one converged."""
-    start = params.values()
-    mean_landmarks, _ = model.landmarks(model.shape(start["id"], start["exp"])[0])
-    best = None
-    for multiple in multiples:
-        focal = float(start["focal"][0]) * float(multiple)
-        rotation, translation = initial_pose(mean_landmarks, objective.target, focal, objective.scene.principal)
-        params.set(dict(start, focal=np.array([focal]), rotation=rotation, translation=translation))
-        result = fit(params, objective, [stage], progress=False)
-        if best is None or result.loss < best.loss:
-            best = result
-    params.set(start)
-    return best.values
 
 
 def check_dense_inputs(config: FaceFitConfig, model, dense) -> None:

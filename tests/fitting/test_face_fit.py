@@ -260,8 +260,6 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     (dict(coarse_mesh=-2.0), "coarse_mesh must be > 0, got -2.0"),
     (dict(coarse_mesh=float("inf")), "coarse_mesh must be a finite number"),
     (dict(dense_weight=-0.5), "dense_weight must be >= 0 (0: no dense landmark term), got -0.5"),
-    (dict(focal_starts=()), "focal_starts must hold one or more multiples of the initial focal length"),
-    (dict(focal_starts=(1.0, -0.5)), "focal_starts must be > 0, got -0.5"),
     (dict(dense_weight=float("nan")), "dense_weight must be a finite number"),
 ])
 def test_face_config_names_a_bad_field(changes, says):
@@ -518,27 +516,6 @@ def test_sliding_jaw_points_find_the_silhouette_the_fixed_ones_miss(demo):
         errors[contour_landmarks] = np.linalg.norm(points - clean, axis=1)
     assert errors["sliding"][:17].mean() < 1.0 < 2.0 < errors["fixed"][:17].mean()
     np.testing.assert_array_equal(errors["sliding"][17:], errors["fixed"][17:])
-
-
-def test_focal_starts_keep_the_landmark_stage_that_ends_lowest(demo):
-    """On a turned face with the jaw sliding, the landmark stage from focal starts x1, x0.5 and
-    x2 ends at different losses; from any order of those starts best_focal_start returns the
-    values of the lowest, and leaves params at the start."""
-    sample = _turned_face(demo)
-    config = face.FaceFitConfig(size=128, landmark_iters=15)
-    objective, _, params = face.prepare_fit(sample["photo"], sample["landmarks"], demo, config)
-    stage = face.default_stages(config, fit_focal=True)[0]
-    start = params.values()
-
-    def loss(values):
-        return objective(values, stage)[0]
-
-    ends = {m: loss(face.best_focal_start(params, objective, stage, demo, (m,))) for m in (1.0, 0.5, 2.0)}
-    assert max(ends.values()) > 1.01 * min(ends.values())
-    for order in ((1.0, 0.5, 2.0), (2.0, 0.5, 1.0), (0.5, 2.0, 1.0)):
-        assert loss(face.best_focal_start(params, objective, stage, demo, order)) == pytest.approx(min(ends.values()))
-    for name, value in params.values().items():
-        np.testing.assert_array_equal(value, start[name], err_msg=name)
 
 
 def _dense_targets(model, values, size: int, rng=None) -> np.ndarray:
