@@ -13,14 +13,14 @@ differs).
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from softras_cl.bench.tools import add_bench_parser, print_report
 from softras_cl.errors import InputError
-from softras_cl.io.outputs import OutputFolder, json_safe, write_json, write_text
+from softras_cl.io.outputs import OutputFolder, write_json, write_text
 from softras_cl.provenance import provenance
 
 DEFAULT_CONFIGS = "1x1,1x2,2x1"
@@ -171,14 +171,13 @@ def run(args: argparse.Namespace) -> int:
             f"{ref['photos_per_minute']:.2f} photos/min, RMSE {ref['rmse_mm']:.3f} mm, " \
             f"lmk {ref['landmark_error_px']:.2f} px, PSNR {ref['psnr_face_db']:.1f} dB"
         write_text(out / "batch.txt", table + "\n")
-        print(json.dumps(json_safe(doc), indent=2) if args.json else table)
+        print_report(doc, args.json, table)
     return 0
 
 
 def register(which) -> None:
     """Add `batch` to the `softras-cl bench` subparsers."""
-    p = which.add_parser("batch", help="photos per minute of many fits against workers and threads",
-                         description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1])
+    p = add_bench_parser(which, __doc__, "batch", help="photos per minute of many fits against workers and threads")
     p.add_argument("--faces", type=int, default=8, help="synthetic faces (default 8)")
     p.add_argument("--size", type=int, default=96, help="photo size and working size in pixels (default 96)")
     p.add_argument("--budget", default="fast", choices=("fast", "default", "thorough"),

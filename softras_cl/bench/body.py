@@ -17,7 +17,6 @@ target, and the time per fit.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import time
@@ -25,8 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.bench.tools import add_bench_parser, print_report
 from softras_cl.errors import InputError
-from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
+from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
 
 DEFAULT_BUDGETS = ("fast", "default")
@@ -206,14 +206,13 @@ def run(args: argparse.Namespace) -> int:
         write_json(out / "body.json", doc)
         save_chart(summary, rest, out / "body.png")
         save_strip(samples, per_budget[budgets[-1]], out / "body_strip.png")
-        print(json.dumps(json_safe(doc), indent=2) if args.json else format_table(summary, rest))
+        print_report(doc, args.json, format_table(summary, rest))
     return 0
 
 
 def register(which) -> None:
     """Add `body` to the `softras-cl bench` subparsers."""
-    p = which.add_parser("body", help="body fitting on synthetic images with known answers",
-                         description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1])
+    p = add_bench_parser(which, __doc__, "body", help="body fitting on synthetic images with known answers")
     p.add_argument("--poses", type=int, default=20, help="synthetic targets (default 20)")
     p.add_argument("--size", type=int, default=96, help="square image size in pixels (default 96)")
     p.add_argument("--budgets", default=",".join(DEFAULT_BUDGETS),

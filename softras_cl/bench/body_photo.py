@@ -31,8 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.bench.tools import add_bench_parser, print_report
 from softras_cl.errors import InputError
-from softras_cl.io.outputs import OutputFolder, json_safe, write_json
+from softras_cl.io.outputs import OutputFolder, write_json
 from softras_cl.provenance import provenance
 
 BACKGROUNDS = ("coffee", "rocket", "brick", "grass", "gravel")
@@ -321,14 +322,13 @@ def run(args: argparse.Namespace) -> int:
                    per_photo={o: [p[o] for p in per_photo] for o in objectives},
                    provenance=provenance(dict(options=args)))
         write_json(folder.path / "body_photo.json", doc)
-        print(json.dumps(json_safe(doc), indent=2) if args.json else format_table(summary))
+        print_report(doc, args.json, format_table(summary))
     return 0
 
 
 def register(which) -> None:
     """Add `body-photo` to the `softras-cl bench` subparsers."""
-    p = which.add_parser("body-photo", help="body fitting to synthetic photos of people with known answers",
-                         description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1])
+    p = add_bench_parser(which, __doc__, "body-photo", help="body fitting to synthetic photos of people with known answers")
     p.add_argument("--photos", type=int, default=20, help="synthetic photos (default 20)")
     p.add_argument("--size", type=int, default=256, help="square photo size in pixels (default 256)")
     p.add_argument("--budget", default="default", help="fit-body's schedule budget (default: default)")

@@ -47,15 +47,15 @@ detector's (with --landmarks truth, beside the true 68).
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 from pathlib import Path
 
 import numpy as np
 
+from softras_cl.bench.tools import add_bench_parser, print_report
 from softras_cl.errors import InputError, ResultError
-from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
+from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
 
 DEFAULT_BUDGETS = ("fast", "default", "thorough")
@@ -689,11 +689,11 @@ def run(args: argparse.Namespace) -> int:
             if names:
                 save_strip(per_run[names[-1]], out / ("face_strip.png" if renderer == "softras"
                                                       else f"face_{renderer}_strip.png"))
-        print(json.dumps(json_safe(doc), indent=2) if args.json
-              else "\n".join(filter(None, (format_table(summary), format_comparison(comparison),
-                                           format_comparison(dense_rows, ("off", "on"), "without against with the "
-                                                             "dense landmark term"),
-                                           format_mitsuba(doc)))))
+        print_report(doc, args.json,
+                     "\n".join(filter(None, (format_table(summary), format_comparison(comparison),
+                                            format_comparison(dense_rows, ("off", "on"), "without against with the "
+                                                              "dense landmark term"),
+                                            format_mitsuba(doc)))))
     return 0
 
 
@@ -733,8 +733,7 @@ def photos_by_renderer(model, samples: list[dict], renderers: list[str], spp: in
 
 def register(which) -> None:
     """Add `face` to the `softras-cl bench` subparsers."""
-    p = which.add_parser("face", help="face fitting on synthetic photos with known answers",
-                         description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1])
+    p = add_bench_parser(which, __doc__, "face", help="face fitting on synthetic photos with known answers")
     p.add_argument("--faces", type=int, default=20, help="synthetic faces (default 20)")
     p.add_argument("--size", type=int, default=256, help="square photo size in pixels (default 256)")
     p.add_argument("--budgets", default=",".join(DEFAULT_BUDGETS),

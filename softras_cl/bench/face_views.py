@@ -22,7 +22,6 @@ Target: the median reduction over the subjects is at least 30%.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import time
@@ -30,8 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.bench.tools import add_bench_parser, print_report
 from softras_cl.errors import InputError
-from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
+from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
 
 TARGET_REDUCTION = 0.30   # the joint fit's ratio at least 30% below the best single photo's (median)
@@ -226,14 +226,13 @@ def run(args: argparse.Namespace) -> int:
                    summary=summary, subjects=rows, load_average=load, provenance=provenance(dict(options=args)))
         write_json(folder.path / "face_views.json", doc)
         save_chart(rows, folder.path / "face_views.png")
-        print(json.dumps(json_safe(doc), indent=2) if args.json else format_table(rows, summary))
+        print_report(doc, args.json, format_table(rows, summary))
     return 0
 
 
 def register(which) -> None:
     """Add `face-views` to the `softras-cl bench` subparsers."""
-    p = which.add_parser("face-views", help="one identity from several photos against the best single photo",
-                         description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1])
+    p = add_bench_parser(which, __doc__, "face-views", help="one identity from several photos against the best single photo")
     p.add_argument("--subjects", type=int, default=6, help="synthetic subjects (default 6)")
     p.add_argument("--views", type=int, default=3, help="photos per subject (default 3)")
     p.add_argument("--size", type=int, default=256, help="square photo size in pixels (default 256)")

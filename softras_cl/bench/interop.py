@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import random
 import statistics
 import sys
@@ -11,8 +10,8 @@ import time
 import numpy as np
 
 from softras_cl.bench.render import RENDER_MAIN, make_render_scene, render_settings
-from softras_cl.bench.tools import format_table
-from softras_cl.io.outputs import OutputFolder, json_safe, write_json
+from softras_cl.bench.tools import format_table, print_report
+from softras_cl.io.outputs import OutputFolder, write_json
 from softras_cl.provenance import provenance
 
 INTEROP_DOC = """Overhead of the PyTorch and JAX bridges (softras_cl.torch, softras_cl.jax) over the
@@ -242,7 +241,7 @@ def run_interop(args: argparse.Namespace) -> int:
         result["versions"] = _framework_versions(p["apis"])
         result["provenance"] = provenance(dict(options=args, plan=p))
         write_json(out / "interop.json", result)
-        print(json.dumps(json_safe(result), indent=2) if args.json else result["tables"])
+        print_report(result, args.json, result["tables"])
         print(f"wrote {out / 'interop.json'}", file=sys.stderr)
     return 0
 

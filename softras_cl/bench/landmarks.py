@@ -36,8 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.bench.tools import add_bench_parser, print_report
 from softras_cl.errors import InputError
-from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
+from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
 
 FRAME = (1280, 960)                      # width, height
@@ -544,14 +545,13 @@ def run(args: argparse.Namespace) -> int:
                    provenance=provenance(dict(options=args)))
         write_json(folder.path / "landmarks.json", doc)
         save_chart(reports, frame, folder.path / "landmarks.png")
-        print(json.dumps(json_safe(doc), indent=2) if args.json else format_report(reports))
+        print_report(doc, args.json, format_report(reports))
     return 0
 
 
 def register(which) -> None:
     """Add `landmarks` to the `softras-cl bench` subparsers."""
-    p = which.add_parser("landmarks", help="face detection and 68 landmarks on Mitsuba photos with known points",
-                         description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1])
+    p = add_bench_parser(which, __doc__, "landmarks", help="face detection and 68 landmarks on Mitsuba photos with known points")
     p.add_argument("--frames", type=int, default=90, help="synthetic frames (default 90)")
     p.add_argument("--frame", default=",".join(map(str, FRAME)),
                    help=f"frame WIDTH,HEIGHT in pixels (default {FRAME[0]},{FRAME[1]})")

@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from softras_cl.bench.raster import GRADS, Scene, make_scene, run_once, settings_for, subdivisions_for
-from softras_cl.bench.tools import format_table, int_list, relative_inf_error
+from softras_cl.bench.tools import add_bench_parser, format_table, int_list, print_report, relative_inf_error
 from softras_cl.errors import InputError, ResultError
-from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json, write_text
+from softras_cl.io.outputs import OutputFolder, write_figure, write_json, write_text
 
 SIZES = (256,)
 FACES = (1280, 5120, 20480)
@@ -318,7 +318,7 @@ def run_peers(args: argparse.Namespace) -> int:
         write_json(out / "peers.json", result)
         write_text(out / "peers.txt", result["tables"] + "\n")
         save_chart(result, images, out / "peers.png")
-        print(json.dumps(json_safe(result), indent=2) if args.json else result["tables"])
+        print_report(result, args.json, result["tables"])
         print(f"wrote {out / 'peers.json'}, peers.txt and peers.png", file=sys.stderr)
     if not result["agree"]:
         raise ResultError("bench peers: the peer's images or gradients do not agree with ours within the "
@@ -328,8 +328,7 @@ def run_peers(args: argparse.Namespace) -> int:
 
 def register(which) -> None:
     """Add `peers` to the `bench` subparsers `which`."""
-    p = which.add_parser("peers", help="PyTorch3D's CPU soft rasteriser beside ours (speed and agreement)",
-                         description="\n\n".join(__doc__.split("\n\n")[:2]))
+    p = add_bench_parser(which, __doc__, "peers", help="PyTorch3D's CPU soft rasteriser beside ours (speed and agreement)")
     p.add_argument("--peer-python", default=None,
                    help=f"Python of the peer environment with torch and pytorch3d (default {DEFAULT_PEER_PYTHON}, "
                         "made by scripts/setup_peers.sh)")

@@ -9,7 +9,6 @@ without and 63.57 with scheduling.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -18,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
+from softras_cl.bench.tools import print_report
+from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
 
 PAPER = {"random guess": 126.48, "NMR": 93.40, "NMR (scheduled)": 80.94,
@@ -221,7 +221,7 @@ def run(args: argparse.Namespace) -> int:
         result.update(pyramid=PYRAMID, first_step_rad=FIRST_STEP,
                       provenance=provenance(dict(options=args, variants=chosen)))
         write_json(out / "pose.json", result, indent=1)
-        print(json.dumps(json_safe(result), indent=1) if args.json else format_table(result))
+        print_report(result, args.json, format_table(result))
     return 0
 
 

@@ -15,7 +15,6 @@ Module-level imports are light so `softras-cl --help` stays fast; the heavy ones
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import statistics
@@ -26,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.bench.tools import device_info, format_table, int_list, relative_inf_error
-from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
+from softras_cl.bench.tools import add_bench_parser, device_info, format_table, int_list, print_report, relative_inf_error
+from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
 
 SIZES = (256, 1024)
@@ -492,15 +491,14 @@ def run_raster(args: argparse.Namespace) -> int:
         result["provenance"] = provenance(dict(options=args, plan=p))
         write_json(out / "raster.json", result)
         save_chart(result, out / "raster.png")
-        print(json.dumps(json_safe(result), indent=2) if args.json else result["tables"])
+        print_report(result, args.json, result["tables"])
         print(f"wrote {out / 'raster.json'} and {out / 'raster.png'}", file=sys.stderr)
     return 0
 
 
 def register(which) -> None:
     """Add `raster` to the `bench` subparsers `which`."""
-    p = which.add_parser("raster", help="soft rasteriser speed, memory and accuracy",
-                         description="\n\n".join(__doc__.split("\n\n")[:2]))
+    p = add_bench_parser(which, __doc__, "raster", help="soft rasteriser speed, memory and accuracy")
     p.add_argument("--sizes", type=int_list, default=None,
                    help=f"square image sizes in pixels, comma-separated (default {','.join(map(str, SIZES))})")
     p.add_argument("--faces", type=int_list, default=None,

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
@@ -12,8 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from softras_cl.bench.raster import REPEATS, settings_for
-from softras_cl.bench.tools import device_info, format_table, relative_inf_error
-from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
+from softras_cl.bench.tools import device_info, format_table, print_report, relative_inf_error
+from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
 
 RENDER_DOC = """Speed of the whole differentiable render path: forward + backward of
@@ -405,7 +404,7 @@ def run_render(args: argparse.Namespace) -> int:
         result["provenance"] = provenance(dict(options=args, plan=p))
         write_json(out / "render.json", result)
         save_render_chart(result, out / "render.png")
-        print(json.dumps(json_safe(result), indent=2) if args.json else result["tables"])
+        print_report(result, args.json, result["tables"])
         print(f"wrote {out / 'render.json'} and {out / 'render.png'}", file=sys.stderr)
     return 0
 

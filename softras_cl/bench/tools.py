@@ -1,13 +1,26 @@
-"""Pieces shared by the benchmarks: device description, text tables, error measures, image strips."""
+"""Pieces shared by the benchmarks: their subparsers and reports, device description, text tables,
+error measures, image strips."""
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import numpy as np
 
-from softras_cl.io.outputs import write_figure
+from softras_cl.io.outputs import json_safe, write_figure
 from softras_cl.provenance import opencl_device as device_info  # noqa: F401  (re-exported: the device the benchmarks run on)
+
+
+def add_bench_parser(which, doc: str, name: str, **kwargs) -> argparse.ArgumentParser:
+    """The `softras-cl bench NAME` subparser; its description is the first two paragraphs of the
+    bench module's docstring `doc`."""
+    return which.add_parser(name, description="\n\n".join(doc.split("\n\n")[:2]), **kwargs)
+
+
+def print_report(doc: dict, as_json: bool, tables: str) -> None:
+    """Print a bench's result: its JSON document (`as_json`) or its text tables."""
+    print(json.dumps(json_safe(doc), indent=2) if as_json else tables)
 
 
 def save_image_strip(columns, path: Path, cell=(2.4, 2.6)) -> None:

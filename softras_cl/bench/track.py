@@ -35,14 +35,14 @@ import argparse
 import dataclasses
 import functools
 import hashlib
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from softras_cl.bench.tools import add_bench_parser, print_report
 from softras_cl.errors import InputError
-from softras_cl.io.outputs import OutputFolder, json_safe, write_figure, write_json
+from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
 
 BACKGROUNDS = ("coffee", "rocket", "chelsea", "immunohistochemistry")   # skimage.data photos without faces
@@ -546,7 +546,7 @@ def run(args: argparse.Namespace) -> int:
                    independent_budget=args.budget, tracker=dataclasses.asdict(config),
                    summary=summary, sequences=kept, provenance=provenance(dict(options=args)))
         write_json(folder.path / "track.json", doc)
-        print(json.dumps(json_safe(doc), indent=2) if args.json else format_table(rows, summary))
+        print_report(doc, args.json, format_table(rows, summary))
     return 0
 
 
@@ -554,8 +554,7 @@ def register(which) -> None:
     """Add `track` to the `softras-cl bench` subparsers."""
     from softras_cl.fitting.recipes.face_track import TrackConfig
 
-    p = which.add_parser("track", help="the face tracker on synthetic talking heads against per-frame fits",
-                         description=__doc__.split("\n\n")[0] + "\n\n" + __doc__.split("\n\n")[1])
+    p = add_bench_parser(which, __doc__, "track", help="the face tracker on synthetic talking heads against per-frame fits")
     p.add_argument("--sequences", type=int, default=3, help="synthetic sequences, one identity each (default 3)")
     p.add_argument("--frames", type=int, default=240, help="frames per sequence (default 240)")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
