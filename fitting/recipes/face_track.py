@@ -700,10 +700,16 @@ class FaceFollower:
     frame's fitted landmarks (:meth:`find`'s ``previous``), only a square crop CROP_MARGIN times
     their extent around them is searched, for the face overlapping their box; when it is not
     there (or its landmarks do not form a face), the whole frame again, for the largest face.
+    Landmarks that cannot be the same face one frame later (:meth:`agrees`: the eye line turned
+    by more than MAX_TURN_DEG, or the eyes moved by more than MAX_SHIFT eye distances; a detector
+    may return a face upside down, or a face-like patch beside the face) are not taken: the
+    whole frame is searched, and when that finds no such face either, the frame has none (held).
     ``backend``: the detection backend (None: the default).
     """
 
     CROP_MARGIN = 2.0
+    MAX_TURN_DEG = 60.0
+    MAX_SHIFT = 1.5
 
     def __init__(self, face: int | None = None, face_box=None, backend: str | None = None):
         self.face, self.face_box, self.backend = face, face_box, backend
@@ -711,11 +717,25 @@ class FaceFollower:
 
     def find(self, image: np.ndarray, previous=None) -> np.ndarray | None:
         """(68, 2) frame pixels of the face in image (H, W, 3) uint8 RGB, or None (no face)."""
-        if previous is not None and np.all(np.isfinite(previous)):
-            points = self._near(image, np.asarray(previous, np.float64))
-            if points is not None:
+        if previous is None or not np.all(np.isfinite(previous)):
+            return self._whole(image)
+        previous = np.asarray(previous, np.float64)
+        for search in (self._near, lambda image, previous: self._whole(image)):
+            points = search(image, previous)
+            if points is not None and self.agrees(points, previous):
                 return points
-        return self._whole(image)
+        return None
+
+    @classmethod
+    def agrees(cls, points: np.ndarray, previous: np.ndarray) -> bool:
+        """Whether (68, 2) landmarks can be the face whose (68, 2) landmarks the previous frame's
+        fit gave: its eye line (outer corners, iBUG 37 and 46) turned by at most MAX_TURN_DEG and
+        the eyes' midpoint moved by at most MAX_SHIFT of the previous eye distance."""
+        eyes, eyes_before = points[[36, 45]], previous[[36, 45]]
+        line, line_before = eyes[1] - eyes[0], eyes_before[1] - eyes_before[0]
+        turn = np.degrees(abs(np.arctan2(line_before[0] * line[1] - line_before[1] * line[0], line_before @ line)))
+        shift = np.linalg.norm(eyes.mean(0) - eyes_before.mean(0)) / max(np.linalg.norm(line_before), 1e-9)
+        return bool(turn <= cls.MAX_TURN_DEG and shift <= cls.MAX_SHIFT)
 
     def _detect(self, image, **choice) -> np.ndarray | None:
         from softras_cl.fitting.detection import ImplausibleFaceError, NoFaceError, detect_face

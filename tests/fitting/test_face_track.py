@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from softras_cl.errors import InputError
-from softras_cl.fitting.recipes.face_track import (FrameObjective, FrameTracker, Identity, LandmarkBasis,
+from softras_cl.fitting.recipes.face_track import (FaceFollower, FrameObjective, FrameTracker, Identity, LandmarkBasis,
                                                    TrackConfig, TrackerState, choose_keyframes, head_angles_deg)
 from softras_cl.scene.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 
@@ -335,3 +335,37 @@ def test_fixed_lag_smoothing_is_a_savitzky_golay_filter_inside_a_stretch():
     for (a, _), (b, _) in zip(resumed, whole[20:]):
         np.testing.assert_array_equal(a.values["exp"], b.values["exp"])
     assert all(r is s for (r, _), s in zip(run(FixedLagSmoother(0, None), results), results))
+
+
+def _face_points(centre=(100.0, 80.0), eye_distance=40.0, roll_deg=0.0) -> np.ndarray:
+    """(68, 2) landmarks on a grid scaled to the eye distance, outer eye corners (36, 45) level
+    at eye_distance apart, turned by roll_deg about centre."""
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-0.6, 0.6, (68, 2)) * eye_distance
+    points[36], points[45] = (-eye_distance / 2, 0.0), (eye_distance / 2, 0.0)
+    a = np.radians(roll_deg)
+    turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    return points @ turn.T + centre
+
+
+@pytest.mark.parametrize("roll, shift, agrees", [(0, 0, True), (20, 10, True), (59, 0, True),
+                                                 (180, 0, False), (90, 0, False), (0, 70, False)])
+def test_follower_agrees_only_with_a_plausible_next_frame(roll, shift, agrees):
+    previous = _face_points()
+    points = _face_points(centre=(100.0 + shift, 80.0), roll_deg=roll)
+    assert FaceFollower.agrees(points, previous) is agrees
+
+
+def test_follower_refuses_upside_down_landmarks_near_the_face(monkeypatch):
+    """A detector's upside-down face in the crop is not taken: the whole frame's face is, when it
+    agrees with the previous frame; when that does not either, the frame has no face."""
+    previous = _face_points()
+    follower = FaceFollower()
+    flipped, steady = _face_points(roll_deg=180.0), _face_points(centre=(104.0, 81.0), roll_deg=5.0)
+    monkeypatch.setattr(follower, "_near", lambda image, prev: flipped)
+    monkeypatch.setattr(follower, "_whole", lambda image: steady)
+    assert np.array_equal(follower.find(None, previous), steady)
+    monkeypatch.setattr(follower, "_whole", lambda image: flipped)
+    assert follower.find(None, previous) is None
+    monkeypatch.setattr(follower, "_near", lambda image, prev: steady)
+    assert np.array_equal(follower.find(None, previous), steady)
