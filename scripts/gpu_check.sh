@@ -58,6 +58,8 @@ mkdir -p "$LOGS" "$SITE/wheels" "$SITE/shim/softras_cl" "$SCRATCH/bin" "$SCRATCH
 # the tests' `tests.` imports. The steps run in $SCRATCH/work, since Python puts the folder it
 # starts in before all of these, and the root's own softras_cl/ lacks kernels/ and fitting/.
 export PYTHONPATH="$SITE/wheels:$SITE/shim:$REPO${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+# the driver's compiler messages (warnings included) into the step logs
+export PYOPENCL_COMPILER_OUTPUT=1
 MAIN="import sys; sys.argv[0] = 'softras-cl'; from softras_cl.cli import main; sys.exit(main())"
 printf '#!/bin/sh\nexec "%s" -c "%s" "$@"\n' "$PY" "$MAIN" > "$SCRATCH/bin/softras-cl"
 chmod +x "$SCRATCH/bin/softras-cl"
@@ -156,9 +158,9 @@ bench_raster() {   # every layout of $LAYOUTS in one run (which counts each scen
     softras-cl bench raster --speed-only $BENCH_ARGS ${LAYOUTS:+--layout "$LAYOUTS"} --out "$SCRATCH/bench"
 }
 
-fit_face() {
+fit_face() {   # $1: output folder under $SCRATCH
     softras-cl fit-face "$REPO/examples/data/astronaut.png" \
-        --landmarks "$REPO/examples/data/landmarks/astronaut.pts" --out "$SCRATCH/fit" --no-progress $FIT_ARGS
+        --landmarks "$REPO/examples/data/landmarks/astronaut.pts" --out "$SCRATCH/$1" --no-progress $FIT_ARGS
 }
 
 export REPO PY WHEELS SITE SCRATCH LAYOUTS BENCH_ARGS DETERMINISM_ARGS FIT_ARGS
@@ -187,7 +189,8 @@ run_steps() {
     fi
     # the measurements first; the tests last, with what is left (they are interrupted cleanly)
     step determinism 60 determinism
-    step fit_face 120 fit_face
+    step fit_face 120 fit_face fit
+    step fit_face_warm 60 fit_face fit_warm      # the kernels now come from the binary cache
     step bench_raster 200 bench_raster
     step kernel_tests 300 kernel_tests
 }

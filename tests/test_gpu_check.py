@@ -137,15 +137,16 @@ def bench_json(rows, device=None) -> str:
 
 
 def bench_row(layout, faces, fwdbwd_ms, size=1024):
-    return dict(layout=layout, layout_asked=layout, faces=faces, size=size, fwdbwd_ms=fwdbwd_ms)
+    return dict(layout=layout, layout_asked=layout, faces=faces, size=size, fwdbwd_ms=fwdbwd_ms,
+                kernel_ms=fwdbwd_ms / 2)
 
 
 DEVICE = dict(name="NVIDIA H100 80GB HBM3", version="OpenCL 3.0 CUDA", platform="NVIDIA CUDA",
               platform_version="OpenCL 3.0 CUDA 13.0.0", driver_version="580.159.04")
 DEVICES = [dict(device_name="NVIDIA H100 80GB HBM3", platform_name="NVIDIA CUDA", type="GPU",
                 platform_version="OpenCL 3.0 CUDA 13.0.0", chosen=True)]
-STEPS = ("install\tok\t0\t3.5\t60\nkernel_tests\tok\t0\t40.25\t150\nfit_face\tok\t0\t1.75\t120\n"
-         "bench_raster\tok\t0\t20\t200\n")
+STEPS = ("install\tok\t0\t3.5\t60\nkernel_tests\tok\t0\t40.25\t150\nfit_face\tok\t0\t4.75\t120\n"
+         "fit_face_warm\tok\t0\t1.75\t60\nbench_raster\tok\t0\t20\t200\n")
 
 
 def fake_run(scratch: Path, steps: str = STEPS, junit: str = JUNIT, identical: bool = True) -> Path:
@@ -156,7 +157,8 @@ def fake_run(scratch: Path, steps: str = STEPS, junit: str = JUNIT, identical: b
     touch(scratch / "determinism.json", json.dumps(dict(device=DEVICE, identical=identical, runs=[])))
     rows = [bench_row("gpu", f, ms) for f, ms in ((320, 0.5), (5120, 1.0), (20480, 1.5), (81920, 4.0))]
     touch(scratch / "bench/raster.json", bench_json(rows + [bench_row("cpu", 20480, 3.0)], DEVICE))
-    touch(scratch / "fit/complete.json", json.dumps(dict(seconds=1.25)))
+    touch(scratch / "fit/complete.json", json.dumps(dict(seconds=4.25)))
+    touch(scratch / "fit_warm/complete.json", json.dumps(dict(seconds=1.25)))
     return scratch
 
 
@@ -192,8 +194,10 @@ def test_summary_of_a_good_run(report, tmp_path):
     s = report.summary(fake_run(tmp_path), quick=False)
     assert s["device"] == dict(DEVICE, type="GPU")
     assert s["nvidia_smi"] == dict(name="NVIDIA H100 80GB HBM3", driver_version="580.159.04", memory_total="81559 MiB")
-    assert s["fit"] == dict(seconds=1.75, fit_seconds=1.25, budget="default")
-    assert s["targets"]["bench_scene_fwdbwd_ms"] == dict(target=2.0, measured=1.5, layout="gpu", met=True)
+    assert s["fit"] == dict(seconds=4.75, fit_seconds=4.25, warm_seconds=1.75, warm_fit_seconds=1.25,
+                            budget="default")
+    assert s["targets"]["bench_scene_fwdbwd_ms"] == dict(target=2.0, measured=1.5, layout="gpu", kernel_ms=0.75,
+                                                          met=True)
     assert s["targets"]["fit_s"] == dict(target=2.0, measured=1.75, met=True)
     assert s["status"] == "failed"          # the JUnit file has a failure and an error
 
@@ -218,7 +222,7 @@ def test_digest_names_what_was_measured(report, tmp_path):
         "device: NVIDIA H100 80GB HBM3 (GPU; OpenCL 3.0 CUDA; driver 580.159.04)",
         "tests: 6 passed, 2 failed, 2 skipped of 10 run",
         "bench scene fwd+bwd ms: cpu 3.000, gpu 1.500",
-        "face fit s: 1.75",
+        "face fit s: 4.75, again with its kernels built: 1.75",
         "reruns identical: True"]
     stopped = report.digest(report.summary(touch(tmp_path / "s/steps.tsv", "").parent, quick=True))
     assert "tests: no report" in stopped and "bench scene fwd+bwd ms: not run" in stopped

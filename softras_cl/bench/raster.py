@@ -4,8 +4,8 @@ Scene: `meshes.screen_space_sphere` (icosphere, radius 0.8, depth 2..3.6, vertex
 1280..81920 faces at 256^2 and 1024^2, sigma 1e-5, gamma 1e-4, dist_eps 1e-4, rgb + alpha.
 
 Three results, printed as aligned tables and written to OUT/raster.json and OUT/raster.png:
-1. per (faces, size, kernel layout): median forward and forward+backward ms, pixel-face pairs inside the
-   cut-off (counted exactly on the host with the formulas of `reference.py`), ns per pair,
+1. per (faces, size, kernel layout): median forward and forward+backward ms, the device time of
+   the kernels alone (OpenCL profiling events), pixel-face pairs inside the cut-off (counted exactly on the host with the formulas of `reference.py`), ns per pair,
    pairs/(H*W*F), (tile, face) bin entries, bytes kept for backward, process peak RSS;
 2. the dense float64 reference's forward time and our speed-up, where it fits in memory;
 3. accuracy against time on one scene: dist_eps x dtype x fast_math, errors against the exact
@@ -105,7 +105,8 @@ def run_once(raster, scene: Scene):
     return t1 - t0, time.perf_counter() - t0, out, grads
 
 
-STAGES = ("setup", "binning", "upload", "forward", "backward_prep", "backward", "reductions")
+STAGES = ("setup", "binning", "upload", "forward", "cotangent_checks", "cotangent_upload", "backward_prep",
+          "backward", "reductions")
 
 
 def time_raster(raster, scene: Scene, repeats: int) -> dict:
@@ -133,6 +134,31 @@ def time_raster(raster, scene: Scene, repeats: int) -> dict:
     stage_ms = {k: statistics.median(st.get(k, 0.0) for st in stages) for k in STAGES}
     fwd, fwdbwd, cpu = (1e3 * statistics.median(t[i] for t in times) for i in range(3))
     return dict(fwd_ms=fwd, fwdbwd_ms=fwdbwd, fwdbwd_cpu_ms=cpu, stage_ms=stage_ms, out=out, grads=grads)
+
+
+def kernel_times(scene: Scene, layout: str, repeats: int) -> dict:
+    """Device time of the kernels alone in one forward+backward, from OpenCL profiling events on
+    a queue of their own (host work such as the checks and the binning, and the transfers, are
+    left out): dict(kernel_ms: median of the runs' sums, kernel_ms_by_name: {kernel: median ms})
+    over `repeats` runs after one warm-up."""
+    import pyopencl as cl
+
+    from softras_cl.cl.device import resolve_context
+    from softras_cl.cl.program import launch_device_ms, recorded_launches
+    from softras_cl.raster.rasterizer import SoftRasterizer
+
+    device, ctx, _ = resolve_context(None, None, None)
+    queue = cl.CommandQueue(ctx, device, properties=cl.command_queue_properties.PROFILING_ENABLE)
+    raster = SoftRasterizer(settings_for(scene.size, layout=layout), device, ctx, queue)
+    run_once(raster, scene)
+    runs = []
+    for _ in range(max(repeats, 1)):
+        with recorded_launches() as log:
+            run_once(raster, scene)
+        runs.append(launch_device_ms(log))
+    names = sorted({name for run in runs for name in run})
+    return dict(kernel_ms=statistics.median(sum(run.values()) for run in runs),
+                kernel_ms_by_name={n: statistics.median(run.get(n, 0.0) for run in runs) for n in names})
 
 
 def footprint_pixel_boxes(tri: np.ndarray, settings) -> np.ndarray:
@@ -276,7 +302,8 @@ def raster_row(scene: Scene, repeats: int, layout: str, pairs: int) -> tuple[dic
     timing = time_raster(raster, scene, repeats)
     row = dict(faces=scene.n_faces, size=scene.size, layout=raster.layout, layout_asked=layout,
                fwd_ms=timing["fwd_ms"], fwdbwd_ms=timing["fwdbwd_ms"],
-               fwdbwd_cpu_ms=timing["fwdbwd_cpu_ms"], load_avg=os.getloadavg()[0],
+               fwdbwd_cpu_ms=timing["fwdbwd_cpu_ms"], **kernel_times(scene, layout, repeats),
+               load_avg=os.getloadavg()[0],
                stage_ms=timing["stage_ms"], **{f"{k}_ms": v for k, v in timing["stage_ms"].items()},
                pairs=pairs, ns_per_pair=1e6 * timing["fwdbwd_ms"] / pairs if pairs else None,
                pairs_frac=pairs / (scene.size * scene.size * scene.n_faces),
@@ -331,7 +358,7 @@ def accuracy_rows(scene: Scene, variants: list[tuple], repeats: int, progress) -
 # ---- output --------------------------------------------------------------------------------
 RASTER_COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("layout", "layout", "s"), ("fwd ms", "fwd_ms", ".2f"),
                   ("fwd+bwd ms", "fwdbwd_ms", ".2f"), ("fwd+bwd CPU ms", "fwdbwd_cpu_ms", ".2f"),
-                  ("load", "load_avg", ".1f"), ("pairs", "pairs", ",d"), ("ns/pair", "ns_per_pair", ".2f"),
+                  ("kernels ms", "kernel_ms", ".2f"), ("load", "load_avg", ".1f"), ("pairs", "pairs", ",d"), ("ns/pair", "ns_per_pair", ".2f"),
                   ("pairs/(HWF)", "pairs_frac", ".2e"), ("bin entries", "bin_entries", ",d"),
                   ("saved MiB", "saved_mib", ".1f"), ("peak RSS MiB", "peak_rss_mib", ".0f"),
                   ("ref ms", "ref_ms", ".0f"), ("ref/fwd", "ref_ratio", ",.0f"), ("ref err", "ref_max_err", ".1e")]
@@ -358,7 +385,8 @@ def report_text(result: dict) -> str:
         format_table(result["raster"], RASTER_COLUMNS), *notes, "",
         "where the time goes (ms, medians of separate runs that wait for the device at every stage "
         "boundary): set-up = input checks + face set-up, binning, upload, forward = kernel + image "
-        "download, backward prep = cotangent planes + buffers, backward = kernel + slot download, "
+        "download, cotangent checks (backward's input checks), cotangent upload (cast + transfer), "
+        "backward prep = the rest: cotangent planes + buffers, backward = kernel + slot download, "
         "reductions = per-face sums + scatter onto vertices",
         format_table(result["raster"], STAGE_COLUMNS),
         *(["", f"accuracy vs exact float64 (dist_eps=0, fast_math off): {acc['faces']} faces at {acc['size']}^2",

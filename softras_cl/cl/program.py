@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+from contextlib import contextmanager
 
 import numpy as np
 import pyopencl as cl
@@ -22,6 +23,7 @@ _cache: dict = {}
 _kernels: dict = {}
 _by_name: dict = {}     # (context, source name, options) -> program: the per-call fast path
 _typed: set = set()     # int_ptr of the kernels whose scalar dtypes launch() has declared
+_recorders: list = []   # the logs of the open recorded_launches blocks, innermost last
 
 # Every program is the shared header followed by one op file; concatenating on the host avoids
 # relying on each driver's #include search path.
@@ -49,7 +51,33 @@ def launch(kernel: cl.Kernel, queue: cl.CommandQueue, global_size: tuple, local_
     if kernel.int_ptr not in _typed:
         kernel.set_scalar_arg_dtypes([a.dtype if isinstance(a, np.generic) else None for a in args])
         _typed.add(kernel.int_ptr)
-    return kernel(queue, global_size, local_size, *args)
+    event = kernel(queue, global_size, local_size, *args)
+    if _recorders:
+        _recorders[-1].append((kernel.function_name, event))
+    return event
+
+
+@contextmanager
+def recorded_launches():
+    """Within the block, every launch's (kernel name, event) is appended to the list it yields:
+    on a queue made with PROFILING_ENABLE, the events give each kernel's device time
+    (launch_device_ms; softras-cl bench raster)."""
+    log: list = []
+    _recorders.append(log)
+    try:
+        yield log
+    finally:
+        _recorders.remove(log)
+
+
+def launch_device_ms(log: list) -> dict:
+    """{kernel name: device ms summed over its launches} of a recorded_launches log whose
+    queue had profiling enabled (each event is waited for)."""
+    totals: dict = {}
+    for name, event in log:
+        event.wait()
+        totals[name] = totals.get(name, 0.0) + 1e-6 * (event.profile.end - event.profile.start)
+    return totals
 
 
 def build_program(ctx: cl.Context, source_name: str, defines: dict, fast_math: bool = False) -> cl.Program:

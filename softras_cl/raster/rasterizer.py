@@ -192,7 +192,8 @@ class SoftRasterizer:
         self._transfers: list = []
         # stage_ms: None (default), or a dict that forward/backward add their stages' wall times
         # to, in ms: "setup" (input checks, face set-up), "binning", "upload", "forward" (kernel
-        # and image download), "backward_prep" (cotangent planes and buffers), "backward"
+        # and image download), "cotangent_checks" (backward's input checks), "cotangent_upload"
+        # (their cast and transfer), "backward_prep" (cotangent planes and buffers), "backward"
         # (kernel), "reductions" (per-face sums and sums onto vertices, their download).
         # Kernel stages then end with a queue.finish(); for profiling (softras-cl bench raster).
         self.stage_ms: dict | None = None
@@ -291,6 +292,7 @@ class SoftRasterizer:
         t = time.perf_counter()
         cot = {name: check_cotangent(name, g, _cot_shape(name, mesh.batch, s), name[len("grad_"):] in s.outputs)
                for name, g in (("grad_rgb", grad_rgb), ("grad_alpha", grad_alpha), ("grad_depth", grad_depth))}
+        t = self._stage("cotangent_checks", t)
         slots = self._run_backward(saved, cot, t)
         t = time.perf_counter()
         grads = self._gather_grads(saved, slots)
@@ -388,7 +390,9 @@ class SoftRasterizer:
         if not kernel_grads:    # colour gradients only, and no rgb cotangent: all zero
             return dict(pos=None, attr=None, light=None, tex=None, scale=scale)
         # an output without a cotangent contributes zero; the kernel variant still reads its (zero) plane
-        cot_bufs, sources = self._cotangent_planes(saved, cot, kernel_grads)
+        self._stage("backward_prep", t)
+        cot_bufs, sources = self._cotangent_planes(saved, cot, kernel_grads)     # times cotangent_upload
+        t = time.perf_counter()
         g_dot = cot_bufs.pop("g_dot")
         nbytes = {k: math.prod(shape) * np.dtype(dtype).itemsize for k, (shape, dtype) in shapes.items()}
         out_bufs = {k: self.pool.take(n) for k, n in nbytes.items()}
@@ -612,7 +616,9 @@ class SoftRasterizer:
         planes = {n: self.pool.take(npix * itemsize * (3 if n == "grad_rgb" else 1)) for n in names}
         soft = s.color_agg == "softmax" and {"rgb", "depth"} & set(s.outputs)
         planes["g_dot"] = self.pool.take(npix * itemsize) if soft else None
+        t = time.perf_counter()
         uploaded, sources = self._upload_parts("cotangents", {n: (cot[n], self.real) for n in names if cot[n] is not None})
+        self._stage("cotangent_upload", t, finish=True)
         dummy, all_names = self._dummy(), ("grad_rgb", "grad_alpha", "grad_depth")
         launch(self._kernel("soft_raster_cotangents", kernel_grads, True), self.queue,
                (_round_up(g.wp // self.lanes), g.hp, batch), GROUP, *self._layout_args(),

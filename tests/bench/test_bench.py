@@ -103,6 +103,11 @@ def test_layouts_are_timed_side_by_side(tmp_path):
     rows = json.loads((tmp_path / "raster.json").read_text())["raster"]
     assert [(r["layout_asked"], r["layout"]) for r in rows] == [("gpu", "gpu"), ("cpu", "cpu")]
     assert rows[0]["pairs"] == rows[1]["pairs"] and rows[0]["bin_entries"] == rows[1]["bin_entries"]
+    # device times of each layout's own kernels, from profiling events
+    gpu_kernels, cpu_kernels = (set(r["kernel_ms_by_name"]) for r in rows)
+    assert {"soft_raster_fwd_tile", "soft_raster_bwd_tile"} <= gpu_kernels
+    assert {"soft_raster_fwd", "soft_raster_bwd"} <= cpu_kernels and not gpu_kernels & {"soft_raster_fwd", "soft_raster_bwd"}
+    assert all(r["kernel_ms"] > 0 and min(r["kernel_ms_by_name"].values()) >= 0 for r in rows)
 
 
 def test_bad_layout_is_rejected(run_cli):

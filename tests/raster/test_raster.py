@@ -324,7 +324,7 @@ LANE_VARIANTS = [dict(), dict(texture="face"), dict(texture="uv"), dict(color_ag
 def test_float32_lane_widths_render_the_same_images(variant):
     """8 and 16 floats per kernel vector: bit-identical images (the same arithmetic per pixel),
     gradients equal up to float32 rounding (their per-tile sums group the pixels differently)."""
-    s = settings(dtype="float32", dist_eps=1e-4, **variant)
+    s = settings(dtype="float32", dist_eps=1e-4, layout="cpu", **variant)
     vertices, faces, colors = random_scene(4, texture=s.texture)
     rng = np.random.default_rng(1)
     results = []
@@ -343,9 +343,9 @@ def test_float32_lane_widths_render_the_same_images(variant):
 
 def test_lanes_must_suit_the_dtype():
     with pytest.raises(ValueError, match=r"lanes must be one of \(4,\) for dtype='float64', got 8"):
-        SoftRasterizer(settings(), lanes=8)
+        SoftRasterizer(settings(layout="cpu"), lanes=8)
     with pytest.raises(ValueError, match=r"lanes must be one of \(8, 16\) for dtype='float32', got 4"):
-        SoftRasterizer(settings(dtype="float32"), lanes=4)
+        SoftRasterizer(settings(dtype="float32", layout="cpu"), lanes=4)
 
 
 @pytest.mark.parametrize("variant", [dict(), dict(color_agg="hard", alpha_agg="sum", sigma=1e-4),
