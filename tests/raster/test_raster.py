@@ -1,6 +1,7 @@
 """OpenCL soft rasteriser against the dense float64 reference (forward) and against central finite
 differences in float64 (backward), on random meshes with overlapping and occluded faces."""
 import numpy as np
+import pyopencl as cl
 import pytest
 
 from softras_cl import RasterSettings, SoftRasterizer
@@ -322,8 +323,10 @@ LANE_VARIANTS = [dict(), dict(texture="face"), dict(texture="uv"), dict(color_ag
 
 @pytest.mark.parametrize("variant", LANE_VARIANTS, ids=_ids(LANE_VARIANTS))
 def test_float32_lane_widths_render_the_same_images(variant):
-    """8 and 16 floats per kernel vector: bit-identical images (the same arithmetic per pixel),
-    gradients equal up to float32 rounding (their per-tile sums group the pixels differently)."""
+    """8 and 16 floats per kernel vector: on a CPU device bit-identical images (the same
+    arithmetic per pixel); where a compiler scalarises the vectors it may fuse multiply-adds
+    differently per width (NVIDIA's OpenCL: up to 3 ulp), so elsewhere within 1e-6 of the largest
+    value. Gradients equal up to float32 rounding (their per-tile sums group the pixels differently)."""
     s = settings(dtype="float32", dist_eps=1e-4, layout="cpu", **variant)
     vertices, faces, colors = random_scene(4, texture=s.texture)
     rng = np.random.default_rng(1)
@@ -335,8 +338,10 @@ def test_float32_lane_widths_render_the_same_images(variant):
         cot = {f"grad_{n}": np.random.default_rng(2).standard_normal(getattr(out, n).shape) for n in s.outputs}
         results.append((out, raster.backward(out, **cot)))
     (out8, g8), (out16, g16) = results
+    on_cpu = raster.device.type & cl.device_type.CPU
     for name in s.outputs:
-        np.testing.assert_array_equal(getattr(out8, name), getattr(out16, name))
+        a8, a16 = getattr(out8, name), getattr(out16, name)
+        np.testing.assert_allclose(a16, a8, rtol=0, atol=0 if on_cpu else 1e-6 * np.abs(a8).max(), err_msg=name)
     for name in g8:
         np.testing.assert_allclose(g16[name], g8[name], rtol=1e-5, atol=1e-5 * np.abs(g8[name]).max())
 
