@@ -204,7 +204,7 @@ def _channel_sum(rows: np.ndarray) -> np.ndarray:
     return total
 
 
-def silhouette_iou(pred, target, eps: float = 1e-6) -> tuple[float, dict]:
+def silhouette_iou(pred, target, eps: float = 1e-6, mask=None) -> tuple[float, dict]:
     """Soft IoU loss of the paper (sec. 4.1): ``1 - sum(p t) / sum(p + t - p t)``.
 
     ``pred``, ``target``: silhouettes (alpha in [0, 1]) of the same shape, e.g. (H, W); the sums
@@ -219,15 +219,21 @@ def silhouette_iou(pred, target, eps: float = 1e-6) -> tuple[float, dict]:
     (of size ~1/eps: the unguarded loss is discontinuous there). ``eps`` must be > 0.
     Returns ``(value, {"pred": d value / d pred})``; the gradient is exact for the guarded
     formula: ``((1 - 2t)(U + eps) - (U - I)(1 - t)) / (U + eps)**2``.
+
+    ``mask``: None, or non-negative per-pixel weights w (checked and broadcast as in
+    :func:`image_l2`) that both sums take (``I = sum(w p t)``, ``U = sum(w (p + t - p t))``): 0
+    leaves a pixel out, e.g. where the target is known to be wrong; the gradient is then the
+    formula above times w.
     """
     p, t = _image_pair(pred, target)
     eps = float(real_array("eps", eps))
     positive("eps", np.asarray(eps))
-    inter = float((p * t).sum())
-    union = float((p + t - p * t).sum())
+    w = 1.0 if mask is None else _image_mask(mask, p.shape)
+    inter = float((w * p * t).sum())
+    union = float((w * (p + t - p * t)).sum())
     den = union + eps
     value = (union - inter) / den
-    grad = ((1.0 - 2.0 * t) * den - (union - inter) * (1.0 - t)) / (den * den)
+    grad = w * ((1.0 - 2.0 * t) * den - (union - inter) * (1.0 - t)) / (den * den)
     return float(value), {"pred": grad}
 
 

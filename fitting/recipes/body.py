@@ -270,7 +270,9 @@ class BodyTarget:
 
     rgb (h, w, 3) float64 linear RGB or None (silhouette only); alpha (h, w) float64 in [0, 1];
     joints (J, 2) float64 pixels or None; joint_weights (J,) float64 >= 0 or None; scale:
-    working / full-size pixels (<= 1); full_size (H, W) of the given target.
+    working / full-size pixels (<= 1); full_size (H, W) of the given target; care: None, or
+    (h, w) float64 weights of the pixels in the silhouette term (0: the target's alpha is not
+    trusted there).
     """
     rgb: np.ndarray | None
     alpha: np.ndarray
@@ -278,6 +280,7 @@ class BodyTarget:
     joint_weights: np.ndarray | None
     scale: float
     full_size: tuple
+    care: np.ndarray | None = None
 
 
 def _split_target(target, background) -> tuple[np.ndarray | None, np.ndarray]:
@@ -470,7 +473,7 @@ class BodyObjective:
         """``image`` (colour targets) and ``silhouette`` terms with gradients wrt rgb (H, W, 3)
         and alpha (H, W) of the render ``out``."""
         rgb, alpha = out.rgb[0], out.alpha[0]
-        value, g = losses.silhouette_iou(alpha, self.target.alpha)
+        value, g = losses.silhouette_iou(alpha, self.target.alpha, mask=self.target.care)
         terms = {"silhouette": (value * alpha.size, {"alpha": g["pred"] * alpha.size})}
         if self.target.rgb is not None:
             comp = self.scene.composite(out)

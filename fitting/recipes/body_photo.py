@@ -19,8 +19,9 @@ and the solver); what is new here:
   ``depth`` (each keypoint's depth relative to the hips against the detector's rough metric
   estimate, the same kernel, at a small weight: it tells a limb turned towards the camera from
   one turned away, which the image alone leaves open); the ``silhouette`` of the soft render
-  against the mask (fitting.recipes.body), unless the mask gate finds the mask missing part of
-  the person (:func:`mask_misses`, MASK_MISSES: the fit is then the keypoints' alone); the priors;
+  against the mask (fitting.recipes.body); where the mask misses part of the person
+  (:func:`mask_misses`) the silhouette leaves out the pixels around those limbs outside the
+  mask (:func:`limb_care`); the priors;
 - stages as data (:func:`photo_stages`): ``torso`` (global rotation and translation from the
   torso keypoints; run first from START_YAWS, and the start whose end is closest to all the
   keypoints kept: the face points tell front from back), ``pose`` (every block from the keypoints and priors, no rendering), then
@@ -72,11 +73,21 @@ START_YAWS = (0, 90, 180, -90)  # degrees about the vertical: the torso stage's 
 # The mask gate: a keypoint the fit uses (seen, inside the photo) further than MASK_MARGIN of the
 # photo's longer side from the person mask says the mask misses part of the person (the
 # detector's mask cut a person's legs off over the rocket photo of bench body-photo); with
-# MASK_MISSES or more, the silhouette would push those parts away, and the full objective fits
-# the keypoints alone. (Unseen keypoints do not count: they are often hidden behind something
-# the mask rightly leaves out, as the cameraman's left leg and the astronaut's left hand.)
+# MASK_MISSES or more, the silhouette would push those parts into the mask, so it leaves out
+# the pixels outside the mask within LIMB_RADIUS torso lengths (shoulder midpoint to hip
+# midpoint: about a limb's half-width and room for the fitted limb) of each limb segment
+# (LIMB_CHAINS) that ends at a missed keypoint. (Unseen keypoints do not count: they are often
+# hidden behind something the mask rightly leaves out, as the cameraman's left leg and the
+# astronaut's left hand.) One miss is not enough: more often the keypoint is wrong than the mask
+# (the cameraman's left knee, detected on the grass: leaving the mask out around it took the
+# README fit's keypoint error from 33 to 49 px). Measured on bench body-photo, docs/body_photos.md.
 MASK_MARGIN = 0.03
 MASK_MISSES = 2
+LIMB_RADIUS = 0.25
+LIMB_CHAINS = (("left_shoulder", "left_elbow", "left_wrist", "left_hand"),
+               ("right_shoulder", "right_elbow", "right_wrist", "right_hand"),
+               ("left_hip", "left_knee", "left_ankle", "left_foot"),
+               ("right_hip", "right_knee", "right_ankle", "right_foot"))
 
 
 def keypoint_weights(layout: KeypointLayout, keypoints: np.ndarray, visibility: np.ndarray,
@@ -120,25 +131,63 @@ def mask_misses(layout: KeypointLayout, keypoints: np.ndarray, weights: np.ndarr
     return [name for name, d, used in zip(layout.names, distance, weights > 0) if used and d > MASK_MARGIN * max(h, w)]
 
 
+def torso_span(layout: KeypointLayout, points: np.ndarray, weights: np.ndarray,
+               with_hips: bool | None = None) -> tuple[float, bool] | None:
+    """(length, with_hips) of the torso in ``points`` (K, 2 or 3) of the layout's entries: from
+    the shoulders' midpoint to the hips' (``with_hips``; None: when both hips have ``weights`` >
+    0), else the shoulder width; None when a shoulder has weight 0 or is not in the layout."""
+    index = {n: i for i, n in enumerate(layout.names)}
+    shoulders, hips = ("left_shoulder", "right_shoulder"), ("left_hip", "right_hip")
+    if any(n not in index or weights[index[n]] <= 0 for n in shoulders):
+        return None
+    s = [index[n] for n in shoulders]
+    if with_hips is None:
+        with_hips = all(n in index and weights[index[n]] > 0 for n in hips)
+    if with_hips:
+        h = [index[n] for n in hips]
+        return float(np.linalg.norm(points[s].mean(0) - points[h].mean(0))), True
+    return float(np.linalg.norm(points[s[0]] - points[s[1]])), False
+
+
 def camera_distance(model, layout: KeypointLayout, points: np.ndarray, weights: np.ndarray,
                     focal_px: float) -> float | None:
     """Camera distance (m) at which the model's rest torso (shoulder midpoint to hip midpoint,
     else the shoulder width) is as long as the detected one (points (K, 2) pixels of the layout's
     entries, weights (K,)) seen with ``focal_px``; None when shoulders are not seen."""
-    rest = layout.points(model.rest_joints(np.zeros(model.n_betas)), model.v_template)
-    index = {n: i for i, n in enumerate(layout.names)}
-    pairs = (("left_shoulder", "right_shoulder"), ("left_hip", "right_hip"))
-    if any(n not in index or weights[index[n]] <= 0 for n in pairs[0]):
+    image = torso_span(layout, points, weights)
+    if image is None:
         return None
-    shoulders = [index[n] for n in pairs[0]]
-    if all(n in index and weights[index[n]] > 0 for n in pairs[1]):
-        hips = [index[n] for n in pairs[1]]
-        model_len = np.linalg.norm(rest[shoulders].mean(0) - rest[hips].mean(0))
-        image_len = np.linalg.norm(points[shoulders].mean(0) - points[hips].mean(0))
-    else:
-        model_len = np.linalg.norm(rest[shoulders[0]] - rest[shoulders[1]])
-        image_len = np.linalg.norm(points[shoulders[0]] - points[shoulders[1]])
-    return float(focal_px * model_len / max(image_len, 1.0))
+    rest = layout.points(model.rest_joints(np.zeros(model.n_betas)), model.v_template)
+    model_len, _ = torso_span(layout, rest, np.ones(len(rest)), with_hips=image[1])
+    return float(focal_px * model_len / max(image[0], 1.0))
+
+
+def limb_care(layout: KeypointLayout, points: np.ndarray, weights: np.ndarray, missed, mask: np.ndarray) -> np.ndarray:
+    """(h, w) float64 silhouette weights (BodyTarget.care): 0 on the pixels outside the person
+    ``mask`` (h, w; > 0.5 inside) within LIMB_RADIUS torso lengths of the limb segments
+    (LIMB_CHAINS, both ends used: ``weights`` (K,) > 0) that end at a keypoint named in
+    ``missed``, and of those keypoints themselves; 1 elsewhere. points (K, 2) working pixels."""
+    span = torso_span(layout, points, weights)
+    h, w = mask.shape
+    radius = LIMB_RADIUS * (span[0] if span is not None else 4 * MASK_MARGIN * max(h, w))
+    index = {n: i for i, n in enumerate(layout.names)}
+    used = {n for n, wt in zip(layout.names, weights) if wt > 0}
+    segments = [(index[m], index[m]) for m in missed if m in index]
+    for chain in LIMB_CHAINS:
+        segments += [(index[a], index[b]) for a, b in zip(chain, chain[1:])
+                     if {a, b} <= used and (a in missed or b in missed)]
+    pixels = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2).astype(np.float64)
+    near = np.zeros(len(pixels), bool)
+    for a, b in segments:
+        near |= _segment_distance(pixels, points[a], points[b]) <= radius
+    return np.where(near.reshape(h, w) & (mask <= 0.5), 0.0, 1.0)
+
+
+def _segment_distance(pixels: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N,) distances of pixels (N, 2) from the segment a-b (2,) (a point when a == b)."""
+    ab = b - a
+    t = np.clip((pixels - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(pixels - (a + t[:, None] * ab), axis=1)
 
 
 class BodyPhotoObjective(BodyObjective):
@@ -328,12 +377,13 @@ def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFit
     robust = config.robust_px if config.robust_px is not None else ROBUST_FRACTION * max(data.alpha.shape)
     faces = None if config.coarse_mesh is None else coarse_faces(model.v_template, model.faces, config.coarse_mesh)
     depth = None if detection.depth is None else detection.depth[layout.detector].mean(1)
-    objective_fn = BodyPhotoObjective(scene, data, layout, keypoints, seen, robust, faces, depth)
     missed = mask_misses(layout, detection.keypoints, seen, detection.mask)
     if objective == "full" and len(missed) >= MASK_MISSES:
-        objective = "keypoints"
+        data = replace(data, care=limb_care(layout, keypoints, seen, missed, data.alpha))
         if progress:
-            print(f"the person mask misses {', '.join(missed)}: fitting the keypoints alone, without the silhouette")
+            print(f"the person mask misses {', '.join(missed)}: the silhouette leaves out the pixels outside "
+                  f"the mask around those limbs ({(data.care == 0).mean():.0%} of the image)")
+    objective_fn = BodyPhotoObjective(scene, data, layout, keypoints, seen, robust, faces, depth)
     stages = photo_stages(budget, objective, weights)
     if stages[0].name == "torso" and seen[layout.torso].any():
         init = _oriented_start(model, scene, objective_fn, data.alpha, stages[0])

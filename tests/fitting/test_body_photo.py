@@ -306,7 +306,24 @@ def test_mask_misses_names_the_keypoints_far_outside_the_mask(demo_body_model):
     assert set(mask_misses(layout, legless.keypoints, unseen, legless.mask)) == legs - {"left_ankle", "left_foot"}
 
 
-def test_a_mask_that_misses_the_legs_leaves_the_fit_to_the_keypoints(demo_body_model):
+def test_limb_care_leaves_out_the_missed_limbs_outside_the_mask(demo_body_model):
+    from softras_cl.fitting.recipes.body_photo import limb_care, mask_misses
+
+    layout = keypoint_layout(demo_body_model)
+    legless = _person(layout, slice(5, 65))
+    points, weights = layout.detected(legless.keypoints, legless.visibility)
+    missed = mask_misses(layout, legless.keypoints, weights, legless.mask)
+    care = limb_care(layout, points, weights, missed, legless.mask)
+    assert care.shape == legless.mask.shape and set(np.unique(care)) == {0.0, 1.0}
+    assert (care[legless.mask > 0.5] == 1).all()                 # the mask is trusted where it is
+    assert care[80, 34] == 0 and care[100, 46] == 0              # beside the knee, on the ankle
+    assert care[100, 5] == 1 and care[20, 75] == 1               # far from the legs
+    # only the missed limbs: with the right leg seen inside the mask, its pixels stay
+    left_only = limb_care(layout, points, weights, [m for m in missed if m.startswith("left")], legless.mask)
+    assert care[100, 34] == 0 and left_only[100, 34] == 1 and left_only[100, 46] == 0
+
+
+def test_a_mask_that_misses_the_legs_is_not_trusted_around_them(demo_body_model):
     from dataclasses import replace
 
     from softras_cl.fitting.recipes.body_photo import fit_body_photo
@@ -315,9 +332,14 @@ def test_a_mask_that_misses_the_legs_leaves_the_fit_to_the_keypoints(demo_body_m
     config = body.BodyFitConfig(size=32)
     whole = fit_body_photo((120, 80), _person(layout, slice(5, 110)), demo_body_model, config, "fast", progress=False)
     assert any(name.startswith("silhouette") for name in whole.result.outcomes) and not whole.mask_misses
+    assert whole.target.care is None
     legless = fit_body_photo((120, 80), _person(layout, slice(5, 65)), demo_body_model, config, "fast", progress=False)
-    assert not any(name.startswith("silhouette") for name in legless.result.outcomes)
+    assert any(name.startswith("silhouette") for name in legless.result.outcomes)
     assert legless.metrics()["mask_misses"] == 6 and len(legless.mask_misses) == 6
+    care = legless.target.care
+    assert care.shape == legless.target.alpha.shape and 0 < (care == 0).mean() < 0.5
+    assert (care[legless.target.alpha > 0.5] == 1).all()
     hidden_legs = replace(_person(layout, slice(5, 65)), visibility=np.where(np.arange(33) >= 25, 0.1, 1.0))
     hidden = fit_body_photo((120, 80), hidden_legs, demo_body_model, config, "fast", progress=False)
     assert any(name.startswith("silhouette") for name in hidden.result.outcomes) and not hidden.mask_misses
+    assert hidden.target.care is None

@@ -69,11 +69,13 @@ def test_image_grads(rng, loss, shape, masked):
     check_grad(lambda p, mask=None: loss(p, pred + off, mask), pred, "pred", mask=mask)
 
 
+@pytest.mark.parametrize("masked", [False, True])
 @pytest.mark.parametrize("loss", [losses.silhouette_iou, losses.silhouette_l2])
-def test_silhouette_grads(rng, loss):
+def test_silhouette_grads(rng, loss, masked):
     pred = rng.uniform(0, 1, (6, 7))
     target = (rng.uniform(size=(6, 7)) > 0.5).astype(float) * rng.uniform(0.5, 1, (6, 7))
-    check_grad(lambda p: loss(p, target), pred, "pred")
+    mask = rng.uniform(0, 1, (6, 7)) * (rng.uniform(size=(6, 7)) > 0.3) if masked else None
+    check_grad(lambda p: loss(p, target, mask=mask), pred, "pred")
 
 
 @pytest.mark.parametrize("robust_sigma", [None, 0.7, 3.0])
@@ -175,6 +177,9 @@ def test_silhouette_iou_values():
     # Soft values: 1 - sum(pt) / sum(p + t - pt).
     p, t = np.array([0.5, 0.25]), np.array([1.0, 0.0])
     assert losses.silhouette_iou(p, t, eps=1e-300)[0] == pytest.approx(1 - 0.5 / 1.25)
+    # a mask leaves pixels out of both sums: a, c agree where the mask is 1
+    assert losses.silhouette_iou(a, c, mask=np.array([[0, 1, 0, 1]]))[0] == pytest.approx(0.0, abs=1e-6)
+    assert losses.silhouette_iou(a, c, mask=np.array([[2, 1, 1, 1]]))[0] == pytest.approx(3 / 4, abs=1e-6)
     assert losses.silhouette_l2(a, b)[0] == pytest.approx(1.0)
     assert losses.silhouette_l2(a, c)[0] == pytest.approx(0.5)
 
@@ -281,6 +286,8 @@ def test_topology():
     (lambda: losses.image_l2(np.zeros((2, 2)), np.zeros((2, 2)), -np.ones((2, 2))), "mask"),
     (lambda: losses.silhouette_iou(np.zeros((2, 2)), np.ones((2, 2)) * np.inf), "target"),
     (lambda: losses.silhouette_iou(np.zeros((2, 2)), np.zeros((2, 2)), eps=0), "eps"),
+    (lambda: losses.silhouette_iou(np.zeros((2, 2)), np.zeros((2, 2)), mask=-np.ones((2, 2))), "mask"),
+    (lambda: losses.silhouette_iou(np.zeros((2, 2)), np.zeros((2, 2)), mask=np.ones((3, 2))), "mask"),
     (lambda: losses.landmarks_2d(np.zeros((3, 3)), np.zeros((3, 3))), "points"),
     (lambda: losses.landmarks_2d(np.zeros((3, 2)), np.zeros((2, 2))), "target"),
     (lambda: losses.landmarks_2d(np.zeros((3, 2)), np.zeros((3, 2)), [1, -1, 1]), "weights"),
