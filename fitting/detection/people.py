@@ -9,7 +9,10 @@ Finding the person (:func:`detect_person`):
 1. selfie segmentation (the general 256 px model) on the whole photo; its mask > 0.5, split
    into connected regions, each region of at least MIN_REGION of the photo a candidate person;
 2. the pose model on each region's box widened by each of REGION_MARGINS of its size on every
-   side (and, with at most one region, on the whole photo too); of one region's passes the one
+   side (and, with at most one region, on the whole photo too), and when the first crop's
+   keypoints reach past its edges (the selfie mask can stop at the hips, its crops then cut the
+   legs off), on that crop grown to hold them; passes whose mask the crop cut off (a straight
+   edge along the crop where the keypoints go on) are set aside; of the others the one
    whose own person mask agrees best with the region's selfie mask (IoU) is kept, and of the
    regions the person with the largest keypoint box (MediaPipe's pose model itself finds one
    person per image, not necessarily the largest; on a crop it is not distracted by faces
@@ -53,6 +56,8 @@ TORSO = (11, 12, 23, 24)                # shoulders and hips: the score's keypoi
 MIN_SCORE = 0.5                         # pose detector confidence
 MIN_REGION = 0.02                       # a selfie-mask region of at least this share of the photo
 REGION_MARGINS = (0.1, 0.25)            # a region's crops: its box widened by these on each side
+SPILL = 0.1                             # keypoints this far (of the region's size) past a crop: grow it
+CUT_SHARE = 0.1                         # a mask along this share of a crop's inner edge, keypoints past it: cut off
 
 
 class NoPersonError(ResultError):
@@ -183,24 +188,76 @@ def detect_person(image, name: str = "the photo") -> PersonDetection:
 
 def _largest_in_regions(image: np.ndarray, regions, selfie: np.ndarray, whole) -> tuple:
     """(the pose (as _pose_in) of the largest keypoint box among the regions' best passes, or
-    None; what it was run on). A region's best pass: of its crops (REGION_MARGINS) and ``whole``
-    (the whole photo's pose, or None), the one whose mask agrees best with the region's part of
-    the ``selfie`` mask (H, W) bool."""
+    None; what it was run on). A region's passes: its crops (REGION_MARGINS), ``whole`` (the
+    whole photo's pose, or None) and, when the first crop's keypoints reach past its edges, a
+    crop grown to hold them (:func:`_grown_crop`). Its best pass: of the passes whose person the
+    crop did not cut off (:func:`_truncated`; all of them if every one was), the one whose mask
+    agrees best with the region's part of the ``selfie`` mask (H, W) bool."""
     best, best_area, best_how = None, -1.0, ""
+    height, width = image.shape[:2]
     for region in regions:
-        passes = [] if whole is None else [(whole, "the whole photo")]
-        for margin in REGION_MARGINS:
-            x0, y0, x1, y1 = _crop(image.shape, region, margin)
-            passes.append((_pose_in(image[y0:y1, x0:x1], x0, y0, image.shape),
-                           f"a person-like region's crop (margin {margin:g})"))
-        passes = [(pose, how) for pose, how in passes if pose is not None]
+        passes = [] if whole is None else [(whole, "the whole photo", (0, 0, width, height))]
+        crops = [_crop_pass(image, _crop(image.shape, region, m), f"a person-like region's crop (margin {m:g})")
+                 for m in REGION_MARGINS]
+        grown = None if crops[0][0] is None else _grown_crop(image.shape, region, crops[0][0][0], crops[0][2])
+        if grown is not None:
+            crops.append(_crop_pass(image, grown, "a person-like region's crop grown to its keypoints "
+                                                  f"(margin {REGION_MARGINS[0]:g})"))
+        passes = [p for p in passes + crops if p[0] is not None]
         if not passes:
             continue
+        uncut = [p for p in passes if not _truncated(p[0], p[2], region, image.shape)] or passes
         mine = _region_mask(selfie, region)
-        pose, how = max(passes, key=lambda p: _agreement(p[0][2] > 0.5, mine))
+        pose, how, _ = max(uncut, key=lambda p: _agreement(p[0][2] > 0.5, mine))
         if _area(pose[0], image.shape) > best_area:
             best, best_area, best_how = pose, _area(pose[0], image.shape), how
     return best, best_how
+
+
+def _crop_pass(image: np.ndarray, crop, how: str) -> tuple:
+    """(the pose model on the crop (x0, y0, x1, y1) of ``image``, as _pose_in, or None; how; crop)."""
+    x0, y0, x1, y1 = crop
+    return _pose_in(image[y0:y1, x0:x1], x0, y0, image.shape), how, crop
+
+
+def _grown_crop(shape, region, points: np.ndarray, crop) -> tuple[int, int, int, int] | None:
+    """Where a crop's keypoints (33, 2) reach past its edges (x0, y0, x1, y1) (:func:`_spilled`),
+    the box of the region and those keypoints widened by REGION_MARGINS[0] (x0, y0, x1, y1);
+    else None."""
+    if not _spilled(points, crop, region, shape):
+        return None
+    box = keypoint_box(points, shape)
+    x0, y0 = min(region[0], box[0]), min(region[1], box[1])
+    x1, y1 = max(region[0] + region[2], box[0] + box[2]), max(region[1] + region[3], box[1] + box[3])
+    return _crop(shape, (int(x0), int(y0), int(np.ceil(x1 - int(x0))), int(np.ceil(y1 - int(y0)))), REGION_MARGINS[0])
+
+
+def _inner_edges(crop, shape) -> tuple[bool, bool, bool, bool]:
+    """Which edges of the crop (x0, y0, x1, y1) lie inside the photo: (left, right, top, bottom)."""
+    x0, y0, x1, y1 = crop
+    return x0 > 0, x1 < shape[1], y0 > 0, y1 < shape[0]
+
+
+def _spilled(points: np.ndarray, crop, region, shape) -> set:
+    """The inner edges (0-3 as :func:`_inner_edges`) of the crop (x0, y0, x1, y1) that the
+    keypoints (33, 2) lie past by more than SPILL of the region's size: MediaPipe places the
+    keypoints it cannot see beyond the crop, where the person goes on."""
+    x0, y0, x1, y1 = crop
+    lo, hi = points.min(0), points.max(0)
+    tol = SPILL * max(region[2], region[3])
+    past = (lo[0] < x0 - tol, hi[0] > x1 + tol, lo[1] < y0 - tol, hi[1] > y1 + tol)
+    return {k for k, (inner, out) in enumerate(zip(_inner_edges(crop, shape), past)) if inner and out}
+
+
+def _truncated(pose: tuple, crop, region, shape) -> bool:
+    """Whether the crop (x0, y0, x1, y1) cut the person of ``pose`` (as _pose_in) off: its mask
+    runs along an inner edge for more than CUT_SHARE of it (a straight cut, as where the legs go
+    on below the crop) and its keypoints lie past that same edge."""
+    mask = pose[2] > 0.5
+    x0, y0, x1, y1 = crop
+    lines = (mask[y0:y1, x0], mask[y0:y1, x1 - 1], mask[y0, x0:x1], mask[y1 - 1, x0:x1])
+    cut = {k for k, (inner, line) in enumerate(zip(_inner_edges(crop, shape), lines)) if inner and line.mean() > CUT_SHARE}
+    return bool(cut & _spilled(pose[0], crop, region, shape))
 
 
 def _region_mask(selfie: np.ndarray, region) -> np.ndarray:
