@@ -113,10 +113,18 @@ class TrackConfig:
         FaceFitConfig.from_budget(self.identity_budget, size=self.size)     # checks both
 
     def face_config(self) -> FaceFitConfig:
-        """The identity fit's config (the joint fit's landmark weight: face_views.joint_config)."""
+        """The identity fit's config: the joint fit's landmark weight (face_views.joint_config)
+        and the identity prior times the keyframes. The keyframes' landmarks come from one
+        detector on one face and share its errors, so N keyframes do not hold N times the
+        evidence of one photo; the prior weighs against them as against a single photo's. On
+        bench track's path-traced frames (textured, shadowed faces, whose detected landmarks
+        bend the shape) the identity's error ratio went 1.41 -> 0.99 and 1.73 -> 1.39 on two
+        sequences, on softras-cl's frames 0.20 -> 0.22 (docs/face_tracking.md)."""
         from softras_cl.fitting.recipes.face_views import joint_config
 
-        return joint_config(FaceFitConfig.from_budget(self.identity_budget, size=self.size))
+        config = joint_config(FaceFitConfig.from_budget(self.identity_budget, size=self.size))
+        weights = dict(config.weights, id_prior=config.weights["id_prior"] * self.keyframes)
+        return dataclasses.replace(config, weights=weights)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -99,6 +99,21 @@ def test_config_checks_name_the_field():
         TrackConfig(identity_budget="nope")
 
 
+def test_identity_fit_weighs_its_prior_once_per_keyframe():
+    """The keyframes share the detector's errors: the joint identity fit's id prior is the
+    single photo fit's times the keyframes; the other weights are the joint fit's own."""
+    from softras_cl.fitting.recipes.face import FaceFitConfig
+    from softras_cl.fitting.recipes.face_views import joint_config
+
+    single = joint_config(FaceFitConfig.from_budget("fast", size=256))
+    for n in (1, 4, 6):
+        config = TrackConfig(keyframes=n).face_config()
+        assert config.weights["id_prior"] == n * single.weights["id_prior"]
+        assert {k: v for k, v in config.weights.items() if k != "id_prior"} == \
+            {k: v for k, v in single.weights.items() if k != "id_prior"}
+        assert config.landmark_weight_photo == single.landmark_weight_photo
+
+
 def test_tracker_follows_and_is_steadier_than_without_temporal_terms(demo_face_model):
     """30 frames of a turning, talking head with 1.5 px landmark noise: the fitted landmarks
     follow the truth, and the temporal terms cut the frame-to-frame jitter against a tracker
