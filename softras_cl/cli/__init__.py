@@ -18,6 +18,7 @@ import signal
 import sys
 import threading
 import traceback
+from contextlib import contextmanager
 from importlib import import_module
 
 from softras_cl import __version__
@@ -135,12 +136,29 @@ class _SigtermAsInterrupt:
 SINGLE_THREAD_BLAS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
+@contextmanager
+def single_thread_blas():
+    """Within the block numpy's BLAS runs on one thread, unless the user set SINGLE_THREAD_BLAS.
+    The variables are read when numpy loads: they do it when main runs first (the console
+    script). When numpy was loaded before (a program that imports softras_cl and then calls
+    main), its BLAS is limited at run time instead (threadpoolctl), so a fit gives the same bits
+    whatever was imported first (it did not: the astronaut's landmark error moved by 0.02 px)."""
+    user_set = any(variable in os.environ for variable in SINGLE_THREAD_BLAS)
+    for variable in SINGLE_THREAD_BLAS:
+        os.environ.setdefault(variable, "1")
+    if user_set or "numpy" not in sys.modules:
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `softras-cl` console script; returns the exit code."""
-    for variable in SINGLE_THREAD_BLAS:     # read when numpy loads, which is after this
-        os.environ.setdefault(variable, "1")
     command, verbose = "", 0
-    with _SigtermAsInterrupt():
+    with single_thread_blas(), _SigtermAsInterrupt():
         try:
             argv = sys.argv[1:] if argv is None else list(argv)
             args = build_parser(command_of(argv)).parse_args(argv)

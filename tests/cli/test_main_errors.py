@@ -80,3 +80,29 @@ def test_the_command_line_runs_blas_on_one_thread_unless_the_user_says_otherwise
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split()[-2:] == [expected, "1"]
+
+
+@pytest.mark.parametrize("preset", [None, "2"])
+def test_blas_runs_on_one_thread_also_when_numpy_was_loaded_first(preset):
+    """A program that imports numpy (or softras_cl's fits) before calling main: the variables come
+    too late, so main limits the loaded BLAS itself, unless the user set them."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
+    if preset is not None:
+        env["OPENBLAS_NUM_THREADS"] = preset
+    code = ("import json, numpy, threadpoolctl\n"
+            "from softras_cl.cli import single_thread_blas\n"
+            "threads = lambda: [i['num_threads'] for i in threadpoolctl.threadpool_info() if i['user_api'] == 'blas']\n"
+            "before = threads()\n"
+            "with single_thread_blas():\n"
+            "    inside = threads()\n"
+            "print(json.dumps([before, inside, threads()]))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert done.returncode == 0, done.stderr
+    before, inside, after = json.loads(done.stdout.strip().splitlines()[-1])
+    assert before and after == before              # the program's own setting is given back
+    assert inside == ([1] * len(before) if preset is None else before)
