@@ -223,7 +223,8 @@ def _client(client, scheduler, workers, threads, items):
 
 def fit_many(inputs, out_dir, kind: str = "face", options: dict | None = None, *, client=None,
              scheduler: str | None = None, workers: int | None = None, threads_per_worker: int | None = None,
-             all_faces: bool = False, retries: int = 2, progress: bool = True) -> BatchResult:
+             all_faces: bool = False, retries: int = 2, progress: bool = True,
+             task=run_item, task_args: tuple = (), label: str | None = None) -> BatchResult:
     """Fit every item into its folder under ``out_dir``; returns a BatchResult.
 
     inputs: Items, or photo paths / folders / glob patterns (turned into items with
@@ -234,7 +235,9 @@ def fit_many(inputs, out_dir, kind: str = "face", options: dict | None = None, *
     retries: Dask retries of a task that raised (a failed fit is a row, not a raise).
     ``out_dir`` is locked while the batch runs; it receives one folder per item, results.csv,
     results.jsonl and summary.png. Ctrl-C cancels what is in flight and returns with
-    ``interrupted=True`` after writing the table and the summary.
+    ``interrupted=True`` after writing the table and the summary. task(item, out_dir, *task_args)
+    -> row: what runs on a worker (default run_item; track-face's videos: their own); label: the
+    command named in the output folder's lock (default "fit-KIND (batch)").
     """
     from softras_cl.interrupts import first_interrupt_calls
     from softras_cl.fitting.reports.batch import ResultsTable
@@ -242,7 +245,7 @@ def fit_many(inputs, out_dir, kind: str = "face", options: dict | None = None, *
     items = [it if isinstance(it, Item) else None for it in inputs]
     if None in items:
         items = collect_items(inputs, kind, options)
-    with OutputFolder(out_dir, f"fit-{kind} (batch)", "--out") as folder:
+    with OutputFolder(out_dir, label or f"fit-{kind} (batch)", "--out") as folder:
         table = None
         known = None if all_faces else len(items)       # all faces: counted on the workers
         try:
@@ -250,7 +253,7 @@ def fit_many(inputs, out_dir, kind: str = "face", options: dict | None = None, *
                 if all_faces:
                     items = expand_faces(c, items)
                 table = ResultsTable(folder.path, items)
-                interrupted = run_items(c, items, table, retries, progress)
+                interrupted = run_items(c, items, table, retries, progress, task, task_args)
         except KeyboardInterrupt:       # before the items ran, or again while the cluster closed
             if table is None:
                 raise
@@ -260,26 +263,29 @@ def fit_many(inputs, out_dir, kind: str = "face", options: dict | None = None, *
         return BatchResult(table.rows(), interrupted, folder.path, table.counts())
 
 
-def run_items(client, items: list[Item], table, retries: int = 2, progress: bool = True) -> bool:
-    """Submit one run_item task per item and add the rows to ``table`` (a ResultsTable) as they
-    arrive; on Ctrl-C cancel the rest. Returns whether the run was interrupted."""
+def run_items(client, items: list[Item], table, retries: int = 2, progress: bool = True,
+              task=run_item, task_args: tuple = ()) -> bool:
+    """Submit one ``task(item, out, *task_args)`` (default run_item) per item and add the rows to
+    ``table`` (a ResultsTable) as they arrive; on Ctrl-C cancel the rest. Returns whether the
+    run was interrupted."""
     token = uuid.uuid4().hex[:8]
     out = str(table.out.resolve())
-    futures = {client.submit(run_item, item, out, key=f"fit-{item.name}-{token}",
+    futures = {client.submit(task, item, out, *task_args, key=f"fit-{item.name}-{token}",
                              retries=retries, pure=False): item for item in items}
+    unit = "video" if items and items[0].kind == "track" else "photo"
     try:
-        _collect(futures, table, progress)
+        _collect(futures, table, progress, unit)
     except KeyboardInterrupt:
         client.cancel(list(futures), force=True)
         return True
     return False
 
 
-def _collect(futures: dict, table, progress: bool) -> None:
+def _collect(futures: dict, table, progress: bool, unit: str = "photo") -> None:
     from distributed import as_completed
     from tqdm import tqdm
 
-    with tqdm(total=len(futures), unit="photo", desc="fit", disable=not progress, smoothing=0.1) as bar:
+    with tqdm(total=len(futures), unit=unit, desc="fit", disable=not progress, smoothing=0.1) as bar:
         for future in as_completed(futures):
             table.add(_row_of(future, futures[future]))
             bar.update(1)

@@ -134,6 +134,8 @@ class _SigtermAsInterrupt:
 # small matrix products gain nothing from more, a second thread waiting for a busy core stalls
 # them, and the last bits of a fit would otherwise depend on the machine's core count.
 SINGLE_THREAD_BLAS = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+# whether the user set them, read before main sets them (a later main in the same process sees ours)
+_USER_SET_BLAS = any(variable in os.environ for variable in SINGLE_THREAD_BLAS)
 
 
 @contextmanager
@@ -143,10 +145,9 @@ def single_thread_blas():
     script). When numpy was loaded before (a program that imports softras_cl and then calls
     main), its BLAS is limited at run time instead (threadpoolctl), so a fit gives the same bits
     whatever was imported first (it did not: the astronaut's landmark error moved by 0.02 px)."""
-    user_set = any(variable in os.environ for variable in SINGLE_THREAD_BLAS)
     for variable in SINGLE_THREAD_BLAS:
         os.environ.setdefault(variable, "1")
-    if user_set or "numpy" not in sys.modules:
+    if _USER_SET_BLAS or "numpy" not in sys.modules:
         yield
         return
     from threadpoolctl import threadpool_limits

@@ -28,6 +28,15 @@ def add_batch_options(p: argparse.ArgumentParser, kind: str) -> None:
                    help=f"CSV of items: a 'photo' column, optional '{side}' and 'name' columns, and "
                         "any option of this command as a column (e.g. size, budget); empty cells "
                         "take the command line's value; paths relative to the CSV's folder")
+    add_cluster_options(p, "photos")
+
+
+CLUSTER_OPTIONS = ("workers", "threads_per_worker", "scheduler")
+
+
+def add_cluster_options(p: argparse.ArgumentParser, what: str) -> None:
+    """--workers, --threads-per-worker, --scheduler: the Dask cluster that runs the items
+    (``what``: "photos", "videos", for the help)."""
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="worker processes of the local Dask cluster (default: cores / "
                         "--threads-per-worker, i.e. one per core)")
@@ -35,8 +44,16 @@ def add_batch_options(p: argparse.ArgumentParser, kind: str) -> None:
                    help="OpenCL (PoCL) threads of each worker (default: cores / --workers, so that "
                         "workers x threads fills the cores without oversubscribing them)")
     p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
-                   help="run the items on this running Dask scheduler's workers instead (they need "
-                        "softras-cl installed and must see the photos and --out at the same paths)")
+                   help=f"run the items on this running Dask scheduler's workers instead (they need "
+                        f"softras-cl installed and must see the {what} and --out at the same paths)")
+
+
+def check_cluster_args(args: argparse.Namespace) -> None:
+    """InputError when --scheduler comes with the local cluster's options."""
+    if args.scheduler is not None and (args.workers is not None or args.threads_per_worker is not None):
+        raise InputError("--workers and --threads-per-worker start a local cluster; with --scheduler "
+                         "the cluster's own workers run the items (start them with "
+                         "POCL_MAX_PTHREAD_COUNT=T dask worker ... --nthreads 1)")
 
 
 def is_batch(args: argparse.Namespace, inputs: list[str]) -> bool:
@@ -44,7 +61,7 @@ def is_batch(args: argparse.Namespace, inputs: list[str]) -> bool:
     a batch; one photo file alone is the single-photo run (outputs in --out itself)."""
     if len(inputs) != 1 or args.manifest or getattr(args, "all_faces", False):
         return True
-    if any(getattr(args, k) is not None for k in ("workers", "threads_per_worker", "scheduler")):
+    if any(getattr(args, k) is not None for k in CLUSTER_OPTIONS):
         return True
     return Path(inputs[0]).is_dir() or (not Path(inputs[0]).exists() and glob.has_magic(inputs[0]))
 
@@ -57,10 +74,7 @@ def check_batch_args(args: argparse.Namespace) -> None:
     if args.resume:
         raise InputError("--resume continues the fit of one photo; run the batch again instead: it "
                          "skips the finished items and redoes the others")
-    if args.scheduler is not None and (args.workers is not None or args.threads_per_worker is not None):
-        raise InputError("--workers and --threads-per-worker start a local cluster; with --scheduler "
-                         "the cluster's own workers run the items (start them with "
-                         "POCL_MAX_PTHREAD_COUNT=T dask worker ... --nthreads 1)")
+    check_cluster_args(args)
 
 
 def run_batch(args: argparse.Namespace, kind: str, inputs: list[str], options: dict,

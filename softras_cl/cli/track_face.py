@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+from softras_cl.cli.batch import add_cluster_options
 from softras_cl.cli.runs import add_fit_options, finishing_outputs, fit_values
 from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
 
@@ -39,7 +40,9 @@ folder of images: one video of frames) or quoted glob patterns, and/or --manifes
 column, an optional 'name' column, and any option of this command as a column, e.g. face_box or
 fps; empty cells take the command line's value; paths relative to the CSV's folder). Each video is
 tracked into its own folder under --out, named after its file (a hash of the path is appended when
-two share a name), one after the other; --fps applies to the folders of frames among them.
+two share a name), one after the other, or side by side on a Dask cluster with --workers N (a
+local cluster of N processes; extra "batch") or --scheduler; --fps applies to the folders of
+frames among them.
 Running the same command again skips every video whose folder holds a complete run with the same
 inputs and options, goes on with an interrupted one at its first unfinished chunk, and redoes the
 others. --out also gets results.csv, results.jsonl (one row per video: status ok, skipped,
@@ -69,6 +72,7 @@ def register(sub) -> None:
                    help="CSV of videos: a 'video' column, optional 'name' column, and any option of this "
                         "command as a column; empty cells take the command line's value; paths relative to "
                         "the CSV's folder")
+    add_cluster_options(p, "videos")
     p.add_argument("--no-progress", action="store_true", help="no progress line")
     p.set_defaults(func=run)
 

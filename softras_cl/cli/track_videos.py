@@ -2,11 +2,10 @@
 its record (:func:`run_record`); and the command on several videos: files, folders of videos or
 of frames, glob patterns and `--manifest CSV` (fitting.batch_items, kind "track"), each tracked
 into its own folder under --out by the single-video command (softras_cl.cli.track_face.run_one,
-passed in), one after the other, with results.csv/.jsonl (fitting.reports.batch).
-
-One after the other, not on the photo batch's Dask cluster: a video is a long, sequential job
-(each frame is warm-started from the one before), and its identity fit and face search already
-use the cores' threads; a cluster would pay off with more machines, not on one."""
+passed in), with results.csv/.jsonl (fitting.reports.batch): one after the other, or with the
+cluster options (--workers, --threads-per-worker, --scheduler) as tasks of the photo batch's Dask
+cluster (fitting.batch.fit_many with :func:`video_task`), one video per task: a video is a
+long, sequential job (each frame is warm-started from the one before)."""
 from __future__ import annotations
 
 import argparse
@@ -18,9 +17,10 @@ from pathlib import Path
 from softras_cl.cli.runs import fit_values
 from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError, ResultError, SoftrasError
 
-__all__ = ["check_options", "run_record", "is_several", "run_several", "video_items"]
+__all__ = ["check_options", "run_record", "is_several", "run_several", "video_items", "video_task"]
 
 SUMMARY = ("frames", "frames_held", "frame_fit_fps", "end_to_end_fps", "identity_seconds")   # results' metrics
+LABEL = "track-face (several videos)"      # the command named in --out's lock
 
 
 def check_options(values: dict):
@@ -73,7 +73,9 @@ def is_several(args: argparse.Namespace) -> bool:
     several videos; one video file (or one folder of frames) alone goes into --out itself."""
     from softras_cl.io.video import expand_videos
 
-    if len(args.videos) != 1 or args.manifest:
+    from softras_cl.cli.batch import CLUSTER_OPTIONS
+
+    if len(args.videos) != 1 or args.manifest or any(getattr(args, k) is not None for k in CLUSTER_OPTIONS):
         return True
     return expand_videos(args.videos) != [Path(args.videos[0])]
 
@@ -141,6 +143,12 @@ def _run_item(args: argparse.Namespace, item, out: Path, track_one) -> dict:
     return make_row(item, "ok", folder, _summary(doc), doc.get("seconds"))
 
 
+def video_task(item, out_dir: str, args: argparse.Namespace, track_one) -> dict:
+    """One video on a Dask worker (fitting.batch.fit_many's task): its row, as :func:`_run_item`
+    (a Ctrl-C there stops the cluster, not this task)."""
+    return _run_item(args, item, Path(out_dir), track_one)
+
+
 def _read_json(path: Path):
     try:
         return json.loads(path.read_text())
@@ -154,12 +162,31 @@ def _summary(complete: dict) -> dict:
 
 def run_several(args: argparse.Namespace, track_one) -> int:
     """Track every video into its folder under --out by ``track_one(args) -> exit code`` (the
-    single-video command); results.csv/.jsonl; the exit code."""
+    single-video command), one after the other or on a Dask cluster (the cluster options);
+    results.csv/.jsonl; the exit code."""
+    from softras_cl.cli.batch import CLUSTER_OPTIONS, check_cluster_args
+
+    items = video_items(args)
+    check_cluster_args(args)
+    on_cluster = any(getattr(args, k) is not None for k in CLUSTER_OPTIONS)
+    rows, counts, interrupted, out = (_on_cluster if on_cluster else _one_by_one)(args, items, track_one)
+    print(f"track-face: {len(items)} videos: {', '.join(f'{n} {s}' for s, n in counts.items())}; "
+          f"results in {out}/results.csv")
+    if interrupted:
+        return EXIT_INTERRUPTED
+    failed = [r for r in rows if r["status"] == "failed"]
+    if failed:
+        raise ResultError(f"{len(failed)} of {len(items)} videos failed (first: {failed[0]['name']}: "
+                          f"{failed[0]['error']}); {out}/results.csv says which")
+    return EXIT_OK
+
+
+def _one_by_one(args: argparse.Namespace, items: list, track_one) -> tuple:
+    """(rows, counts, interrupted, --out) of tracking the videos in turn in this process."""
     from softras_cl.fitting.reports.batch import ResultsTable
     from softras_cl.io.outputs import OutputFolder
 
-    items = video_items(args)
-    with OutputFolder(args.out, "track-face (several videos)", "--out") as folder:
+    with OutputFolder(args.out, LABEL, "--out") as folder:
         table, interrupted = ResultsTable(folder.path, items), False
         try:
             for item in items:
@@ -167,12 +194,16 @@ def run_several(args: argparse.Namespace, track_one) -> int:
         except KeyboardInterrupt:
             interrupted = True
         table.finish(interrupted)
-    counts = ", ".join(f"{n} {s}" for s, n in table.counts().items())
-    print(f"track-face: {len(items)} videos: {counts}; results in {folder.path}/results.csv")
-    if interrupted:
-        return EXIT_INTERRUPTED
-    failed = [r for r in table.rows() if r["status"] == "failed"]
-    if failed:
-        raise ResultError(f"{len(failed)} of {len(items)} videos failed (first: {failed[0]['name']}: "
-                          f"{failed[0]['error']}); {folder.path}/results.csv says which")
-    return EXIT_OK
+    return table.rows(), table.counts(), interrupted, folder.path
+
+
+def _on_cluster(args: argparse.Namespace, items: list, track_one) -> tuple:
+    """(rows, counts, interrupted, --out) of tracking the videos as tasks of a Dask cluster
+    (fitting.batch.fit_many), without each video's own progress line."""
+    from softras_cl.fitting.batch import fit_many
+
+    quiet = argparse.Namespace(**{**vars(args), "no_progress": True})
+    result = fit_many(items, args.out, "track", scheduler=args.scheduler, workers=args.workers,
+                      threads_per_worker=args.threads_per_worker, progress=not args.no_progress,
+                      task=video_task, task_args=(quiet, track_one), label=LABEL)
+    return result.rows, result.counts, result.interrupted, result.out

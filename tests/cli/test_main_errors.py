@@ -100,9 +100,11 @@ def test_blas_runs_on_one_thread_also_when_numpy_was_loaded_first(preset):
             "before = threads()\n"
             "with single_thread_blas():\n"
             "    inside = threads()\n"
-            "print(json.dumps([before, inside, threads()]))")
+            "with single_thread_blas():\n"          # again: the variables it set do not count as the user's
+            "    again = threads()\n"
+            "print(json.dumps([before, inside, again, threads()]))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert done.returncode == 0, done.stderr
-    before, inside, after = json.loads(done.stdout.strip().splitlines()[-1])
+    before, inside, again, after = json.loads(done.stdout.strip().splitlines()[-1])
     assert before and after == before              # the program's own setting is given back
-    assert inside == ([1] * len(before) if preset is None else before)
+    assert inside == again == ([1] * len(before) if preset is None else before)

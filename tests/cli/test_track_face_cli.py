@@ -213,6 +213,41 @@ def test_several_videos_each_into_its_folder_skipped_when_done(video, tmp_path, 
 
 
 @pytest.mark.slow
+def test_several_videos_on_a_dask_cluster_each_into_its_folder(video, tmp_path, run_cli):
+    """--workers 2: the videos are tasks of a local Dask cluster (one video per worker process);
+    each is tracked into its own folder as one after the other would, a bad file is a failed row,
+    and the same command again skips the videos done."""
+    import shutil
+
+    pytest.importorskip("distributed")
+    clips = tmp_path / "clips"
+    clips.mkdir()
+    for name in ("one", "two"):
+        shutil.copy(video["path"], clips / f"{name}.mp4")
+    (clips / "bad.mp4").write_bytes(b"not a video")
+    out = tmp_path / "out"
+    command = ("track-face", clips, "--out", out, "--workers", "2", "--threads-per-worker", "1", *FAST)
+    result = run_cli(*command)
+    assert result.code == 1 and "1 of 3 videos failed" in result.err, result.err
+    rows = _results(out)
+    assert [rows[n]["status"] for n in ("one", "two", "bad")] == ["ok", "ok", "failed"]
+    assert rows["one"]["metrics"]["frames"] == rows["two"]["metrics"]["frames"] == FRAMES
+    with np.load(out / "one/frames.npz") as a, np.load(out / "two/frames.npz") as b:
+        np.testing.assert_allclose(a["rotation"], b["rotation"], atol=1e-9)    # the same video, the same fit
+    assert (out / "two/complete.json").exists() and (out / "results.csv").exists()
+    again = run_cli(*command)
+    assert again.code == 1
+    assert [_results(out)[n]["status"] for n in ("one", "two", "bad")] == ["skipped", "skipped", "failed"]
+
+
+def test_scheduler_and_workers_together_are_refused(video, tmp_path, run_cli):
+    result = run_cli("track-face", video["path"], video["path"], "--out", tmp_path / "o", "--workers", "2",
+                     "--scheduler", "tcp://127.0.0.1:1")
+    assert result.code == 2 and "--workers and --threads-per-worker start a local cluster" in result.err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
 def test_several_videos_go_on_after_ctrl_c_at_the_first_unfinished_chunk(video, tmp_path, run_cli, tiny_budget,
                                                                            monkeypatch):
     """Ctrl-C in the first of two videos: exit 130, its first chunk kept and the other cancelled;
