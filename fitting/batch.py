@@ -272,20 +272,19 @@ def run_items(client, items: list[Item], table, retries: int = 2, progress: bool
     out = str(table.out.resolve())
     futures = {client.submit(task, item, out, *task_args, key=f"fit-{item.name}-{token}",
                              retries=retries, pure=False): item for item in items}
-    unit = "video" if items and items[0].kind == "track" else "photo"
     try:
-        _collect(futures, table, progress, unit)
+        _collect(futures, table, progress)
     except KeyboardInterrupt:
         client.cancel(list(futures), force=True)
         return True
     return False
 
 
-def _collect(futures: dict, table, progress: bool, unit: str = "photo") -> None:
+def _collect(futures: dict, table, progress: bool) -> None:
     from distributed import as_completed
     from tqdm import tqdm
 
-    with tqdm(total=len(futures), unit=unit, desc="fit", disable=not progress, smoothing=0.1) as bar:
+    with tqdm(total=len(futures), unit="item", desc="fit", disable=not progress, smoothing=0.1) as bar:
         for future in as_completed(futures):
             table.add(_row_of(future, futures[future]))
             bar.update(1)

@@ -226,10 +226,10 @@ def _grown_crop(shape, region, points: np.ndarray, crop) -> tuple[int, int, int,
     else None."""
     if not _spilled(points, crop, region, shape):
         return None
-    box = keypoint_box(points, shape)
-    x0, y0 = min(region[0], box[0]), min(region[1], box[1])
-    x1, y1 = max(region[0] + region[2], box[0] + box[2]), max(region[1] + region[3], box[1] + box[3])
-    return _crop(shape, (int(x0), int(y0), int(np.ceil(x1 - int(x0))), int(np.ceil(y1 - int(y0)))), REGION_MARGINS[0])
+    x, y, w, h = keypoint_box(points, shape)
+    x0, y0 = int(min(region[0], x)), int(min(region[1], y))
+    x1, y1 = int(np.ceil(max(region[0] + region[2], x + w))), int(np.ceil(max(region[1] + region[3], y + h)))
+    return _crop(shape, (x0, y0, x1 - x0, y1 - y0), REGION_MARGINS[0])
 
 
 def _inner_edges(crop, shape) -> tuple[bool, bool, bool, bool]:

@@ -118,7 +118,7 @@ class TrackConfig:
         detector on one face and share its errors, so N keyframes do not hold N times the
         evidence of one photo; the prior weighs against them as against a single photo's. On
         bench track's path-traced frames (textured, shadowed faces, whose detected landmarks
-        bend the shape) the identity's error ratio went 1.41 -> 0.99 and 1.73 -> 1.39 on two
+        bend the shape) the identity's error ratio went 1.41 -> 1.18 and 1.73 -> 1.39 on two
         sequences, on softras-cl's frames 0.20 -> 0.22 (docs/face_tracking.md)."""
         from softras_cl.fitting.recipes.face_views import joint_config
 

@@ -34,6 +34,11 @@ def add_batch_options(p: argparse.ArgumentParser, kind: str) -> None:
 CLUSTER_OPTIONS = ("workers", "threads_per_worker", "scheduler")
 
 
+def cluster_asked(args: argparse.Namespace) -> bool:
+    """Whether any of the cluster options (CLUSTER_OPTIONS) was given."""
+    return any(getattr(args, k, None) is not None for k in CLUSTER_OPTIONS)
+
+
 def add_cluster_options(p: argparse.ArgumentParser, what: str) -> None:
     """--workers, --threads-per-worker, --scheduler: the Dask cluster that runs the items
     (``what``: "photos", "videos", for the help)."""
@@ -61,7 +66,7 @@ def is_batch(args: argparse.Namespace, inputs: list[str]) -> bool:
     a batch; one photo file alone is the single-photo run (outputs in --out itself)."""
     if len(inputs) != 1 or args.manifest or getattr(args, "all_faces", False):
         return True
-    if any(getattr(args, k) is not None for k in CLUSTER_OPTIONS):
+    if cluster_asked(args):
         return True
     return Path(inputs[0]).is_dir() or (not Path(inputs[0]).exists() and glob.has_magic(inputs[0]))
 

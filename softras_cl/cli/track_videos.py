@@ -73,9 +73,9 @@ def is_several(args: argparse.Namespace) -> bool:
     several videos; one video file (or one folder of frames) alone goes into --out itself."""
     from softras_cl.io.video import expand_videos
 
-    from softras_cl.cli.batch import CLUSTER_OPTIONS
+    from softras_cl.cli.batch import cluster_asked
 
-    if len(args.videos) != 1 or args.manifest or any(getattr(args, k) is not None for k in CLUSTER_OPTIONS):
+    if len(args.videos) != 1 or args.manifest or cluster_asked(args):
         return True
     return expand_videos(args.videos) != [Path(args.videos[0])]
 
@@ -164,12 +164,11 @@ def run_several(args: argparse.Namespace, track_one) -> int:
     """Track every video into its folder under --out by ``track_one(args) -> exit code`` (the
     single-video command), one after the other or on a Dask cluster (the cluster options);
     results.csv/.jsonl; the exit code."""
-    from softras_cl.cli.batch import CLUSTER_OPTIONS, check_cluster_args
+    from softras_cl.cli.batch import check_cluster_args, cluster_asked
 
     items = video_items(args)
     check_cluster_args(args)
-    on_cluster = any(getattr(args, k) is not None for k in CLUSTER_OPTIONS)
-    rows, counts, interrupted, out = (_on_cluster if on_cluster else _one_by_one)(args, items, track_one)
+    rows, counts, interrupted, out = (_on_cluster if cluster_asked(args) else _one_by_one)(args, items, track_one)
     print(f"track-face: {len(items)} videos: {', '.join(f'{n} {s}' for s, n in counts.items())}; "
           f"results in {out}/results.csv")
     if interrupted:
