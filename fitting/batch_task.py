@@ -80,7 +80,7 @@ def _fit_face(item: Item, folder: Path) -> tuple[dict, float]:
     config = item_config(item)
     start = time.perf_counter()
     fit = fit_face(photo, landmarks.points, model, config, out_dir=folder, progress=False,
-                   dense=detected_dense(landmarks.face))
+                   dense=detected_dense(landmarks.face), detector=landmarks.source)
     seconds = time.perf_counter() - start
     metrics = finite_metrics(fit, folder, FACE_REQUIRED)
     write_outputs(fit, photo, landmarks, folder, metrics=metrics, run_config=dict(fit=config, options=options),

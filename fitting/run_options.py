@@ -161,7 +161,7 @@ def _background(text: str) -> tuple[float, float, float]:
 
 
 def _face_options() -> tuple[Option, ...]:
-    from softras_cl.fitting.recipes.face import BUDGETS, COARSE_MESH
+    from softras_cl.fitting.recipes.face import BUDGETS, COARSE_MESH, LANDMARK_MAPS
 
     return (
         Option("model", str, None, "face model file: the project's .npz, BFM 2009 .mat, BFM 2017 .h5 or "
@@ -183,6 +183,12 @@ def _face_options() -> tuple[Option, ...]:
                field="coarse_mesh", to_config=_coarse_mesh, record_default=False, metavar="EDGES"),
         Option("focal", float, None, "focal length in pixels of the photo, if known (default: fitted)",
                field="focal"),
+        Option("landmark_map", str, "auto", "which points of the model the 68 landmarks are tied to: 'model' "
+               "(the model's own iBUG 300-W points, where an annotator or dlib puts them), 'face-mesh' (where "
+               "MediaPipe Face Mesh puts them, read from the model's Face Mesh correspondence, as the demo "
+               "model has it), 'auto' (the default: face-mesh for landmarks MediaPipe found, model for a "
+               "landmark file or dlib; docs/face_fitting.md shows what it gains)",
+               field="landmark_map", choices=LANDMARK_MAPS, record_default=False),
         Option("dense_landmarks", float, 0.0, "add MediaPipe Face Mesh's 468 points as a landmark term, each "
                "point weighing WEIGHT times one of the 68 landmarks (default 0: off; needs landmarks "
                "detected by MediaPipe and a model with dense points, such as the demo model; not with "

@@ -72,6 +72,7 @@ from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.shading import SH_A, SHLight, sh_ambient, sh_basis, vertex_normals
 from softras_cl.fitting import losses
 from softras_cl.fitting.contour import ContourChoice, ContourLandmarks, jaw_candidates
+from softras_cl.fitting.detection.ibug68 import MP468_TO_IBUG68
 from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.models.face_model import LinearContext
 from softras_cl.fitting.models.mesh_lod import coarse_faces
@@ -113,6 +114,8 @@ ROBUST_SCALE = 2.0
 MIN_ROBUST_SCALE = 0.1
 # FaceFitConfig.contour_landmarks: how the jaw-line landmarks find their model points
 CONTOUR_LANDMARKS = ("sliding", "fixed")
+# FaceFitConfig.landmark_map: which model points the 68 landmarks are tied to (landmark_model)
+LANDMARK_MAPS = ("auto", "model", "face-mesh")
 
 # Schedules: (sigma, gamma, evaluations) per photometric stage, and the landmark stage's budget.
 BUDGETS = {
@@ -154,6 +157,14 @@ class FaceFitConfig:
         is turned away from the camera is the model's occluding contour point nearest to it,
         re-chosen at every evaluation (fitting.contour); "fixed": every landmark is a fixed
         point of the model.
+    landmark_map: which model points the 68 landmarks are tied to. "model": the model's own
+        iBUG 300-W points, where an annotator (and dlib) puts them; "face-mesh": where MediaPipe
+        Face Mesh puts the mesh points that stand for them (fitting.detection.ibug68), from the
+        model's Face Mesh correspondence (its dense points; a point the correspondence does not
+        use keeps the model's own); "auto": "face-mesh" for landmarks MediaPipe found
+        (fit_face's ``detector``) on a model with that correspondence, else "model". On the
+        demo face MediaPipe's points lie 0.05-0.17 eye distances from the model's own (brows
+        and jaw most): tied to the model's own, the fit takes that offset for shape.
     dense_weight: weight of each dense landmark (MediaPipe Face Mesh's 468 points, those the
         model's dense_use marks) relative to one of the 68 landmarks, in every stage that has
         the landmarks; 0: no dense term. Needs a model with dense points (FaceModel.has_dense)
@@ -177,6 +188,7 @@ class FaceFitConfig:
     mask_erosion: int = 2
     forehead: float = 0.15
     contour_landmarks: str = "sliding"
+    landmark_map: str = "auto"
     dense_weight: float = 0.0
     n_id: int | None = None
     n_exp: int | None = None
@@ -253,6 +265,9 @@ def _check_face_config(c: FaceFitConfig) -> None:
     if c.contour_landmarks not in CONTOUR_LANDMARKS:
         raise InputError(f"contour_landmarks must be one of {', '.join(map(repr, CONTOUR_LANDMARKS))}, "
                          f"got {c.contour_landmarks!r}")
+    if c.landmark_map not in LANDMARK_MAPS:
+        raise InputError(f"landmark_map must be one of {', '.join(map(repr, LANDMARK_MAPS))}, "
+                         f"got {c.landmark_map!r}")
     if _check(lambda: number("dense_weight", c.dense_weight)) < 0:
         raise InputError(f"dense_weight must be >= 0 (0: no dense landmark term), got {c.dense_weight!r}")
     if c.dtype not in ("float32", "float64"):
@@ -848,8 +863,11 @@ class FaceFit:
 
 
 def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), out_dir=None,
-             progress: bool = True, resume: bool = False, dense=None) -> FaceFit:
+             progress: bool = True, resume: bool = False, dense=None, detector: str | None = None) -> FaceFit:
     """Fit ``model`` to a photo (H, W, 3) linear RGB and its 68 landmarks (68, 2) pixels.
+
+    detector: the backend that found the landmarks ("mediapipe", "dlib"; None: a file), for
+    config.landmark_map "auto" (see :func:`landmark_model`).
 
     dense: the photo's dense points (N, 2) pixels, MediaPipe Face Mesh's 468 (see
     :func:`detected_dense`), for config.dense_weight > 0 (ignored at 0); InputError, before any
@@ -863,7 +881,8 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
         raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
                          f"{N_LANDMARKS} iBUG points (pass a landmark mapping file with the model)")
     check_dense_inputs(config, model, dense)
-    model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
+    model = landmark_model(model, config.landmark_map, detector).truncated(config.n_id, config.n_exp,
+                                                                           config.n_albedo)
     objective, crop, params = prepare_fit(photo, landmarks, model, config, dense)
     check_landmark_layout(landmarks)      # after prepare_fit's input checks (shape, area, size)
     stages = default_stages(config, fit_focal=config.focal is None)
@@ -901,6 +920,26 @@ def prepare_fit(photo, landmarks, model, config: FaceFitConfig,
     sh = initial_light(scene, values, image)
     return objective, crop, face_params(model, focal, rotation, translation, sh)
 
+
+
+def landmark_model(model, landmark_map: str, detector: str | None = None):
+    """``model`` with its 68 landmarks tied as FaceFitConfig.landmark_map says, for landmarks
+    found by ``detector`` (None: read from a file): the model itself for "model", or a model
+    whose landmark i is the model's Face Mesh point MP468_TO_IBUG68[i] (dense_faces/dense_bary)
+    where its correspondence uses that point (dense_use), the model's own landmark elsewhere.
+    InputError for "face-mesh" on a model without a Face Mesh correspondence."""
+    has_face_mesh = model.n_dense == N_FACE_MESH
+    if landmark_map == "model" or (landmark_map == "auto" and not (detector == "mediapipe" and has_face_mesh)):
+        return model
+    if not has_face_mesh:
+        raise InputError(f"landmark_map 'face-mesh' needs a face model with MediaPipe Face Mesh's {N_FACE_MESH} "
+                         f"points (dense_faces / dense_bary); face model {model.name or '(unnamed)'} has "
+                         f"{model.n_dense} (the shipped demo model has them)")
+    mesh_points = MP468_TO_IBUG68
+    used = model.dense_use[mesh_points]
+    faces = np.where(used, model.dense_faces[mesh_points], model.landmark_faces)
+    bary = np.where(used[:, None], model.dense_bary[mesh_points], model.landmark_bary)
+    return model.with_landmarks(faces, bary)
 
 
 def check_dense_inputs(config: FaceFitConfig, model, dense) -> None:

@@ -174,7 +174,7 @@ def detect_samples(samples: list[dict]) -> tuple[list[dict], list[dict], int]:
             continue
         found = dict(dense=detected_dense(chosen), detect_seconds=time.perf_counter() - start)
         truth.append(dict(sample, **found))
-        detected.append(dict(sample, landmarks=chosen.landmarks.copy(), **found))
+        detected.append(dict(sample, landmarks=chosen.landmarks.copy(), detector="mediapipe", **found))
     return truth, detected, missed
 
 
@@ -313,6 +313,20 @@ def focal_error(fitted: float, true: float) -> float:
     return abs(float(fitted) - float(true)) / float(true)
 
 
+def truth_kind_landmarks(fit, model) -> np.ndarray:
+    """(68, 2) working-image pixels: the fitted face's landmarks as the truth places them. The
+    fit's own (FaceFit.fitted_landmarks) when it ties the landmarks to ``model``'s points; for a
+    fit tied to Face Mesh's points (FaceFitConfig.landmark_map) the model's own points on the
+    fitted face (fixed jaw points): the fit's own lie where MediaPipe puts them, not where the
+    truth's are."""
+    tied = fit.scene.model
+    if (np.array_equal(tied.landmark_faces, model.landmark_faces)
+            and np.array_equal(tied.landmark_bary, model.landmark_bary)):
+        return fit.fitted_landmarks()
+    world, _ = fit.scene.geometry(fit.values)
+    return fit.scene.camera(fit.values["focal"][0]).project_pixels(model.landmarks(world)[0])[0]
+
+
 def evaluate(fit, sample: dict, model, seconds: float) -> dict:
     """The bench's numbers for one fit of one synthetic face."""
     from softras_cl.scene.renderer import SHARP
@@ -321,7 +335,7 @@ def evaluate(fit, sample: dict, model, seconds: float) -> dict:
     true_shape, _ = model.shape(truth["id"], truth["exp"])
     shape, _ = fit.scene.model.shape(fit.values["id"], fit.values["exp"])
     metrics = fit.metrics()
-    landmarks = fit.crop.to_full(fit.fitted_landmarks())
+    landmarks = fit.crop.to_full(truth_kind_landmarks(fit, model))
     focal = fit.values["focal"][0] / fit.crop.scale      # working-image pixels -> the photo's
     region = fit.objective.face_region(fit.values, *SHARP)
     residual = fit.scene.render(fit.values, *SHARP).rgb[0][region] - fit.image[region]
@@ -385,7 +399,8 @@ def fit_one(model, sample: dict, config) -> dict:
     from softras_cl.fitting.recipes.face import fit_face
 
     start, cpu = time.perf_counter(), time.process_time()
-    fit = fit_face(sample["photo"], sample["landmarks"], model, config, progress=False, dense=sample.get("dense"))
+    fit = fit_face(sample["photo"], sample["landmarks"], model, config, progress=False, dense=sample.get("dense"),
+                   detector=sample.get("detector"))
     row = evaluate(fit, sample, model, time.perf_counter() - start)
     stages = [h["stage"] for h in fit.result.history]
     # CPU time of the whole process (host and the OpenCL CPU device's threads): on a shared

@@ -192,7 +192,7 @@ def run_one(args: argparse.Namespace) -> int:
 
     def fit(folder):
         return fit_face(photo, landmarks.points, model, config, out_dir=folder, progress=not args.no_progress,
-                        resume=args.resume, dense=dense)
+                        resume=args.resume, dense=dense, detector=landmarks.source)
 
     def write(fit, folder, metrics, seconds):
         return write_outputs(fit, photo, landmarks, folder, metrics=metrics,

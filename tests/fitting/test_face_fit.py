@@ -260,6 +260,7 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     (dict(coarse_mesh=-2.0), "coarse_mesh must be > 0, got -2.0"),
     (dict(coarse_mesh=float("inf")), "coarse_mesh must be a finite number"),
     (dict(dense_weight=-0.5), "dense_weight must be >= 0 (0: no dense landmark term), got -0.5"),
+    (dict(landmark_map="ibug"), "landmark_map must be one of 'auto', 'model', 'face-mesh', got 'ibug'"),
     (dict(dense_weight=float("nan")), "dense_weight must be a finite number"),
 ])
 def test_face_config_names_a_bad_field(changes, says):
@@ -607,3 +608,54 @@ def test_detected_dense_is_the_face_mesh_points_without_the_iris():
     np.testing.assert_array_equal(face.detected_dense(SimpleNamespace(dense=mesh)), mesh[:468])
     assert face.detected_dense(None) is None                        # landmarks from a file
     assert face.detected_dense(SimpleNamespace(dense=None)) is None   # a dlib candidate
+
+
+def _landmark_points(model) -> np.ndarray:
+    return model.landmarks(model.mean_shape)[0]
+
+
+@pytest.mark.parametrize("landmark_map, detector, tied", [
+    ("auto", "mediapipe", True), ("face-mesh", None, True), ("face-mesh", "dlib", True),
+    ("auto", None, False), ("auto", "dlib", False), ("model", "mediapipe", False)])
+def test_landmark_map_ties_mediapipes_landmarks_to_its_face_mesh_points(landmark_map, detector, tied):
+    """"face-mesh" (and "auto" for MediaPipe's landmarks): landmark i is the model's Face Mesh
+    point MP468_TO_IBUG68[i] where the correspondence uses it, the model's own point elsewhere;
+    otherwise the model's own 68 points."""
+    from softras_cl.fitting.detection.ibug68 import MP468_TO_IBUG68
+    from softras_cl.fitting.models.face_loaders import load_demo_face_model
+
+    model = load_demo_face_model()
+    points = _landmark_points(face.landmark_model(model, landmark_map, detector))
+    own = _landmark_points(model)
+    if not tied:
+        np.testing.assert_array_equal(points, own)
+        return
+    mesh = model.dense_points(model.mean_shape)[0][MP468_TO_IBUG68]
+    used = model.dense_use[MP468_TO_IBUG68]
+    assert 50 <= used.sum() < 68
+    np.testing.assert_allclose(points[used], mesh[used], atol=1e-12)
+    np.testing.assert_array_equal(points[~used], own[~used])
+    assert np.linalg.norm(points - own, axis=1)[used].mean() > 1e-3     # metres: they do differ
+
+
+def test_landmark_map_face_mesh_needs_a_model_with_face_mesh_points(toy):
+    from softras_cl.errors import InputError
+
+    assert face.landmark_model(toy, "auto", "mediapipe") is toy
+    with pytest.raises(InputError, match="landmark_map 'face-mesh' needs a face model with MediaPipe Face "
+                                         "Mesh's 468 points"):
+        face.landmark_model(toy, "face-mesh")
+
+
+@pytest.mark.parametrize("detector", ["mediapipe", None])
+def test_fit_face_ties_the_landmarks_as_their_detector_asks(demo, detector):
+    """fit_face's detector reaches landmark_map "auto": the fit's scene model, its fitted landmarks
+    and its outputs use the tied points."""
+    sample = _turned_face(demo, yaw_deg=10.0, size=64)
+    config = face.FaceFitConfig(size=64, landmark_iters=5, photo_stages=(), contour_landmarks="fixed")
+    fit = face.fit_face(sample["photo"], sample["landmarks"], demo, config, progress=False, detector=detector)
+    expected = face.landmark_model(demo, "auto", detector)
+    np.testing.assert_array_equal(_landmark_points(fit.scene.model), _landmark_points(expected))
+    world, _ = fit.scene.geometry(fit.values)
+    projected, _ = fit.scene.camera(fit.values["focal"][0]).project_pixels(expected.landmarks(world)[0])
+    np.testing.assert_allclose(fit.fitted_landmarks(), projected, atol=1e-9)
