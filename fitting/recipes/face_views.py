@@ -33,7 +33,7 @@ from softras_cl.errors import InputError
 from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.plausibility import check_landmark_layout
 from softras_cl.fitting.recipes.face import (N_LANDMARKS, FaceFit, FaceFitConfig, FaceObjective,
-                                             default_stages, prepare_fit)
+                                             default_stages, landmark_model, prepare_fit)
 from softras_cl.fitting.solver import FitResult, Stage, fit
 from softras_cl.scene.renderer import SHARP
 
@@ -200,7 +200,8 @@ def _check_views(photos, landmarks, config: FaceFitConfig, same_camera: bool) ->
 
 
 def fit_face_views(photos, landmarks, model, config: FaceFitConfig | None = None, out_dir=None,
-                   progress: bool = True, resume: bool = False, same_camera: bool = False) -> FaceViewsFit:
+                   progress: bool = True, resume: bool = False, same_camera: bool = False,
+                   detectors=None) -> FaceViewsFit:
     """Fit one identity and albedo of ``model`` to several photos of a person, each with its
     own pose, expression, light and (unless ``same_camera``) focal length.
 
@@ -208,7 +209,9 @@ def fit_face_views(photos, landmarks, model, config: FaceFitConfig | None = None
     config: used as given (None: ``joint_config(FaceFitConfig())``, the joint fit's defaults);
     out_dir, progress, resume: as for fit_face (one checkpoint.npz of the joint blocks);
     same_camera: the photos (all of one size, portrait or landscape) share one focal length,
-    fitted (config.focal must be None).
+    fitted (config.focal must be None); detectors: the backend that found each photo's
+    landmarks, as fit_face's ``detector`` (None: all from files): each view ties its landmarks
+    as config.landmark_map says for its own.
     """
     config = joint_config(FaceFitConfig()) if config is None else config
     _check_views(photos, landmarks, config, same_camera)
@@ -216,7 +219,9 @@ def fit_face_views(photos, landmarks, model, config: FaceFitConfig | None = None
         raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
                          f"{N_LANDMARKS} iBUG points (pass a landmark mapping file with the model)")
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
-    views = [prepare_view(p, lm, model, config) for p, lm in zip(photos, landmarks)]
+    detectors = [None] * len(photos) if detectors is None else detectors
+    views = [prepare_view(p, lm, landmark_model(model, config.landmark_map, d), config)
+             for p, lm, d in zip(photos, landmarks, detectors)]
     objective = FaceViewsObjective([v.objective for v in views], same_camera)
     stages = joint_stages(default_stages(config, fit_focal=config.focal is None), len(views), objective.shared)
     result = fit(joint_params([v.params for v in views], objective.shared), objective, stages, out_dir=out_dir,

@@ -271,7 +271,8 @@ def run_same_person(args: argparse.Namespace) -> int:
 
     def fit(folder):
         return fit_face_views(images, [f.points for f in landmarks], model, config, out_dir=folder, progress=not args.no_progress,
-                              resume=args.resume, same_camera=args.same_camera)
+                              resume=args.resume, same_camera=args.same_camera,
+                              detectors=[f.source for f in landmarks])
 
     def write(fit, folder, metrics, seconds):
         return write_views_outputs(fit, images, landmarks, stable_names(paths), inputs, folder, metrics,
