@@ -374,3 +374,43 @@ def test_upright_roll_takes_another_quarter_turn_only_when_clearly_better(monkey
     image = np.zeros((64, 64, 3), np.uint8)
     roll, score = mp.upright_roll(image, (32.0, 32.0), 40.0, 0.1)
     assert roll == pytest.approx(0.1 + turn * math.pi / 2) and score == scores[turn]
+
+
+@pytest.mark.parametrize("upright, mesh_at, rescored, kept", [
+    (0.80, 2.0, None, 0.80),      # upright: kept on its own score, not scored again
+    (0.60, 2.0, 0.85, 0.85),      # below MIN_UPRIGHT_SCORE: kept on its Face Mesh crop's score ...
+    (0.60, 2.0, 0.65, None),      # ... dropped when that is low as well
+    (0.40, 2.0, 0.95, None),      # below MIN_RESCORED: dropped before Face Mesh runs
+    (0.80, 3.0, None, 0.80),      # Face Mesh finds it on the wider crop only
+    (0.80, None, None, None),     # on neither
+])
+def test_a_face_is_kept_on_its_upright_score_or_its_face_mesh_crops(monkeypatch, upright, mesh_at, rescored, kept):
+    calls = []
+    monkeypatch.setattr(mp, "upright_roll", lambda image, center, side, roll: (0.0, upright))
+
+    def mesh_in_crop(image, center, side, roll=0.0):
+        calls.append(side / 10.0)
+        return np.zeros((478, 2)) if mesh_at is not None and side == pytest.approx(mesh_at * 10.0) else None
+
+    def mesh_score(image, dense):
+        assert rescored is not None, "scored again though its upright score decides"
+        return rescored
+
+    monkeypatch.setattr(mp, "mesh_in_crop", mesh_in_crop)
+    monkeypatch.setattr(mp, "mesh_score", mesh_score)
+    detection = mp._Detection(np.array([5.0, 5.0, 10.0, 10.0]), np.zeros((6, 2)), 0.9, "test")
+    candidate = mp._meshed(np.zeros((40, 40, 3), np.uint8), detection)
+    assert (candidate is None) == (kept is None)
+    if kept is not None:
+        assert candidate.score == kept
+    assert calls == ([] if upright < mp.MIN_RESCORED else [mp.CROP_MARGIN] if mesh_at == mp.CROP_MARGIN
+                     else [mp.CROP_MARGIN, mp.RETRY_MARGIN])
+
+
+@pytest.mark.detect
+def test_mesh_score_of_a_frontal_face_is_high():
+    """The short-range detector on the crop the astronaut's Face Mesh points place: a frontal face
+    scores there as on its upright crop (0.9-0.95)."""
+    image, _ = astronaut()
+    found = det.find_faces(image)
+    assert mp.mesh_score(image, found[0].dense) > 0.85
