@@ -9,14 +9,10 @@ the half of the face, in the frontal view, on the landmark's side of the face's 
 depth: from the front of the face round the cheek towards the ear, the underside of the chin
 for the chin). At each evaluation (:meth:`ContourLandmarks.choose`):
 
-- while the landmark's fixed point lies on a face turned towards the camera, or turned away by
-  less than TURN_AWAY (edge-on within about 14 degrees), it stays the landmark (frontal faces,
-  and the side of a face turned towards the camera, where the jaw's edge is visible; a point
-  so near edge-on lies next to the contour anyway, and there it keeps the model's place along
-  the contour instead of taking the landmark's noise along it: on 20 frontal faces of the
-  face bench, sliding from edge-on made the landmark error 6% worse than fixed points, 0.2%
-  with the margin, at the same gain on faces turned 45-75 degrees);
-- once that face is turned further away, the landmark is the point of the occluding contour (the
+- while the landmark's fixed point lies on a face turned towards the camera it stays the
+  landmark (frontal faces, and the side of a face turned towards the camera, where the jaw's
+  edge is visible);
+- once that face is turned away, the landmark is the point of the occluding contour (the
   edges between a face turned towards the camera and one turned away, and the open border
   edges of a face turned towards it), on an edge between two of its candidates, whose
   projection lies nearest the image landmark; with no such edge it stays the fixed point.
@@ -35,13 +31,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ContourLandmarks", "ContourChoice", "jaw_candidates", "mesh_edges", "front_facing", "facing_cosine",
-           "contour_edges"]
+__all__ = ["ContourLandmarks", "ContourChoice", "jaw_candidates", "mesh_edges", "front_facing", "contour_edges"]
 
 JAW = tuple(range(17))          # iBUG 300-W jaw line
-# A landmark slides once the cosine between its face's outward normal and the direction to the
-# camera is below -TURN_AWAY (module docstring).
-TURN_AWAY = 0.25
 
 
 @dataclass(frozen=True)
@@ -77,17 +69,6 @@ def front_facing(vertices, faces, eye) -> np.ndarray:
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     centroid = (tri[:, 0] + tri[:, 1] + tri[:, 2]) / 3.0
     return np.einsum("fc,fc->f", normal, np.asarray(eye, np.float64) - centroid) > 0
-
-
-def facing_cosine(vertices, faces, eye) -> np.ndarray:
-    """(F,) float64: the cosine between each face's outward unit normal (faces (F, 3) of
-    vertices (V, 3), counter-clockwise from outside) and the unit direction from its centroid
-    to ``eye`` (3,): > 0 turned towards it, < 0 away."""
-    tri = np.asarray(vertices, np.float64)[faces]
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    to_eye = np.asarray(eye, np.float64) - (tri[:, 0] + tri[:, 1] + tri[:, 2]) / 3.0
-    lengths = np.linalg.norm(normal, axis=1) * np.linalg.norm(to_eye, axis=1)
-    return np.einsum("fc,fc->f", normal, to_eye) / np.maximum(lengths, 1e-300)
 
 
 def contour_edges(front: np.ndarray, edges: MeshEdges) -> np.ndarray:
@@ -150,8 +131,7 @@ class ContourLandmarks:
     def choose(self, world, project, targets) -> ContourChoice:
         """Where each point slides to: the point of a candidate contour edge whose projection
         lies nearest its image landmark; edge -1 where it stays the model's fixed landmark (its
-        face turned towards the camera or less than TURN_AWAY away, or no candidate edge on
-        the contour).
+        face turned towards the camera, or no candidate edge on the contour).
 
         world (V, 3) vertices in the camera's world frame, the camera centre at the origin;
         project: (M, 3) world points -> ((M, 2) pixels, (M,) depths along the optical axis),
@@ -164,8 +144,7 @@ class ContourLandmarks:
         world = np.asarray(world, np.float64)
         front = front_facing(world, self.model.faces, np.zeros(3))
         edge, t = np.full(len(self.points), -1, np.int64), np.zeros(len(self.points))
-        own_faces = self.model.faces[self.model.landmark_faces[self.points]]
-        turned = np.nonzero(facing_cosine(world, own_faces, np.zeros(3)) < -TURN_AWAY)[0]
+        turned = np.nonzero(~front[self.model.landmark_faces[self.points]])[0]
         on_contour = np.nonzero(contour_edges(front, self.edges))[0] if turned.size else turned
         if on_contour.size:
             pixels, depth = project(world[self.edges.vertices[on_contour].reshape(-1)])

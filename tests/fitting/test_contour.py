@@ -97,31 +97,6 @@ def test_a_point_turned_towards_the_camera_stays_the_fixed_point():
     np.testing.assert_array_equal(sliding.points_3d(world, fixed, choice), fixed)
 
 
-def test_facing_cosine_is_the_cosine_between_the_normal_and_the_direction_to_the_eye():
-    vertices = np.array([[-1, -1, -5], [2, -1, -5], [-1, 2, -5]], float)    # normal +z, centroid (0, 0, -5)
-    faces = np.array([[0, 1, 2], [0, 2, 1]])
-    for angle in (0.0, 30.0, 80.0, 100.0):
-        a = math.radians(angle)
-        eye = np.array([0.0, 0.0, -5.0]) + 7.0 * np.array([math.sin(a), 0.0, math.cos(a)])
-        np.testing.assert_allclose(contour.facing_cosine(vertices, faces, eye), [math.cos(a), -math.cos(a)],
-                                   atol=1e-12)
-
-
-def test_a_point_turned_away_slides_only_past_the_margin():
-    """A landmark's face turned away by less than TURN_AWAY (cosine) stays fixed: it lies next to
-    the contour; one turned further slides."""
-    model, _ = _cylinder_model(landmark_face=0)
-    world = model.mean_shape + [0.0, 0.0, -0.5]
-    cosine = contour.facing_cosine(world, model.faces, np.zeros(3))
-    near = int(np.flatnonzero((cosine < 0) & (cosine > -contour.TURN_AWAY))[0])
-    far = int(np.flatnonzero(cosine < -contour.TURN_AWAY)[0])
-    for face, slides in ((near, False), (far, True)):
-        model_at, _ = _cylinder_model(landmark_face=face)
-        sliding = contour.ContourLandmarks.of(model_at, [0], [np.arange(len(world))])
-        choice = sliding.choose(world, _pinhole, np.array([[60.0, 1.0]]))
-        assert choice.slid.tolist() == [slides], (face, cosine[face])
-
-
 def test_points_3d_and_its_vjp_route_each_row_to_its_edge():
     model, _ = _cylinder_model(landmark_face=2 * 36)
     world = model.mean_shape + [0.0, 0.0, -0.5]
