@@ -928,18 +928,24 @@ def landmark_model(model, landmark_map: str, detector: str | None = None):
     whose landmark i is the model's Face Mesh point MP468_TO_IBUG68[i] (dense_faces/dense_bary)
     where its correspondence uses that point (dense_use), the model's own landmark elsewhere.
     InputError for "face-mesh" on a model without a Face Mesh correspondence."""
+    check_landmark_map(landmark_map, model)
     has_face_mesh = model.n_dense == N_FACE_MESH
     if landmark_map == "model" or (landmark_map == "auto" and not (detector == "mediapipe" and has_face_mesh)):
         return model
-    if not has_face_mesh:
-        raise InputError(f"landmark_map 'face-mesh' needs a face model with MediaPipe Face Mesh's {N_FACE_MESH} "
-                         f"points (dense_faces / dense_bary); face model {model.name or '(unnamed)'} has "
-                         f"{model.n_dense} (the shipped demo model has them)")
     mesh_points = MP468_TO_IBUG68
     used = model.dense_use[mesh_points]
     faces = np.where(used, model.dense_faces[mesh_points], model.landmark_faces)
     bary = np.where(used[:, None], model.dense_bary[mesh_points], model.landmark_bary)
     return model.with_landmarks(faces, bary)
+
+
+def check_landmark_map(landmark_map: str, model) -> None:
+    """InputError unless ``model`` has what landmark_map (FaceFitConfig) needs: MediaPipe Face
+    Mesh's points for "face-mesh"."""
+    if landmark_map == "face-mesh" and model.n_dense != N_FACE_MESH:
+        raise InputError(f"landmark_map 'face-mesh' needs a face model with MediaPipe Face Mesh's {N_FACE_MESH} "
+                         f"points (dense_faces / dense_bary); face model {model.name or '(unnamed)'} has "
+                         f"{model.n_dense} (the shipped demo model has them)")
 
 
 def check_dense_inputs(config: FaceFitConfig, model, dense) -> None:

@@ -127,12 +127,18 @@ def _face_box(args: argparse.Namespace):
 
 
 def _load_model(args):
-    """The face model of --model (and --model-landmarks), else the demo model."""
+    """The face model of --model (and --model-landmarks), else the demo model; InputError when it
+    lacks what --landmark-map asks for (before the output folder is touched)."""
     from softras_cl.fitting.model_cache import load_model
+    from softras_cl.fitting.recipes.face import check_landmark_map
+    from softras_cl.fitting.run_options import FACE
 
     if args.model is None and args.model_landmarks is not None:
         raise ValueError("--model-landmarks needs --model (the demo model has its landmarks)")
-    return load_model("face", args.model, args.model_landmarks)
+    model = load_model("face", args.model, args.model_landmarks)
+    with FACE.named_as_options():
+        check_landmark_map(args.landmark_map, model)
+    return model
 
 
 def _run_record(args: argparse.Namespace) -> dict:
