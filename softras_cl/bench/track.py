@@ -298,10 +298,11 @@ def run_tracker(model, sequence: dict, config, follower_factory, scan: int) -> d
                 end_to_end_fps=len(results) / total)
 
 
-def run_independent(model, sequence: dict, landmarks: np.ndarray, config, frames: int) -> list:
-    """fit-face on each of the first ``frames`` frames alone, from the given landmarks (T, 68, 2):
-    (its FaceFit, or the ValueError that stopped it (a fit that put the face behind the camera),
-    seconds) per frame."""
+def run_independent(model, sequence: dict, landmarks: np.ndarray, config, frames: int,
+                    detector: str | None) -> list:
+    """fit-face on each of the first ``frames`` frames alone, from the given landmarks (T, 68, 2)
+    found by ``detector`` (fit_face's; None: the true ones): (its FaceFit, or the ValueError that
+    stopped it (a fit that put the face behind the camera), seconds) per frame."""
     from softras_cl.fitting.recipes.face import fit_face
     from softras_cl.io.images import to_linear
     from softras_cl.io.video import open_video
@@ -312,7 +313,8 @@ def run_independent(model, sequence: dict, landmarks: np.ndarray, config, frames
             break
         start = time.perf_counter()
         try:
-            fit = fit_face(to_linear(frame.image / 255.0), landmarks[frame.index], model, config, progress=False)
+            fit = fit_face(to_linear(frame.image / 255.0), landmarks[frame.index], model, config, progress=False,
+                           detector=detector)
         except ValueError as error:
             fit = error
         fits.append((fit, time.perf_counter() - start))
@@ -320,9 +322,11 @@ def run_independent(model, sequence: dict, landmarks: np.ndarray, config, frames
 
 
 def independent_measures(model, fits, sequence: dict) -> dict:
-    """The independent fits' errors, jitter, identity ratios and seconds (module docstring). A
+    """The independent fits' errors (their landmarks the model's own points: truth_kind_landmarks),
+    jitter, identity ratios and seconds (module docstring). A
     frame whose fit failed is counted (``failed``, the first error) and takes the last fit before
     it (the first fit after it at the start), as the tracker holds a frame without a face."""
+    from softras_cl.bench.face import truth_kind_landmarks
     from softras_cl.bench.face_views import identity_ratio
 
     n = len(fits)
@@ -335,7 +339,7 @@ def independent_measures(model, fits, sequence: dict) -> dict:
         last = last if isinstance(f, Exception) else f
         held.append(last)
     vertices = np.array([f.scene.geometry(f.values)[0] for f in held])
-    landmarks = np.array([f.crop.to_full(f.fitted_landmarks()) for f in held])
+    landmarks = np.array([f.crop.to_full(truth_kind_landmarks(f, model)) for f in held])
     ratios = [identity_ratio(model, f.values["id"], sequence["truth"][0]["id"]) for f in done]
     seconds = [s for _, s in fits]
     return dict(sequence_errors(vertices, sequence["vertices"][:n], landmarks, sequence["landmarks"][:n]),
@@ -375,7 +379,9 @@ def run_sequence(model, rng, index: int, args, config, face_config, folder: Path
     tracker = FrameTracker(model, identity, (args.size, args.size), config)
     used = np.array([r.detected if r.detected is not None else np.full((68, 2), np.nan) for r in results])
     n = min(args.independent, len(results))
-    independent = independent_measures(model, run_independent(model, sequence, _filled(used), face_config, n), sequence)
+    detector = "mediapipe" if args.landmarks == "detected" else None
+    independent = independent_measures(model, run_independent(model, sequence, _filled(used), face_config, n, detector),
+                                       sequence)
     fitted = np.array([r.fitted for r in results])
     vertices = np.array([world_vertices(model, identity, r.values) for r in results])
     own = [dataclasses.replace(r, values=r.own) for r in results]          # before the smoothing

@@ -117,7 +117,7 @@ def test_a_failed_independent_fit_is_counted_and_held(demo_face_model):
 
     def fake(k):
         world = np.full((4, 3), float(k))
-        return SimpleNamespace(scene=SimpleNamespace(geometry=lambda values: (world, None)),
+        return SimpleNamespace(scene=SimpleNamespace(geometry=lambda values: (world, None), model=model),
                                crop=SimpleNamespace(to_full=lambda points: points),
                                fitted_landmarks=lambda: np.full((68, 2), float(k)), values=dict(id=truth_id))
 
