@@ -33,7 +33,7 @@ from softras_cl.errors import InputError
 from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.plausibility import check_landmark_layout
 from softras_cl.fitting.recipes.face import (N_LANDMARKS, FaceFit, FaceFitConfig, FaceObjective,
-                                             default_stages, landmark_model, prepare_fit)
+                                             default_stages, prepare_fit, tied_landmarks)
 from softras_cl.fitting.solver import FitResult, Stage, fit
 from softras_cl.scene.renderer import SHARP
 
@@ -152,11 +152,13 @@ class View:
     params: ParamSet
 
 
-def prepare_view(photo, landmarks, model, config: FaceFitConfig) -> View:
-    """Photo (H, W, 3) linear RGB and its landmarks (68, 2) pixels -> the View fit_face would
-    start from (working image, camera, initial pose and light). ResultError when the landmarks
+def prepare_view(photo, landmarks, model, config: FaceFitConfig, detector: str | None = None) -> View:
+    """Photo (H, W, 3) linear RGB and its landmarks (68, 2) pixels, found by ``detector`` (as
+    fit_face's) -> the View fit_face would start from (working image, camera, initial pose and
+    light; the landmarks tied as config.landmark_map says). ResultError when the landmarks
     cannot be a face's (fitting.plausibility.check_landmark_layout)."""
-    view = View(*prepare_fit(photo, landmarks, model, config))
+    tied, point_weights = tied_landmarks(model, config.landmark_map, detector)
+    view = View(*prepare_fit(photo, landmarks, tied, config, point_weights=point_weights))
     check_landmark_layout(landmarks)      # after prepare_fit's input checks (shape, area, size)
     return view
 
@@ -220,8 +222,7 @@ def fit_face_views(photos, landmarks, model, config: FaceFitConfig | None = None
                          f"{N_LANDMARKS} iBUG points (pass a landmark mapping file with the model)")
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
     detectors = [None] * len(photos) if detectors is None else detectors
-    views = [prepare_view(p, lm, landmark_model(model, config.landmark_map, d), config)
-             for p, lm, d in zip(photos, landmarks, detectors)]
+    views = [prepare_view(p, lm, model, config, d) for p, lm, d in zip(photos, landmarks, detectors)]
     objective = FaceViewsObjective([v.objective for v in views], same_camera)
     stages = joint_stages(default_stages(config, fit_focal=config.focal is None), len(views), objective.shared)
     result = fit(joint_params([v.params for v in views], objective.shared), objective, stages, out_dir=out_dir,

@@ -659,3 +659,24 @@ def test_fit_face_ties_the_landmarks_as_their_detector_asks(demo, detector):
     world, _ = fit.scene.geometry(fit.values)
     projected, _ = fit.scene.camera(fit.values["focal"][0]).project_pixels(expected.landmarks(world)[0])
     np.testing.assert_allclose(fit.fitted_landmarks(), projected, atol=1e-9)
+
+
+@pytest.mark.parametrize("detector", ["mediapipe", None])
+def test_points_a_face_mesh_tie_leaves_at_the_models_own_have_no_weight(demo, detector):
+    """tied_landmarks: with the Face Mesh tie, the 11 points its correspondence does not use (they
+    keep the model's own point, far from MediaPipe's) weigh 0 in the landmark term, in the fit's
+    objective and in its half-resolution copy; otherwise the weights are landmark_weights()."""
+    from softras_cl.fitting.detection.ibug68 import MP468_TO_IBUG68
+
+    tied, weights = face.tied_landmarks(demo, "auto", detector)
+    unused = ~demo.dense_use[MP468_TO_IBUG68]
+    expected = face.landmark_weights()
+    if detector == "mediapipe":
+        assert unused.sum() == 11
+        expected[unused] = 0.0
+    np.testing.assert_array_equal(weights, expected)
+    sample = _turned_face(demo, yaw_deg=10.0, size=64)
+    config = face.FaceFitConfig(size=64, landmark_iters=3, photo_stages=(), contour_landmarks="fixed")
+    fit = face.fit_face(sample["photo"], sample["landmarks"], demo, config, progress=False, detector=detector)
+    np.testing.assert_array_equal(fit.objective.landmark_weights, expected)
+    np.testing.assert_array_equal(fit.objective._half_size().landmark_weights, expected)
