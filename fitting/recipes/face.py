@@ -852,11 +852,13 @@ class FaceFit:
         return self.objective.landmark_points(self.values, world)[0]
 
     def metrics(self) -> dict:
-        """Landmark error (mean pixel distance, working and full resolution) and the PSNR of
-        the final render in the face region, in sRGB (what a viewer sees), dB."""
+        """Landmark error (mean pixel distance, working and full resolution, over the landmarks
+        the fit weighs: a Face Mesh tie gives 11 no weight, tied_landmarks) and the PSNR of the
+        final render in the face region, in sRGB (what a viewer sees), dB."""
         from softras_cl.io.images import to_srgb
 
-        err = float(np.linalg.norm(self.fitted_landmarks() - self.landmarks, axis=1).mean())
+        used = self.objective.landmark_weights > 0
+        err = float(np.linalg.norm(self.fitted_landmarks()[used] - self.landmarks[used], axis=1).mean())
         rgb = self.scene.render(self.values, *SHARP).rgb[0]
         mask = self.objective.face_region(self.values, *SHARP)
         return dict(landmark_error_px=err, landmark_error_px_full=err / self.crop.scale,

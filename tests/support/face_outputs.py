@@ -27,14 +27,15 @@ def check_landmark_files(folder: Path, model, given: np.ndarray) -> None:
     landmarks_fitted.pts the model's landmarks (tied as fit-face ties them by default:
     landmark_model "auto" for the source params.json names) projected with the fitted camera (the jaw line's
     17 may slide to the occluding contour, fitting.contour: the other 51 are the model's own
-    points), at the mean distance from the given points that params.json reports as the
-    landmark error."""
-    from softras_cl.fitting.recipes.face import landmark_model
+    points), at the mean distance from the given points (over those the fit weighs) that
+    params.json reports as the landmark error."""
+    from softras_cl.fitting.recipes.face import tied_landmarks
 
     params = json.loads((folder / "params.json").read_text())
-    tied = landmark_model(model, "auto", params["landmarks_input"]["source"])     # the fit's default
+    tied, weights = tied_landmarks(model, "auto", params["landmarks_input"]["source"])     # the fit's default
     detected, fitted = read_pts(folder / "landmarks_detected.pts"), read_pts(folder / "landmarks_fitted.pts")
     np.testing.assert_allclose(detected, given, atol=1e-9)
     np.testing.assert_allclose(fitted[17:], projected_model_landmarks(folder, tied)[17:], atol=1e-6)
     error = params["metrics"]["landmark_error_px_full"]
-    assert abs(np.linalg.norm(fitted - given, axis=1).mean() - error) < 1e-6 * max(error, 1.0)
+    used = weights > 0
+    assert abs(np.linalg.norm(fitted[used] - given[used], axis=1).mean() - error) < 1e-6 * max(error, 1.0)
