@@ -202,20 +202,18 @@ def choose_keyframes(landmarks: dict, model, frame_shape, n: int, fov_deg: float
 
 
 def fit_identity(images: list, landmarks: list, keyframes, model, config: TrackConfig,
-                 progress: bool = False, detector: str | None = "mediapipe") -> Identity:
+                 progress: bool = False) -> Identity:
     """Identity, albedo, one focal length, light and the detector offsets from the keyframes:
-    images (H, W, 3) linear RGB of one size, landmarks (68, 2) frame pixels each, found by
-    ``detector`` (fit_face's; None: the model's own points), keyframes their frame indices
-    (recorded). ``config.identity_passes`` joint fits, each followed by the offsets of the
-    detected landmarks from its model (:func:`detector_offsets`). The first fits the detected
-    landmarks tied as fit-face ties them (MediaPipe's to where Face Mesh puts them); each pass
-    after it fits the landmarks moved back by the previous pass's offsets onto the model's own
-    points, so that the detector's own idea of the landmarks no longer bends the shape.
+    images (H, W, 3) linear RGB of one size, landmarks (68, 2) frame pixels each, keyframes
+    their frame indices (recorded). ``config.identity_passes`` joint fits, each followed by the
+    offsets of the detected landmarks from its model (:func:`detector_offsets`); each pass after
+    the first fits the landmarks moved back by the previous pass's offsets, so that the
+    detector's own idea of the landmarks no longer bends the shape.
     KeyboardInterrupt when Ctrl-C stopped a fit."""
     detected = [np.asarray(points, np.float64) for points in landmarks]
-    corrected, found_by = detected, detector
+    corrected = detected
     for _ in range(config.identity_passes):
-        identity, camera, poses = _joint_identity(images, corrected, keyframes, model, config, progress, found_by)
+        identity, camera, poses = _joint_identity(images, corrected, keyframes, model, config, progress)
         plain = LandmarkBasis(model, identity.id)
         offsets = detector_offsets(plain, camera, poses, detected,
                                    noise_px=1.0 / math.sqrt(config.landmark_weight) / identity.pixel_scale)
@@ -223,18 +221,15 @@ def fit_identity(images: list, landmarks: list, keyframes, model, config: TrackC
         moved = LandmarkBasis(model, identity.id, offsets)
         corrected = [points - (project_landmarks(moved, camera, pose)[0] - project_landmarks(plain, camera, pose)[0])
                      for points, pose in zip(detected, poses)]
-        found_by = None                 # moved onto the model's own points
     return identity
 
 
-def _joint_identity(images, landmarks, keyframes, model, config: TrackConfig, progress: bool, detector):
-    """One joint fit of the keyframes (fit-face --same-person, one camera; the landmarks found by
-    ``detector``) -> (its Identity without offsets, the frame camera, each keyframe's pose:
-    rotation, translation, exp)."""
+def _joint_identity(images, landmarks, keyframes, model, config: TrackConfig, progress: bool):
+    """One joint fit of the keyframes (fit-face --same-person, one camera) -> (its Identity
+    without offsets, the frame camera, each keyframe's pose: rotation, translation, exp)."""
     from softras_cl.fitting.recipes.face_views import fit_face_views
 
-    joint = fit_face_views(images, landmarks, model, config.face_config(), progress=progress, same_camera=True,
-                           detectors=[detector] * len(images))
+    joint = fit_face_views(images, landmarks, model, config.face_config(), progress=progress, same_camera=True)
     if joint.result.interrupted:         # the solver stopped at Ctrl-C: no identity from half a fit
         raise KeyboardInterrupt
     first = joint.views[0]
@@ -298,7 +293,7 @@ def identity_from_video(source, model, config: TrackConfig, follower: "FaceFollo
         if frame.index in keyframes:
             images[frame.index] = to_linear(frame.image / 255.0)
     return fit_identity([images[k] for k in keyframes], [found[k] for k in keyframes], keyframes, model, config,
-                        progress=progress, detector=follower.detector)
+                        progress=progress)
 
 
 def _until_broken(frames):
@@ -727,13 +722,6 @@ class FaceFollower:
     def __init__(self, face: int | None = None, face_box=None, backend: str | None = None):
         self.face, self.face_box, self.backend = face, face_box, backend
         self.started = False
-
-    @property
-    def detector(self) -> str:
-        """The backend that finds the landmarks (fit_face's ``detector``)."""
-        from softras_cl.fitting.detection import default_backend
-
-        return self.backend or default_backend()
 
     def find(self, image: np.ndarray, previous=None) -> np.ndarray | None:
         """(68, 2) frame pixels of the face in image (H, W, 3) uint8 RGB, or None (no face)."""

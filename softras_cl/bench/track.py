@@ -252,8 +252,6 @@ def light_errors(model, identity, results, sequence: dict, every: int = 4) -> di
 class _GivenLandmarks:
     """A stand-in for the face follower: each frame's landmarks given (the truth plus noise)."""
 
-    detector = None             # the model's own points
-
     def __init__(self, landmarks):
         self.landmarks, self.next = landmarks, 0
 
