@@ -32,7 +32,7 @@ high upside down: 0.878 against 0.872 on a frame of bench landmarks, whose mesh 
 down, NME 1.4). A face whose best score there is below MIN_UPRIGHT_SCORE is dropped (unless its Face Mesh
 crop scores higher, below): frontal
 faces score 0.9-0.95 on their upright crop, the cameraman's face turned away
-(skimage.data.camera) 0.86, faces turned 30-60 degrees in bench landmarks' frames 0.69-0.74, the
+(skimage.data.camera) 0.86, faces turned 30-60 degrees in bench landmarks' frames 0.54-0.74, the
 false faces the tiles bring up 0-0.71 on the test pictures of tests/support/face_scenes.py
 (turned; the one of the upside-down two-face picture 0.61 on its upright crop). On bench
 landmarks' 90 frames of real backgrounds, 0.70 let no false face through, 0.65 one, 0.60 36.
@@ -292,7 +292,7 @@ def mesh_score(image: np.ndarray, dense: np.ndarray) -> float:
     """The short-range detector's score on a crop placed by a face's Face Mesh points (478, 2):
     centred on their box, CROP_MARGIN times its longer side, level along the outer eye corners."""
     lo, hi = dense[:468].min(0), dense[:468].max(0)
-    eyes = dense[263] - dense[33]
+    eyes = dense[MP468_TO_IBUG68[45]] - dense[MP468_TO_IBUG68[36]]       # outer eye corners
     return _crop_score(image, (lo + hi) / 2, CROP_MARGIN * float(max(hi - lo)), math.atan2(eyes[1], eyes[0]))
 
 

@@ -161,9 +161,9 @@ class FaceFitConfig:
         iBUG 300-W points, where an annotator (and dlib) puts them; "face-mesh": where MediaPipe
         Face Mesh puts the mesh points that stand for them (fitting.detection.ibug68), from the
         model's Face Mesh correspondence (its dense points; a point the correspondence does not
-        use keeps the model's own); "auto": "face-mesh" for landmarks MediaPipe found
+        use keeps the model's own, with no weight: tied_landmarks); "auto": "face-mesh" for landmarks MediaPipe found
         (fit_face's ``detector``) on a model with that correspondence, else "model". On the
-        demo face MediaPipe's points lie 0.05-0.17 eye distances from the model's own (brows
+        demo face MediaPipe's points lie a mean 0.06 and up to 0.18 eye distances from the model's own (brows
         and jaw most): tied to the model's own, the fit takes that offset for shape.
     dense_weight: weight of each dense landmark (MediaPipe Face Mesh's 468 points, those the
         model's dense_use marks) relative to one of the 68 landmarks, in every stage that has
@@ -949,7 +949,7 @@ def tied_landmarks(model, landmark_map: str, detector: str | None = None) -> tup
     """(:func:`landmark_model`'s model, the landmark term's (68,) weights for its landmarks):
     :func:`landmark_weights`, with 0 for the points a Face Mesh tie leaves at the model's own
     point (the correspondence does not use their Face Mesh vertex: jaw 0-3 and 13-16, inner
-    lower lip 65-67): MediaPipe puts them 0.07-0.17 eye distances away, and weighted they bent
+    lower lip 65-67): MediaPipe puts most of them 0.05-0.17 eye distances away, and weighted they bent
     the shape (bench face, detected landmarks, 10 faces per bin, paired: shape error 11% +- 4%
     lower at |yaw| 0-15 without them, 5% +- 2% at 15-45)."""
     tied = landmark_model(model, landmark_map, detector)
