@@ -1,15 +1,20 @@
 """Host-side plumbing shared by the PyTorch and JAX bridges (softras_cl.torch, softras_cl.jax).
 
-numpy only. The bridges turn their tensors into numpy arrays keyed by argument name, and this
-module maps such a dict onto `SoftRasterizer.forward` / `Renderer.forward` (choosing the gradient
-variant from the names the caller wants gradients for), and the numpy backward's gradients back
-onto the same names, each in the shape of its input. Every check of values (shapes, NaN, ranges)
-is the numpy API's own; this module adds only what the bridges' extra arguments need
-(`camera_params`, `light_params`). Usage: docs/interop.md.
+numpy and the numpy API only. The bridges turn their tensors into numpy arrays keyed by argument
+name, and this module maps such a dict onto `SoftRasterizer.forward` / `Renderer.forward`
+(choosing the gradient variant from the names the caller wants gradients for), and the numpy
+backward's gradients back onto the same names, each in the shape of its input. Every check of
+values (shapes, NaN, ranges) is the numpy API's own; this module adds only what the bridges'
+extra arguments need (`camera_params`, `light_params`). BridgeRasterizer and BridgeRenderer are
+the bridges' SoftRasterizer and Renderer classes but for the framework. Usage: docs/interop.md.
 
-Argument names:
-- rasteriser: "vertices", "colors", "face_textures", "texture_image", "normals", "light" are
-  differentiable (RASTER_DIFFERENTIABLE); "faces" and "uvs" are not.
+Arguments:
+- rasteriser (the bridges' `rasterize`): vertices (B, V, 3) | (V, 3) float, screen space; faces
+  (F, 3) | (B, F, 3) integer; one colour input by settings.texture: colors (B, V, 3) | (V, 3),
+  face_textures (B, F, R, R, 3), or texture_image (B, Ht, Wt, 3) with uvs (B, V, 2) | (V, 2);
+  per-pixel lighting (settings.lighting): normals (B, V, 3), light (27,). "vertices", "colors",
+  "face_textures", "texture_image", "normals", "light" are differentiable
+  (RASTER_DIFFERENTIABLE); "faces" and "uvs" are not.
 - renderer: "vertices", the colour input ("albedo", "face_textures" or "texture_image"),
   "camera.rotation", "camera.translation", "camera.focal" and "light.<parameter>" (the keys of
   the light's params()) are differentiable; "faces" and "uvs" are not.
@@ -19,6 +24,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from softras_cl.raster.rasterizer import SoftRasterizer
+from softras_cl.raster.settings import RasterSettings
+from softras_cl.scene.renderer import Renderer
 
 OUTPUTS = ("rgb", "alpha", "depth")
 RASTER_DIFFERENTIABLE = ("vertices", "colors", "face_textures", "texture_image", "normals", "light")
@@ -223,3 +232,54 @@ def render_input_grads(renderer, output, cotangents: dict, shapes: dict, wanted)
             grad = g["light"][name[len("light."):]]
         out[name] = unbroadcast(name, grad, shapes[name])
     return out
+
+
+# ---- the bridges' classes ---------------------------------------------------------------------
+class BridgeRasterizer:
+    """The bridges' SoftRasterizer: `SoftRasterizer(settings, device=None, context=None,
+    queue=None)` (the OpenCL device) holds the numpy SoftRasterizer `.raster`; `forward` runs it
+    through the bridge's function `rasterize_with`, a staticmethod the subclass sets to its
+    rasterize(raster, vertices, faces, ...) -> Images."""
+
+    rasterize_with = None
+
+    def __init__(self, settings: RasterSettings, device=None, context=None, queue=None):
+        super().__init__()      # torch.nn.Module's in the PyTorch bridge
+        self.raster = SoftRasterizer(settings, device=device, context=context, queue=queue)
+
+    @property
+    def settings(self) -> RasterSettings:
+        return self.raster.settings
+
+    def forward(self, vertices, faces, colors=None, face_textures=None, texture_image=None,
+                uvs=None, normals=None, light=None):
+        """The bridge's Images (rgb (B, H, W, 3), alpha and depth (B, H, W) in settings.dtype) of
+        the arguments of its `rasterize`."""
+        return self.rasterize_with(self.raster, vertices, faces, colors=colors, face_textures=face_textures,
+                                   texture_image=texture_image, uvs=uvs, normals=normals, light=light)
+
+
+class BridgeRenderer:
+    """The bridges' Renderer: `Renderer(settings, shading="vertex", device=None, context=None,
+    queue=None)` holds the numpy Renderer `.renderer`; `forward` runs it through the bridge's
+    function `render_with`, a staticmethod the subclass sets to its
+    render(renderer, vertices, faces, cameras, ...) -> Images."""
+
+    render_with = None
+
+    def __init__(self, settings: RasterSettings, shading: str = "vertex", device=None, context=None,
+                 queue=None):
+        super().__init__()      # torch.nn.Module's in the PyTorch bridge
+        self.renderer = Renderer(settings, shading=shading, device=device, context=context, queue=queue)
+
+    @property
+    def settings(self) -> RasterSettings:
+        return self.renderer.settings
+
+    def forward(self, vertices, faces, cameras, albedo=None, light=None, face_textures=None,
+                texture_image=None, uvs=None, camera_params=None, light_params=None):
+        """The bridge's Images (rgb (B, H, W, 3), alpha and depth (B, H, W) in settings.dtype) of
+        the arguments of its `render`."""
+        return self.render_with(self.renderer, vertices, faces, cameras, albedo=albedo, light=light,
+                                face_textures=face_textures, texture_image=texture_image, uvs=uvs,
+                                camera_params=camera_params, light_params=light_params)

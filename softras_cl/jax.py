@@ -158,13 +158,8 @@ def _call(forward, backward, settings: RasterSettings, batch: int, diff: dict, f
 def rasterize(rasterizer: _NumpyRasterizer, vertices, faces, colors=None, face_textures=None,
               texture_image=None, uvs=None, normals=None, light=None) -> Images:
     """The soft rasteriser on jax arrays: `rasterizer` a numpy SoftRasterizer, the other
-    arguments as SoftRasterizer.forward takes them (docs/api.md):
-
-    vertices (B, V, 3) | (V, 3) float, screen space; faces (F, 3) | (B, F, 3) integer;
-    one colour input by settings.texture: colors (B, V, 3) | (V, 3), face_textures
-    (B, F, R, R, 3), or texture_image (B, Ht, Wt, 3) with uvs (B, V, 2) | (V, 2);
-    per-pixel lighting (settings.lighting): normals (B, V, 3), light (27,).
-    Differentiable: vertices, colors / face_textures / texture_image, normals, light (not uvs).
+    arguments as SoftRasterizer.forward takes them (docs/api.md); their shapes and which are
+    differentiable (all but faces and uvs): softras_cl.interop.
     Returns Images (rgb, alpha, depth; None where not in settings.outputs)."""
     given = dict(vertices=vertices, colors=colors, face_textures=face_textures,
                  texture_image=texture_image, normals=normals, light=light)
@@ -220,41 +215,20 @@ def render(renderer: _NumpyRenderer, vertices, faces, cameras, albedo=None, ligh
     return _call(forward, backward, renderer.settings, batch, diff, fixed)
 
 
-class SoftRasterizer:
+class SoftRasterizer(interop.BridgeRasterizer):
     """Mirrors softras_cl.SoftRasterizer: `SoftRasterizer(settings, device=None, context=None,
     queue=None)` (OpenCL device), called as `raster(vertices, faces, colors=..., ...)` with the
     arguments of `rasterize` -> Images. `.raster` is the numpy SoftRasterizer it runs."""
 
-    def __init__(self, settings: RasterSettings, device=None, context=None, queue=None):
-        self.raster = _NumpyRasterizer(settings, device=device, context=context, queue=queue)
-
-    @property
-    def settings(self) -> RasterSettings:
-        return self.raster.settings
-
-    def __call__(self, vertices, faces, colors=None, face_textures=None, texture_image=None,
-                 uvs=None, normals=None, light=None) -> Images:
-        return rasterize(self.raster, vertices, faces, colors=colors, face_textures=face_textures,
-                         texture_image=texture_image, uvs=uvs, normals=normals, light=light)
+    rasterize_with = staticmethod(rasterize)
+    __call__ = interop.BridgeRasterizer.forward
 
 
-class Renderer:
+class Renderer(interop.BridgeRenderer):
     """Mirrors softras_cl.scene.renderer.Renderer: `Renderer(settings, shading="vertex",
     device=None, context=None, queue=None)`, called as `renderer(vertices, faces, cameras,
     albedo=..., light=..., camera_params=..., light_params=...)` with the arguments of `render`
     -> Images. `.renderer` is the numpy Renderer it runs."""
 
-    def __init__(self, settings: RasterSettings, shading: str = "vertex", device=None, context=None,
-                 queue=None):
-        self.renderer = _NumpyRenderer(settings, shading=shading, device=device, context=context,
-                                       queue=queue)
-
-    @property
-    def settings(self) -> RasterSettings:
-        return self.renderer.settings
-
-    def __call__(self, vertices, faces, cameras, albedo=None, light=None, face_textures=None,
-                 texture_image=None, uvs=None, camera_params=None, light_params=None) -> Images:
-        return render(self.renderer, vertices, faces, cameras, albedo=albedo, light=light,
-                      face_textures=face_textures, texture_image=texture_image, uvs=uvs,
-                      camera_params=camera_params, light_params=light_params)
+    render_with = staticmethod(render)
+    __call__ = interop.BridgeRenderer.forward

@@ -20,6 +20,7 @@ create_graph=True is not differentiable again (differentiating it raises InputEr
 """
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import numpy as np
@@ -28,7 +29,6 @@ import torch
 from softras_cl import interop
 from softras_cl.errors import InputError
 from softras_cl.raster.rasterizer import SoftRasterizer as _NumpyRasterizer
-from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.renderer import Renderer as _NumpyRenderer
 
 __all__ = ["SoftRasterizer", "Renderer", "Images", "RasterizeFunction", "RenderFunction",
@@ -108,6 +108,33 @@ def _first_order(name: str, grads: tuple, inputs: tuple) -> tuple:
     return tuple(None if g is None else next(outs) for g in grads)
 
 
+def _forward(ctx, run, settings, arrays: dict, names: tuple, tensors: tuple, head: int) -> tuple:
+    """Forward of an autograd op: run(arrays, wanted) -> the numpy output, on `arrays` (the fixed
+    inputs) plus the `tensors` (named by `names`, after the op's `head` other arguments) as numpy
+    arrays, keeping in ctx what _backward needs. Returns the images in settings.outputs order,
+    (B, H, W, 3) or (B, H, W) tensors sharing the numpy output's memory."""
+    named = dict(zip(names, tensors))
+    wanted = tuple(n for n, need in zip(names, ctx.needs_input_grad[head:]) if need)
+    out = run({**arrays, **{n: _to_numpy(n, t) for n, t in named.items()}}, wanted)
+    ctx.set_materialize_grads(False)
+    ctx.out, ctx.wanted = out, wanted
+    ctx.save_for_backward(*tensors)     # only for _first_order's record of a double backward
+    ctx.inputs = {n: (t.dtype, t.shape) for n, t in named.items()}
+    return tuple(torch.from_numpy(getattr(out, o)) for o in interop.output_names(settings))
+
+
+def _backward(ctx, name: str, input_grads, settings, grad_outputs: tuple) -> tuple:
+    """Backward of an autograd op whose forward was _forward: input_grads(output, cotangents,
+    shapes, wanted) -> {name: float64 gradient} from the numpy backward. Returns one gradient a
+    tensor input (None where not wanted), each in its input's dtype and shape; `name` is the
+    bridge's function, named by the error of a double backward."""
+    names = interop.output_names(settings)
+    cot = {o: _cotangent(g) for o, g in zip(names, grad_outputs)}
+    grads = input_grads(ctx.out, cot, {n: tuple(s) for n, (_, s) in ctx.inputs.items()}, ctx.wanted)
+    return _first_order(name, tuple(torch.from_numpy(grads[n]).to(dtype) if n in grads else None
+                                     for n, (dtype, _) in ctx.inputs.items()), ctx.saved_tensors)
+
+
 class RasterizeFunction(torch.autograd.Function):
     """Autograd op of SoftRasterizer: apply(rasterizer, arrays, names, *tensors) -> the images in
     settings.outputs order. `arrays` holds the non-differentiated inputs as numpy arrays; the
@@ -116,25 +143,15 @@ class RasterizeFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, rasterizer, arrays, names, *tensors):
-        named = dict(zip(names, tensors))
-        wanted = tuple(n for n, need in zip(names, ctx.needs_input_grad[3:]) if need)
-        out = interop.raster_forward(rasterizer, {**arrays, **{n: _to_numpy(n, t) for n, t in named.items()}},
-                                     wanted)
-        ctx.set_materialize_grads(False)
-        ctx.rasterizer, ctx.out, ctx.wanted = rasterizer, out, wanted
-        ctx.save_for_backward(*tensors)     # only for _first_order's record of a double backward
-        ctx.inputs = {n: (t.dtype, t.shape) for n, t in named.items()}
-        return tuple(torch.from_numpy(getattr(out, o)) for o in interop.output_names(rasterizer.settings))
+        ctx.rasterizer = rasterizer
+        return _forward(ctx, partial(interop.raster_forward, rasterizer), rasterizer.settings,
+                        arrays, names, tensors, head=3)
 
     @staticmethod
     def backward(ctx, *grad_outputs):
-        names = interop.output_names(ctx.rasterizer.settings)
-        cot = {o: _cotangent(g) for o, g in zip(names, grad_outputs)}
-        grads = interop.raster_input_grads(ctx.rasterizer, ctx.out, cot,
-                                           {n: tuple(s) for n, (_, s) in ctx.inputs.items()}, ctx.wanted)
-        return (None, None, None) + _first_order("softras_cl.torch.rasterize", tuple(
-            torch.from_numpy(grads[n]).to(dtype) if n in grads else None
-            for n, (dtype, _) in ctx.inputs.items()), ctx.saved_tensors)
+        return (None, None, None) + _backward(ctx, "softras_cl.torch.rasterize",
+                                              partial(interop.raster_input_grads, ctx.rasterizer),
+                                              ctx.rasterizer.settings, grad_outputs)
 
 
 class RenderFunction(torch.autograd.Function):
@@ -144,25 +161,18 @@ class RenderFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, renderer, cameras, light, arrays, names, *tensors):
-        named = dict(zip(names, tensors))
-        wanted = tuple(n for n, need in zip(names, ctx.needs_input_grad[5:]) if need)
-        out = interop.render_forward(renderer, {**arrays, **{n: _to_numpy(n, t) for n, t in named.items()}},
-                                     cameras, light, wanted)
-        ctx.set_materialize_grads(False)
-        ctx.renderer, ctx.out, ctx.wanted = renderer, out, wanted
-        ctx.save_for_backward(*tensors)     # only for _first_order's record of a double backward
-        ctx.inputs = {n: (t.dtype, t.shape) for n, t in named.items()}
-        return tuple(torch.from_numpy(getattr(out, o)) for o in interop.output_names(renderer.settings))
+        ctx.renderer = renderer
+
+        def run(arrays, wanted):
+            return interop.render_forward(renderer, arrays, cameras, light, wanted)
+
+        return _forward(ctx, run, renderer.settings, arrays, names, tensors, head=5)
 
     @staticmethod
     def backward(ctx, *grad_outputs):
-        names = interop.output_names(ctx.renderer.settings)
-        cot = {o: _cotangent(g) for o, g in zip(names, grad_outputs)}
-        grads = interop.render_input_grads(ctx.renderer, ctx.out, cot,
-                                           {n: tuple(s) for n, (_, s) in ctx.inputs.items()}, ctx.wanted)
-        return (None,) * 5 + _first_order("softras_cl.torch.render", tuple(
-            torch.from_numpy(grads[n]).to(dtype) if n in grads else None
-            for n, (dtype, _) in ctx.inputs.items()), ctx.saved_tensors)
+        return (None,) * 5 + _backward(ctx, "softras_cl.torch.render",
+                                       partial(interop.render_input_grads, ctx.renderer),
+                                       ctx.renderer.settings, grad_outputs)
 
 
 def _apply(function, head: tuple, named: dict, arrays: dict, wanted: tuple, settings) -> Images:
@@ -177,13 +187,8 @@ def _apply(function, head: tuple, named: dict, arrays: dict, wanted: tuple, sett
 def rasterize(rasterizer: _NumpyRasterizer, vertices, faces, colors=None, face_textures=None,
               texture_image=None, uvs=None, normals=None, light=None) -> Images:
     """The soft rasteriser on tensors: `rasterizer` a numpy SoftRasterizer, the other arguments
-    as SoftRasterizer.forward takes them (docs/api.md), as CPU tensors or numpy arrays:
-
-    vertices (B, V, 3) | (V, 3) float, screen space; faces (F, 3) | (B, F, 3) integer;
-    one colour input by settings.texture: colors (B, V, 3) | (V, 3), face_textures
-    (B, F, R, R, 3), or texture_image (B, Ht, Wt, 3) with uvs (B, V, 2) | (V, 2);
-    per-pixel lighting (settings.lighting): normals (B, V, 3), light (27,).
-    Differentiable: vertices, colors / face_textures / texture_image, normals, light (not uvs).
+    as SoftRasterizer.forward takes them (docs/api.md), as CPU tensors or numpy arrays; their
+    shapes and which are differentiable (all but faces and uvs): softras_cl.interop.
     Returns Images (rgb, alpha, depth; None where not in settings.outputs)."""
     named = dict(vertices=vertices, faces=faces, colors=colors, face_textures=face_textures,
                  texture_image=texture_image, uvs=uvs, normals=normals, light=light)
@@ -224,30 +229,19 @@ def render(renderer: _NumpyRenderer, vertices, faces, cameras, albedo=None, ligh
     return _apply(RenderFunction, (renderer, cameras, light), named, arrays, wanted, renderer.settings)
 
 
-class SoftRasterizer(torch.nn.Module):
+class SoftRasterizer(interop.BridgeRasterizer, torch.nn.Module):
     """nn.Module mirroring softras_cl.SoftRasterizer: `SoftRasterizer(settings, device=None,
     context=None, queue=None)` (the OpenCL device, not a torch device), called as
     `module(vertices, faces, colors=..., ...)` with the arguments of `rasterize` -> Images.
     No parameters; `.raster` is the numpy SoftRasterizer it runs."""
 
-    def __init__(self, settings: RasterSettings, device=None, context=None, queue=None):
-        super().__init__()
-        self.raster = _NumpyRasterizer(settings, device=device, context=context, queue=queue)
-
-    @property
-    def settings(self) -> RasterSettings:
-        return self.raster.settings
-
-    def forward(self, vertices, faces, colors=None, face_textures=None, texture_image=None,
-                uvs=None, normals=None, light=None) -> Images:
-        return rasterize(self.raster, vertices, faces, colors=colors, face_textures=face_textures,
-                         texture_image=texture_image, uvs=uvs, normals=normals, light=light)
+    rasterize_with = staticmethod(rasterize)
 
     def extra_repr(self) -> str:
         return repr(self.settings)
 
 
-class Renderer(torch.nn.Module):
+class Renderer(interop.BridgeRenderer, torch.nn.Module):
     """nn.Module mirroring softras_cl.scene.renderer.Renderer: `Renderer(settings,
     shading="vertex", device=None, context=None, queue=None)`, called as `module(vertices,
     faces, cameras, albedo=..., light=..., camera_params=..., light_params=...)` with the
@@ -255,21 +249,7 @@ class Renderer(torch.nn.Module):
     (vertices, albedo, camera or light parameters) in your own module or optimiser.
     `.renderer` is the numpy Renderer it runs."""
 
-    def __init__(self, settings: RasterSettings, shading: str = "vertex", device=None, context=None,
-                 queue=None):
-        super().__init__()
-        self.renderer = _NumpyRenderer(settings, shading=shading, device=device, context=context,
-                                       queue=queue)
-
-    @property
-    def settings(self) -> RasterSettings:
-        return self.renderer.settings
-
-    def forward(self, vertices, faces, cameras, albedo=None, light=None, face_textures=None,
-                texture_image=None, uvs=None, camera_params=None, light_params=None) -> Images:
-        return render(self.renderer, vertices, faces, cameras, albedo=albedo, light=light,
-                      face_textures=face_textures, texture_image=texture_image, uvs=uvs,
-                      camera_params=camera_params, light_params=light_params)
+    render_with = staticmethod(render)
 
     def extra_repr(self) -> str:
         return f"shading={self.renderer.shading!r}, {self.settings!r}"
