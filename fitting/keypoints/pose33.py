@@ -1,11 +1,13 @@
-"""Which point of the body model each of MediaPipe's 33 pose keypoints stands for.
+"""MediaPipe's 33 pose keypoints: their order and names, and the point of the body model each
+stands for.
 
-:data:`KEYPOINT_MAP` lists, per used keypoint (MediaPipe index, fitting.detection.people's
-MP33_NAMES), the model point it is compared with and a weight that says how well the two agree
-on the skeleton (multiplied by the detector's visibility in the fit). Model points are SMPL
-joint names (the demo body and SMPL-layout models share them) or a surface landmark found on
-the model's head (:func:`head_landmarks`), so the face keypoints turn the head. docs/body_photos.md
-explains each choice:
+:data:`NAMES` are the pose model's keypoints in its order ("left"/"right": the subject's own
+sides). :data:`KEYPOINT_MAP` lists, per used keypoint (its index in NAMES), the model point it
+is compared with and a weight that says how well the two agree on the skeleton (multiplied by the
+detector's visibility in the fit). Model points are SMPL joint names (the demo body and
+SMPL-layout models share them) or a surface landmark found on the model's head
+(:func:`head_landmarks`), so the face keypoints turn the head. docs/body_photos.md explains each
+choice:
 
 - shoulders, elbows, wrists, knees, ankles -> the joints of the same names (weight 1): the
   detector marks the joint centres of these, as the model's joints are;
@@ -30,8 +32,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["KEYPOINT_MAP", "HIP_WEIGHT", "FOOT_WEIGHT", "KeypointLayout", "keypoint_layout",
-           "head_landmarks"]
+__all__ = ["COUNT", "NAMES", "TORSO", "KEYPOINT_MAP", "HIP_WEIGHT", "FOOT_WEIGHT", "KeypointLayout",
+           "keypoint_layout", "head_landmarks"]
+
+NAMES = ("nose", "left_eye_inner", "left_eye", "left_eye_outer", "right_eye_inner", "right_eye",
+         "right_eye_outer", "left_ear", "right_ear", "mouth_left", "mouth_right", "left_shoulder",
+         "right_shoulder", "left_elbow", "right_elbow", "left_wrist", "right_wrist", "left_pinky",
+         "right_pinky", "left_index", "right_index", "left_thumb", "right_thumb", "left_hip",
+         "right_hip", "left_knee", "right_knee", "left_ankle", "right_ankle", "left_heel",
+         "right_heel", "left_foot_index", "right_foot_index")
+COUNT = len(NAMES)
 
 HIP_WEIGHT = 0.5
 FOOT_WEIGHT = 0.5
@@ -51,6 +61,8 @@ KEYPOINT_MAP = (
     (0, "nose", FACE_WEIGHT), (7, "left_ear", FACE_WEIGHT), (8, "right_ear", FACE_WEIGHT),
 )
 TORSO_POINTS = ("left_shoulder", "right_shoulder", "left_hip", "right_hip")
+#: the shoulders' and hips' keypoints (indices in NAMES)
+TORSO = tuple(NAMES.index(name) for name in TORSO_POINTS)
 
 
 def head_landmarks(model) -> dict[str, int]:

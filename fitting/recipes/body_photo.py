@@ -4,7 +4,7 @@ Built on fitting.recipes.body (its BodyScene, priors, joint limits, Geman-McClur
 and the solver); what is new here:
 
 - inputs: a PersonDetection (fitting.detection.people: 33 keypoints with visibility and a
-  person mask), mapped onto the model by fitting.recipes.body_keypoints (KEYPOINT_MAP); each
+  person mask), mapped onto the model by fitting.keypoints.pose33 (KEYPOINT_MAP); each
   keypoint's weight is the map's weight times the detector's visibility, and 0 when the
   visibility is below MIN_VISIBILITY or the point lies outside the photo (a portrait's legs):
   what is not seen is left to the pose and shape priors;
@@ -42,7 +42,7 @@ from softras_cl.fitting.models.mesh_lod import coarse_faces
 from softras_cl.fitting.recipes.body import (BodyFit, BodyFitConfig, BodyObjective, BodyScene, body_params,
                                              initial_translation, prepare_target, reprojection, rest_values)
 from softras_cl.fitting import losses
-from softras_cl.fitting.recipes.body_keypoints import KeypointLayout, keypoint_layout
+from softras_cl.fitting.keypoints.pose33 import KeypointLayout, keypoint_layout
 from softras_cl.fitting.solver import Stage, fit
 
 __all__ = ["PHOTO_BUDGETS", "PHOTO_WEIGHTS", "OBJECTIVES", "INPUTS", "MIN_VISIBILITY", "BodyPhotoObjective",

@@ -31,9 +31,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ContourLandmarks", "ContourChoice", "jaw_candidates", "mesh_edges", "front_facing", "contour_edges"]
+from softras_cl.fitting.keypoints import ibug68
 
-JAW = tuple(range(17))          # iBUG 300-W jaw line
+__all__ = ["ContourLandmarks", "ContourChoice", "jaw_candidates", "mesh_edges", "front_facing", "contour_edges"]
 
 
 @dataclass(frozen=True)
@@ -197,7 +197,7 @@ def _nearest_on_segments(segments, target) -> tuple[int, float]:
     return k, float(s[k] * w_a / (s[k] * w_a + (1.0 - s[k]) * w_b))
 
 
-def jaw_candidates(model, points=JAW) -> ContourLandmarks:
+def jaw_candidates(model, points=ibug68.JAW) -> ContourLandmarks:
     """ContourLandmarks for the model's jaw-line landmarks ``points`` (iBUG 0-16 by default, in
     order along the jaw), candidates from the mean shape (see the module docstring): for each
     point with outward normal n of the jaw line in the frontal (x, y) view (perpendicular to

@@ -38,7 +38,7 @@ e (summed over channels), or with ``robust_scale`` of its Geman-McClure kernel
 s^2 for what the model cannot explain (cast shadows, highlights, hair strands, glasses),
 ``landmarks`` = sum over points of weighted squared pixel distances (the jaw line's points that
 are turned away from the camera slide on the mesh's occluding contour, FaceFitConfig's
-contour_landmarks, see fitting/contour.py), optionally ``dense`` = the same over MediaPipe Face
+contour_landmarks, see fitting/recipes/contour.py), optionally ``dense`` = the same over MediaPipe Face
 Mesh's points (FaceFitConfig's dense_weight, off by default), priors = sum of squared
 coefficients. Read as negative log-likelihoods, ``w_landmarks = 1 / noise_px^2`` (2 px) and
 ``w_photo = 1 / noise_rgb^2``; the priors have weight 1. The defaults, chosen by measurement
@@ -71,20 +71,19 @@ from softras_cl.scene.renderer import SHARP, Renderer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.shading import SH_A, SHLight, sh_ambient, sh_basis, vertex_normals
 from softras_cl.fitting import losses
-from softras_cl.fitting.contour import ContourChoice, ContourLandmarks, jaw_candidates
-from softras_cl.fitting.detection.ibug68 import MP468_TO_IBUG68
+from softras_cl.fitting.keypoints import face_mesh, ibug68
+from softras_cl.fitting.keypoints.plausibility import check_distinct_landmarks, check_landmark_layout
 from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.models.face_model import LinearContext
 from softras_cl.fitting.models.mesh_lod import coarse_faces
 from softras_cl.fitting.params import Block, ParamSet
-from softras_cl.fitting.plausibility import check_distinct_landmarks, check_landmark_layout
+from softras_cl.fitting.recipes.contour import ContourChoice, ContourLandmarks, jaw_candidates
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
 __all__ = ["FaceFitConfig", "Crop", "FaceScene", "FaceFit", "BUDGETS", "landmark_weights", "default_stages",
            "depth_range", "half_resolution", "initial_pose", "initial_light", "prepare_photo", "face_params", "FaceObjective",
            "prepare_fit", "fit_face", "check_dense_inputs", "detected_dense", "psnr"]
 
-N_LANDMARKS = 68
 # Smallest working image (pixels a side). Measured on astronaut with the fast budget: the face
 # region left after the 2-pixel erosion and the eye and mouth cut-outs has 0 pixels at 16 (PSNR
 # NaN), 23 at 24, 66 at 32 and 245 at 48. A photo's face must therefore span at least
@@ -93,12 +92,6 @@ MIN_SIZE = 32
 # Smallest ratio of the landmarks' two singular values (centred): a face spans an area (0.92 on
 # both shipped photos); points on a line, or all at one point, fix no pose.
 MIN_LANDMARK_SPREAD = 0.05
-N_FACE_MESH = 468           # MediaPipe Face Mesh's points without its 10 iris points
-JAW = slice(0, 17)          # iBUG 300-W: jaw line; a fixed-vertex contour only approximates it
-# iBUG outlines: the face (jaw line, then the brows back) and what a skin model cannot explain
-# inside it (the eyes and the inside of the mouth)
-FACE_OUTLINE = tuple(range(0, 17)) + tuple(range(26, 16, -1))
-EXCLUDED_OUTLINES = (range(36, 42), range(42, 48), range(60, 68))
 CAMERA_ROTATION = np.diag([1.0, -1.0, -1.0])   # world (y up, camera looks down -z) -> OpenCV
 # Photometric stages whose sigma is at least this render at half the working resolution (see
 # FaceObjective.photo_level): the first stage of every budget. FaceFitConfig.coarse_sigma's default.
@@ -155,11 +148,11 @@ class FaceFitConfig:
         edge lengths (fitting.models.mesh_lod.coarse_faces; None: the model's own faces).
     contour_landmarks: "sliding": each jaw-line landmark (iBUG 0-16) whose fixed model point
         is turned away from the camera is the model's occluding contour point nearest to it,
-        re-chosen at every evaluation (fitting.contour); "fixed": every landmark is a fixed
+        re-chosen at every evaluation (fitting.recipes.contour); "fixed": every landmark is a fixed
         point of the model.
     landmark_map: which model points the 68 landmarks are tied to. "model": the model's own
         iBUG 300-W points, where an annotator (and dlib) puts them; "face-mesh": where MediaPipe
-        Face Mesh puts the mesh points that stand for them (fitting.detection.ibug68), from the
+        Face Mesh puts the mesh points that stand for them (fitting.keypoints.face_mesh), from the
         model's Face Mesh correspondence (its dense points; a point the correspondence does not
         use keeps the model's own, with no weight: tied_landmarks); "auto": "face-mesh" for landmarks MediaPipe found
         (fit_face's ``detector``) on a model with that correspondence, else "model". On the
@@ -281,8 +274,8 @@ def landmark_weights() -> np.ndarray:
     full weight measured no better (landmark stage alone, 6 faces per yaw bin: shape error
     2.80 / 2.66 mm at half weight against 2.80 / 2.69 mm at full weight for |yaw| 0-15 / 45-75
     degrees), so the half weight stays for both."""
-    w = np.ones(N_LANDMARKS)
-    w[JAW] = 0.5
+    w = np.ones(ibug68.COUNT)
+    w[ibug68.JAW] = 0.5
     return w
 
 
@@ -316,8 +309,8 @@ def _check_inputs(photo, landmarks) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(f"photo must be an (H, W, 3) RGB image, got shape {img.shape}")
     _check(lambda: check_finite("photo", img))
     pts = np.asarray(landmarks, np.float64)
-    if pts.shape != (N_LANDMARKS, 2):
-        raise InputError(f"landmarks must have shape ({N_LANDMARKS}, 2), got {pts.shape}")
+    if pts.shape != (ibug68.COUNT, 2):
+        raise InputError(f"landmarks must have shape ({ibug68.COUNT}, 2), got {pts.shape}")
     _check(lambda: check_finite("landmarks", pts))
     h, w = img.shape[:2]
     outside = (pts[:, 0] < -0.5) | (pts[:, 0] > w - 0.5) | (pts[:, 1] < -0.5) | (pts[:, 1] > h - 0.5)
@@ -604,7 +597,7 @@ class FaceObjective:
     image (H, W, 3) linear RGB; landmarks (68, 2) pixels; focal0: the focal length the
     focal prior is centred on; forehead: how far above the brows the face region reaches, in
     chin-to-nose-bridge distances; robust_scale: see :meth:`start_stage` (None: plain squared
-    errors); contour: the landmarks that slide on the occluding contour (fitting.contour; None:
+    errors); contour: the landmarks that slide on the occluding contour (fitting.recipes.contour; None:
     every landmark is the model's fixed point); dense: the photo's dense points (468, 2) pixels
     for the "dense" term (None: none; the model must have dense points); point_weights: (68,) the
     landmark term's weights (None: :func:`landmark_weights`). At the first evaluation of each photometric
@@ -773,8 +766,8 @@ class FaceObjective:
         """face_region from the render's alpha (H, W)."""
         from scipy.ndimage import binary_dilation, binary_erosion
 
-        region = (alpha > 0.5) & self._outlined([FACE_OUTLINE], self._forehead_points())
-        holes = self._outlined(EXCLUDED_OUTLINES, self.target)
+        region = (alpha > 0.5) & self._outlined([ibug68.FACE_OUTLINE], self._forehead_points())
+        holes = self._outlined(ibug68.OPENINGS, self.target)       # what a skin model cannot explain
         if self.mask_erosion > 0:
             region = binary_erosion(region, iterations=self.mask_erosion)
             holes = binary_dilation(holes, iterations=self.mask_erosion)
@@ -784,7 +777,7 @@ class FaceObjective:
         """The landmarks with the brows (17-26) raised by ``forehead`` times the chin (8) to
         nose-bridge (27) distance, along that direction: the outline then takes in the forehead."""
         pts = self.target.copy()
-        pts[17:27] += self.forehead * (pts[27] - pts[8])
+        pts[ibug68.BROWS] += self.forehead * (pts[ibug68.NOSE_BRIDGE_TOP] - pts[ibug68.CHIN])
         return pts
 
     def _outlined(self, outlines, points) -> np.ndarray:
@@ -881,9 +874,9 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
     history.json and loss_curve.png; Ctrl-C stops and keeps the best values (result.interrupted);
     ``resume`` continues from the checkpoint in ``out_dir`` (see softras_cl.fitting.solver).
     """
-    if model.n_landmarks != N_LANDMARKS:
+    if model.n_landmarks != ibug68.COUNT:
         raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
-                         f"{N_LANDMARKS} iBUG points (pass a landmark mapping file with the model)")
+                         f"{ibug68.COUNT} iBUG points (pass a landmark mapping file with the model)")
     check_dense_inputs(config, model, dense)
     model, point_weights = tied_landmarks(model, config.landmark_map, detector)
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
@@ -935,10 +928,10 @@ def landmark_model(model, landmark_map: str, detector: str | None = None):
     where its correspondence uses that point (dense_use), the model's own landmark elsewhere.
     InputError for "face-mesh" on a model without a Face Mesh correspondence."""
     check_landmark_map(landmark_map, model)
-    has_face_mesh = model.n_dense == N_FACE_MESH
+    has_face_mesh = model.n_dense == face_mesh.COUNT
     if landmark_map == "model" or (landmark_map == "auto" and not (detector == "mediapipe" and has_face_mesh)):
         return model
-    mesh_points = MP468_TO_IBUG68
+    mesh_points = face_mesh.MP468_TO_IBUG68
     used = model.dense_use[mesh_points]
     faces = np.where(used, model.dense_faces[mesh_points], model.landmark_faces)
     bary = np.where(used[:, None], model.dense_bary[mesh_points], model.landmark_bary)
@@ -955,15 +948,15 @@ def tied_landmarks(model, landmark_map: str, detector: str | None = None) -> tup
     tied = landmark_model(model, landmark_map, detector)
     weights = landmark_weights()
     if tied is not model:
-        weights[~model.dense_use[MP468_TO_IBUG68]] = 0.0
+        weights[~model.dense_use[face_mesh.MP468_TO_IBUG68]] = 0.0
     return tied, weights
 
 
 def check_landmark_map(landmark_map: str, model) -> None:
     """InputError unless ``model`` has what landmark_map (FaceFitConfig) needs: MediaPipe Face
     Mesh's points for "face-mesh"."""
-    if landmark_map == "face-mesh" and model.n_dense != N_FACE_MESH:
-        raise InputError(f"landmark_map 'face-mesh' needs a face model with MediaPipe Face Mesh's {N_FACE_MESH} "
+    if landmark_map == "face-mesh" and model.n_dense != face_mesh.COUNT:
+        raise InputError(f"landmark_map 'face-mesh' needs a face model with MediaPipe Face Mesh's {face_mesh.COUNT} "
                          f"points (dense_faces / dense_bary); face model {model.name or '(unnamed)'} has "
                          f"{model.n_dense} (the shipped demo model has them)")
 
@@ -997,4 +990,4 @@ def detected_dense(face) -> np.ndarray | None:
     candidate: landmarks from a file; dlib's candidates have none)."""
     if face is None or face.dense is None:
         return None
-    return np.asarray(face.dense[:N_FACE_MESH], np.float64)
+    return np.asarray(face.dense[:face_mesh.COUNT], np.float64)

@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from softras_cl.errors import InputError
+from softras_cl.fitting.keypoints import ibug68
 from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.recipes.face import FaceFitConfig, FaceScene, initial_pose, landmark_weights
 from softras_cl.fitting.solver import Stage, fit
@@ -149,7 +150,7 @@ class Identity:
 
     def to_arrays(self) -> dict:
         """Arrays for an .npz (see :meth:`from_arrays`)."""
-        offsets = np.zeros((68, 3)) if self.landmark_offsets is None else self.landmark_offsets
+        offsets = np.zeros((ibug68.COUNT, 3)) if self.landmark_offsets is None else self.landmark_offsets
         return dict(id=self.id, albedo=self.albedo, sh=self.sh, focal=np.array(self.focal),
                     pixel_scale=np.array(self.pixel_scale), keyframes=np.array(self.keyframes, np.int64),
                     landmark_offsets=offsets)
@@ -252,12 +253,12 @@ def detector_offsets(basis: "LandmarkBasis", camera, poses: list[dict], detected
     places, say, the jaw line on the face's outline rather than where the model has it, does so
     in every frame: the offsets carry what the keyframes' photometric fit told about it to the
     frames fitted from landmarks alone."""
-    normal = np.zeros((68, 3, 3))
-    rhs = np.zeros((68, 3))
+    normal = np.zeros((ibug68.COUNT, 3, 3))
+    rhs = np.zeros((ibug68.COUNT, 3))
     unit = np.eye(2)
     for values, points in zip(poses, detected):
         uv, (_, R, _, ctx) = project_landmarks(basis, camera, values)
-        rows = [camera.project_pixels_vjp(ctx, np.tile(unit[a], (68, 1)), camera=False)["vertices"] @ R
+        rows = [camera.project_pixels_vjp(ctx, np.tile(unit[a], (ibug68.COUNT, 1)), camera=False)["vertices"] @ R
                 for a in (0, 1)]
         J = np.stack(rows, axis=1)                                  # (68, 2, 3): d pixels / d model point
         normal += np.einsum("lai,laj->lij", J, J)
@@ -319,7 +320,7 @@ class LandmarkBasis:
         neutral = model.landmarks(model.shape(id_coeffs, np.zeros(model.n_exp))[0])[0]
         unit = np.eye(model.n_exp)
         self.basis = np.stack([model.landmarks(model.shape(id_coeffs, unit[k])[0])[0] - neutral
-                               for k in range(model.n_exp)]) if model.n_exp else np.zeros((0, 68, 3))
+                               for k in range(model.n_exp)]) if model.n_exp else np.zeros((0, ibug68.COUNT, 3))
         self.mean = neutral if offsets is None else neutral + offsets
 
     def points(self, exp) -> np.ndarray:
@@ -636,7 +637,7 @@ class FrameTracker:
         if landmarks is None:
             self.state = TrackerState(state.values, state.time, held=True)
             if state.values is None:
-                values, fitted = self._nan_values(), np.full((68, 2), np.nan)
+                values, fitted = self._nan_values(), np.full((ibug68.COUNT, 2), np.nan)
             else:
                 values, fitted = state.values, self.fitted_landmarks(state.values)
             return FrameResult(index, time_s, dict(values, sh=self.light_of(values)), None, fitted, True, {}, 0, 0.0)

@@ -30,10 +30,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from softras_cl.errors import InputError
+from softras_cl.fitting.keypoints import ibug68
+from softras_cl.fitting.keypoints.plausibility import check_landmark_layout
 from softras_cl.fitting.params import Block, ParamSet
-from softras_cl.fitting.plausibility import check_landmark_layout
-from softras_cl.fitting.recipes.face import (N_LANDMARKS, FaceFit, FaceFitConfig, FaceObjective,
-                                             default_stages, prepare_fit, tied_landmarks)
+from softras_cl.fitting.recipes.face import (FaceFit, FaceFitConfig, FaceObjective, default_stages, prepare_fit,
+                                             tied_landmarks)
 from softras_cl.fitting.solver import FitResult, Stage, fit
 from softras_cl.scene.renderer import SHARP
 
@@ -156,7 +157,7 @@ def prepare_view(photo, landmarks, model, config: FaceFitConfig, detector: str |
     """Photo (H, W, 3) linear RGB and its landmarks (68, 2) pixels, found by ``detector`` (as
     fit_face's) -> the View fit_face would start from (working image, camera, initial pose and
     light; the landmarks tied as config.landmark_map says). ResultError when the landmarks
-    cannot be a face's (fitting.plausibility.check_landmark_layout)."""
+    cannot be a face's (fitting.keypoints.plausibility.check_landmark_layout)."""
     tied, point_weights = tied_landmarks(model, config.landmark_map, detector)
     view = View(*prepare_fit(photo, landmarks, tied, config, point_weights=point_weights))
     check_landmark_layout(landmarks)      # after prepare_fit's input checks (shape, area, size)
@@ -217,9 +218,9 @@ def fit_face_views(photos, landmarks, model, config: FaceFitConfig | None = None
     """
     config = joint_config(FaceFitConfig()) if config is None else config
     _check_views(photos, landmarks, config, same_camera)
-    if model.n_landmarks != N_LANDMARKS:
+    if model.n_landmarks != ibug68.COUNT:
         raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
-                         f"{N_LANDMARKS} iBUG points (pass a landmark mapping file with the model)")
+                         f"{ibug68.COUNT} iBUG points (pass a landmark mapping file with the model)")
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
     detectors = [None] * len(photos) if detectors is None else detectors
     views = [prepare_view(p, lm, model, config, d) for p, lm, d in zip(photos, landmarks, detectors)]

@@ -32,6 +32,7 @@ from softras_cl.io.meshes import save_mesh
 from softras_cl.io.outputs import atomic_path, write_figure, write_json
 from softras_cl.scene.renderer import SHARP   # the report renders: the fitted surface, drawn sharp
 from softras_cl.scene.shading import SHLight
+from softras_cl.fitting.keypoints import ibug68
 from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.recipes.face import CAMERA_ROTATION, FaceFit, FaceScene
 from softras_cl.fitting.recipes.face_texture import (FaceTexture, estimate_texture, full_photo_scene,
@@ -48,9 +49,6 @@ OVERLAY_MAX = 1024       # longest side of overlay.png (the photo's own size whe
 SUPERSAMPLE = 3
 PANEL_INCHES = (3.4, 3.2)   # figure.png: width and height of one panel's cell
 TITLE_INCHES = 0.3         # the band above the panels for the figure's title
-# iBUG outlines of the openings the face models close with a cap (eyes) or a slit (mouth): the
-# pictures show the photo through them, as a skin model does not draw eyes or teeth
-OPENINGS = (tuple(range(36, 42)), tuple(range(42, 48)), tuple(range(60, 68)))
 OPENING_GROWTH = 1.15    # each opening's polygon grown about its centre (the lids' thickness)
 
 
@@ -88,14 +86,16 @@ def _downsample(image: np.ndarray, k: int) -> np.ndarray:
 
 
 def opening_mask(scene: FaceScene, values: dict, growth: float = OPENING_GROWTH) -> np.ndarray:
-    """(H, W) bool: inside the fitted eye and inner-mouth outlines (OPENINGS) of the scene's
-    image, each grown by ``growth`` about its centre."""
+    """(H, W) bool: inside the fitted eye and inner-mouth outlines (ibug68.OPENINGS) of the
+    scene's image, each grown by ``growth`` about its centre: the openings the face models close
+    with a cap (eyes) or a slit (mouth), where the pictures show the photo, as a skin model does
+    not draw eyes or teeth."""
     from skimage.draw import polygon
 
     world, _ = scene.geometry(values)
     points, _ = scene.camera(values["focal"][0]).project_pixels(scene.model.landmarks(world)[0])
     inside = np.zeros(scene.image_size, bool)
-    for outline in OPENINGS:
+    for outline in ibug68.OPENINGS:
         pts = points[list(outline)]
         pts = pts.mean(0) + growth * (pts - pts.mean(0))
         inside[polygon(pts[:, 1], pts[:, 0], inside.shape)] = True

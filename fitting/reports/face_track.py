@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.fitting.keypoints import ibug68
 from softras_cl.fitting.recipes.face_track import (FRAME_BLOCKS, FrameResult, Identity, TrackerState, head_angles_deg,
                                                    world_vertices)
 from softras_cl.io.meshes import save_mesh
@@ -69,9 +70,9 @@ def chunk_arrays(results: list[FrameResult]) -> dict:
     def stack(fn):
         return np.array([fn(r) for r in results])
 
-    nan68 = np.full((68, 2), np.nan)
+    no_face = np.full((ibug68.COUNT, 2), np.nan)
     arrays = dict(index=stack(lambda r: r.index), time=stack(lambda r: r.time), held=stack(lambda r: r.held),
-                  detected=stack(lambda r: nan68 if r.detected is None else r.detected),
+                  detected=stack(lambda r: no_face if r.detected is None else r.detected),
                   fitted=stack(lambda r: r.fitted), evaluations=stack(lambda r: r.evaluations),
                   seconds=stack(lambda r: r.seconds), sh=stack(lambda r: r.values["sh"]))
     for name in FRAME_BLOCKS:

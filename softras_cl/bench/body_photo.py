@@ -69,9 +69,9 @@ def clothing_colors(model, rng: np.random.Generator) -> np.ndarray:
 def paint_face(model, colors: np.ndarray, hair: np.ndarray) -> None:
     """Hair (above the brows, and the back of the head), dark eyes and a mouth on the head's
     vertices of ``colors`` (V, 3), in place, placed from the nose vertex
-    (fitting.recipes.body_keypoints.head_landmarks): without them a detector cannot tell the
+    (fitting.keypoints.pose33.head_landmarks): without them a detector cannot tell the
     bald, blank demo head's front from its back."""
-    from softras_cl.fitting.recipes.body_keypoints import head_landmarks
+    from softras_cl.fitting.keypoints.pose33 import head_landmarks
 
     marks = head_landmarks(model)
     if not marks:

@@ -55,6 +55,7 @@ import numpy as np
 
 from softras_cl.bench.tools import add_bench_parser, print_report
 from softras_cl.errors import InputError, ResultError
+from softras_cl.fitting.keypoints import ibug68
 from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
 
@@ -139,10 +140,10 @@ def photograph(model, truth: dict, rng: np.random.Generator, size: int = 256, si
 
 def draw_faces(model, rng: np.random.Generator, size: int, n: int, yaw_bin=None) -> tuple[list[dict], int]:
     """(n synthetic faces (:func:`synthetic_face`), how many were drawn again): a yaw bin's
-    face whose noisy landmarks the fit would refuse as no face's (fitting.plausibility: the
+    face whose noisy landmarks the fit would refuse as no face's (fitting.keypoints.plausibility: the
     jaw line crossing itself, where silhouette points lie closer together than the noise) is
     replaced by the next one drawn."""
-    from softras_cl.fitting.plausibility import layout_faults
+    from softras_cl.fitting.keypoints.plausibility import layout_faults
 
     faces, redrawn = [], 0
     while len(faces) < n:
@@ -200,12 +201,12 @@ def silhouette_jaw(scene, truth: dict, landmarks: np.ndarray) -> np.ndarray:
         world, scene.faces, camera, albedo=model.albedo(truth["albedo"])[0],
         light=SHLight(truth["sh"]), sigma=SHARP[0], gamma=SHARP[1])
     alpha, depth = out.alpha[0], out.depth[0]
-    jaw = model.landmarks(world)[0][:17]
-    outward = _jaw_normals(model.landmarks(model.mean_shape)[0][:17, :2])
+    jaw = model.landmarks(world)[0][ibug68.JAW]
+    outward = _jaw_normals(model.landmarks(model.mean_shape)[0][ibug68.JAW, :2])
     ahead, _ = camera.project_pixels(jaw + 1e-3 * outward @ axis_angle_to_matrix(truth["rotation"]).T)
     points, hidden = landmarks.copy(), []
     h, w = alpha.shape
-    for j in range(17):
+    for j in ibug68.JAW:
         u, v = (int(round(c)) for c in landmarks[j])
         if not (0 <= u < w and 0 <= v < h) or -jaw[j, 2] <= depth[v, u] + OCCLUDED_MM * 1e-3:
             continue                     # outside the image or not hidden (the camera looks down -z)
@@ -227,18 +228,18 @@ def in_jaw_order(points: np.ndarray, moved) -> np.ndarray:
     (i, i+1) and (j, j+1) cross and the points i+1..j were all moved, their order is reversed
     (each reversal shortens the line, so this ends). Points moved independently of each other
     may pass one another where the outline turns (the chin), which no annotator's line does."""
-    from softras_cl.fitting.plausibility import _segments_cross
+    from softras_cl.fitting.keypoints.plausibility import _segments_cross
 
-    jaw, moved = points[:17].copy(), set(moved)
+    jaw, moved = points[ibug68.JAW], set(moved)
     untangled = False
     while not untangled:
         untangled = True
-        for i, j in ((i, j) for i in range(15) for j in range(i + 2, 16)):
+        for i, j in ((i, j) for i in range(len(jaw) - 2) for j in range(i + 2, len(jaw) - 1)):
             if set(range(i + 1, j + 1)) <= moved and _segments_cross(jaw[i], jaw[i + 1], jaw[j], jaw[j + 1]):
                 jaw[i + 1:j + 1] = jaw[i + 1:j + 1][::-1].copy()
                 untangled = False
     out = points.copy()
-    out[:17] = jaw
+    out[ibug68.JAW] = jaw
     return out
 
 

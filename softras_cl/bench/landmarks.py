@@ -38,6 +38,7 @@ import numpy as np
 
 from softras_cl.bench.tools import add_bench_parser, print_report
 from softras_cl.errors import InputError
+from softras_cl.fitting.keypoints import ibug68
 from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
 
@@ -68,7 +69,8 @@ def nme(points, truth, which=slice(None)) -> float:
     divided by the truth's outer-eye-corner distance |truth[36] - truth[45]|."""
     points, truth = np.asarray(points, np.float64), np.asarray(truth, np.float64)
     error = np.linalg.norm(points[which] - truth[which], axis=1).mean()
-    return float(error / np.linalg.norm(truth[36] - truth[45]))
+    right, left = ibug68.OUTER_EYE_CORNERS
+    return float(error / np.linalg.norm(truth[right] - truth[left]))
 
 
 def owner(candidate, faces: list[dict]) -> int | None:
@@ -103,7 +105,7 @@ def score_frame(candidates, faces: list[dict], seconds: float) -> dict:
                second_found=len(faces) > 1 and 1 in owners, false_faces=owners.count(None))
     if mine:
         truth = faces[0]["landmarks"]
-        row.update(nme=nme(mine[0].landmarks, truth), nme_51=nme(mine[0].landmarks, truth, slice(17, 68)),
+        row.update(nme=nme(mine[0].landmarks, truth), nme_51=nme(mine[0].landmarks, truth, slice(ibug68.JAW.stop, ibug68.COUNT)),
                    offsets=face_frame_offsets(mine[0].landmarks, truth))
     return row
 
@@ -111,7 +113,8 @@ def score_frame(candidates, faces: list[dict], seconds: float) -> dict:
 def face_frame_offsets(points, truth) -> np.ndarray:
     """(68, 2) offsets points - truth in the truth face's own frame: turned so that its eye
     line (iBUG 36 -> 45) runs along +x, over the outer-eye-corner distance."""
-    eyes = truth[45] - truth[36]
+    right, left = ibug68.OUTER_EYE_CORNERS
+    eyes = truth[left] - truth[right]
     c, s = eyes / np.linalg.norm(eyes) ** 2
     return (np.asarray(points) - truth) @ np.array([[c, -s], [s, c]])
 

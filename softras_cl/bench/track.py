@@ -42,6 +42,7 @@ import numpy as np
 
 from softras_cl.bench.tools import add_bench_parser, print_report
 from softras_cl.errors import InputError
+from softras_cl.fitting.keypoints import ibug68
 from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
 
@@ -377,7 +378,7 @@ def run_sequence(model, rng, index: int, args, config, face_config, folder: Path
     tracked = run_tracker(model, sequence, config, factory, args.scan)
     results, identity = tracked["results"], tracked["identity"]
     tracker = FrameTracker(model, identity, (args.size, args.size), config)
-    used = np.array([r.detected if r.detected is not None else np.full((68, 2), np.nan) for r in results])
+    used = np.array([r.detected if r.detected is not None else np.full((ibug68.COUNT, 2), np.nan) for r in results])
     n = min(args.independent, len(results))
     detector = "mediapipe" if args.landmarks == "detected" else None
     independent = independent_measures(model, run_independent(model, sequence, _filled(used), face_config, n, detector),

@@ -87,7 +87,7 @@ def test_mitsuba_lines_only_with_mitsuba():
 
 
 def _jaw_crossings(points) -> int:
-    from softras_cl.fitting.plausibility import _jaw_crossings as crossings
+    from softras_cl.fitting.keypoints.plausibility import _jaw_crossings as crossings
 
     return crossings(points)
 
@@ -170,7 +170,7 @@ def test_contour_comparison_pairs_fixed_with_sliding_per_bin_and_budget():
 
 
 def test_yaw_bin_faces_are_turned_that_far_and_plausible(demo_face_model):
-    from softras_cl.fitting.plausibility import layout_faults
+    from softras_cl.fitting.keypoints.plausibility import layout_faults
     from softras_cl.scene.rotation import axis_angle_to_matrix
 
     faces, redrawn = bench.draw_faces(demo_face_model, np.random.default_rng(0), 96, 3, (45.0, 75.0))

@@ -6,7 +6,7 @@ import pytest
 
 from softras_cl.errors import InputError
 from softras_cl.fitting.recipes import body
-from softras_cl.fitting.recipes.body_keypoints import KEYPOINT_MAP, head_landmarks, keypoint_layout
+from softras_cl.fitting.keypoints.pose33 import KEYPOINT_MAP, head_landmarks, keypoint_layout
 from softras_cl.fitting.recipes.body_photo import (BodyPhotoObjective, camera_distance, input_kind,
                                                    keypoint_weights, photo_fov, photo_stages)
 from softras_cl.fitting.solver import Stage
@@ -151,7 +151,8 @@ def synthetic(demo_body_model):
 
 @pytest.mark.detect
 def test_detects_a_rendered_person_where_it_is(demo_body_model, synthetic):
-    from softras_cl.fitting.detection.people import MP33_NAMES, detect_person
+    from softras_cl.fitting.detection.people import detect_person
+    from softras_cl.fitting.keypoints import pose33
 
     found = detect_person(synthetic["image"])
     layout = keypoint_layout(demo_body_model)
@@ -162,7 +163,7 @@ def test_detects_a_rendered_person_where_it_is(demo_body_model, synthetic):
     assert seen.sum() >= 10 and np.median(error) < 8.0, error
     mask = found.mask > 0.5
     iou = (mask & synthetic["mask"]).sum() / (mask | synthetic["mask"]).sum()
-    assert iou > 0.7 and found.people == 1 and len(MP33_NAMES) == 33
+    assert iou > 0.7 and found.people == 1 and len(pose33.NAMES) == 33
     assert found.box[2] > 30 and found.box[3] > 80
 
 

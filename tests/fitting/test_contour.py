@@ -1,4 +1,4 @@
-"""Contour landmarks that slide (fitting.contour): mesh edges, the occluding contour, the
+"""Contour landmarks that slide (fitting.recipes.contour): mesh edges, the occluding contour, the
 choice of a candidate and its gradient plumbing, on meshes with known answers."""
 import math
 import re
@@ -6,7 +6,7 @@ import re
 import numpy as np
 import pytest
 
-from softras_cl.fitting import contour
+from softras_cl.fitting.recipes import contour
 from softras_cl.fitting.models.face_model import FaceModel
 
 

@@ -13,6 +13,7 @@ from support.face_scenes import (DATA, astronaut, nme, read_pts, small_face_in_l
 from softras_cl.errors import InputError, ResultError
 from softras_cl.fitting import detection as det
 from softras_cl.fitting.detection import faces, mediapipe_backend as mp
+from softras_cl.fitting.keypoints.face_mesh import MP468_TO_IBUG68
 from softras_cl.io.images import read_rgb8
 
 #: Largest NME (faces.nme: mean point error / outer-eye-corner distance) allowed against the
@@ -211,7 +212,7 @@ def test_shipped_photos(name, file):
     face = found[0]
     assert face.backend == "mediapipe" and 0.5 <= face.score <= 1
     assert face.landmarks.shape == (68, 2) and face.dense.shape == (478, 2)
-    np.testing.assert_array_equal(face.landmarks, face.dense[det.MP468_TO_IBUG68])
+    np.testing.assert_array_equal(face.landmarks, face.dense[MP468_TO_IBUG68])
     error = nme(face.landmarks, reference)
     print(f"{name}: NME {error:.4f} against the shipped .pts")
     assert error < MAX_NME

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from softras_cl.scene.rotation import axis_angle_to_matrix
+from softras_cl.fitting.keypoints import ibug68
 from softras_cl.fitting.recipes import face
 from softras_cl.bench.face import aligned_rmse, synthetic_face
 from softras_cl.fitting.solver import Stage
@@ -94,7 +95,7 @@ def test_face_region_is_the_render_inside_the_landmark_outline_less_eyes_and_mou
     rendered = scene.render(values, 1e-4, 1e-3).alpha[0] > 0.5
     full = face.FaceObjective(scene, np.zeros((40, 40, 3)), landmarks, mask_erosion=0)
     region = full.face_region(values, 1e-4, 1e-3)
-    holes = full._outlined(face.EXCLUDED_OUTLINES, landmarks)
+    holes = full._outlined(ibug68.OPENINGS, landmarks)
     assert holes[11, 10] and holes[29, 18] and holes.sum() <= 60  # an eye, the mouth: small boxes
     assert np.array_equal(region, rendered & ~holes)
     assert region.sum() > 100
@@ -481,7 +482,7 @@ def test_sliding_landmark_gradient_matches_central_differences_where_the_choice_
     """The landmark stage's objective with the jaw sliding, float64, at a pose where part of the
     jaw is turned away: every block against central differences, the choice the same in every
     evaluation of them."""
-    from softras_cl.fitting.contour import jaw_candidates
+    from softras_cl.fitting.recipes.contour import jaw_candidates
 
     sample = _turned_face(demo)
     values = dict(sample["truth"], id=sample["truth"]["id"] * 0.5, exp=sample["truth"]["exp"] * 0.5)
@@ -621,7 +622,7 @@ def test_landmark_map_ties_mediapipes_landmarks_to_its_face_mesh_points(landmark
     """"face-mesh" (and "auto" for MediaPipe's landmarks): landmark i is the model's Face Mesh
     point MP468_TO_IBUG68[i] where the correspondence uses it, the model's own point elsewhere;
     otherwise the model's own 68 points."""
-    from softras_cl.fitting.detection.ibug68 import MP468_TO_IBUG68
+    from softras_cl.fitting.keypoints.face_mesh import MP468_TO_IBUG68
     from softras_cl.fitting.models.face_loaders import load_demo_face_model
 
     model = load_demo_face_model()
@@ -666,7 +667,7 @@ def test_points_a_face_mesh_tie_leaves_at_the_models_own_have_no_weight(demo, de
     """tied_landmarks: with the Face Mesh tie, the 11 points its correspondence does not use (they
     keep the model's own point, far from MediaPipe's) weigh 0 in the landmark term, in the fit's
     objective and in its half-resolution copy; otherwise the weights are landmark_weights()."""
-    from softras_cl.fitting.detection.ibug68 import MP468_TO_IBUG68
+    from softras_cl.fitting.keypoints.face_mesh import MP468_TO_IBUG68
 
     tied, weights = face.tied_landmarks(demo, "auto", detector)
     unused = ~demo.dense_use[MP468_TO_IBUG68]

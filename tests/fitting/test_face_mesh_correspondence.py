@@ -4,7 +4,7 @@ the build did not use."""
 import numpy as np
 import pytest
 
-from softras_cl.fitting.detection.ibug68 import MP468_TO_IBUG68
+from softras_cl.fitting.keypoints.face_mesh import MP468_TO_IBUG68
 from softras_cl.fitting.models.face_loaders import load_demo_face_model
 from softras_cl.fitting.recipes.face import landmark_model
 from support.scripts import load_script

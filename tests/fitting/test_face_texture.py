@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from softras_cl.bench.face import random_truth
+from softras_cl.fitting.keypoints import ibug68
 from softras_cl.fitting.recipes import face
 from softras_cl.fitting.recipes import face_texture as ft
 from softras_cl.fitting.reports import face as report
@@ -82,7 +83,7 @@ def outline(scene, values, erode=1) -> np.ndarray:
 
     world, _ = scene.geometry(values)
     points, _ = scene.camera(values["focal"][0]).project_pixels(scene.model.landmarks(world)[0])
-    pts = points[list(face.FACE_OUTLINE)]
+    pts = points[list(ibug68.FACE_OUTLINE)]
     inside = np.zeros(scene.image_size, bool)
     inside[polygon(pts[:, 1], pts[:, 0], inside.shape)] = True
     inside &= binary_fill_holes(face_ids(scene, values) >= 0)

@@ -94,17 +94,6 @@ def test_shipped_pts_read_by_fitting_reader(face):
     np.testing.assert_allclose(read_landmarks(DATA / "landmarks" / f"{name}.pts", image_size=(h, w)), p, atol=1e-9)
 
 
-def test_mapping_table():
-    m = ld.MP468_TO_IBUG68
-    assert m.shape == (68,) and np.issubdtype(m.dtype, np.integer)
-    assert len(set(m.tolist())) == 68
-    assert (m >= 0).all() and (m < 468).all()
-    assert len(ld.IBUG68_NAMES) == 68
-    # well-known Face Mesh vertices: eye corners, mouth corners, chin, nose tip
-    assert (m[36], m[39], m[42], m[45]) == (33, 133, 362, 263)
-    assert (m[48], m[54], m[8], m[30]) == (61, 291, 152, 4)
-
-
 def test_format_pts_is_one_based():
     text = ld.format_pts(np.array([[0.0, 0.0], [9.5, 19.25]]))
     assert text == "version: 1\nn_points: 2\n{\n1.000 1.000\n10.500 20.250\n}\n"

@@ -1,5 +1,6 @@
-"""fitting.plausibility: landmarks that cannot be a face's iBUG points, and face fits that cannot
-be right, are refused; real faces at any roll, mirrored or turned, are not."""
+"""fitting.keypoints.plausibility and fitting.metrics.check_face_result: landmarks that cannot be a
+face's iBUG points, and face fits that cannot be right, are refused; real faces at any roll,
+mirrored or turned, are not."""
 import re
 
 import numpy as np
@@ -7,9 +8,8 @@ import pytest
 
 from support.landmark_layouts import mirrored, rolled, shuffled
 from softras_cl.errors import InputError, ResultError
-from softras_cl.fitting.metrics import finite_metrics
-from softras_cl.fitting.plausibility import (MAX_LANDMARK_ERROR, MIN_FACE_PIXELS, check_distinct_landmarks,
-                                             check_face_result, check_landmark_layout, layout_faults)
+from softras_cl.fitting.keypoints.plausibility import check_distinct_landmarks, check_landmark_layout, layout_faults
+from softras_cl.fitting.metrics import MAX_LANDMARK_ERROR, MIN_FACE_PIXELS, check_face_result, finite_metrics
 from softras_cl.io.landmarks import read_landmarks
 
 PHOTOS = {"astronaut": 512, "grace_hopper": 512}       # name -> photo width

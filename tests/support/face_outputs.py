@@ -26,7 +26,7 @@ def check_landmark_files(folder: Path, model, given: np.ndarray) -> None:
     """landmarks_detected.pts holds ``given`` (68, 2), the points the fit was given; and
     landmarks_fitted.pts the model's landmarks (tied as fit-face ties them by default:
     landmark_model "auto" for the source params.json names) projected with the fitted camera (the jaw line's
-    17 may slide to the occluding contour, fitting.contour: the other 51 are the model's own
+    17 may slide to the occluding contour, fitting.recipes.contour: the other 51 are the model's own
     points), at the mean distance from the given points (over those the fit weighs) that
     params.json reports as the landmark error."""
     from softras_cl.fitting.recipes.face import tied_landmarks
