@@ -23,24 +23,21 @@ keeps its shape, pose and SH light and reads the skin's detail from the photo it
    with the fitted model albedo, so seams fade instead of cutting.
 
 :func:`render_textured` draws the textured face lit by the fitted light (softras-cl's uv
-texture path times the vertex shading); :func:`save_textured_obj` writes OBJ + MTL + PNG.
+texture path times the vertex shading); fitting.reports.face.save_textured_obj writes OBJ + MTL + PNG.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from softras_cl.io.images import write_image
-from softras_cl.io.outputs import write_text
 from softras_cl.raster.rasterizer import SoftRasterizer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.renderer import Renderer
 from softras_cl.scene.shading import SHLight, shade_vertices, vertex_normals
 
 __all__ = ["TEXTURE_SIZE", "UVLayout", "FaceTexture", "cylindrical_uvs", "uv_layout", "face_uv_layout",
-           "full_photo_scene", "estimate_texture", "render_textured", "save_textured_obj"]
+           "full_photo_scene", "estimate_texture", "render_textured"]
 
 TEXTURE_SIZE = 512       # texels a side: about twice the face's pixels in a 512 px photo
 AXIS_DEPTH = 0.10        # the unrolling axis, metres behind the face's frontmost point (the nose tip)
@@ -290,23 +287,3 @@ def render_textured(scene, values, texture: FaceTexture, sigma: float, gamma: fl
     shading = scene.render(values, sigma, gamma, albedo=np.ones_like(world), world=world)
     return unlit.rgb[0] * shading.rgb[0], unlit.alpha[0]
 
-
-def save_textured_obj(path, vertices, faces, uvs, texture) -> None:
-    """Write ``path`` (.obj) with ``v``, ``vt`` (one per vertex) and ``f a/a b/b c/c``, its
-    material ``<stem>.mtl`` (map_Kd) and the texture ``<stem>.png`` (texture (S, S, 3) linear
-    RGB, written sRGB 8-bit) beside it; every file replaced atomically."""
-    path = Path(path)
-    stem = path.stem
-    write_image(path.with_suffix(".png"), np.clip(texture, 0.0, 1.0))
-    write_text(path.with_suffix(".mtl"), f"newmtl face\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\n"
-                                         f"map_Kd {stem}.png\n")
-    vertices, uvs = np.asarray(vertices, np.float64), np.asarray(uvs, np.float64)
-    corners = np.repeat(np.asarray(faces, np.int64) + 1, 2, axis=1)        # a/a b/b c/c
-    write_text(path, "".join([f"# softras-cl face fit with its detail texture\nmtllib {stem}.mtl\n",
-                              _rows("v %.8f %.8f %.8f\n", vertices), _rows("vt %.6f %.6f\n", uvs),
-                              "usemtl face\n", _rows("f %d/%d %d/%d %d/%d\n", corners)]))
-
-
-def _rows(line: str, table: np.ndarray) -> str:
-    """``line`` (a %-format of one row) applied to every row of table (N, C), in one format."""
-    return (line * len(table)) % tuple(table.ravel().tolist())

@@ -29,14 +29,13 @@ import numpy as np
 from softras_cl.scene.rotation import axis_angle_to_matrix
 from softras_cl.io.images import PNG_OPTIONS, to_srgb, write_image
 from softras_cl.io.meshes import save_mesh
-from softras_cl.io.outputs import atomic_path, write_figure, write_json
+from softras_cl.io.outputs import atomic_path, write_figure, write_json, write_text
 from softras_cl.scene.renderer import SHARP   # the report renders: the fitted surface, drawn sharp
 from softras_cl.scene.shading import SHLight
 from softras_cl.fitting.keypoints import ibug68
 from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.recipes.face import CAMERA_ROTATION, FaceFit, FaceScene
-from softras_cl.fitting.recipes.face_texture import (FaceTexture, estimate_texture, full_photo_scene,
-                                                     render_textured, save_textured_obj)
+from softras_cl.fitting.recipes.face_texture import FaceTexture, estimate_texture, full_photo_scene, render_textured
 from softras_cl.fitting.detection import PhotoLandmarks
 from softras_cl.io.landmarks import write_pts
 from softras_cl.provenance import provenance
@@ -312,6 +311,27 @@ def write_landmarks(fit: FaceFit, found: PhotoLandmarks, out: Path) -> None:
     write_pts(out / "landmarks_fitted.pts", fitted_photo_landmarks(fit))
     if found.detection is not None:
         write_json(out / "detection.json", found.detection.to_json())
+
+
+def save_textured_obj(path, vertices, faces, uvs, texture) -> None:
+    """Write ``path`` (.obj) with ``v``, ``vt`` (one per vertex) and ``f a/a b/b c/c``, its
+    material ``<stem>.mtl`` (map_Kd) and the texture ``<stem>.png`` (texture (S, S, 3) linear
+    RGB, written sRGB 8-bit) beside it; every file replaced atomically."""
+    path = Path(path)
+    stem = path.stem
+    write_image(path.with_suffix(".png"), np.clip(texture, 0.0, 1.0))
+    write_text(path.with_suffix(".mtl"), f"newmtl face\nKa 1 1 1\nKd 1 1 1\nKs 0 0 0\nillum 1\n"
+                                         f"map_Kd {stem}.png\n")
+    vertices, uvs = np.asarray(vertices, np.float64), np.asarray(uvs, np.float64)
+    corners = np.repeat(np.asarray(faces, np.int64) + 1, 2, axis=1)        # a/a b/b c/c
+    write_text(path, "".join([f"# softras-cl face fit with its detail texture\nmtllib {stem}.mtl\n",
+                              _rows("v %.8f %.8f %.8f\n", vertices), _rows("vt %.6f %.6f\n", uvs),
+                              "usemtl face\n", _rows("f %d/%d %d/%d %d/%d\n", corners)]))
+
+
+def _rows(line: str, table: np.ndarray) -> str:
+    """``line`` (a %-format of one row) applied to every row of table (N, C), in one format."""
+    return (line * len(table)) % tuple(table.ravel().tolist())
 
 
 def write_outputs(fit: FaceFit, photo: np.ndarray, landmarks: PhotoLandmarks, out_dir,

@@ -261,7 +261,7 @@ def test_textured_obj_round_trips_and_renders_the_same(demo, layout, tmp_path):
     values = truth(demo, 2)
     known = smooth_texture(layout.size)
     shape = demo.shape(values["id"], values["exp"])[0]
-    ft.save_textured_obj(tmp_path / "face_textured.obj", shape, demo.faces, layout.uvs, known)
+    report.save_textured_obj(tmp_path / "face_textured.obj", shape, demo.faces, layout.uvs, known)
     assert {p.name for p in tmp_path.iterdir()} == {"face_textured.obj", "face_textured.mtl", "face_textured.png"}
     mesh = load_mesh(tmp_path / "face_textured.obj")
     np.testing.assert_allclose(mesh.vertices, shape, atol=1e-7)
