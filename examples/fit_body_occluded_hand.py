@@ -33,7 +33,7 @@ from softras_cl.fitting.models.body_loaders import load_demo_body_model
 
 from softras_cl.scene.renderer import SHARP
 from softras_cl.scene.rotation import matrix_to_axis_angle
-from softras_cl.io.images import to_srgb
+from softras_cl.srgb import to_srgb
 
 SNAPSHOTS = (0, 20, 50, 100, 200)    # evaluations shown in the strip (plus the last one)
 HAND = "right_hand"

@@ -172,7 +172,7 @@ def comparison_image(path: Path, target_alpha, fitted_alpha, template_alpha, his
 def shaded_views(meshes: list, size: int = 160) -> list:
     """Face-shaded renders (sRGB uint8) of each (label, vertices, faces) from two directions."""
     from softras_cl.scene.camera import Camera
-    from softras_cl.io.images import to_srgb
+    from softras_cl.srgb import to_srgb
     from softras_cl.scene.renderer import Renderer
     from softras_cl.raster.settings import RasterSettings
     settings = RasterSettings(image_size=(size, size), sigma=1e-7, gamma=1e-5, double_sided=True,

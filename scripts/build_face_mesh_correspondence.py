@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.io.images import to_srgb
+from softras_cl.srgb import to_srgb
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.camera import Camera
 from softras_cl.scene.renderer import Renderer

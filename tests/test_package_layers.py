@@ -1,7 +1,9 @@
 """The package's layers import only downwards, and every package directory ships.
 
 Layers (lowest first): softras_cl.checks (numpy only) and softras_cl.errors (the error classes
-and exit codes) stand below everything; softras_cl.io stands alone;
+and exit codes) stand below everything; softras_cl.srgb (the sRGB transfer functions, numpy
+only) stands below io and the layers that convert colours (validate, fitting, cli, bench);
+softras_cl.io stands alone on it;
 softras_cl.cl < softras_cl.raster (and the top-level ``softras_cl``, which re-exports it)
 < softras_cl.scene < softras_cl.validate < softras_cl.fitting < softras_cl.cli / softras_cl.bench.
 softras_cl.provenance (versions, device, machine of a result) sits on cl and the top level and
@@ -39,16 +41,17 @@ ALLOWED = {
     "checks": set(),
     "errors": set(),
     "interrupts": set(),
-    "io": LOW,
+    "srgb": set(),
+    "io": LOW | {"srgb"},
     "cl": LOW,
     "raster": LOW | {"cl"},
     "root": LOW | {"cl", "raster"},
     "scene": LOW | {"cl", "raster", "root"},
     "provenance": LOW | {"cl", "raster", "root"},
-    "validate": LOW | {"cl", "raster", "root", "scene", "io", "provenance"},
-    "fitting": LOW | {"cl", "raster", "root", "scene", "io", "provenance", "validate"},
-    "cli": LOW | {"cl", "raster", "root", "scene", "io", "provenance", "validate", "fitting", "bench"},
-    "bench": LOW | {"cl", "raster", "root", "scene", "io", "provenance", "validate", "fitting", "cli",
+    "validate": LOW | {"cl", "raster", "root", "scene", "srgb", "io", "provenance"},
+    "fitting": LOW | {"cl", "raster", "root", "scene", "srgb", "io", "provenance", "validate"},
+    "cli": LOW | {"cl", "raster", "root", "scene", "srgb", "io", "provenance", "validate", "fitting", "bench"},
+    "bench": LOW | {"cl", "raster", "root", "scene", "srgb", "io", "provenance", "validate", "fitting", "cli",
                     "interop", "torch", "jax"},
     # the PyTorch / JAX bridges and their shared numpy plumbing sit on the numpy API (raster, scene)
     "interop": LOW | {"cl", "raster", "root", "scene"},

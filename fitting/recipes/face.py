@@ -848,7 +848,7 @@ class FaceFit:
         """Landmark error (mean pixel distance, working and full resolution, over the landmarks
         the fit weighs: a Face Mesh tie gives 11 no weight, tied_landmarks) and the PSNR of the
         final render in the face region, in sRGB (what a viewer sees), dB."""
-        from softras_cl.io.images import to_srgb
+        from softras_cl.srgb import to_srgb
 
         used = self.objective.landmark_weights > 0
         err = float(np.linalg.norm(self.fitted_landmarks()[used] - self.landmarks[used], axis=1).mean())

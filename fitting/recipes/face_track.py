@@ -469,7 +469,7 @@ def _linear_at(image, uv) -> np.ndarray:
     """(N, 3) linear RGB of image (H, W, 3) uint8 sRGB at uv (N, 2) pixels (0-based centres,
     inside the image), bilinear between the four pixels around each point, each decoded to
     linear first (through a table of the 256 values: the frame itself is not decoded)."""
-    from softras_cl.io.images import to_linear
+    from softras_cl.srgb import to_linear
 
     linear = to_linear(np.arange(256) / 255.0)
     h, w = image.shape[:2]

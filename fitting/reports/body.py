@@ -36,7 +36,7 @@ def save_overlay(fit: BodyFit, target: np.ndarray, path: Path) -> None:
     from matplotlib.figure import Figure
     from skimage.transform import resize
 
-    from softras_cl.io.images import to_srgb
+    from softras_cl.srgb import to_srgb
 
     scene = full_size_scene(fit)
     state, _ = scene.pose(fit.values)
@@ -105,7 +105,7 @@ def write_outputs(fit: BodyFit, target: np.ndarray, out_dir, extra: dict | None 
 # ---------------------------------------------------------------------------------------------
 
 def _photo_axes(image: np.ndarray, scale: float, ax) -> None:
-    from softras_cl.io.images import to_srgb
+    from softras_cl.srgb import to_srgb
 
     h, w = image.shape[:2]
     ax.imshow(to_srgb(np.clip(image, 0, 1)), extent=(-0.5, w * scale - 0.5, h * scale - 0.5, -0.5))

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from softras_cl.scene.rotation import axis_angle_to_matrix
-from softras_cl.io.images import PNG_OPTIONS, to_srgb, write_image
+from softras_cl.io.images import PNG_OPTIONS, write_image
 from softras_cl.io.meshes import save_mesh
 from softras_cl.io.outputs import atomic_path, write_figure, write_json, write_text
 from softras_cl.scene.renderer import SHARP   # the report renders: the fitted surface, drawn sharp
@@ -39,6 +39,7 @@ from softras_cl.fitting.recipes.face_texture import FaceTexture, estimate_textur
 from softras_cl.fitting.detection import PhotoLandmarks
 from softras_cl.io.landmarks import write_pts
 from softras_cl.provenance import provenance
+from softras_cl.srgb import to_srgb
 
 OVERLAY_MAX = 1024       # longest side of overlay.png (the photo's own size when smaller)
 # Samples a side per pixel of the pictures. One sample per pixel draws the thin creases of the

@@ -166,7 +166,7 @@ class OverlayDrawer:
         from skimage.transform import resize
 
         from softras_cl.fitting.reports.face import composite, draw
-        from softras_cl.io.images import to_linear, to_srgb
+        from softras_cl.srgb import to_linear, to_srgb
 
         small = resize(frame_rgb8, self.size, order=1, anti_aliasing=self.scale < 1.0, preserve_range=True) / 255.0
         over = small

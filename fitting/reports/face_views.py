@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.io.images import to_srgb
+from softras_cl.srgb import to_srgb
 from softras_cl.io.meshes import save_mesh
 from softras_cl.io.outputs import atomic_path, write_figure, write_json
 from softras_cl.fitting.recipes.face_views import FaceViewsFit

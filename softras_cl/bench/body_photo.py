@@ -94,7 +94,7 @@ def background(name: str, size: int) -> np.ndarray:
     import skimage.data
     from skimage.transform import resize
 
-    from softras_cl.io.images import to_linear
+    from softras_cl.srgb import to_linear
 
     image = getattr(skimage.data, name)()
     image = np.repeat(image[..., None], 3, -1) if image.ndim == 2 else image[..., :3]
@@ -112,7 +112,7 @@ def synthetic_photo(model, rng: np.random.Generator, size: int, fov_deg: float) 
     from softras_cl.raster.settings import RasterSettings
     from softras_cl.scene.camera import Camera
     from softras_cl.scene.renderer import SHARP, Renderer
-    from softras_cl.io.images import to_srgb
+    from softras_cl.srgb import to_srgb
 
     truth = random_pose(model, rng)
     state, _ = model.forward(truth["betas"], truth["body_pose"], truth["global_rotation"], truth["translation"])

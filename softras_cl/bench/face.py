@@ -163,7 +163,7 @@ def detect_samples(samples: list[dict]) -> tuple[list[dict], list[dict], int]:
     from softras_cl.fitting.detection.faces import ImplausibleFaceError, NoFaceError
     from softras_cl.fitting.detection.find import detect_face
     from softras_cl.fitting.recipes.face import detected_dense
-    from softras_cl.io.images import to_srgb
+    from softras_cl.srgb import to_srgb
 
     truth, detected, missed = [], [], 0
     for sample in samples:

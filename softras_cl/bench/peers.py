@@ -239,7 +239,7 @@ def save_chart(result: dict, images: dict, path: Path) -> None:
     rgb from each side with their difference."""
     from matplotlib.figure import Figure
 
-    from softras_cl.io.images import to_srgb
+    from softras_cl.srgb import to_srgb
 
     fig = Figure(figsize=(17, 4.2))
     axes = fig.subplots(1, 4)

@@ -28,7 +28,7 @@ def save_image_strip(columns, path: Path, cell=(2.4, 2.6)) -> None:
     image, top title, bottom title) with (H, W, 3) linear-RGB images, shown in sRGB."""
     from matplotlib.figure import Figure
 
-    from softras_cl.io.images import to_srgb
+    from softras_cl.srgb import to_srgb
 
     n = len(columns)
     fig = Figure(figsize=(cell[0] * n, 2 * cell[1]))

@@ -102,7 +102,7 @@ def background(name: str, size: int) -> np.ndarray:
     import skimage.data
     from skimage.transform import resize
 
-    from softras_cl.io.images import to_linear
+    from softras_cl.srgb import to_linear
 
     photo = getattr(skimage.data, name)()[..., :3]
     h, w = photo.shape[:2]
@@ -131,7 +131,7 @@ def render_frames(model, truth: list[dict], back: np.ndarray):
 
 def srgb8(linear: np.ndarray) -> np.ndarray:
     """(H, W, 3) linear RGB clipped to [0, 1] -> uint8 sRGB."""
-    from softras_cl.io.images import to_srgb
+    from softras_cl.srgb import to_srgb
 
     return np.round(to_srgb(np.clip(linear, 0, 1)) * 255).astype(np.uint8)
 
@@ -305,7 +305,7 @@ def run_independent(model, sequence: dict, landmarks: np.ndarray, config, frames
     found by ``detector`` (fit_face's; None: the true ones): (its FaceFit, or the ValueError that
     stopped it (a fit that put the face behind the camera), seconds) per frame."""
     from softras_cl.fitting.recipes.face import fit_face
-    from softras_cl.io.images import to_linear
+    from softras_cl.srgb import to_linear
     from softras_cl.io.video import open_video
 
     fits = []
@@ -500,7 +500,8 @@ def save_pictures(rows: list[dict], folder: Path) -> None:
     sequence, the tracker's and the independent fits' jitter)."""
     from matplotlib.figure import Figure
 
-    from softras_cl.io.images import to_linear, write_image
+    from softras_cl.io.images import write_image
+    from softras_cl.srgb import to_linear
 
     if rows and rows[0]["tracker_strip"]:
         write_image(folder / "track_strip.png", to_linear(np.concatenate(rows[0]["tracker_strip"], axis=0) / 255.0))

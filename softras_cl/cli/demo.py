@@ -35,7 +35,7 @@ def render_demo(out: str | Path = DEFAULT_OUT, size: int = 512, subdivisions: in
     import matplotlib.image
     import numpy as np
 
-    from softras_cl.io.images import to_srgb
+    from softras_cl.srgb import to_srgb
 
     from softras_cl.scene.meshes import screen_space_sphere
     from softras_cl.raster.rasterizer import SoftRasterizer

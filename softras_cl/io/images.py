@@ -1,9 +1,8 @@
 """Image files in and out, in linear RGB.
 
-All shading and losses in softras-cl work in linear RGB; files hold sRGB-encoded values. The
-transfer functions are IEC 61966-2-1's piecewise curves, written here in numpy (equal to
-colour-science's `cctf_decoding` / `cctf_encoding` with function="sRGB", which a test checks,
-without its ~1 s import on every run). Alpha is never encoded: it is stored and returned linear.
+All shading and losses in softras-cl work in linear RGB; files hold sRGB-encoded values,
+decoded and encoded with softras_cl.srgb's transfer functions (to_linear, to_srgb). Alpha is
+never encoded: it is stored and returned linear.
 
 - `read_image(path)`: (H, W, 3) or (H, W, 4) float64, linear RGB (+ alpha as stored, in [0, 1]).
   8-bit and 16-bit files; greyscale becomes 3 equal channels (grey + alpha: RGBA); palette
@@ -16,8 +15,6 @@ without its ~1 s import on every run). Alpha is never encoded: it is stored and 
 - `image_format(path)`: the format write_image picks from the extension, or an InputError
   saying what is expected (a folder, no or an unknown extension): a command checks its output
   path with it before the work.
-- `to_srgb(linear)` / `to_linear(srgb)`: the transfer functions alone, on every value of any
-  array (no clipping: values outside [0, 1] follow the curves' extensions).
 """
 from __future__ import annotations
 
@@ -27,8 +24,9 @@ import numpy as np
 
 from softras_cl.errors import InputError
 from softras_cl.io.outputs import atomic_path
+from softras_cl.srgb import to_linear, to_srgb
 
-__all__ = ["read_image", "write_image", "image_format", "to_srgb", "to_linear", "COMMON_SUFFIXES"]
+__all__ = ["read_image", "write_image", "image_format", "COMMON_SUFFIXES"]
 
 # the extensions write_image is mostly used with (it writes any format Pillow writes)
 COMMON_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
@@ -37,31 +35,6 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # write, files about 10% larger; figures use it too (PNG_OPTIONS, matplotlib's savefig)
 PNG_COMPRESSION = 1
 PNG_OPTIONS = dict(pil_kwargs={"compress_level": PNG_COMPRESSION})
-
-
-def _curve(x: np.ndarray, knee: float, below, above) -> np.ndarray:
-    """below(x) where x <= knee, else above(x) (NaN included), as float64 of x's shape; above,
-    the power, is evaluated on those values only (it is most of the cost)."""
-    out = np.array(below(x), dtype=np.float64)
-    upper = ~(x <= knee)
-    out[upper] = above(x[upper])
-    return out
-
-
-_LINEAR_KNEE = 0.0031308
-_ENCODED_KNEE = 1.055 * _LINEAR_KNEE ** (1.0 / 2.4) - 0.055   # 0.0404499..., where the curves meet
-
-
-def to_linear(srgb) -> np.ndarray:
-    """sRGB-encoded values (any shape) -> linear values, float64 (IEC 61966-2-1 decoding)."""
-    v = np.asarray(srgb, dtype=np.float64)
-    return _curve(v, _ENCODED_KNEE, lambda v: v / 12.92, lambda v: ((v + 0.055) / 1.055) ** 2.4)
-
-
-def to_srgb(linear) -> np.ndarray:
-    """Linear values (any shape) -> sRGB-encoded values, float64 (IEC 61966-2-1 encoding)."""
-    x = np.asarray(linear, dtype=np.float64)
-    return _curve(x, _LINEAR_KNEE, lambda x: x * 12.92, lambda x: 1.055 * x ** (1.0 / 2.4) - 0.055)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -45,7 +45,8 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.io.images import pil_to_array, to_linear, to_srgb
+from softras_cl.io.images import pil_to_array
+from softras_cl.srgb import to_linear, to_srgb
 from softras_cl.io.outputs import write_bytes, write_text
 
 __all__ = ["Mesh", "load_mesh", "save_mesh", "MESH_EXTENSIONS", "SAVE_EXTENSIONS"]

@@ -168,7 +168,7 @@ def save_comparison(result: Comparison, path: Path, title: str = "",
     """PNG: ours | reference | |difference| (x10) | depth difference, with the metrics as title."""
     from matplotlib.figure import Figure
 
-    from softras_cl.io.images import to_srgb
+    from softras_cl.srgb import to_srgb
 
     m = result.metrics
     fig = Figure(figsize=(16, 4.6))

@@ -36,7 +36,8 @@ def test_targets_compare_full_with_keypoints_only():
 
 def test_a_mitsuba_photo_is_the_same_person_lit_by_a_sun(demo_body_model, tmp_path):
     from softras_cl.bench.body_photo import cached_mitsuba_photo, mitsuba_photo
-    from softras_cl.io.images import to_srgb, write_image
+    from softras_cl.io.images import write_image
+    from softras_cl.srgb import to_srgb
     from softras_cl.validate.mitsuba import mitsuba_available
     from softras_cl.validate.mitsuba_face import silhouette_iou
 

@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from softras_cl.io.images import read_image, to_linear, to_srgb, write_image
+from softras_cl.io.images import read_image, write_image
+from softras_cl.srgb import to_linear, to_srgb
 
 
 def srgb_formula(x):

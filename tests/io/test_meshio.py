@@ -9,7 +9,7 @@ from PIL import Image
 from trimesh.visual import TextureVisuals
 from trimesh.visual.material import PBRMaterial
 
-from softras_cl.io.images import to_linear, to_srgb
+from softras_cl.srgb import to_linear, to_srgb
 from softras_cl.io.meshes import Mesh, load_mesh, save_mesh
 
 TETRA_V = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
