@@ -123,20 +123,25 @@ class RasterContext:
 
 
 @dataclass
-class RasterOutput:
-    """Images of one forward call, each cropped to (B, H, W[, 3]) in the settings' dtype;
-    None for outputs not requested. `saved` holds what backward needs; None when forward was
-    called without grads."""
+class ForwardImages:
+    """The images of a forward call: rgb (B, H, W, 3), alpha and depth (B, H, W) in the
+    settings' dtype; None for outputs not requested."""
     rgb: np.ndarray | None
     alpha: np.ndarray | None
     depth: np.ndarray | None
-    saved: RasterContext | None = None
 
     def rgba(self) -> np.ndarray:
         """(B, H, W, 4): rgb and alpha side by side (both must have been requested)."""
         if self.rgb is None or self.alpha is None:
             raise ValueError("rgba() needs both 'rgb' and 'alpha' in settings.outputs")
         return np.concatenate([self.rgb, self.alpha[..., None]], axis=-1)
+
+
+@dataclass
+class RasterOutput(ForwardImages):
+    """Images of one SoftRasterizer.forward call, each cropped to (B, H, W[, 3]) (ForwardImages).
+    `saved` holds what backward needs; None when forward was called without grads."""
+    saved: RasterContext | None = None
 
 
 class SoftRasterizer:

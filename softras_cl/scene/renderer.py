@@ -24,7 +24,7 @@ from softras_cl.scene import shading
 from softras_cl.scene.camera import Camera, ProjectionContext
 from softras_cl.scene.rotation import rodrigues_vjp
 from softras_cl.raster.corners import scatter_corners
-from softras_cl.raster.rasterizer import RUN_FIELDS, RasterOutput, SoftRasterizer
+from softras_cl.raster.rasterizer import RUN_FIELDS, ForwardImages, RasterOutput, SoftRasterizer
 from softras_cl.raster.settings import RasterSettings
 
 SHADINGS = ("vertex", "face", "pixel", "none")
@@ -60,16 +60,10 @@ class RenderContext:
 
 
 @dataclass
-class RenderOutput:
-    """Images (B, H, W[, 3]) of one forward call (None where not in settings.outputs), and
-    what backward needs."""
-    rgb: np.ndarray | None
-    alpha: np.ndarray | None
-    depth: np.ndarray | None
+class RenderOutput(ForwardImages):
+    """Images (B, H, W[, 3]) of one Renderer.forward call (ForwardImages), and what backward
+    needs."""
     saved: RenderContext | None = None
-
-    def rgba(self) -> np.ndarray:
-        return np.concatenate([self.rgb, self.alpha[..., None]], axis=-1)
 
 
 class Renderer:
