@@ -11,6 +11,11 @@ from softras_cl.cli.view import add_view_options, check_command_memory, finite_f
 # measured from max RSS at 512^2 and 1024^2 (350).
 BYTES_PER_PIXEL = 400
 
+DESCRIPTION = ("Render a mesh with softras-cl at sharp settings (sigma 1e-7, gamma 1e-6) and with a "
+               "trimesh/Embree ray cast through every pixel centre (same camera, Lambert per vertex, or "
+               "unlit texture); report silhouette IoU, depth error on interior pixels and PSNR/SSIM, and "
+               "write a side-by-side PNG with difference maps.")
+
 
 def _run_compare(args: argparse.Namespace) -> int:
     from softras_cl.errors import ResultError
@@ -51,12 +56,7 @@ def _run_compare(args: argparse.Namespace) -> int:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("compare", help="compare against an independent ray-cast renderer",
-                       description="Render a mesh with softras-cl at sharp settings (sigma 1e-7, gamma "
-                                   "1e-6) and with a trimesh/Embree ray cast through every pixel centre "
-                                   "(same camera, Lambert per vertex, or unlit texture); report silhouette "
-                                   "IoU, depth error on interior pixels and PSNR/SSIM, and write a "
-                                   "side-by-side PNG with difference maps.")
+    p = sub.add_parser("compare", help="compare against an independent ray-cast renderer", description=DESCRIPTION)
     add_view_options(p, 256)
     p.add_argument("--out", type=Path, default=Path("out/compare.png"), help="output PNG (default out/compare.png)")
     p.add_argument("--dist-eps", type=finite_float, default=0.49,

@@ -13,6 +13,8 @@ from pathlib import Path
 from softras_cl.cli.view import check_command_memory, output_folder, positive_float, positive_int
 from softras_cl.io.outputs import atomic_path
 
+DESCRIPTION = ("Render the built-in screen-space icosphere with per-vertex colours, composited on white, "
+               "to an sRGB PNG; prints the path and the time taken.")
 DEFAULT_OUT = Path("out") / "demo.png"
 # 20 * 4**8 = 1,310,720 faces: about 1.1 GB and 15 s on 2 cores at 512^2, with faces already
 # smaller than a pixel at that size; every further subdivision quadruples time and memory
@@ -90,10 +92,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def register(sub) -> None:
     """Add the `demo` subcommand to the `softras-cl` subparsers."""
-    p = sub.add_parser("demo", help="render a built-in icosphere to a PNG",
-                       description="Render the built-in screen-space icosphere with per-vertex "
-                                   "colours, composited on white, to an sRGB PNG; prints the path "
-                                   "and the time taken.")
+    p = sub.add_parser("demo", help="render a built-in icosphere to a PNG", description=DESCRIPTION)
     p.add_argument("--out", type=Path, default=DEFAULT_OUT,
                    help=f"where to write the PNG (default: {DEFAULT_OUT}); folders are created")
     p.add_argument("--size", type=positive_int, default=512,

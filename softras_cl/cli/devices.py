@@ -4,6 +4,9 @@ from __future__ import annotations
 import argparse
 import json
 
+DESCRIPTION = ("List every OpenCL platform and device with fp64 and 64-bit atomics support; '*' marks "
+               "the device softras-cl uses (choose with SOFTRAS_CL_DEVICE='P:D' or a name substring).")
+
 
 def _run(args: argparse.Namespace) -> int:
     from softras_cl.cl import device
@@ -26,8 +29,6 @@ def _run(args: argparse.Namespace) -> int:
 
 def register(sub) -> None:
     p = sub.add_parser("devices", help="list OpenCL platforms/devices and mark the one used",
-                       description="List every OpenCL platform and device with fp64 and 64-bit "
-                                   "atomics support; '*' marks the device softras-cl uses "
-                                   "(choose with SOFTRAS_CL_DEVICE='P:D' or a name substring).")
+                       description=DESCRIPTION)
     p.add_argument("--json", action="store_true", help="print the list as JSON instead of a table")
     p.set_defaults(func=_run)
