@@ -10,6 +10,8 @@ softras_cl.provenance (versions, device, machine of a result) sits on cl and the
 serves the layers from validate up. The framework bridges softras_cl.torch and softras_cl.jax (and
 their numpy plumbing softras_cl.interop) sit on raster and scene; only bench uses them, and no
 lower layer loads torch or jax. A new top-level module or package needs an entry in ALLOWED.
+Inside fitting, the recipes compute only: they import neither detection, io nor reports; the
+keypoint formats (fitting.keypoints) that all of these share stand on numpy and softras_cl.errors.
 
 The import graph is read statically with ``ast`` from the source files: module-level and
 function-level imports, absolute and relative, and ``import_module("literal")`` calls. The file ->
@@ -305,6 +307,8 @@ def forbidden_loaded(loaded: set[str], forbidden: tuple[str, ...]) -> list[str]:
 
 UPPER = ("softras_cl.fitting", "softras_cl.cli", "softras_cl.bench", "softras_cl.validate", "matplotlib",
          "torch", "jax")         # the optional frameworks load only through softras_cl.torch / .jax
+# the fitting recipes compute: they find no faces or people, read and write no files, and draw no reports
+NOT_FOR_RECIPES = ("softras_cl.fitting.detection", "softras_cl.io", "softras_cl.fitting.reports")
 
 
 @pytest.fixture(scope="module")
@@ -325,6 +329,22 @@ def test_fitting_never_imports_cli_or_bench(edges):
     fitting_modules = {e.source for e in edges if e.source.startswith("softras_cl.fitting.")}
     assert {"softras_cl.fitting.recipes.face", "softras_cl.fitting.solver"} <= fitting_modules
     assert upward_imports(edges, "softras_cl.fitting", ("softras_cl.cli", "softras_cl.bench")) == []
+
+
+def test_recipes_import_neither_detection_nor_files_nor_reports(edges):
+    recipes = {e.source for e in edges if e.source.startswith("softras_cl.fitting.recipes.")}
+    assert {"softras_cl.fitting.recipes.face", "softras_cl.fitting.recipes.body_photo"} <= recipes
+    assert upward_imports(edges, "softras_cl.fitting.recipes", NOT_FOR_RECIPES) == []
+
+
+def test_keypoints_stand_on_numpy_and_the_error_classes(edges):
+    """fitting.keypoints, which detection, recipes, reports and bench share, imports nothing of the
+    package but itself and softras_cl.errors, and no third-party module but numpy."""
+    targets = {e.target for e in edges if e.source.startswith("softras_cl.fitting.keypoints")}
+    assert "softras_cl.fitting.keypoints.ibug68" in targets
+    assert {t for t in targets if not t.startswith("softras_cl.fitting.keypoints.")} <= {"softras_cl.errors"}
+    for path in (REPO / "fitting" / "keypoints").glob("*.py"):
+        assert third_party_imports(path) <= {"numpy", TOP}, path
 
 
 def test_no_import_cycles(edges):
@@ -412,6 +432,7 @@ def test_checker_passes_a_clean_tree(tmp_path):
     edges = import_graph(package_dirs(pyproject))
     assert find_cycles(edges) == [] and layer_violations(edges) == []
     assert upward_imports(edges, "softras_cl.fitting", ("softras_cl.cli", "softras_cl.bench")) == []
+    assert upward_imports(edges, "softras_cl.fitting.recipes", NOT_FOR_RECIPES) == []
     assert unlisted_packages(pyproject) == ([], [])
 
 
@@ -421,6 +442,21 @@ def test_checker_finds_a_function_level_import_of_the_cli_from_fitting(tmp_path)
     assert upward_imports(edges, "softras_cl.fitting", ("softras_cl.cli", "softras_cl.bench")) == [
         f"softras_cl.fitting.recipes.face -> softras_cl.cli.fit ({tmp_path / 'fitting/recipes/face.py'}:3)"]
     assert [p.split(":")[0] for p in layer_violations(edges)] == ["layer fitting imports layer cli"]
+
+
+def test_checker_finds_a_recipe_that_detects_or_reads_files(tmp_path):
+    files = {**GOOD, "softras_cl/io/__init__.py": "", "softras_cl/io/images.py": "",
+             "fitting/detection/__init__.py": "", "fitting/detection/faces.py": "",
+             "fitting/recipes/face.py": "from ..solver import *\ndef read():\n"
+                                        "    from softras_cl.io.images import read_image\n"
+                                        "    from ..detection import faces\n"}
+    packages = GOOD_PACKAGES + ["softras_cl.io", "softras_cl.fitting.detection"]
+    edges = import_graph(package_dirs(_tree(tmp_path, files, packages)))
+    face = tmp_path / "fitting/recipes/face.py"
+    assert upward_imports(edges, "softras_cl.fitting.recipes", NOT_FOR_RECIPES) == [
+        f"softras_cl.fitting.recipes.face -> softras_cl.fitting.detection.faces ({face}:4)",
+        f"softras_cl.fitting.recipes.face -> softras_cl.io.images ({face}:3)"]
+    assert layer_violations(edges) == []            # allowed between the layers: only this check sees it
 
 
 @pytest.mark.parametrize("source, text, layers", [
