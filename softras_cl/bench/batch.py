@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.bench.tools import add_bench_parser, print_report
+from softras_cl.bench.tools import add_bench_parser, add_output_options, check_samples, print_report
 from softras_cl.errors import InputError
 from softras_cl.io.outputs import OutputFolder, write_json, write_text
 from softras_cl.provenance import provenance
@@ -147,8 +147,7 @@ def run(args: argparse.Namespace) -> int:
     from softras_cl.fitting.models.face_loaders import load_demo_face_model
 
     configs = parse_configs(args.configs)
-    if args.faces < 1 or args.size < 16:
-        raise InputError(f"--faces must be >= 1 and --size >= 16, got {args.faces} and {args.size}")
+    check_samples(args, "--faces", min_size=16)
     import_distributed()
     options = dict(size=args.size, budget=args.budget)
     with OutputFolder(args.out, "bench batch", "--out") as folder:
@@ -185,7 +184,4 @@ def register(which) -> None:
     p.add_argument("--configs", default=DEFAULT_CONFIGS,
                    help=f"WORKERSxTHREADS per run, comma-separated (default {DEFAULT_CONFIGS})")
     p.add_argument("--seed", type=int, default=0, help="random seed of the synthetic faces (default 0)")
-    p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
-    p.add_argument("--out", default="out/bench",
-                   help="directory for batch.json, batch.txt, the photos and every run's folders")
-    p.set_defaults(func=run)
+    add_output_options(p, "directory for batch.json, batch.txt, the photos and every run's folders", run)

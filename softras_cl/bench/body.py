@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.bench.tools import add_bench_parser, print_report
-from softras_cl.errors import InputError
+from softras_cl.bench.tools import (add_bench_parser, add_budgets_option, add_model_option, add_output_options,
+                                    add_samples_options, check_samples, load_model, print_report)
 from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
 
@@ -178,18 +178,16 @@ def format_table(summary: dict, rest: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from softras_cl.fitting.recipes.body import BUDGETS
-    from softras_cl.fitting.models.body_loaders import load_body_model, load_demo_body_model
 
     if args.quick:
         args.poses, args.size, args.budgets = 1, 32, "fast"
     from softras_cl.bench.tools import parse_budgets
 
     budgets = parse_budgets(args.budgets, BUDGETS)
-    if args.poses < 1 or args.size < 16:
-        raise InputError(f"--poses must be >= 1 and --size >= 16, got {args.poses} and {args.size}")
+    check_samples(args, "--poses", min_size=16)
     with OutputFolder(args.out, "bench body", "--out") as folder:
         out = folder.path
-        model = load_demo_body_model() if args.model is None else load_body_model(args.model)
+        model = load_model("body", args.model)
         rng = np.random.default_rng(args.seed)
         samples = [synthetic_body(model, rng, args.size, args.joints) for _ in range(args.poses)]
         load_start = os.getloadavg()
@@ -213,16 +211,11 @@ def run(args: argparse.Namespace) -> int:
 def register(which) -> None:
     """Add `body` to the `softras-cl bench` subparsers."""
     p = add_bench_parser(which, __doc__, "body", help="body fitting on synthetic images with known answers")
-    p.add_argument("--poses", type=int, default=20, help="synthetic targets (default 20)")
-    p.add_argument("--size", type=int, default=96, help="square image size in pixels (default 96)")
-    p.add_argument("--budgets", default=",".join(DEFAULT_BUDGETS),
-                   help=f"comma-separated schedule budgets to compare (default {','.join(DEFAULT_BUDGETS)})")
+    add_samples_options(p, "--poses", 20, "targets", 96, picture="image")
+    add_budgets_option(p, DEFAULT_BUDGETS)
     p.add_argument("--joints", action="store_true", help="also give the fit noisy 2D joints (1 px)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the targets (default 0)")
-    p.add_argument("--model", default=None, help="body model file (default: the shipped demo model)")
+    add_model_option(p, "body")
     p.add_argument("--quick", action="store_true",
                    help="tiny run for tests: 1 pose at 32 px, fast budget")
-    p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
-    p.add_argument("--out", default="out/bench",
-                   help="directory for body.json, body.png (accuracy vs time) and body_strip.png")
-    p.set_defaults(func=run)
+    add_output_options(p, "directory for body.json, body.png (accuracy vs time) and body_strip.png", run)

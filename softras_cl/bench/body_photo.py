@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.bench.tools import add_bench_parser, print_report
+from softras_cl.bench.tools import (add_bench_parser, add_model_option, add_output_options, add_samples_options,
+                                    check_samples, load_model, print_report)
 from softras_cl.errors import InputError
 from softras_cl.io.outputs import OutputFolder, write_json
 from softras_cl.provenance import provenance
@@ -280,7 +281,6 @@ def format_table(summary: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from softras_cl.fitting.models.body_loaders import load_body_model, load_demo_body_model
     from softras_cl.fitting.recipes.body import BodyFitConfig
     from softras_cl.fitting.recipes.body_photo import OBJECTIVES, PHOTO_BUDGETS
     from softras_cl.validate.mitsuba import mitsuba_available
@@ -293,14 +293,13 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--objectives must name some of {', '.join(OBJECTIVES)}, got {args.objectives!r}")
     if args.budget not in PHOTO_BUDGETS:
         raise InputError(f"--budget must be one of {', '.join(PHOTO_BUDGETS)}, got {args.budget!r}")
-    if args.photos < 1 or args.size < 64:
-        raise InputError(f"--photos must be >= 1 and --size >= 64, got {args.photos} and {args.size}")
+    check_samples(args, "--photos", min_size=64)
     if args.renderer not in RENDERERS:
         raise InputError(f"--renderer must be one of {', '.join(RENDERERS)}, got {args.renderer!r}")
     if args.renderer == "mitsuba" and not mitsuba_available():
         raise InputError("--renderer mitsuba needs Mitsuba 3: pip install 'softras-cl[validate]'")
     with OutputFolder(args.out, "bench body-photo", "--out") as folder:
-        model = load_demo_body_model() if args.model is None else load_body_model(args.model)
+        model = load_model("body", args.model)
         config = BodyFitConfig.from_budget(args.budget)
         rng = np.random.default_rng(args.seed)
         load_start = os.getloadavg()
@@ -329,18 +328,15 @@ def run(args: argparse.Namespace) -> int:
 def register(which) -> None:
     """Add `body-photo` to the `softras-cl bench` subparsers."""
     p = add_bench_parser(which, __doc__, "body-photo", help="body fitting to synthetic photos of people with known answers")
-    p.add_argument("--photos", type=int, default=20, help="synthetic photos (default 20)")
-    p.add_argument("--size", type=int, default=256, help="square photo size in pixels (default 256)")
+    add_samples_options(p, "--photos", 20, "photos", 256)
     p.add_argument("--budget", default="default", help="fit-body's schedule budget (default: default)")
     p.add_argument("--objectives", default="full,keypoints,mask",
                    help="comma-separated objectives: full, keypoints (keypoints only), mask (mask only)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the photos (default 0)")
-    p.add_argument("--model", default=None, help="body model file (default: the shipped demo model)")
+    add_model_option(p, "body")
     p.add_argument("--renderer", default="softras",
                    help="who draws the people: softras (softras-cl, Gouraud shading, no shadows; the default) or "
                    f"mitsuba (Mitsuba 3's path tracer, {MITSUBA_SPP} rays per pixel, a sun and a sky: shadows; "
                    "renders cached in OUT/body_photo_cache)")
     p.add_argument("--quick", action="store_true", help="tiny run for tests: 1 photo at 192 px, fast budget")
-    p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
-    p.add_argument("--out", default="out/bench", help="directory for body_photo.json")
-    p.set_defaults(func=run)
+    add_output_options(p, "directory for body_photo.json", run)

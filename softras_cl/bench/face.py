@@ -53,7 +53,8 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.bench.tools import add_bench_parser, print_report
+from softras_cl.bench.tools import (add_bench_parser, add_budgets_option, add_model_option, add_output_options,
+                                    add_samples_options, check_samples, load_model, print_report)
 from softras_cl.errors import InputError, ResultError
 from softras_cl.fitting.keypoints import ibug68
 from softras_cl.io.outputs import OutputFolder, write_figure, write_json
@@ -647,7 +648,6 @@ def format_mitsuba(doc: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from softras_cl.fitting.recipes.face import BUDGETS
-    from softras_cl.fitting.models.face_loaders import load_demo_face_model, load_face_model
 
     from softras_cl.bench.tools import parse_budgets
 
@@ -662,11 +662,10 @@ def run(args: argparse.Namespace) -> int:
         check_backend("mediapipe")          # the detector is installed, before any face is drawn
     if args.spp < 2:
         raise InputError(f"--spp must be >= 2 (Mitsuba rays per pixel), got {args.spp}")
-    if args.faces < 1 or args.size < 16:
-        raise InputError(f"--faces must be >= 1 and --size >= 16, got {args.faces} and {args.size}")
+    check_samples(args, "--faces", min_size=16)
     with OutputFolder(args.out, "bench face", "--out") as folder:
         out = folder.path
-        model = load_demo_face_model() if args.model is None else load_face_model(args.model)
+        model = load_model("face", args.model)
         rng = np.random.default_rng(args.seed)
         per_run, summary, checks = {}, {}, {}
         redrawn, missed = {}, {}
@@ -750,10 +749,8 @@ def photos_by_renderer(model, samples: list[dict], renderers: list[str], spp: in
 def register(which) -> None:
     """Add `face` to the `softras-cl bench` subparsers."""
     p = add_bench_parser(which, __doc__, "face", help="face fitting on synthetic photos with known answers")
-    p.add_argument("--faces", type=int, default=20, help="synthetic faces (default 20)")
-    p.add_argument("--size", type=int, default=256, help="square photo size in pixels (default 256)")
-    p.add_argument("--budgets", default=",".join(DEFAULT_BUDGETS),
-                   help=f"comma-separated schedule budgets to compare (default {','.join(DEFAULT_BUDGETS)})")
+    add_samples_options(p, "--faces", 20, "faces", 256)
+    add_budgets_option(p, DEFAULT_BUDGETS)
     p.add_argument("--seed", type=int, default=0, help="random seed of the synthetic faces (default 0)")
     p.add_argument("--photo-weight", type=float, default=None,
                    help="photometric weight of the fits (default: the fit's own, as in fit-face --help)")
@@ -780,9 +777,6 @@ def register(which) -> None:
                    help="comma-separated dense landmark weights (fit-face --dense-landmarks), each fitted to "
                         "every face and compared with 0, e.g. 0,0.5; the dense points are MediaPipe's (needs "
                         "the detect extra); default: the fit's own (off)")
-    p.add_argument("--model", default=None, help="face model file (default: the shipped demo model)")
-    p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
-    p.add_argument("--out", default="out/bench",
-                   help="directory for face.json, face.png (accuracy vs time), face_strip.png "
-                        "(and face_mitsuba_strip.png)")
-    p.set_defaults(func=run)
+    add_model_option(p, "face")
+    add_output_options(p, "directory for face.json, face.png (accuracy vs time), face_strip.png "
+                          "(and face_mitsuba_strip.png)", run)

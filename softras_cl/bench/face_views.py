@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.bench.tools import add_bench_parser, print_report
+from softras_cl.bench.tools import add_bench_parser, add_model_option, add_output_options, load_model, print_report
 from softras_cl.errors import InputError
 from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
@@ -198,7 +198,6 @@ def save_chart(rows: list[dict], path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from softras_cl.fitting.models.face_loaders import load_demo_face_model, load_face_model
     from softras_cl.fitting.recipes.face import BUDGETS, FaceFitConfig
     from softras_cl.fitting.recipes.face_views import LANDMARK_WEIGHT_PHOTO
 
@@ -209,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--budget must be one of {sorted(BUDGETS)}, got {args.budget!r}")
     config = FaceFitConfig.from_budget(args.budget, photo_weight=args.photo_weight, size=args.size)
     with OutputFolder(args.out, "bench face-views", "--out") as folder:
-        model = load_demo_face_model() if args.model is None else load_face_model(args.model)
+        model = load_model("face", args.model)
         rng = np.random.default_rng(args.seed)
         rows, load = [], [os.getloadavg()]
         for i in range(args.subjects):
@@ -243,8 +242,5 @@ def register(which) -> None:
                         "(default: each photo its own field of view, fitted per photo)")
     p.add_argument("--photo-weight", type=float, default=None,
                    help="photometric weight of every fit (default: the fit's own, as in fit-face --help)")
-    p.add_argument("--model", default=None, help="face model file (default: the shipped demo model)")
-    p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
-    p.add_argument("--out", default="out/bench",
-                   help="directory for face_views.json and face_views.png")
-    p.set_defaults(func=run)
+    add_model_option(p, "face")
+    add_output_options(p, "directory for face_views.json and face_views.png", run)

@@ -4,15 +4,12 @@ from __future__ import annotations
 import argparse
 import random
 import statistics
-import sys
 import time
 
 import numpy as np
 
 from softras_cl.bench.render import RENDER_MAIN, make_render_scene, render_settings
-from softras_cl.bench.tools import format_table, print_report
-from softras_cl.io.outputs import OutputFolder, write_json
-from softras_cl.provenance import provenance
+from softras_cl.bench.tools import add_output_options, format_table, run_with_progress
 
 INTEROP_DOC = """Overhead of the PyTorch and JAX bridges (softras_cl.torch, softras_cl.jax) over the
 numpy call they wrap, on the render bench's scene: an icosphere(5) (20480 faces) with bumps, smooth
@@ -230,20 +227,9 @@ def interop_report_text(result: dict) -> str:
 
 def run_interop(args: argparse.Namespace) -> int:
     """`softras-cl bench interop`: run, print the table (or JSON), write OUT/interop.json."""
-    from tqdm import tqdm
-
     p = interop_plan(args)
-    with OutputFolder(args.out, "bench interop", "--out") as folder:
-        out = folder.path
-        with tqdm(total=p["repeats"] + 1, file=sys.stderr, unit="round") as progress:
-            result = run_interop_benchmark(p, progress)
-        result["tables"] = interop_report_text(result)
-        result["versions"] = _framework_versions(p["apis"])
-        result["provenance"] = provenance(dict(options=args, plan=p))
-        write_json(out / "interop.json", result)
-        print_report(result, args.json, result["tables"])
-        print(f"wrote {out / 'interop.json'}", file=sys.stderr)
-    return 0
+    return run_with_progress(args, "interop", p, p["repeats"] + 1, run_interop_benchmark, interop_report_text,
+                             unit="round", extras=dict(versions=_framework_versions(p["apis"])))
 
 
 def _framework_versions(apis) -> dict:
@@ -258,6 +244,4 @@ def register(which) -> None:
     p.add_argument("--repeats", type=int, default=None,
                    help=f"timed rounds after one warm-up; the median is reported (default {RENDER_MAIN['repeats']})")
     p.add_argument("--quick", action="store_true", help="tiny run for tests/CI: 1280 faces at 64^2, 1 repeat")
-    p.add_argument("--json", action="store_true", help="print the results as JSON instead of the table")
-    p.add_argument("--out", default="out/bench", help="directory for interop.json (default out/bench)")
-    p.set_defaults(func=run_interop)
+    add_output_options(p, "directory for interop.json (default out/bench)", run_interop, shown="the table")

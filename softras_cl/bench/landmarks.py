@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.bench.tools import add_bench_parser, print_report
+from softras_cl.bench.tools import add_bench_parser, add_model_option, add_output_options, load_model, print_report
 from softras_cl.errors import InputError
 from softras_cl.fitting.keypoints import ibug68
 from softras_cl.io.outputs import OutputFolder, write_figure, write_json
@@ -518,7 +518,6 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from softras_cl.bench.face import LANDMARKS_ONLY
-    from softras_cl.fitting.models.face_loaders import load_demo_face_model, load_face_model
     from softras_cl.validate.mitsuba import mitsuba_available
 
     backends = parse_backends(args.backends)
@@ -532,7 +531,7 @@ def run(args: argparse.Namespace) -> int:
     with OutputFolder(args.out, "bench landmarks", "--out") as folder:
         cache = Path(args.cache) if args.cache else folder.path / "landmarks_cache"
         cache.mkdir(parents=True, exist_ok=True)
-        model = load_demo_face_model() if args.model is None else load_face_model(args.model)
+        model = load_model("face", args.model)
         budget = LANDMARKS_ONLY if args.quick else "fast"
         skins = {name: skin_texture(model, name, budget, cache) for name in SKINS}
         plans = frame_plans(np.random.default_rng(args.seed), n, frame, yaw_range, widths)
@@ -562,7 +561,7 @@ def register(which) -> None:
     p.add_argument("--backends", default=None,
                    help="comma-separated face detector backends: mediapipe, dlib (default: every installed one)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the frames (default 0)")
-    p.add_argument("--model", default=None, help="face model file (default: the shipped demo model)")
+    add_model_option(p, "face")
     p.add_argument("--cache", default=None,
                    help="folder of the rendered frames and skin textures, reused when the frames match "
                         "(default: OUT/landmarks_cache)")
@@ -570,6 +569,4 @@ def register(which) -> None:
                    help=f"tiny run for tests: {QUICK['frames']} frames of {QUICK['frame'][0]}x{QUICK['frame'][1]}, "
                         f"{QUICK['spp']} rays per pixel, widths {QUICK['widths'][0]:g}-{QUICK['widths'][1]:g} px, "
                         f"|yaw| <= {QUICK['yaw']:g}")
-    p.add_argument("--json", action="store_true", help="print the results as JSON instead of tables")
-    p.add_argument("--out", default="out/bench", help="directory for landmarks.json and landmarks.png")
-    p.set_defaults(func=run)
+    add_output_options(p, "directory for landmarks.json and landmarks.png", run, shown="tables")

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from softras_cl.bench.raster import GRADS, Scene, make_scene, run_once, settings_for, subdivisions_for
-from softras_cl.bench.tools import add_bench_parser, format_table, int_list, print_report, relative_inf_error
+from softras_cl.bench.tools import (add_bench_parser, add_output_options, format_table, int_list, print_report,
+                                    relative_inf_error)
 from softras_cl.errors import InputError, ResultError
 from softras_cl.io.outputs import OutputFolder, write_figure, write_json, write_text
 
@@ -344,6 +345,5 @@ def register(which) -> None:
                    help="K of the peer (faces kept per pixel); 0 (default): the smallest 8 * 2**n that no pixel fills")
     p.add_argument("--peer-threads", type=int, default=None,
                    help="torch threads of the peer (default: the CPUs this process may use, as PoCL uses for ours)")
-    p.add_argument("--json", action="store_true", help="print the results as JSON instead of tables")
-    p.add_argument("--out", default="out/bench", help="directory for peers.json, peers.txt and peers.png (default out/bench)")
-    p.set_defaults(func=run_peers)
+    add_output_options(p, "directory for peers.json, peers.txt and peers.png (default out/bench)", run_peers,
+                       shown="tables")

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.bench.tools import print_report
+from softras_cl.bench.tools import add_output_options, print_report
 from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
 
@@ -248,8 +248,5 @@ def register(which) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the rotation draws (default 0)")
     p.add_argument("--size", type=int, default=64, help="image size in pixels (default 64)")
     p.add_argument("--quick", action="store_true", help="tiny run for tests: 3 trials at 32^2, two variants")
-    p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
-    p.add_argument("--out", default="out/bench",
-                   help="directory for pose.json, pose.png (error vs time), pose_strip.png and "
-                        "pose_geodesics.png (loss between target and failed fits) (default out/bench)")
-    p.set_defaults(func=run)
+    add_output_options(p, "directory for pose.json, pose.png (error vs time), pose_strip.png and "
+                          "pose_geodesics.png (loss between target and failed fits) (default out/bench)", run)

@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.bench.tools import add_bench_parser, device_info, format_table, int_list, print_report, relative_inf_error
-from softras_cl.io.outputs import OutputFolder, write_figure, write_json
-from softras_cl.provenance import provenance
+from softras_cl.bench.tools import (add_bench_parser, add_output_options, device_info, format_table, int_list,
+                                    relative_inf_error, run_with_progress)
+from softras_cl.io.outputs import write_figure
 
 SIZES = (256, 1024)
 FACES = (1280, 5120, 20480, 81920)
@@ -507,21 +507,9 @@ def run_benchmark(p: dict, progress) -> dict:
 
 def run_raster(args: argparse.Namespace) -> int:
     """`softras-cl bench raster`: run, print the tables (or JSON), write OUT/raster.{json,png}."""
-    from tqdm import tqdm
-
     p = plan(args)
-    with OutputFolder(args.out, "bench raster", "--out") as folder:
-        out = folder.path
-        steps = (len(p["layouts"]) + 1) * len(p["sizes"]) * len(p["faces"]) + len(p["variants"])
-        with tqdm(total=steps, file=sys.stderr, unit="step") as progress:
-            result = run_benchmark(p, progress)
-        result["tables"] = report_text(result)
-        result["provenance"] = provenance(dict(options=args, plan=p))
-        write_json(out / "raster.json", result)
-        save_chart(result, out / "raster.png")
-        print_report(result, args.json, result["tables"])
-        print(f"wrote {out / 'raster.json'} and {out / 'raster.png'}", file=sys.stderr)
-    return 0
+    steps = (len(p["layouts"]) + 1) * len(p["sizes"]) * len(p["faces"]) + len(p["variants"])
+    return run_with_progress(args, "raster", p, steps, run_benchmark, report_text, save_chart)
 
 
 def register(which) -> None:
@@ -543,7 +531,4 @@ def register(which) -> None:
                    help="kernel work layouts to time, comma-separated: auto (by device type), cpu, gpu "
                         f"(RasterSettings.layout; default {','.join(LAYOUTS)}); each row records the "
                         "layout it ran")
-    p.add_argument("--json", action="store_true", help="print the results as JSON instead of tables")
-    p.add_argument("--out", default="out/bench",
-                   help="directory for raster.json and raster.png (default out/bench)")
-    p.set_defaults(func=run_raster)
+    add_output_options(p, "directory for raster.json and raster.png (default out/bench)", run_raster, shown="tables")

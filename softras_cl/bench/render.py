@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -11,9 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from softras_cl.bench.raster import REPEATS, settings_for
-from softras_cl.bench.tools import device_info, format_table, print_report, relative_inf_error
-from softras_cl.io.outputs import OutputFolder, write_figure, write_json
-from softras_cl.provenance import provenance
+from softras_cl.bench.tools import add_output_options, device_info, format_table, relative_inf_error, run_with_progress
+from softras_cl.io.outputs import write_figure
 
 RENDER_DOC = """Speed of the whole differentiable render path: forward + backward of
 softras_cl.scene.renderer.Renderer with gradients for vertices, albedo, camera and light.
@@ -393,20 +391,9 @@ def render_plan(args: argparse.Namespace) -> dict:
 
 def run_render(args: argparse.Namespace) -> int:
     """`softras-cl bench render`: run, print the tables (or JSON), write OUT/render.{json,png}."""
-    from tqdm import tqdm
-
     p = render_plan(args)
-    with OutputFolder(args.out, "bench render", "--out") as folder:
-        out = folder.path
-        with tqdm(total=len(EFFECTS) + p["repeats"], file=sys.stderr, unit="step") as progress:
-            result = run_render_benchmark(p, progress)
-        result["tables"] = render_report_text(result)
-        result["provenance"] = provenance(dict(options=args, plan=p))
-        write_json(out / "render.json", result)
-        save_render_chart(result, out / "render.png")
-        print_report(result, args.json, result["tables"])
-        print(f"wrote {out / 'render.json'} and {out / 'render.png'}", file=sys.stderr)
-    return 0
+    return run_with_progress(args, "render", p, len(EFFECTS) + p["repeats"], run_render_benchmark,
+                             render_report_text, save_render_chart)
 
 
 def register(which) -> None:
@@ -418,7 +405,4 @@ def register(which) -> None:
                         f"(default {RENDER_MAIN['repeats']})")
     p.add_argument("--quick", action="store_true",
                    help="tiny run for tests/CI: 1280 faces at 64^2, 32^2 texture, 1 repeat")
-    p.add_argument("--json", action="store_true", help="print the results as JSON instead of tables")
-    p.add_argument("--out", default="out/bench",
-                   help="directory for render.json and render.png (default out/bench)")
-    p.set_defaults(func=run_render)
+    add_output_options(p, "directory for render.json and render.png (default out/bench)", run_render, shown="tables")

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from softras_cl.bench.tools import add_bench_parser, print_report
+from softras_cl.bench.tools import add_bench_parser, add_output_options, print_report
 from softras_cl.errors import InputError
 from softras_cl.fitting.keypoints import ibug68
 from softras_cl.io.outputs import OutputFolder, write_figure, write_json
@@ -585,7 +585,5 @@ def register(which) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--quick", action="store_true",
                    help="1 sequence of 24 frames at 160 px, 12 fitted independently, at most 4 rays per pixel")
-    p.add_argument("--json", action="store_true", help="print the results as JSON instead of a table")
-    p.add_argument("--out", default="out/bench", help="directory for track.json, track_strip.png, track_jitter.png, "
-                   "the sequences' mp4 files and track_cache (Mitsuba's frames and skin textures)")
-    p.set_defaults(func=run)
+    add_output_options(p, "directory for track.json, track_strip.png, track_jitter.png, "
+                          "the sequences' mp4 files and track_cache (Mitsuba's frames and skin textures)", run)
