@@ -2,7 +2,7 @@
 
 An :class:`Option` says everything the rest of the package needs about one option of
 `softras-cl fit-face` or `fit-body`: its flag and help (softras_cl.cli builds the argparse
-arguments from it), how a manifest cell is read (fitting.batch_items), which field of the fit's
+arguments from it), how a manifest cell is read (fitting.batch.items), which field of the fit's
 config it sets (:meth:`FitOptions.config`, used by the single-photo command and by a batch
 item alike), and what the run record holds of it (fitting.run_records). A new option of a fit,
 or a new fit, is one entry here.
@@ -155,9 +155,15 @@ def _body_config(budget: str, **changes):
     return BodyFitConfig.from_budget(budget, **changes)
 
 
-def _background(text: str) -> tuple[float, float, float]:
-    from softras_cl.fitting.body_files import parse_background
-    return parse_background(text)
+def parse_background(text: str) -> tuple[float, float, float]:
+    """'r,g,b' -> (r, g, b) floats; ValueError naming the option otherwise."""
+    try:
+        background = tuple(float(c) for c in str(text).split(","))
+    except ValueError:
+        background = ()
+    if len(background) != 3:
+        raise ValueError(f"--background must be 'r,g,b', got {text!r}")
+    return background
 
 
 def _face_options() -> tuple[Option, ...]:
@@ -215,7 +221,7 @@ def _body_options() -> tuple[Option, ...]:
                ".npy and RGBA images are parts, an RGB image is parts when a fifth of its pixels are the "
                "--background colour (a grey one: black), else a photo", choices=("auto", "photo", "parts", "mask"), record_default=False),
         Option("background", str, "0,0,0", "background colour of a part-coloured target, linear RGB "
-               "'r,g,b' (default 0,0,0)", field="background", to_config=_background),
+               "'r,g,b' (default 0,0,0)", field="background", to_config=parse_background),
         Option("budget", str, "default", "schedule: evaluations and sigma/gamma steps (default: default); "
                "`softras-cl bench body` shows what each costs and gains", choices=tuple(sorted(BUDGETS))),
         Option("size", int, d.size, f"longest side in pixels of the working image (default {d.size})",

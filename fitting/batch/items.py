@@ -7,16 +7,15 @@ from __future__ import annotations
 
 import csv
 import glob
-import hashlib
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
 from softras_cl.errors import InputError
 from softras_cl.fitting.run_options import FITS, TRACK
+from softras_cl.io.outputs import stable_names
 
-__all__ = ["Item", "KINDS", "IMAGE_SUFFIXES", "expand_paths", "read_manifest", "stable_names",
-           "collect_items", "check_names"]
+__all__ = ["Item", "KINDS", "IMAGE_SUFFIXES", "expand_paths", "read_manifest", "collect_items", "check_names"]
 
 KINDS = tuple(FITS)
 ITEM_OPTIONS = {**FITS, "track": TRACK}          # item kind -> its command's options
@@ -131,19 +130,6 @@ def _first_cell(row: dict, columns: tuple) -> str:
         if cell:
             return cell
     return ""
-
-
-def stable_names(photos: list[Path]) -> list[str]:
-    """One folder name per photo: its file name without the suffix; photos that would share a
-    name get ``-`` and 8 hex digits of a hash of their absolute path appended (stable across
-    runs for the same set of photos)."""
-    stems = [p.stem for p in photos]
-    names = []
-    for p, stem in zip(photos, stems):
-        if stems.count(stem) > 1:
-            stem += "-" + hashlib.sha1(str(p.resolve()).encode()).hexdigest()[:8]
-        names.append(stem)
-    return names
 
 
 def collect_items(inputs=(), kind: str = "face", options: dict | None = None, manifest=None,

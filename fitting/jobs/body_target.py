@@ -1,5 +1,8 @@
-"""Reading the inputs of a body fit: the target image and its 2D joints (used by `softras-cl
-fit-body` for one target and by softras_cl.fitting.batch for many)."""
+"""A body from a target image: `softras-cl fit-body` and a batch's body items run
+:class:`BodyTargetJob` on a renderer-made target (part colours on a background, RGBA, or a mask
+with --silhouette / --input mask) and its optional 2D joints: it reads them (:func:`read_target`,
+:func:`read_joints`), fits them with fitting.recipes.body.fit_body and writes through
+fitting.reports.body. Photos of people go to fitting.jobs.body_photo."""
 from __future__ import annotations
 
 import io
@@ -7,7 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["read_joints", "read_target"]
+from softras_cl.fitting.jobs.run import FitJob
+from softras_cl.fitting.model_cache import load_model
+from softras_cl.fitting.run_options import BODY
+from softras_cl.fitting.run_records import body_record
+
+__all__ = ["BodyTargetJob", "read_joints", "read_target"]
 
 
 def read_joints(path, n_joints: int) -> tuple[np.ndarray, np.ndarray]:
@@ -61,12 +69,55 @@ def _numbers(values: np.ndarray, what: str, expected: str) -> np.ndarray:
     return np.asarray(values, np.float64)
 
 
-def parse_background(text: str) -> tuple[float, float, float]:
-    """'r,g,b' -> (r, g, b) floats; ValueError naming the option otherwise."""
-    try:
-        background = tuple(float(c) for c in str(text).split(","))
-    except ValueError:
-        background = ()
-    if len(background) != 3:
-        raise ValueError(f"--background must be 'r,g,b', got {text!r}")
-    return background
+class BodyTargetJob(FitJob):
+    """A body fit of one renderer-made target (see the module). ``options``: fit-body's
+    (fitting.run_options.BODY; missing: the defaults), checked here; ``joints``: a 2D joints file
+    or None; ``silhouette``: the target is a mask; ``recorded``: what params.json's provenance
+    names as the run's options (default ``options``). :meth:`read` reads and checks the inputs."""
+    command = BODY.command
+
+    def __init__(self, target, joints=None, options: dict | None = None, *, silhouette: bool = False,
+                 recorded=None):
+        self.path, self.joints_file, self.silhouette = target, joints, silhouette
+        self.options = BODY.values(options or {})
+        self.config = BODY.config(self.options)
+        self.recorded = self.options if recorded is None else recorded
+        self.required = ("silhouette_iou",) + (("joint_error_px_full",) if joints is not None else ())
+        self.target = self.joints = self.weights = self.model = None
+
+    def read(self) -> None:
+        """Read the target and joints and check them against the model (ValueError/OSError)."""
+        from softras_cl.fitting.recipes.body import prepare_target
+
+        self.model = load_model("body", self.options["model"])
+        self.target = read_target(self.path, self.silhouette)
+        if self.joints_file is not None:
+            self.joints, self.weights = read_joints(self.joints_file, self.model.n_joints)
+        prepare_target(self.target, self.config.size, self.config.background, self.joints, self.weights,
+                       self.model.n_joints)
+
+    def record(self) -> dict:
+        return body_record(self.path, self.joints_file, self.options)
+
+    def files(self) -> list[str]:
+        return [str(self.path)]
+
+    def fit(self, folder: Path, progress: bool, resume: bool):
+        from softras_cl.fitting.recipes.body import fit_body
+
+        if self.target is None:
+            self.read()
+        return fit_body(self.target, self.model, self.config, self.joints, self.weights, out_dir=folder,
+                        progress=progress, resume=resume)
+
+    def write(self, fit, folder: Path, metrics: dict, seconds: float) -> dict:
+        from softras_cl.fitting.reports.body import write_outputs
+
+        return write_outputs(fit, self.target, folder, metrics=metrics,
+                             run_config=dict(fit=self.config, options=self.recorded),
+                             extra=dict(target=str(self.path), seconds=seconds, budget=self.options["budget"]))
+
+    def summary(self, metrics: dict) -> str:
+        joints = (f", joint error {metrics['joint_error_px_full']:.1f} px" if "joint_error_px_full" in metrics
+                  else "")
+        return f"silhouette IoU {metrics['silhouette_iou']:.3f}{joints}"

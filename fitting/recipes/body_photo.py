@@ -8,8 +8,9 @@ and the solver); what is new here:
   keypoint's weight is the map's weight times the detector's visibility, and 0 when the
   visibility is below MIN_VISIBILITY or the point lies outside the photo (a portrait's legs):
   what is not seen is left to the pose and shape priors;
-- the camera: the photo's field of view across its shorter side (from the EXIF 35 mm equivalent
-  focal length when the file has one, :func:`photo_fov`; else the config's fov_deg), and its
+- the camera: the photo's field of view across its shorter side (``fov_deg`` of fit_body_photo:
+  fitting.jobs.body_photo reads it from the EXIF 35 mm equivalent focal length when the file has
+  one; else the config's fov_deg), and its
   distance from the person's size (:func:`camera_distance`: the model's torso against the
   detected one, in pixels), so that the body stands near the origin, where the translation
   prior and the near/far range expect it;
@@ -31,7 +32,6 @@ and the solver); what is new here:
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -45,9 +45,9 @@ from softras_cl.fitting import losses
 from softras_cl.fitting.keypoints.pose33 import KeypointLayout, keypoint_layout
 from softras_cl.fitting.solver import Stage, fit
 
-__all__ = ["PHOTO_BUDGETS", "PHOTO_WEIGHTS", "OBJECTIVES", "INPUTS", "MIN_VISIBILITY", "BodyPhotoObjective",
-           "BodyPhotoFit", "keypoint_weights", "photo_fov", "camera_distance", "photo_stages", "photo_params",
-           "mask_misses", "fit_body_photo", "input_kind", "read_person"]
+__all__ = ["PHOTO_BUDGETS", "PHOTO_WEIGHTS", "OBJECTIVES", "MIN_VISIBILITY", "BodyPhotoObjective",
+           "BodyPhotoFit", "keypoint_weights", "camera_distance", "photo_stages", "photo_params",
+           "mask_misses", "fit_body_photo"]
 
 # (torso evaluations, pose evaluations, ((sigma, gamma, evaluations) per silhouette stage))
 PHOTO_BUDGETS = {
@@ -67,8 +67,6 @@ PHOTO_WEIGHTS = dict(torso=1.0, keypoints=1.0, depth=0.3, silhouette=3.0, pose_p
 OBJECTIVES = {"full": ("keypoints", "silhouette"), "keypoints": ("keypoints",), "mask": ("silhouette",)}
 MIN_VISIBILITY = 0.3            # a keypoint the detector is less sure of than this is not used
 ROBUST_FRACTION = 0.1           # Geman-McClure scale / the working image's longer side
-FILM_DIAGONAL_MM = 43.27        # of the 36 x 24 mm frame of "35 mm equivalent" focal lengths
-EXIF_IFD, FOCAL_35MM = 0x8769, 41989
 START_YAWS = (0, 90, 180, -90)  # degrees about the vertical: the torso stage's starts
 # The mask gate: a keypoint the fit uses (seen, inside the photo) further than MASK_MARGIN of the
 # photo's longer side from the person mask says the mask misses part of the person (the
@@ -98,23 +96,6 @@ def keypoint_weights(layout: KeypointLayout, keypoints: np.ndarray, visibility: 
     h, w = image_size
     inside = (points[:, 0] >= -0.5) & (points[:, 0] <= w - 0.5) & (points[:, 1] >= -0.5) & (points[:, 1] <= h - 0.5)
     return np.where(inside & (seen >= MIN_VISIBILITY), layout.weights * seen, 0.0)
-
-
-def photo_fov(path, image_size) -> float | None:
-    """Field of view (degrees) across the shorter side of an (H, W) photo from its EXIF 35 mm
-    equivalent focal length (by the frame diagonal), or None when the file has none."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as img:
-            focal = img.getexif().get_ifd(EXIF_IFD).get(FOCAL_35MM)
-    except (OSError, ValueError, AttributeError):
-        return None
-    if not focal:
-        return None
-    h, w = image_size
-    half_diagonal = math.atan(FILM_DIAGONAL_MM / 2 / float(focal))
-    return math.degrees(2 * math.atan(math.tan(half_diagonal) * min(h, w) / math.hypot(h, w)))
 
 
 def mask_misses(layout: KeypointLayout, keypoints: np.ndarray, weights: np.ndarray, mask: np.ndarray) -> list[str]:
@@ -397,53 +378,3 @@ def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFit
 # ---------------------------------------------------------------------------------------------
 # what a target file is, and a photo's inputs
 # ---------------------------------------------------------------------------------------------
-
-INPUTS = ("auto", "photo", "parts", "mask")
-AUTO_BACKGROUND_SHARE = 0.2     # "auto": an RGB image with at least this share of background pixels is parts
-
-
-def input_kind(path, given: str = "auto", silhouette: bool = False, background=(0.0, 0.0, 0.0),
-               joints: bool = False) -> str:
-    """"photo", "parts" or "mask": what fit-body fits to the target file ``path``.
-
-    ``given`` (--input) other than "auto" decides; --silhouette means "mask". "auto": a target
-    given with 2D joints (``joints``: --joints, only for renderer-made targets) is "parts"; an .npy or
-    an RGBA image is what a renderer makes ("parts": fitting.recipes.body reads a mask from an
-    (H, W) one); an RGB image is "parts" when at least AUTO_BACKGROUND_SHARE of its pixels are the
-    background colour to 8 bits, a grey one when that share is black (a mask), else a "photo": a
-    part-coloured target or a mask is drawn on one flat colour, and photos practically never hold
-    a fifth of their pixels at one exact colour."""
-    if given not in INPUTS:
-        raise InputError(f"--input must be one of {', '.join(INPUTS)}, got {given!r}")
-    if silhouette:
-        if given == "photo":
-            raise InputError("--silhouette says the target is a mask; it cannot go with --input photo")
-        return "mask"
-    if given != "auto":
-        return given
-    from pathlib import Path
-
-    from softras_cl.io.images import read_image, to_srgb
-
-    if joints or Path(path).suffix.lower() == ".npy":
-        return "parts"
-    image = read_image(path)
-    if image.ndim == 3 and image.shape[2] == 4:
-        return "parts"
-    # a grey image: a mask (on 0) or a grey photo; an RGB one: part colours (on --background) or a photo
-    flat = np.zeros(1) if image.ndim == 2 else np.asarray(background, np.float64)
-    on_background = np.abs(to_srgb(image) - to_srgb(flat)) < 0.5 / 255
-    share = (on_background if image.ndim == 2 else on_background.all(-1)).mean()
-    return "parts" if share >= AUTO_BACKGROUND_SHARE else "photo"
-
-
-def read_person(path):
-    """(photo (H, W, 3) float64 linear RGB, PersonDetection, field of view from EXIF or None)
-    of a photo file; NoPersonError naming it when it shows no person."""
-    from softras_cl.io.images import read_rgb8
-    from softras_cl.fitting.detection import detect_person
-    from softras_cl.io.images import to_linear
-
-    rgb8 = read_rgb8(path)
-    detection = detect_person(rgb8, str(path))
-    return to_linear(rgb8 / 255.0), detection, photo_fov(path, rgb8.shape[:2])

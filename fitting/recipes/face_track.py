@@ -51,10 +51,10 @@ from softras_cl.fitting.recipes.face import FaceFitConfig, FaceScene, initial_po
 from softras_cl.fitting.solver import Stage, fit
 from softras_cl.scene.rotation import axis_angle_to_matrix, rodrigues, rodrigues_vjp
 
-__all__ = ["FaceFollower", "TrackConfig", "Identity", "LandmarkBasis", "FrameObjective", "FrameResult",
+__all__ = ["TrackConfig", "Identity", "LandmarkBasis", "FrameObjective", "FrameResult",
            "FrameTracker", "TrackerState", "FrameLight", "FixedLagSmoother", "world_vertices",
            "project_landmarks", "choose_keyframes", "fit_identity", "detector_offsets",
-           "identity_from_video", "head_angles_deg", "FRAME_BLOCKS"]
+           "head_angles_deg", "FRAME_BLOCKS"]
 
 FRAME_BLOCKS = ("rotation", "translation", "exp")     # fitted per frame
 OFFSET_PRIOR_M = 0.01   # detector_offsets' prior: a detector's landmark within about a centimetre of the model's
@@ -265,46 +265,6 @@ def detector_offsets(basis: "LandmarkBasis", camera, poses: list[dict], detected
         rhs += np.einsum("lai,la->li", J, np.asarray(points, np.float64) - uv)
     damping = (noise_px / prior_m) ** 2 * np.eye(3)
     return np.linalg.solve(normal + damping, rhs[..., None])[..., 0]
-
-
-def identity_from_video(source, model, config: TrackConfig, follower: "FaceFollower", scan: int,
-                        progress: bool = False) -> Identity:
-    """The Identity of a video (softras_cl.io.video.VideoSource): the face followed through its
-    first ``scan`` frames, the keyframes chosen among those with a face (:func:`choose_keyframes`),
-    decoded again and fitted jointly (:func:`fit_identity`). NoFaceError when no frame has a face."""
-    from softras_cl.fitting.detection import NoFaceError
-    from softras_cl.io.images import to_linear
-
-    found, previous, shape = {}, None, None
-    for frame in _until_broken(source.frames()):
-        if frame.index >= scan:
-            break
-        shape = frame.image.shape
-        previous = follower.find(frame.image, previous)
-        if previous is not None:
-            found[frame.index] = previous
-    if not found:
-        raise NoFaceError(f"no face found in the first {scan} frames of {source.path} (--scan); give "
-                          "--face-box X,Y,W,H around it")
-    keyframes = choose_keyframes(found, model, shape, config.keyframes)
-    images = {}
-    for frame in _until_broken(source.frames()):
-        if frame.index > keyframes[-1]:
-            break
-        if frame.index in keyframes:
-            images[frame.index] = to_linear(frame.image / 255.0)
-    return fit_identity([images[k] for k in keyframes], [found[k] for k in keyframes], keyframes, model, config,
-                        progress=progress)
-
-
-def _until_broken(frames):
-    """The frames up to where a video breaks off (the tracking of the frames reports the break)."""
-    from softras_cl.io.video import VideoReadError
-
-    try:
-        yield from frames
-    except VideoReadError:
-        return
 
 
 # ---------------------------------------------------------------------------------------------
@@ -665,8 +625,9 @@ class FrameTracker:
                            self.fitted_landmarks(values), False, terms, len(result.history),
                            time.perf_counter() - start)
 
-    def follow(self, follower: "FaceFollower", image: np.ndarray, time_s: float, index: int) -> FrameResult:
-        """:meth:`step` on the landmarks the follower finds in image (H, W, 3) uint8 RGB, searched
+    def follow(self, follower, image: np.ndarray, time_s: float, index: int) -> FrameResult:
+        """:meth:`step` on the landmarks ``follower`` (fitting.detection.follow.FaceFollower:
+        ``find(image, previous) -> (68, 2) or None``) finds in image (H, W, 3) uint8 RGB, searched
         around this tracker's last fitted landmarks (the whole frame before any, or after a
         frame without a face)."""
         state = self.state
@@ -695,80 +656,3 @@ class FrameTracker:
         return ParamSet([Block("rotation", np.asarray(values["rotation"], np.float64), scale=0.05),
                          Block("translation", np.asarray(values["translation"], np.float64), scale=0.01),
                          Block("exp", np.clip(values["exp"], -4.0, 4.0), -4.0, 4.0)])
-
-
-# ---------------------------------------------------------------------------------------------
-# the face in each frame
-# ---------------------------------------------------------------------------------------------
-
-class FaceFollower:
-    """The 68 landmarks of the followed face in each frame (fitting.detection).
-
-    The first frame with a face: detect_face on the whole frame, choosing by ``face`` (the N-th,
-    largest first) or ``face_box`` (x, y, w, h), else the largest. Then, given the previous
-    frame's fitted landmarks (:meth:`find`'s ``previous``), only a square crop CROP_MARGIN times
-    their extent around them is searched, for the face overlapping their box; when it is not
-    there (or its landmarks do not form a face), the whole frame again, for the largest face.
-    Landmarks that cannot be the same face one frame later (:meth:`agrees`: the eye line turned
-    by more than MAX_TURN_DEG, or the eyes moved by more than MAX_SHIFT eye distances; a detector
-    may return a face upside down, or a face-like patch beside the face) are not taken: the
-    whole frame is searched, and when that finds no such face either, the frame has none (held).
-    ``backend``: the detection backend (None: the default).
-    """
-
-    CROP_MARGIN = 2.0
-    MAX_TURN_DEG = 60.0
-    MAX_SHIFT = 1.5
-
-    def __init__(self, face: int | None = None, face_box=None, backend: str | None = None):
-        self.face, self.face_box, self.backend = face, face_box, backend
-        self.started = False
-
-    def find(self, image: np.ndarray, previous=None) -> np.ndarray | None:
-        """(68, 2) frame pixels of the face in image (H, W, 3) uint8 RGB, or None (no face)."""
-        if previous is None or not np.all(np.isfinite(previous)):
-            return self._whole(image)
-        previous = np.asarray(previous, np.float64)
-        for search in (self._near, lambda image, previous: self._whole(image)):
-            points = search(image, previous)
-            if points is not None and self.agrees(points, previous):
-                return points
-        return None
-
-    @classmethod
-    def agrees(cls, points: np.ndarray, previous: np.ndarray) -> bool:
-        """Whether (68, 2) landmarks can be the face whose (68, 2) landmarks the previous frame's
-        fit gave: its eye line (outer corners, iBUG 37 and 46) turned by at most MAX_TURN_DEG and
-        the eyes' midpoint moved by at most MAX_SHIFT of the previous eye distance."""
-        eyes, eyes_before = points[[36, 45]], previous[[36, 45]]
-        line, line_before = eyes[1] - eyes[0], eyes_before[1] - eyes_before[0]
-        turn = np.degrees(abs(np.arctan2(line_before[0] * line[1] - line_before[1] * line[0], line_before @ line)))
-        shift = np.linalg.norm(eyes.mean(0) - eyes_before.mean(0)) / max(np.linalg.norm(line_before), 1e-9)
-        return bool(turn <= cls.MAX_TURN_DEG and shift <= cls.MAX_SHIFT)
-
-    def _detect(self, image, **choice) -> np.ndarray | None:
-        from softras_cl.fitting.detection import ImplausibleFaceError, NoFaceError, detect_face
-
-        try:
-            chosen = detect_face(image, self.backend, **choice).chosen
-        except (NoFaceError, ImplausibleFaceError):
-            return None
-        return chosen.landmarks
-
-    def _whole(self, image) -> np.ndarray | None:
-        choice = {} if self.started else dict(face=self.face, face_box=self.face_box)
-        points = self._detect(image, **choice)
-        self.started = self.started or points is not None
-        return points
-
-    def _near(self, image, previous: np.ndarray) -> np.ndarray | None:
-        """The face in the crop around the previous landmarks (None: not there)."""
-        lo, hi = previous.min(0), previous.max(0)
-        centre, half = (lo + hi) / 2, 0.5 * self.CROP_MARGIN * float(np.max(hi - lo))
-        x0, y0 = np.maximum(np.floor(centre - half), 0).astype(int)
-        x1, y1 = np.minimum(np.ceil(centre + half), [image.shape[1], image.shape[0]]).astype(int)
-        if x1 - x0 < 16 or y1 - y0 < 16:            # the face has left the frame
-            return None
-        box = np.array([lo[0] + 0.5 - x0, lo[1] + 0.5 - y0, *(hi - lo)])   # the pixel grid: centres + 0.5
-        points = self._detect(np.ascontiguousarray(image[y0:y1, x0:x1]), face_box=box, tiles=False)
-        return None if points is None else points + [x0, y0]

@@ -22,6 +22,7 @@
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 from pathlib import Path
@@ -34,7 +35,7 @@ from softras_cl.fitting.recipes.face_track import (FRAME_BLOCKS, FrameResult, Id
 from softras_cl.io.meshes import save_mesh
 from softras_cl.io.outputs import atomic_path, json_safe, write_bytes, write_figure
 
-__all__ = ["CHUNKS", "MESHES", "OVERLAY_MAX", "MeshExporter", "write_identity", "read_identity", "chunk_path", "write_chunk",
+__all__ = ["CHUNKS", "MESHES", "OVERLAY_MAX", "ChunkWriter", "MeshExporter", "write_identity", "read_identity", "chunk_path", "write_chunk",
            "read_chunk", "OverlayDrawer", "finish_outputs", "TERMS"]
 
 CHUNKS = "chunks"
@@ -246,3 +247,54 @@ def finish_outputs(folder: Path, chunks: int, fps: float) -> dict:
                 mean_evaluations=float(arrays["evaluations"][fitted].mean()) if fitted.any() else None,
                 frame_fit_seconds=seconds,
                 frame_fit_fps=float(fitted.sum() / seconds) if seconds > 0 else None)
+
+
+class ChunkWriter:
+    """A video's outputs as its frames come: each frame's overlay (and, with ``export_meshes``
+    "ply" or "obj", its mesh); every ``chunk`` frames the chunk's files with the tracker's state
+    after its last frame. Chunks are numbered from ``k``. Used as a context: an error or Ctrl-C
+    discards the unfinished chunk's overlay."""
+
+    def __init__(self, model, identity: Identity, folder: Path, k: int, fps: float, chunk: int,
+                 export_meshes: str | None = None):
+        self.model, self.identity, self.folder, self.k, self.fps = model, identity, folder, k, fps
+        self.chunk, self.export_meshes = chunk, export_meshes
+        self.stack, self.video, self.results, self.state = contextlib.ExitStack(), None, [], None
+        self.drawer = self.meshes = None
+        (folder / CHUNKS).mkdir(exist_ok=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *error):
+        return self.stack.__exit__(*error)
+
+    def add(self, result: FrameResult, image, state: TrackerState) -> None:
+        """One frame's (smoothed) result, its image (H, W, 3) uint8 and the tracker's state after it."""
+        if self.video is None:
+            self._open(image.shape)
+        self.video.write(self.drawer.draw(image, result), result.time)
+        if self.meshes is not None:
+            self.meshes.write(result)
+        self.results.append(result)
+        self.state = state
+        if len(self.results) == self.chunk:
+            self.end_chunk()
+
+    def _open(self, frame_shape) -> None:
+        from softras_cl.io.video import VideoWriter
+
+        if self.drawer is None:
+            self.drawer = OverlayDrawer(self.model, self.identity, frame_shape)
+            if self.export_meshes is not None:
+                self.meshes = MeshExporter(self.folder, self.model, self.identity, self.export_meshes)
+        tmp = self.stack.enter_context(atomic_path(chunk_path(self.folder, self.k, ".mp4", "overlay")))
+        self.video = self.stack.enter_context(VideoWriter(tmp, self.fps))
+
+    def end_chunk(self) -> None:
+        """Write the chunk of the frames added since the last one (none: nothing)."""
+        if not self.results:
+            return
+        self.stack.close()                   # the overlay's part, complete
+        write_chunk(self.folder, self.k, self.results, self.state)
+        self.k, self.results, self.video = self.k + 1, [], None

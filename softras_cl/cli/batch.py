@@ -1,11 +1,13 @@
 """What `fit-face` and `fit-body` share for many photos: the options, when a run is a batch, and
-the batch run itself (softras_cl.fitting.batch.fit_many)."""
+the batch run itself (softras_cl.fitting.batch.client.fit_many)."""
 from __future__ import annotations
 
 import argparse
 import glob
 from pathlib import Path
 
+from softras_cl.cli.shared import (add_cluster_options, add_manifest_option, check_cluster_args, cluster_asked,
+                                   cluster_values)
 from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError, ResultError
 
 BATCH_EPILOG = """\
@@ -24,41 +26,8 @@ kept)."""
 def add_batch_options(p: argparse.ArgumentParser, kind: str) -> None:
     """--manifest, --workers, --threads-per-worker, --scheduler on a fit-face/fit-body parser."""
     side = "landmarks" if kind == "face" else "joints"
-    p.add_argument("--manifest", default=None, metavar="CSV",
-                   help=f"CSV of items: a 'photo' column, optional '{side}' and 'name' columns, and "
-                        "any option of this command as a column (e.g. size, budget); empty cells "
-                        "take the command line's value; paths relative to the CSV's folder")
+    add_manifest_option(p, f"items: a 'photo' column, optional '{side}' and 'name' columns", "size, budget")
     add_cluster_options(p, "photos")
-
-
-CLUSTER_OPTIONS = ("workers", "threads_per_worker", "scheduler")
-
-
-def cluster_asked(args: argparse.Namespace) -> bool:
-    """Whether any of the cluster options (CLUSTER_OPTIONS) was given."""
-    return any(getattr(args, k, None) is not None for k in CLUSTER_OPTIONS)
-
-
-def add_cluster_options(p: argparse.ArgumentParser, what: str) -> None:
-    """--workers, --threads-per-worker, --scheduler: the Dask cluster that runs the items
-    (``what``: "photos", "videos", for the help)."""
-    p.add_argument("--workers", type=int, default=None, metavar="N",
-                   help="worker processes of the local Dask cluster (default: cores / "
-                        "--threads-per-worker, i.e. one per core)")
-    p.add_argument("--threads-per-worker", type=int, default=None, metavar="T",
-                   help="OpenCL (PoCL) threads of each worker (default: cores / --workers, so that "
-                        "workers x threads fills the cores without oversubscribing them)")
-    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
-                   help=f"run the items on this running Dask scheduler's workers instead (they need "
-                        f"softras-cl installed and must see the {what} and --out at the same paths)")
-
-
-def check_cluster_args(args: argparse.Namespace) -> None:
-    """InputError when --scheduler comes with the local cluster's options."""
-    if args.scheduler is not None and (args.workers is not None or args.threads_per_worker is not None):
-        raise InputError("--workers and --threads-per-worker start a local cluster; with --scheduler "
-                         "the cluster's own workers run the items (start them with "
-                         "POCL_MAX_PTHREAD_COUNT=T dask worker ... --nthreads 1)")
 
 
 def is_batch(args: argparse.Namespace, inputs: list[str]) -> bool:
@@ -85,17 +54,16 @@ def check_batch_args(args: argparse.Namespace) -> None:
 def run_batch(args: argparse.Namespace, kind: str, inputs: list[str], options: dict,
               side_file: str | None) -> int:
     """Fit every item (softras_cl.fitting.batch), print one summary line; the exit code."""
-    from softras_cl.fitting.batch import fit_many
-    from softras_cl.fitting.batch_items import collect_items
+    from softras_cl.fitting.batch.client import fit_many
+    from softras_cl.fitting.batch.items import collect_items
     from softras_cl.fitting.model_cache import load_model
 
     check_batch_args(args)
     items = collect_items(inputs, kind, options, manifest=args.manifest, landmarks=side_file,
                           face=getattr(args, "face", None))
     load_model(kind, options.get("model"), options.get("model_landmarks"))   # a bad model: exit 2 now
-    result = fit_many(items, args.out, kind, scheduler=args.scheduler, workers=args.workers,
-                      threads_per_worker=args.threads_per_worker,
-                      all_faces=getattr(args, "all_faces", False), progress=not args.no_progress)
+    result = fit_many(items, args.out, kind, **cluster_values(args), all_faces=getattr(args, "all_faces", False),
+                      progress=not args.no_progress)
     counts = ", ".join(f"{n} {s}" for s, n in result.counts.items())
     print(f"fit-{kind}: {len(result.rows)} items: {counts}; results in {result.out}/results.csv")
     if result.interrupted:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from softras_cl.cli.shared import add_face_choice
 from softras_cl.fitting.detection import BACKENDS, ORDER
 
 #: the options only the dlib backend takes (argparse dest -> its default)
@@ -103,20 +104,6 @@ def _check_output_files(args: argparse.Namespace) -> None:
     if args.overlay:
         image_format(args.overlay, what="--overlay")
         check_output_file(args.overlay, "--overlay")
-
-
-def add_face_choice(parser) -> argparse._MutuallyExclusiveGroup:
-    """Add --face N and --face-box X,Y,W,H (dest face, face_box: an int and a string, None when
-    not given; parse_face_box reads the string) to `parser` as a mutually exclusive group, and
-    return the group (detect-landmarks adds --all-faces to it)."""
-    which = parser.add_mutually_exclusive_group()
-    which.add_argument("--face", type=int, default=None, metavar="N",
-                       help=f"use face N (0 = the first; faces are numbered {ORDER}; the default "
-                            "is the largest; detect-landmarks lists them)")
-    which.add_argument("--face-box", default=None, metavar="X,Y,W,H",
-                       help="use the face in this box (pixels: top-left corner, width, height): the "
-                            "detected face that overlaps it best, else the landmarks found in the box itself")
-    return which
 
 
 def register(sub) -> None:

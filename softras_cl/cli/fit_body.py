@@ -1,13 +1,14 @@
-"""`softras-cl fit-body TARGET [--model FILE] --out DIR [--joints FILE]`."""
+"""`softras-cl fit-body TARGET [--model FILE] --out DIR [--joints FILE]`: the work is
+fitting.jobs.body's (a photo of a person, or a renderer-made target); this module reads the
+command line and prints."""
 from __future__ import annotations
 
 import argparse
 
 from softras_cl.cli.batch import BATCH_EPILOG, add_batch_options, is_batch, run_batch
-from softras_cl.cli.runs import add_fit_options, fit_values, run_fit, say_summary
-from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
-
-PHOTO_REQUIRED = ("silhouette_iou", "keypoint_error_px_full")    # finite, or the fit of a photo failed
+from softras_cl.cli.shared import (add_fit_options, add_out_option, add_progress_option, add_rerun_options,
+                                   fit_values, run_job)
+from softras_cl.errors import InputError
 
 DESCRIPTION = """\
 Fit an SMPL-like body model (shape betas, joint rotations, global rotation, translation) to one
@@ -48,47 +49,15 @@ def register(sub) -> None:
                         "colours on --background, RGBA, or a mask (--input); several targets, folders or "
                         "glob patterns fit each into its own folder under --out")
     add_fit_options(p, BODY, files=True)
-    p.add_argument("--out", required=True, help="output directory (created if missing)")
+    add_out_option(p)
     p.add_argument("--joints", default=None,
                    help="2D joints of the target, one row per model joint in the model's order: "
                         ".txt rows 'x y' or 'x y weight' (0-based pixels; weight 0 = unseen) or .npy")
     add_fit_options(p, BODY, files=False)
-    p.add_argument("--resume", action="store_true",
-                   help="continue the interrupted fit in --out from its checkpoint.npz (same target, "
-                        "model, joints and options, else refused); finished stages are skipped")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace a complete fit of another target (other joints or model) that --out "
-                        "holds (else refused; one of the same inputs is replaced, saying so if its "
-                        "options differ)")
+    add_rerun_options(p, "fit-body")
     add_batch_options(p, "body")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_progress_option(p, "fit-body")
     p.set_defaults(func=run)
-
-
-def _load_inputs(args, silhouette: bool):
-    """(target, joints (J, 2) or None, joint weights or None, model, config); ValueError/OSError
-    on bad input."""
-    from softras_cl.fitting.body_files import read_joints, read_target
-    from softras_cl.fitting.model_cache import load_model
-
-    model = load_model("body", args.model)
-    target = read_target(args.target, silhouette)
-    joints, weights = (None, None) if args.joints is None else read_joints(args.joints, model.n_joints)
-    return target, joints, weights, model, _config(args)
-
-
-def _config(args: argparse.Namespace):
-    """The BodyFitConfig of the options; InputError naming the option that is out of range."""
-    from softras_cl.fitting.run_options import BODY
-
-    return BODY.config(_options(args))
-
-
-def _run_record(args: argparse.Namespace) -> dict:
-    """What makes a run of this command: the inputs' digests and the options that change the fit."""
-    from softras_cl.fitting.run_records import body_record
-
-    return body_record(args.target, args.joints, _options(args))
 
 
 def _options(args: argparse.Namespace) -> dict:
@@ -100,69 +69,24 @@ def _options(args: argparse.Namespace) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     """One target into --out itself, or a batch (several targets, folders, globs, a manifest)."""
+    from softras_cl.fitting.run_options import BODY
+
     if not args.targets and not args.manifest:
         raise InputError("give a target image (or several, folders, glob patterns, or --manifest CSV)")
-    _config(args)                       # options checked before any target is read
+    BODY.config(_options(args))         # options checked before any target is read
     if is_batch(args, args.targets):
         return run_batch(args, "body", args.targets, _options(args), args.joints)
-    args.target = args.targets[0]
-    return run_one(args)
+    return run_one(args, args.targets[0])
 
 
-def run_one(args: argparse.Namespace) -> int:
-    from softras_cl.fitting.recipes.body import fit_body, prepare_target
-    from softras_cl.fitting.recipes.body_photo import input_kind
-    from softras_cl.fitting.reports.body import write_outputs
+def run_one(args: argparse.Namespace, target) -> int:
+    """Fit one target into --out (fitting.jobs.body: the photo of a person's detection, or the
+    target's and joints' checks, before --out is touched)."""
+    from softras_cl.fitting.jobs.body import body_job
+    from softras_cl.fitting.jobs.body_photo import BodyPhotoJob
 
-    kind = input_kind(args.target, args.input, args.silhouette, _config(args).background, args.joints is not None)
-    if kind == "photo":
-        return run_photo(args)
-    target, joints, weights, model, config = _load_inputs(args, kind == "mask")
-    prepare_target(target, config.size, config.background, joints, weights, model.n_joints)
-    def fit(folder):
-        return fit_body(target, model, config, joints, weights, out_dir=folder,
-                        progress=not args.no_progress, resume=args.resume)
-
-    def write(fit, folder, metrics, seconds):
-        return write_outputs(fit, target, folder, metrics=metrics, run_config=dict(fit=config, options=args),
-                             extra=dict(target=str(args.target), seconds=seconds, budget=args.budget))
-
-    required = ("silhouette_iou",) + (("joint_error_px_full",) if joints is not None else ())
-    run = run_fit(args, "fit-body", _run_record(args), fit, required, write, [args.target])
-    metrics = run.metrics
-    joints_msg = (f", joint error {metrics['joint_error_px_full']:.1f} px" if "joint_error_px_full" in metrics
-                  else "")
-    say_summary("fit-body", run, f"silhouette IoU {metrics['silhouette_iou']:.3f}{joints_msg}")
-    return EXIT_INTERRUPTED if run.interrupted else EXIT_OK
-
-
-def run_photo(args: argparse.Namespace) -> int:
-    """One photo of a person into --out: detection (before --out is touched), fit, outputs."""
-    import numpy as np
-
-    from softras_cl.fitting.model_cache import load_model
-    from softras_cl.fitting.recipes.body_photo import fit_body_photo, read_person
-    from softras_cl.fitting.reports.body import write_photo_outputs
-
-    if args.joints is not None:
-        raise InputError("--joints is for part-coloured targets and masks: a photo's keypoints are detected "
-                         "(--input parts if the target is one)")
-    model, config = load_model("body", args.model), _config(args)
-    photo, detection, fov = read_person(args.target)
-    print(f"person in {args.target}: box {np.round(detection.box).astype(int).tolist()}, torso visibility "
-          f"{detection.score:.2f}; {detection.note}")
-
-    def fit(folder):
-        return fit_body_photo(photo.shape[:2], detection, model, config, args.budget, fov, out_dir=folder,
-                              progress=not args.no_progress, resume=args.resume)
-
-    def write(fit, folder, metrics, seconds):
-        return write_photo_outputs(fit, photo, folder, metrics=metrics, run_config=dict(fit=config, options=args),
-                                   extra=dict(target=str(args.target), input="photo", seconds=seconds,
-                                              budget=args.budget))
-
-    run = run_fit(args, "fit-body", _run_record(args), fit, PHOTO_REQUIRED, write, [args.target])
-    m = run.metrics
-    say_summary("fit-body", run, f"silhouette IoU {m['silhouette_iou']:.3f} against the person mask, keypoint "
-                                 f"error {m['keypoint_error_px_full']:.1f} px over {m['keypoints_used']} keypoints")
-    return EXIT_INTERRUPTED if run.interrupted else EXIT_OK
+    job = body_job(target, args.joints, _options(args), recorded=args)
+    job.read()
+    if isinstance(job, BodyPhotoJob):
+        print(job.describe())
+    return run_job(args, job, "fit-body")

@@ -1,14 +1,15 @@
 """`softras-cl fit-face PHOTO [--landmarks FILE] [--model FILE] --out DIR`, many photos:
 `softras-cl fit-face PHOTO|FOLDER|GLOB ... [--manifest CSV] --out DIR` (softras_cl.cli.batch), and
 several photos of one person: `softras-cl fit-face A B C --same-person [--landmarks A.pts B.pts C.pts]
---out DIR` (fitting.recipes.face_views)."""
+--out DIR`. The work is fitting.jobs.face_photo's; this module reads the command line and prints."""
 from __future__ import annotations
 
 import argparse
 
 from softras_cl.cli.batch import BATCH_EPILOG, add_batch_options, is_batch, run_batch
-from softras_cl.cli.runs import add_fit_options, fit_values, run_fit, say_summary
-from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
+from softras_cl.cli.shared import (add_face_choice, add_fit_options, add_out_option, add_progress_option,
+                                   add_rerun_options, fit_values, run_job)
+from softras_cl.errors import InputError
 
 DESCRIPTION = """\
 Fit a morphable face model to a photo and its 68 iBUG landmarks: shape (identity and
@@ -51,7 +52,6 @@ Without --same-person several photos are independent fits (above)."""
 
 def register(sub) -> None:
     """Add `fit-face` to the `softras-cl` subparsers `sub`."""
-    from softras_cl.cli.detect_landmarks import add_face_choice
     from softras_cl.fitting.run_options import FACE
 
     p = sub.add_parser("fit-face", help="fit a face model to a photo and its 68 landmarks",
@@ -76,17 +76,11 @@ def register(sub) -> None:
                             "own folder under --out, NAME-faceN for face N (0: the largest); without it, "
                             "the largest (or --face / --face-box)")
     add_fit_options(p, FACE, files=True)
-    p.add_argument("--out", required=True, help="output directory (created if missing)")
+    add_out_option(p)
     add_fit_options(p, FACE, files=False)
-    p.add_argument("--resume", action="store_true",
-                   help="continue the interrupted fit in --out from its checkpoint.npz (same photo, "
-                        "landmarks, model and options, else refused); finished stages are skipped")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace a complete fit of another photo (other landmarks or model) that --out "
-                        "holds (else refused; one of the same inputs is replaced, saying so if its "
-                        "options differ)")
+    add_rerun_options(p, "fit-face")
     add_batch_options(p, "face")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_progress_option(p, "fit-face")
     p.set_defaults(func=run)
 
 
@@ -95,19 +89,6 @@ def _options(args: argparse.Namespace) -> dict:
     from softras_cl.fitting.run_options import FACE
 
     return fit_values(args, FACE)
-
-
-def _load_inputs(args):
-    """(photo (H, W, 3) linear RGB, its landmarks (fitting.detection.PhotoLandmarks), model);
-    the detection, when the landmarks are detected, printed. ValueError/OSError on bad input,
-    ImplausibleFaceError (exit 1) for a detected face that is no face."""
-    from softras_cl.io.images import read_image
-    from softras_cl.fitting.detection import resolve_landmarks
-
-    photo = read_image(args.photo)[..., :3]
-    found = resolve_landmarks(args.photo, args.landmarks, face=args.face, face_box=_face_box(args))[0]
-    say_detection(found)
-    return photo, found, _load_model(args)
 
 
 def say_detection(found, name: str | None = None) -> None:
@@ -126,36 +107,14 @@ def _face_box(args: argparse.Namespace):
     return None if args.face_box is None else parse_face_box(args.face_box)
 
 
-def _load_model(args):
-    """The face model of --model (and --model-landmarks), else the demo model; InputError when it
-    lacks what --landmark-map asks for (before the output folder is touched)."""
-    from softras_cl.fitting.model_cache import load_model
-    from softras_cl.fitting.recipes.face import check_landmark_map
-    from softras_cl.fitting.run_options import FACE
-
-    if args.model is None and args.model_landmarks is not None:
-        raise ValueError("--model-landmarks needs --model (the demo model has its landmarks)")
-    model = load_model("face", args.model, args.model_landmarks)
-    with FACE.named_as_options():
-        check_landmark_map(args.landmark_map, model)
-    return model
-
-
-def _run_record(args: argparse.Namespace) -> dict:
-    """What makes a run of this command: the inputs' digests and the options that change the fit
-    (the same record a batch item of this photo has)."""
-    from softras_cl.fitting.run_records import face_landmarks_source, face_record
-
-    source = face_landmarks_source(args.photo, args.landmarks, args.face, _face_box(args))
-    return face_record(args.photo, source, _options(args))
-
-
 def run(args: argparse.Namespace) -> int:
     """One photo into --out itself, or a batch (several photos, folders, globs, a manifest)."""
+    from softras_cl.fitting.run_options import FACE
+
     if not args.photos and not args.manifest:
         raise InputError("give a photo (or several, folders, glob patterns, or --manifest CSV)"
                          + (" before --landmarks, which takes the files after it" if args.landmarks else ""))
-    _config(args)                       # options checked before any photo is read
+    FACE.config(_options(args))         # options checked before any photo is read
     _face_box(args)                     # --face-box's X,Y,W,H too
     if args.same_person:
         return run_same_person(args)
@@ -167,8 +126,7 @@ def run(args: argparse.Namespace) -> int:
         refuse_face_choice(args.landmarks, False, args.face, args.face_box)
     if is_batch(args, args.photos):
         return run_batch(args, "face", args.photos, _options(args), args.landmarks)
-    args.photo = args.photos[0]
-    return run_one(args)
+    return run_one(args, args.photos[0])
 
 
 def _single_landmarks(files: list[str] | None) -> str | None:
@@ -179,45 +137,22 @@ def _single_landmarks(files: list[str] | None) -> str | None:
     return None if files is None else files[0]
 
 
-def _config(args: argparse.Namespace):
-    """The FaceFitConfig of the options; InputError naming the option that is out of range."""
-    from softras_cl.fitting.run_options import FACE
+def run_one(args: argparse.Namespace, photo) -> int:
+    """Fit one photo into --out (fitting.jobs.face_photo.FacePhotoJob)."""
+    from softras_cl.fitting.jobs.face_photo import FacePhotoJob
 
-    return FACE.config(_options(args))
-
-
-def run_one(args: argparse.Namespace) -> int:
-    from softras_cl.fitting.recipes.face import check_dense_inputs, detected_dense, fit_face
-    from softras_cl.fitting.reports.face import write_outputs
-
-    photo, landmarks, model = _load_inputs(args)
-    record = _run_record(args)          # refuses a --face/--face-box that a landmark file makes moot
-    config = _config(args)
-    dense = detected_dense(landmarks.face)
-    check_dense_inputs(config, model, dense)        # before the output folder is touched
-
-    def fit(folder):
-        return fit_face(photo, landmarks.points, model, config, out_dir=folder, progress=not args.no_progress,
-                        resume=args.resume, dense=dense, detector=landmarks.source)
-
-    def write(fit, folder, metrics, seconds):
-        return write_outputs(fit, photo, landmarks, folder, metrics=metrics,
-                             run_config=dict(fit=config, options=args),
-                             extra=dict(photo=str(args.photo), seconds=seconds, budget=args.budget))
-
-    run = run_fit(args, "fit-face", record, fit, ("landmark_error_px_full", "psnr_face_db"), write,
-                  [args.photo])
-    metrics = run.metrics
-    say_summary("fit-face", run, f"landmark error {metrics['landmark_error_px_full']:.2f} px, face-region "
-                f"PSNR {metrics['psnr_face_db']:.1f} dB (model), {metrics['psnr_face_db_textured']:.1f} dB "
-                "(with the detail texture; sRGB)")
-    return EXIT_INTERRUPTED if run.interrupted else EXIT_OK
+    job = FacePhotoJob(photo, args.landmarks, _options(args), face=args.face, face_box=_face_box(args),
+                       recorded=args)
+    job.read()
+    say_detection(job.landmarks)
+    job.record()          # refuses a --face/--face-box that a landmark file beside the photo makes moot
+    return run_job(args, job, "fit-face")
 
 
 def _check_same_person(args: argparse.Namespace) -> list:
     """The photos of a --same-person run (files, folders, globs expanded, in order); InputError
     naming the options that do not go with it, before any photo is read."""
-    from softras_cl.fitting.batch_items import expand_paths
+    from softras_cl.fitting.batch.items import expand_paths
 
     if args.same_camera and args.focal is not None:
         raise InputError("--same-camera fits one focal length for all the photos; --focal gives it already: "
@@ -242,51 +177,13 @@ def _check_same_person(args: argparse.Namespace) -> list:
     return photos
 
 
-def _same_person_inputs(args: argparse.Namespace, photos: list) -> tuple[list, list, list]:
-    """(photos (H, W, 3) linear RGB, their landmarks (fitting.detection.PhotoLandmarks; the
-    detections printed), input records for params.json)."""
-    from softras_cl.fitting.detection import resolve_landmarks
-    from softras_cl.io.images import read_image
-    from softras_cl.fitting.run_records import face_landmarks_source
-    from softras_cl.io.outputs import file_sha256
-
-    files = args.landmarks or [None] * len(photos)
-    images = [read_image(p)[..., :3] for p in photos]
-    found = [resolve_landmarks(p, f)[0] for p, f in zip(photos, files)]
-    for photo, landmarks in zip(photos, found):
-        say_detection(landmarks, str(photo))
-    inputs = [dict(photo=str(p), photo_sha256=file_sha256(p), landmarks=None if f is None else str(f),
-                   landmarks_source=face_landmarks_source(p, f)) for p, f in zip(photos, files)]
-    return images, found, inputs
-
-
 def run_same_person(args: argparse.Namespace) -> int:
-    """Several photos of one person into --out (fitting.recipes.face_views)."""
-    from softras_cl.fitting.batch_items import stable_names
-    from softras_cl.fitting.run_records import face_record
-    from softras_cl.fitting.recipes.face_views import fit_face_views, joint_config
-    from softras_cl.fitting.reports.face_views import write_views_outputs
+    """Several photos of one person into --out (fitting.jobs.face_photo.FaceViewsJob)."""
+    from softras_cl.fitting.jobs.face_photo import FaceViewsJob
 
     paths = _check_same_person(args)
-    config = joint_config(_config(args))
-    images, landmarks, inputs = _same_person_inputs(args, paths)
-    model = _load_model(args)
-    records = [face_record(p, i["landmarks_source"], _options(args)) for p, i in zip(paths, inputs)]
-    record = dict(command="fit-face --same-person", inputs=[r["inputs"] for r in records],
-                  options=dict(records[0]["options"], same_camera=args.same_camera))
-
-    def fit(folder):
-        return fit_face_views(images, [f.points for f in landmarks], model, config, out_dir=folder, progress=not args.no_progress,
-                              resume=args.resume, same_camera=args.same_camera,
-                              detectors=[f.source for f in landmarks])
-
-    def write(fit, folder, metrics, seconds):
-        return write_views_outputs(fit, images, landmarks, stable_names(paths), inputs, folder, metrics,
-                                   run_config=dict(fit=config, options=args),
-                                   extra=dict(seconds=seconds, budget=args.budget))
-
-    run = run_fit(args, "fit-face", record, fit, ("landmark_error_px_full", "psnr_face_db"), write, paths)
-    say_summary("fit-face --same-person", run, f"{len(paths)} photos, mean landmark error "
-                f"{run.metrics['landmark_error_px_full']:.2f} px, mean face-region PSNR "
-                f"{run.metrics['psnr_face_db']:.1f} dB (model, sRGB)")
-    return EXIT_INTERRUPTED if run.interrupted else EXIT_OK
+    job = FaceViewsJob(paths, args.landmarks, _options(args), same_camera=args.same_camera, recorded=args)
+    job.read()
+    for photo, landmarks in zip(paths, job.landmarks):
+        say_detection(landmarks, str(photo))
+    return run_job(args, job, "fit-face --same-person")

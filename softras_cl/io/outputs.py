@@ -38,7 +38,7 @@ from softras_cl.errors import InputError, OutputError
 
 __all__ = ["atomic_path", "replaced_file", "check_output_file", "write_bytes", "write_text",
            "write_json", "write_figure", "json_safe", "file_sha256", "OutputFolder", "LOCK_NAME",
-           "RUN_RECORD", "COMPLETE_RECORD", "INPUT_FILES"]
+           "RUN_RECORD", "COMPLETE_RECORD", "INPUT_FILES", "stable_names"]
 
 LOCK_NAME = ".softras-cl.lock"
 RUN_RECORD = "run.json"
@@ -392,3 +392,16 @@ def _read_holder(lock_path: Path) -> str:
         return f" (pid {info['pid']}, {info['run']}, started {info['started']})"
     except (OSError, ValueError, KeyError, TypeError):
         return ""
+
+
+def stable_names(photos: list[Path]) -> list[str]:
+    """One folder name per photo: its file name without the suffix; photos that would share a
+    name get ``-`` and 8 hex digits of a hash of their absolute path appended (stable across
+    runs for the same set of photos)."""
+    stems = [p.stem for p in photos]
+    names = []
+    for p, stem in zip(photos, stems):
+        if stems.count(stem) > 1:
+            stem += "-" + hashlib.sha1(str(p.resolve()).encode()).hexdigest()[:8]
+        names.append(stem)
+    return names

@@ -437,12 +437,15 @@ def test_coarse_mesh_option_sets_the_fit_config(command):
     from importlib import import_module
 
     from softras_cl.cli import build_parser
+    from softras_cl.fitting.run_options import FITS
 
     module = import_module(f"softras_cl.cli.{command.replace('-', '_')}")
-    recipe = import_module(f"softras_cl.fitting.recipes.{command.split('-')[1]}")
+    kind = command.split('-')[1]
+    recipe = import_module(f"softras_cl.fitting.recipes.{kind}")
 
     def config(*extra):
-        return module._config(build_parser(command).parse_args([command, "in.png", "--out", "o", *extra]))
+        args = build_parser(command).parse_args([command, "in.png", "--out", "o", *extra])
+        return FITS[kind].config(module._options(args))
 
     assert config().coarse_mesh == recipe.COARSE_MESH
     assert config("--coarse-mesh", "2.5").coarse_mesh == 2.5

@@ -11,7 +11,7 @@ import time
 import pytest
 
 from softras_cl.errors import ResourceError
-from softras_cl.fitting.batch import split_cores
+from softras_cl.fitting.batch.cluster import split_cores
 
 distributed = pytest.importorskip("distributed")
 
@@ -94,7 +94,7 @@ def _group_ends(group: int, within: float) -> bool:
 
 @pytest.mark.slow
 def test_a_cluster_that_does_not_start_in_time_is_one_resource_error():
-    from softras_cl.fitting.batch import local_cluster
+    from softras_cl.fitting.batch.cluster import local_cluster
 
     with pytest.raises(ResourceError, match=r"did not start its 1 workers within 0.001 s"):
         local_cluster(1, 1, startup_seconds=0.001)

@@ -11,9 +11,9 @@ from PIL import Image
 from support.face_outputs import check_landmark_files
 from support.face_scenes import nme, read_pts, two_faces
 
-from softras_cl.fitting.batch import expand_faces
-from softras_cl.fitting.batch_items import collect_items
-from softras_cl.fitting.batch_task import face_points, item_record, run_item
+from softras_cl.fitting.batch.client import expand_faces
+from softras_cl.fitting.batch.items import collect_items
+from softras_cl.fitting.batch.tasks import item_job, run_item
 from softras_cl.fitting.detection import FaceCandidate, mediapipe_backend
 
 SMALL = ["--size", "64", "--budget", "fast", "--n-id", "4", "--n-exp", "4", "--n-albedo", "2", "--no-progress"]
@@ -126,7 +126,9 @@ def test_all_faces_items_are_named_and_fitted_by_the_detections_numbers(tmp_path
     photo.write_bytes((examples_data / "astronaut.png").read_bytes())
     items = expand_faces(_InProcess(), collect_items([photo], "face", {}))
     assert [(it.name, it.face, it.all_faces) for it in items] == [("group-face0", 0, True), ("group-face2", 2, True)]
-    found = face_points(items[1])
+    job = item_job(items[1])
+    job.read()
+    found = job.landmarks
     assert found.index == 2 and found.detection.reason == "--all-faces: face 2"
     np.testing.assert_array_equal(found.points, faces[2].landmarks)
 
@@ -139,10 +141,12 @@ def test_batch_face_n_fits_that_face_of_each_photo_and_records_it(tmp_path, exam
         photo.write_bytes((examples_data / "astronaut.png").read_bytes())
     photos[1].with_suffix(".pts").write_text((examples_landmarks / "astronaut.pts").read_text())
     detected, beside = collect_items(photos, "face", {}, face=2)
-    found = face_points(detected)
+    job = item_job(detected)
+    job.read()
+    found = job.landmarks
     assert found.index == 2 and found.detection.reason.startswith("--face 2: number 2 of 3")
     np.testing.assert_array_equal(found.points, faces[2].landmarks)
-    assert item_record(detected)["inputs"]["landmarks"] == "detected by mediapipe, face 2"
+    assert job.record()["inputs"]["landmarks"] == "detected by mediapipe, face 2"
     row = run_item(beside, str(tmp_path / "out"))
     assert row["status"] == "failed" and row["error"].startswith("--face chooses among the faces the detector finds, "
                                                                  "but the landmarks come from the file beside the photo")

@@ -274,23 +274,21 @@ def test_several_videos_go_on_after_ctrl_c_at_the_first_unfinished_chunk(video, 
 def test_several_videos_from_a_manifest_with_options_per_video(video, tmp_path, monkeypatch):
     """A manifest's video, name and option columns (paths relative to it) become each video's
     options over the command line's; --fps reaches the folders of frames only."""
-    import argparse
     import shutil
 
-    from softras_cl.cli.track_videos import video_items
+    from softras_cl.fitting.batch.videos import video_items
 
     (tmp_path / "clips").mkdir()
     shutil.copy(video["path"], tmp_path / "clips/one.mp4")
     (tmp_path / "stills").mkdir()
     (tmp_path / "manifest.csv").write_text("video,name,face_box,frame_iters\nclips/one.mp4,first,1,2,30,40,\n"
                                            "stills,,,12\n")
-    args = argparse.Namespace(videos=[], manifest=str(tmp_path / "manifest.csv"), resume=False,
-                              **{**_defaults(), "fps": 25.0, "frame_iters": 7})
+    options, manifest = {**_defaults(), "fps": 25.0, "frame_iters": 7}, tmp_path / "manifest.csv"
     with pytest.raises(InputError, match="more cells than the header"):
-        video_items(args)
+        video_items([], options, manifest)
     (tmp_path / "manifest.csv").write_text('video,name,face_box,frame_iters\nclips/one.mp4,first,"1,2,30,40",\n'
                                            "stills,,,12\n")
-    first, stills = video_items(args)
+    first, stills = video_items([], options, manifest)
     assert (first.name, first.photo, stills.name) == ("first", str(tmp_path / "clips/one.mp4"), "stills")
     assert first.opts["face_box"] == "1,2,30,40" and first.opts["frame_iters"] == 7 and "fps" not in first.opts
     assert stills.opts["frame_iters"] == 12 and stills.opts["fps"] == 25.0

@@ -18,11 +18,11 @@ import pytest
 from support.face_outputs import check_landmark_files
 
 from softras_cl.errors import InputError
-from softras_cl.fitting import batch
-from softras_cl.fitting.batch import fit_many, split_cores
-from softras_cl.fitting.batch_items import collect_items, stable_names
+from softras_cl.fitting.batch.client import fit_many
+from softras_cl.fitting.batch.cluster import local_cluster, split_cores, worker_plugin
+from softras_cl.fitting.batch.items import collect_items
 from softras_cl.fitting.run_records import completed
-from softras_cl.io.outputs import LOCK_NAME
+from softras_cl.io.outputs import LOCK_NAME, stable_names
 
 distributed = pytest.importorskip("distributed")
 
@@ -119,8 +119,8 @@ def test_split_cores():
 
 @pytest.fixture(scope="module")
 def client():
-    with batch.local_cluster(2, 1) as cluster, distributed.Client(cluster) as c:
-        c.register_plugin(batch.worker_plugin())
+    with local_cluster(2, 1) as cluster, distributed.Client(cluster) as c:
+        c.register_plugin(worker_plugin())
         yield c
 
 

@@ -7,8 +7,9 @@ import pytest
 from softras_cl.errors import InputError
 from softras_cl.fitting.recipes import body
 from softras_cl.fitting.keypoints.pose33 import KEYPOINT_MAP, head_landmarks, keypoint_layout
-from softras_cl.fitting.recipes.body_photo import (BodyPhotoObjective, camera_distance, input_kind,
-                                                   keypoint_weights, photo_fov, photo_stages)
+from softras_cl.fitting.jobs.body import input_kind
+from softras_cl.fitting.jobs.body_photo import photo_fov
+from softras_cl.fitting.recipes.body_photo import BodyPhotoObjective, camera_distance, keypoint_weights, photo_stages
 from softras_cl.fitting.solver import Stage
 from softras_cl.io.images import write_image
 

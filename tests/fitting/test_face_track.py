@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from softras_cl.errors import InputError
-from softras_cl.fitting.recipes.face_track import (FaceFollower, FrameObjective, FrameTracker, Identity, LandmarkBasis,
+from softras_cl.fitting.detection.follow import FaceFollower
+from softras_cl.fitting.recipes.face_track import (FrameObjective, FrameTracker, Identity, LandmarkBasis,
                                                    TrackConfig, TrackerState, choose_keyframes, head_angles_deg)
 from softras_cl.scene.rotation import axis_angle_to_matrix, matrix_to_axis_angle
 

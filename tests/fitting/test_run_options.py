@@ -1,7 +1,7 @@
-"""fitting.run_options: every option of fit-face/fit-body reaches a batch item's config and run
-record exactly as it reaches the single-photo fit's, a manifest column reads like the flag, and
-a batch rerun with another --coarse-mesh refits instead of skipping. Then: the single-photo
-commands do not import the Dask cluster module."""
+"""fitting.run_options: every option of fit-face/fit-body reaches a batch item's job (its config
+and run record) exactly as it reaches the single-photo command's, a manifest column reads like
+the flag, and a batch rerun with another --coarse-mesh refits instead of skipping. Then: the
+single-photo commands do not import the Dask cluster module."""
 from __future__ import annotations
 
 import csv
@@ -15,9 +15,12 @@ import pytest
 from softras_cl.cli import build_parser
 from softras_cl.cli import fit_body as body_cli
 from softras_cl.cli import fit_face as face_cli
+from softras_cl.cli import track_face as track_cli
 from softras_cl.errors import InputError
-from softras_cl.fitting.batch_items import collect_items
-from softras_cl.fitting.batch_task import item_config, item_record, run_item
+from softras_cl.fitting.batch.items import collect_items
+from softras_cl.fitting.batch.tasks import item_job, run_item
+from softras_cl.fitting.jobs.body import body_job
+from softras_cl.fitting.jobs.face_photo import FacePhotoJob
 from softras_cl.fitting.run_options import BODY, FACE, TRACK
 
 REPO = Path(__file__).resolve().parents[2]
@@ -37,6 +40,8 @@ TRACK_SAMPLES = dict(model=FILE, fps="25", face="1", face_box="1,2,30,40", chunk
                      export_meshes="obj")
 CASES = [("face", FACE, face_cli, FACE_SAMPLES, str(DATA / "astronaut.png")),
          ("body", BODY, body_cli, BODY_SAMPLES, str(DATA / "astronaut.png"))]
+SINGLE_JOBS = {"face": lambda photo, options: FacePhotoJob(photo, None, options),
+               "body": lambda photo, options: body_job(photo, None, options)}     # as fit-face/fit-body make them
 
 
 def _cli_args(command: str, photo: str, option=None, text=None):
@@ -58,9 +63,8 @@ def test_each_track_option_reaches_a_videos_config_and_record_as_the_single_vide
     """track-face on several videos: each option on the command line gives every video the
     config and run record that the single-video command gives (--face-box, a box in one video,
     goes per video in a manifest: the next test)."""
-    from softras_cl.cli.runs import fit_values
-    from softras_cl.cli.track_videos import check_options, run_record
-    from softras_cl.cli.track_videos import _item_args, video_items
+    from softras_cl.fitting.batch.videos import video_items
+    from softras_cl.fitting.jobs.face_video import check_options, run_record
     from softras_cl.io.video import open_video
 
     from PIL import Image
@@ -74,13 +78,10 @@ def test_each_track_option_reaches_a_videos_config_and_record_as_the_single_vide
         argv = ["track-face", video, "--out", "unused"]
         if option is not None:
             argv += [option.flag, TRACK_SAMPLES[option.name]]
-        args = build_parser("track-face").parse_args(argv)
-        args.video = video
-        item_args = _item_args(args, video_items(args)[0], tmp_path) if option is None or option.name != "face_box" \
-            else None
-        single = (check_options(fit_values(args, TRACK)), run_record(args, source))
-        return single, None if item_args is None else (check_options(fit_values(item_args, TRACK)),
-                                                       run_record(item_args, source))
+        values = track_cli._options(build_parser("track-face").parse_args(argv))
+        item = video_items([video], values)[0] if option is None or option.name != "face_box" else None
+        single = (check_options(values), run_record(source, values))
+        return single, None if item is None else (check_options(item.opts), run_record(source, item.opts))
 
     (base_config, base_record), item = single_and_item()
     assert item == (base_config, base_record)
@@ -118,16 +119,16 @@ def test_an_unknown_option_is_named():
 @pytest.mark.parametrize("kind, fit, cli, samples, photo", CASES, ids=["face", "body"])
 def test_each_option_reaches_the_batch_config_and_the_record_as_the_single_fit(kind, fit, cli, samples,
                                                                                  photo):
-    base_args = _cli_args(fit.command, photo)
-    base_item = collect_items([photo], kind, cli._options(base_args))[0]
-    base_config, base_record = cli._config(base_args), item_record(base_item)
-    assert item_config(base_item) == base_config and cli._run_record(base_args) == base_record
+    def single_and_item(args):
+        single = SINGLE_JOBS[kind](photo, cli._options(args))
+        item = item_job(collect_items([photo], kind, cli._options(args))[0])     # what run_batch makes of it
+        return (single.config, single.record()), (item.config, item.record())
+
+    (base_config, base_record), item = single_and_item(_cli_args(fit.command, photo))
+    assert item == (base_config, base_record)
     for option in fit.options:
-        args = _cli_args(fit.command, photo, option, samples[option.name])
-        item = collect_items([photo], kind, cli._options(args))[0]       # what run_batch makes of it
-        config, record = cli._config(args), cli._run_record(args)
-        assert item_config(item) == config, option.name                  # the batch fits the same
-        assert item_record(item) == record, option.name                  # and skips on the same record
+        (config, record), item = single_and_item(_cli_args(fit.command, photo, option, samples[option.name]))
+        assert item == (config, record), option.name        # the batch fits the same and skips on the same record
         if option.field is not None or option.name == "budget":
             assert config != base_config, f"{option.flag} does not change the config"
         if option.recorded or option.file:
@@ -186,15 +187,16 @@ SINGLE_FIT = """
 import sys
 from softras_cl.cli import build_parser
 from softras_cl.cli import fit_body, fit_face
+from softras_cl.fitting.jobs.body_target import BodyTargetJob
+from softras_cl.fitting.jobs.face_photo import FacePhotoJob
 from softras_cl.fitting.model_cache import load_model
 
 face = build_parser("fit-face").parse_args(["fit-face", PHOTO, "--out", "o", "--coarse-mesh", "1"])
-face.photo, face.landmarks = PHOTO, None
-fit_face._config(face), fit_face._run_record(face), fit_face._load_inputs(face)
+job = FacePhotoJob(PHOTO, None, fit_face._options(face))
+job.read(), job.record()
 body = build_parser("fit-body").parse_args(["fit-body", PHOTO, "--out", "o", "--size", "64"])
-body.target = PHOTO
-fit_body._config(body), fit_body._run_record(body), load_model("body")
-print(sorted(m for m in sys.modules if m == "softras_cl.fitting.batch" or m.split(".")[0] == "distributed"))
+BodyTargetJob(PHOTO, None, fit_body._options(body)).record(), load_model("body")
+print(sorted(m for m in sys.modules if m.startswith("softras_cl.fitting.batch") or m.split(".")[0] == "distributed"))
 """
 
 

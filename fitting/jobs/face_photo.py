@@ -1,0 +1,176 @@
+"""A face from photos: `softras-cl fit-face` and a batch's face items run these jobs.
+
+:class:`FacePhotoJob`, one photo: it reads the photo once (softras_cl.io.images.read_photo: the
+detector's 8-bit copy and the fit's linear one from one decode), takes its 68 landmarks from a
+file, a file beside the photo or the detector (fitting.detection.resolve_landmarks: the largest
+face, face N, the face in a box, or face N of --all-faces), fits them with
+fitting.recipes.face.fit_face and writes through fitting.reports.face.
+:class:`FaceViewsJob`, several photos of one person (--same-person): the same for each photo,
+one joint fit (fitting.recipes.face_views), written by fitting.reports.face_views.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from softras_cl.errors import InputError
+from softras_cl.fitting.detection import resolve_landmarks
+from softras_cl.fitting.jobs.run import FitJob
+from softras_cl.fitting.model_cache import load_model
+from softras_cl.fitting.run_options import FACE
+from softras_cl.fitting.run_records import face_landmarks_source, face_record
+from softras_cl.io.images import read_photo
+from softras_cl.io.outputs import stable_names
+
+__all__ = ["FacePhotoJob", "FaceViewsJob", "face_model", "face_landmarks"]
+
+REQUIRED = ("landmark_error_px_full", "psnr_face_db")     # finite, or the fit failed
+
+
+def face_model(options: dict):
+    """The face model of the options ``model`` (and ``model_landmarks``; the demo model when
+    None); InputError when it lacks what ``landmark_map`` asks for."""
+    from softras_cl.fitting.recipes.face import check_landmark_map
+
+    values = FACE.values(options)
+    if values["model"] is None and values["model_landmarks"] is not None:
+        raise ValueError("--model-landmarks needs --model (the demo model has its landmarks)")
+    model = load_model("face", values["model"], values["model_landmarks"])
+    with FACE.named_as_options():
+        check_landmark_map(values["landmark_map"], model)
+    return model
+
+
+def face_landmarks(photo, landmarks=None, face: int | None = None, face_box=None, all_faces: bool = False):
+    """The landmarks of one face of a photo (fitting.detection.PhotoLandmarks): a file (given, or
+    beside the photo), else the detected face ``face`` (None: the largest) or the one in
+    ``face_box``; with ``all_faces``, face number ``face`` among those whose landmarks form a
+    face. ``photo``: a softras_cl.io.images.Photo (decoded once)."""
+    if not all_faces:
+        return resolve_landmarks(photo.path, landmarks, image=photo.rgb8, face=face, face_box=face_box)[0]
+    found = [f for f in resolve_landmarks(photo.path, landmarks, image=photo.rgb8, all_faces=True)
+             if f.index == face]
+    if not found:
+        raise InputError(f"face {face} of {photo.path} is no longer found among the faces whose "
+                         "landmarks form a face")
+    return found[0]
+
+
+class FacePhotoJob(FitJob):
+    """A face fit of one photo. ``options``: fit-face's (fitting.run_options.FACE; missing: the
+    defaults), checked here, before any file is read. ``landmarks``: a landmark file, or None (a
+    file beside the photo, else the detector); ``face``, ``face_box``, ``all_faces``: which
+    detected face (see face_landmarks). ``recorded``: what params.json's provenance names as the
+    run's options (default ``options``). :meth:`read` reads the inputs; the runners call the rest."""
+    command = FACE.command
+    required = REQUIRED
+
+    def __init__(self, photo, landmarks=None, options: dict | None = None, *, face: int | None = None,
+                 face_box=None, all_faces: bool = False, recorded=None):
+        self.path, self.landmarks_file = photo, landmarks
+        self.options = FACE.values(options or {})
+        self.face, self.face_box, self.all_faces = face, face_box, all_faces
+        self.config = FACE.config(self.options)
+        self.recorded = self.options if recorded is None else recorded
+        self.photo = self.landmarks = self.model = self.dense = None
+
+    def read(self) -> None:
+        """Read the photo, find its landmarks (the detection, when detected, is in
+        ``self.landmarks.detection``), load the model; ValueError/OSError on bad input,
+        ImplausibleFaceError (exit 1) for a detected face that is no face."""
+        from softras_cl.fitting.recipes.face import check_dense_inputs, detected_dense
+
+        self.photo = read_photo(self.path)
+        self.landmarks = face_landmarks(self.photo, self.landmarks_file, self.face, self.face_box, self.all_faces)
+        self.model = face_model(self.options)
+        self.dense = detected_dense(self.landmarks.face)
+        check_dense_inputs(self.config, self.model, self.dense)
+
+    def record(self) -> dict:
+        source = face_landmarks_source(self.path, self.landmarks_file, self.face, self.face_box)
+        return face_record(self.path, source, self.options)
+
+    def files(self) -> list[str]:
+        return [str(self.path)]
+
+    def fit(self, folder: Path, progress: bool, resume: bool):
+        from softras_cl.fitting.recipes.face import fit_face
+
+        if self.photo is None:
+            self.read()
+        return fit_face(self.photo.linear, self.landmarks.points, self.model, self.config, out_dir=folder,
+                        progress=progress, resume=resume, dense=self.dense, detector=self.landmarks.source)
+
+    def write(self, fit, folder: Path, metrics: dict, seconds: float) -> dict:
+        from softras_cl.fitting.reports.face import write_outputs
+
+        return write_outputs(fit, self.photo.linear, self.landmarks, folder, metrics=metrics,
+                             run_config=dict(fit=self.config, options=self.recorded),
+                             extra=dict(photo=str(self.path), seconds=seconds, budget=self.options["budget"]))
+
+    def summary(self, metrics: dict) -> str:
+        return (f"landmark error {metrics['landmark_error_px_full']:.2f} px, face-region PSNR "
+                f"{metrics['psnr_face_db']:.1f} dB (model), {metrics['psnr_face_db_textured']:.1f} dB "
+                "(with the detail texture; sRGB)")
+
+
+class FaceViewsJob(FitJob):
+    """One person in several photos (at least two): one identity and albedo fitted to all,
+    each photo with its own pose, expression, light and (unless ``same_camera``) focal length.
+    ``landmarks``: one file per photo, in order, or None (each photo's file beside it, else the
+    detector's largest face). ``options``, ``recorded``: as FacePhotoJob's."""
+    command = FACE.command
+    required = REQUIRED
+
+    def __init__(self, photos: list, landmarks: list | None = None, options: dict | None = None, *,
+                 same_camera: bool = False, recorded=None):
+        from softras_cl.fitting.recipes.face_views import joint_config
+
+        self.paths, self.landmark_files = list(photos), landmarks or [None] * len(photos)
+        self.options = FACE.values(options or {})
+        self.config = joint_config(FACE.config(self.options))
+        self.same_camera = same_camera
+        self.recorded = self.options if recorded is None else recorded
+        self.photos = self.landmarks = self.model = None
+
+    def read(self) -> None:
+        """Read every photo once and find its landmarks, then load the model."""
+        self.photos = [read_photo(p) for p in self.paths]
+        self.landmarks = [face_landmarks(photo, f) for photo, f in zip(self.photos, self.landmark_files)]
+        self.model = face_model(self.options)
+
+    def inputs(self) -> list[dict]:
+        """Each photo's input record for params.json: its path and SHA-256, its landmark file and
+        what the run record says of its landmarks."""
+        from softras_cl.io.outputs import file_sha256
+
+        return [dict(photo=str(p), photo_sha256=file_sha256(p), landmarks=None if f is None else str(f),
+                     landmarks_source=face_landmarks_source(p, f)) for p, f in zip(self.paths, self.landmark_files)]
+
+    def record(self) -> dict:
+        records = [face_record(p, face_landmarks_source(p, f), self.options)
+                   for p, f in zip(self.paths, self.landmark_files)]
+        return dict(command="fit-face --same-person", inputs=[r["inputs"] for r in records],
+                    options=dict(records[0]["options"], same_camera=self.same_camera))
+
+    def files(self) -> list[str]:
+        return [str(p) for p in self.paths]
+
+    def fit(self, folder: Path, progress: bool, resume: bool):
+        from softras_cl.fitting.recipes.face_views import fit_face_views
+
+        if self.photos is None:
+            self.read()
+        return fit_face_views([p.linear for p in self.photos], [f.points for f in self.landmarks], self.model,
+                              self.config, out_dir=folder, progress=progress, resume=resume,
+                              same_camera=self.same_camera, detectors=[f.source for f in self.landmarks])
+
+    def write(self, fit, folder: Path, metrics: dict, seconds: float) -> dict:
+        from softras_cl.fitting.reports.face_views import write_views_outputs
+
+        return write_views_outputs(fit, [p.linear for p in self.photos], self.landmarks, stable_names(self.paths),
+                                   self.inputs(), folder, metrics, run_config=dict(fit=self.config, options=self.recorded),
+                                   extra=dict(seconds=seconds, budget=self.options["budget"]))
+
+    def summary(self, metrics: dict) -> str:
+        return (f"{len(self.paths)} photos, mean landmark error {metrics['landmark_error_px_full']:.2f} px, "
+                f"mean face-region PSNR {metrics['psnr_face_db']:.1f} dB (model, sRGB)")
