@@ -189,12 +189,17 @@ def _bench(tmp_path, capsys, *options) -> tuple[str, dict]:
     return capsys.readouterr().out, json.loads((out / "face.json").read_text())
 
 
+def _run_names(template: str, choices) -> list[str]:
+    """The summary names of a comparison run by _bench: `template` with {budget} (landmarks-only,
+    then fast) and {choice} (each of `choices`) filled in."""
+    return [template.format(budget=b, choice=c) for b in ("landmarks-only", "fast") for c in choices]
+
+
 @pytest.mark.slow
 def test_bench_face_compares_contours_per_yaw_bin(tmp_path, capsys):
     said, doc = _bench(tmp_path, capsys, "--size", "96", "--yaws", "45-75", "--contour", "fixed,sliding", "--seed", "2")
     assert "fixed against sliding jaw points" in said
-    assert list(doc["summary"]) == [f"yaw 45-75/{b}/{c} contour" for b in ("landmarks-only", "fast")
-                                    for c in ("fixed", "sliding")]
+    assert list(doc["summary"]) == _run_names("yaw 45-75/{budget}/{choice} contour", ("fixed", "sliding"))
     assert doc["yaw_bins"] == [[45.0, 75.0]] and set(doc["redrawn_faces"]) == {"yaw 45-75"}
     assert [(r["yaw_bin"], r["budget"]) for r in doc["contour_comparison"]] == [
         ("yaw 45-75", "landmarks-only"), ("yaw 45-75", "fast")]
@@ -264,8 +269,7 @@ def test_detected_samples_hold_mediapipe_points_near_the_truth(demo_face_model):
 def test_bench_face_compares_the_dense_term_on_detected_landmarks(tmp_path, capsys):
     said, doc = _bench(tmp_path, capsys, "--size", "128", "--landmarks", "detected", "--dense", "0,0.5", "--seed", "0")
     assert "without against with the dense landmark term" in said
-    assert list(doc["summary"]) == [f"detected landmarks/{b}/dense {w}" for b in ("landmarks-only", "fast")
-                                    for w in ("0", "0.5")]
+    assert list(doc["summary"]) == _run_names("detected landmarks/{budget}/dense {choice}", ("0", "0.5"))
     assert [(r["budget"], r["dense_weight"]) for r in doc["dense_comparison"]] == [("landmarks-only", 0.5),
                                                                                     ("fast", 0.5)]
     off, on = (doc["summary"][f"detected landmarks/fast/dense {w}"] for w in ("0", "0.5"))

@@ -5,9 +5,8 @@ import json
 import numpy as np
 import pytest
 from softras_cl.fitting.recipes import body
-from softras_cl.fitting.solver import load_checkpoint
 
-from support.interrupt import sigint_once_written
+from support.interrupted_fit import run_interrupted_fit
 from softras_cl.cli import main
 from softras_cl.io.images import write_image
 
@@ -78,16 +77,8 @@ def test_bad_input_is_reported_before_fitting(tmp_path, run_cli, target, case, m
 
 def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path, target, capsys):
     out = tmp_path / "fit"
-    with sigint_once_written(out / "checkpoint.npz"):
-        code = main(["fit-body", str(target[0]), "--out", str(out), "--size", "48", "--budget", "thorough",
-                     "--no-progress"])
-    assert code == 130
-    said = capsys.readouterr()
-    assert said.out == "" and "fit-body interrupted; outputs are from the best values so far" in said.err
-    doc = json.loads((out / "params.json").read_text())
-    assert doc["interrupted"] is True
-    values, _ = load_checkpoint(out / "checkpoint.npz")
-    assert np.isfinite(values["body_pose"]).all()
+    values = run_interrupted_fit(["fit-body", str(target[0]), "--out", str(out), "--size", "48",
+                                  "--budget", "thorough", "--no-progress"], out, capsys, "body_pose")
     np.testing.assert_allclose(np.load(out / "params.npz")["body_pose"], values["body_pose"])
     assert (out / "overlay.png").exists() and (out / "body.ply").exists()
 

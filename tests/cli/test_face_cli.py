@@ -8,9 +8,8 @@ import pytest
 
 from support.face_outputs import check_landmark_files
 from support.face_scenes import read_pts
-from support.interrupt import sigint_once_written
+from support.interrupted_fit import run_interrupted_fit
 from softras_cl.cli import main
-from softras_cl.fitting.solver import load_checkpoint
 
 DATA = Path(__file__).resolve().parents[2] / "examples" / "data"
 PHOTO, LANDMARKS = DATA / "astronaut.png", DATA / "landmarks" / "astronaut.pts"
@@ -72,16 +71,8 @@ def test_bad_input_is_reported_before_fitting(tmp_path, run_cli, case, match):
 
 def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path, capsys):
     out = tmp_path / "fit"
-    with sigint_once_written(out / "checkpoint.npz"):
-        code = main(["fit-face", str(PHOTO), "--landmarks", str(LANDMARKS), "--out", str(out),
-                     "--size", "96", "--budget", "thorough", "--no-progress"])
-    assert code == 130
-    said = capsys.readouterr()
-    assert said.out == "" and "fit-face interrupted; outputs are from the best values so far" in said.err
-    doc = json.loads((out / "params.json").read_text())
-    assert doc["interrupted"] is True
-    values, meta = load_checkpoint(out / "checkpoint.npz")
-    assert np.isfinite(values["id"]).all()
+    run_interrupted_fit(["fit-face", str(PHOTO), "--landmarks", str(LANDMARKS), "--out", str(out),
+                         "--size", "96", "--budget", "thorough", "--no-progress"], out, capsys, "id")
     assert (out / "overlay.png").exists() and (out / "face.ply").exists()
 
 

@@ -85,13 +85,6 @@ def test_truncated_files(tmp_path):
             load_body_model(path)
 
 
-def test_not_a_model_file(tmp_path):
-    path = tmp_path / "notes.txt"
-    path.write_text("hello")
-    with pytest.raises(ValueError, match="neither a pickle"):
-        load_body_model(path)
-
-
 def test_wrong_keys_lists_keys_and_layouts(tmp_path):
     path = tmp_path / "other.npz"
     np.savez(path, vertices=np.zeros((3, 3)), faces=np.zeros((1, 3), int))

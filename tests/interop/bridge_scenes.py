@@ -1,15 +1,13 @@
 """Small float64 scenes for the bridge tests: the rasteriser's random overlapping screen-space
 triangles (as tests/raster uses for its finite differences) and a bumpy icosphere seen by two
-cameras under an SH light (as tests/scene). Smooth settings (sigma, gamma large, no cut-off) so
+cameras under an SH light (support.sphere_scene, as tests/scene). Smooth settings (sigma, gamma large, no cut-off) so
 central differences converge."""
 from __future__ import annotations
 
 import numpy as np
 
 from softras_cl import RasterSettings
-from softras_cl.scene.camera import Camera
-from softras_cl.scene.meshes import icosphere
-from softras_cl.scene.shading import LambertLight, PhongLight, SHLight
+from support.sphere_scene import two_cameras
 
 H, W = 9, 11     # not a multiple of the 8-pixel tile
 
@@ -51,20 +49,6 @@ def render_settings(**kw) -> RasterSettings:
     return RasterSettings(**{**base, **kw})
 
 
-def render_scene(seed=0):
-    """vertices (V, 3) world (icosphere(1), radius 0.6, jittered), faces (F, 3), albedo (V, 3)."""
-    rng = np.random.default_rng(seed)
-    v, f = icosphere(1, radius=0.6)
-    return v + rng.normal(scale=0.03, size=v.shape), f, rng.uniform(0.2, 0.9, v.shape)
-
-
 def cameras():
-    return [Camera.look_at((0.4, 0.5, 3.0), (0.0, 0.05, 0.0), fov_deg=35, image_size=(H, W)),
-            Camera.look_at((-1.5, 0.3, 2.2), (0.05, 0.0, 0.0), fov_deg=40, image_size=(H, W))]
-
-
-LIGHTS = {
-    "lambert": LambertLight(ambient=(0.3, 0.4, 0.5), directional=(0.6, 0.5, 0.4), direction=(0.3, 1.0, 0.6)),
-    "phong": PhongLight(ambient=0.3, directional=0.6, direction=(0.5, 0.8, 0.7), specular=0.3, shininess=5.0),
-    "sh": SHLight(np.random.default_rng(3).normal(scale=0.3, size=(3, 9)) + SHLight.ambient(0.8).coefficients),
-}
+    """support.sphere_scene's two cameras, making (H, W) images."""
+    return two_cameras((H, W))

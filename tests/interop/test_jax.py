@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bridge_scenes import (LIGHTS, cameras, raster_scene, raster_settings, render_scene,
-                           render_settings)
+from bridge_scenes import cameras, raster_scene, raster_settings, render_settings
+from support.sphere_scene import LIGHTS, sphere_scene
 
 pytestmark = pytest.mark.jax
 
@@ -68,7 +68,7 @@ RENDER_CASES = [("vertex", "sh"), ("vertex", "phong"), ("face", "lambert"), ("pi
 def test_renderer_check_grads_every_differentiable_input(shading, light_name):
     from softras_cl.jax import Renderer
 
-    v, f, albedo = render_scene()
+    v, f, albedo = sphere_scene()
     cams, light = cameras(), LIGHTS.get(light_name)
     renderer = Renderer(render_settings(), shading=shading)
     light_params = {f"light_{k}": np.asarray(p, float) for k, p in (light.params().items() if light else ())}
@@ -87,7 +87,7 @@ def test_renderer_check_grads_every_differentiable_input(shading, light_name):
 def test_renderer_check_grads_unlit_textures(texture):
     from softras_cl.jax import Renderer
 
-    v, f, _ = render_scene()
+    v, f, _ = sphere_scene()
     rng = np.random.default_rng(2)
     renderer = Renderer(render_settings(), shading="none")
     cam = cameras()[0]
@@ -140,7 +140,7 @@ def test_renderer_equals_numpy_api_bit_for_bit():
     from softras_cl.jax import Renderer
     from softras_cl.scene.renderer import Renderer as NumpyRenderer
 
-    v, f, albedo = render_scene(1)
+    v, f, albedo = sphere_scene(1)
     cams, light = cameras(), LIGHTS["sh"]
     renderer = Renderer(render_settings(), shading="vertex")
 
@@ -202,7 +202,7 @@ def test_batched_views_under_jit():
 
     from softras_cl.jax import Renderer
 
-    v, f, albedo = render_scene()
+    v, f, albedo = sphere_scene()
     cams = cameras()
     renderer = Renderer(render_settings(), shading="vertex")
     rot = np.stack([c.rotation for c in cams])

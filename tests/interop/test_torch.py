@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bridge_scenes import (LIGHTS, cameras, raster_scene, raster_settings, render_scene,
-                           render_settings)
+from bridge_scenes import cameras, raster_scene, raster_settings, render_settings
+from support.sphere_scene import LIGHTS, sphere_scene
 
 pytestmark = pytest.mark.torch
 
@@ -60,7 +60,7 @@ def test_renderer_gradcheck_every_differentiable_input(shading, light_name):
     torch = _torch()
     from softras_cl.torch import Renderer
 
-    v, f, albedo = render_scene()
+    v, f, albedo = sphere_scene()
     cams, light = cameras(), LIGHTS.get(light_name)
     module = Renderer(render_settings(), shading=shading)
     light_params = {k: np.asarray(p, float) for k, p in (light.params().items() if light else ())}
@@ -82,7 +82,7 @@ def test_renderer_gradcheck_unlit_textures(texture):
     torch = _torch()
     from softras_cl.torch import Renderer
 
-    v, f, _ = render_scene()
+    v, f, _ = sphere_scene()
     rng = np.random.default_rng(2)
     module = Renderer(render_settings(), shading="none")
     cam = cameras()[0]
@@ -130,7 +130,7 @@ def test_renderer_equals_numpy_api_bit_for_bit():
     from softras_cl.scene.renderer import Renderer as NumpyRenderer
     from softras_cl.torch import Renderer
 
-    v, f, albedo = render_scene(1)
+    v, f, albedo = sphere_scene(1)
     cams, light = cameras(), LIGHTS["sh"]
     module = Renderer(render_settings(), shading="vertex")
     tv, ta = torch.tensor(v, requires_grad=True), torch.tensor(albedo, requires_grad=True)
@@ -174,7 +174,7 @@ def test_renderer_requires_grad_selects_groups(monkeypatch):
     torch = _torch()
     from softras_cl.torch import Renderer
 
-    v, f, albedo = render_scene()
+    v, f, albedo = sphere_scene()
     cam = cameras()[0]
     module = Renderer(render_settings(), shading="vertex")
     calls = _spy(monkeypatch, module.renderer)
@@ -193,7 +193,7 @@ def test_batched_meshes_and_views():
     torch = _torch()
     from softras_cl.torch import Renderer
 
-    v, f, albedo = render_scene()
+    v, f, albedo = sphere_scene()
     cams = cameras()
     module = Renderer(render_settings(), shading="vertex")
     batch_v = torch.tensor(np.stack([v, v * 1.1]), requires_grad=True)
@@ -252,7 +252,7 @@ def test_bad_inputs_name_the_argument(monkeypatch):
         module(v.requires_grad_(), f, colors=bad)
     assert kernels == []                  # no kernel ran for any of them
     renderer = Renderer(render_settings())
-    rv, rf, ra = render_scene()
+    rv, rf, ra = sphere_scene()
     with pytest.raises(ValueError, match=r"camera_params\['focal'\] must have shape \(2,\) or \(N, 2\)"):
         renderer(torch.tensor(rv), rf, cameras()[0], albedo=ra,
                  camera_params=dict(focal=torch.ones(3, dtype=torch.float64, requires_grad=True)))
@@ -291,7 +291,7 @@ def test_double_backward_is_refused_naming_the_function(which):
         module, vertices = SoftRasterizer(raster_settings()), scene["vertices"]
         arguments = dict(faces=scene["faces"], colors=scene["colors"])
     else:
-        vertices, f, albedo = render_scene(2)
+        vertices, f, albedo = sphere_scene(2)
         module = Renderer(render_settings(), shading="vertex")
         arguments = dict(faces=f, cameras=cameras(), albedo=albedo, light=LIGHTS["sh"])
     v = torch.tensor(vertices, requires_grad=True)

@@ -58,12 +58,18 @@ def _ids(variants):
     return [",".join(f"{k}={v}" for k, v in d.items()) or "default" for d in variants]
 
 
+def _variant_scene(variant: dict, layout: str, seed: int):
+    """(settings of `variant` on `layout`, vertices (B, V, 3), faces (F, 3), the colour input by
+    name: {} when the variant draws no rgb) of random_scene(seed)."""
+    s = settings(layout=layout, **variant)
+    vertices, faces, colors = random_scene(seed, texture=s.texture)
+    return s, vertices, faces, colors if "rgb" in s.outputs else {}
+
+
 @pytest.mark.parametrize("layout", LAYOUTS)
 @pytest.mark.parametrize("variant", VARIANTS, ids=_ids(VARIANTS))
 def test_forward_matches_reference_float64(variant, layout):
-    s = settings(layout=layout, **variant)
-    vertices, faces, colors = random_scene(0, texture=s.texture)
-    colors = colors if "rgb" in s.outputs else {}
+    s, vertices, faces, colors = _variant_scene(variant, layout, 0)
     out = SoftRasterizer(s).forward(vertices, faces, **colors)
     ref = reference.soft_rasterize(vertices, faces, s, **colors)
     for name in s.outputs:
@@ -144,9 +150,7 @@ def _color_key(s):
 @pytest.mark.parametrize("layout", LAYOUTS)
 @pytest.mark.parametrize("variant", VARIANTS, ids=_ids(VARIANTS))
 def test_gradients_match_finite_differences(variant, layout):
-    s = settings(layout=layout, **variant)
-    vertices, faces, colors = random_scene(4, texture=s.texture)
-    colors = colors if "rgb" in s.outputs else {}
+    s, vertices, faces, colors = _variant_scene(variant, layout, 4)
     raster = SoftRasterizer(s)
     cot = _cotangents(s, 5)
     grads = ("vertices", "colors") if colors else ("vertices",)
@@ -361,9 +365,7 @@ def test_rows_without_cotangents_are_skipped_exactly(variant, layout):
     on its own rows only (a skip that ignored one output's plane would lose its rows), batch item
     1 has a whole tile row of zeros but for one pixel (a check of one lane would lose it), and
     everything zero gives exactly zero gradients."""
-    s = settings(layout=layout, **variant)
-    vertices, faces, colors = random_scene(4, texture=s.texture)
-    colors = colors if "rgb" in s.outputs else {}
+    s, vertices, faces, colors = _variant_scene(variant, layout, 4)
     raster = SoftRasterizer(s)
     cot = _cotangents(s, 5)
     for k, g in enumerate(cot.values()):

@@ -184,6 +184,15 @@ def cameras():
 CAMERA_IDS = ["look_at", "look_at_pi", "zero_rot", "tiny_rot", "ortho_look_at", "ortho_direct"]
 
 
+def _assert_point_and_pose_grads(g: dict, key: str, cam, loss, points: np.ndarray) -> None:
+    """g[key] (the gradient of `points` (..., 3)), g["rotation"] and g["translation"] equal central
+    differences of loss(camera, points) (a float; points defaulting to `points`)."""
+    assert_grad(g[key], fd_gradient(lambda p: loss(cam, p), points))
+    assert_grad(g["rotation"], fd_gradient(lambda w: loss(cam.with_params(rotation=w)), cam.rotation.copy()))
+    assert_grad(g["translation"], fd_gradient(lambda t: loss(cam.with_params(translation=t)),
+                                              cam.translation.copy()))
+
+
 @pytest.mark.parametrize("cam", list(cameras()), ids=CAMERA_IDS)
 @pytest.mark.parametrize("batched", [True, False], ids=["B2", "unbatched"])
 def test_project_vjp_vs_fd(cam, batched):
@@ -197,10 +206,7 @@ def test_project_vjp_vs_fd(cam, batched):
     def loss(c, v=verts):
         return np.sum(G * c.project(v)[0])
 
-    assert_grad(g["vertices"], fd_gradient(lambda v: loss(cam, v), verts))
-    assert_grad(g["rotation"], fd_gradient(lambda w: loss(cam.with_params(rotation=w)), cam.rotation.copy()))
-    assert_grad(g["translation"], fd_gradient(lambda t: loss(cam.with_params(translation=t)),
-                                              cam.translation.copy()))
+    _assert_point_and_pose_grads(g, "vertices", cam, loss, verts)
     assert_grad(g["focal"], fd_gradient(lambda f: loss(cam.with_params(fx=f[0], fy=f[1])), cam.focal))
     vertices_only = cam.project_vjp(ctx, G, camera=False)      # the camera's gradients skipped
     assert list(vertices_only) == ["vertices"] and np.array_equal(vertices_only["vertices"], g["vertices"])
@@ -241,10 +247,7 @@ def test_view_direction_and_vjp(cam):
     def loss(c, p=pts):
         return np.sum(G * c.view_direction(p)[0])
 
-    assert_grad(g["points"], fd_gradient(lambda p: loss(cam, p), pts))
-    assert_grad(g["rotation"], fd_gradient(lambda w: loss(cam.with_params(rotation=w)), cam.rotation.copy()))
-    assert_grad(g["translation"], fd_gradient(lambda t: loss(cam.with_params(translation=t)),
-                                              cam.translation.copy()))
+    _assert_point_and_pose_grads(g, "points", cam, loss, pts)
 
 
 # ---- immutability / with_params ----------------------------------------------------------------

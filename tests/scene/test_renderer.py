@@ -10,30 +10,15 @@ from softras_cl import RasterSettings
 from softras_cl.scene.camera import Camera
 from softras_cl.scene.meshes import icosphere
 from softras_cl.scene.renderer import Renderer
-from softras_cl.scene.shading import LambertLight, PhongLight, SHLight
+from softras_cl.scene.shading import LambertLight
+from support.sphere_scene import LIGHTS, sphere_scene, two_cameras
 
 H, W = 18, 22
 H_STEP = 1e-6
 
 
-def scene(seed=0):
-    rng = np.random.default_rng(seed)
-    v, f = icosphere(1, radius=0.6)
-    v = v + rng.normal(scale=0.03, size=v.shape)
-    albedo = rng.uniform(0.2, 0.9, v.shape)
-    return v, f, albedo
-
-
 def cameras():
-    return [Camera.look_at((0.4, 0.5, 3.0), (0.0, 0.05, 0.0), fov_deg=35, image_size=(H, W)),
-            Camera.look_at((-1.5, 0.3, 2.2), (0.05, 0.0, 0.0), fov_deg=40, image_size=(H, W))]
-
-
-LIGHTS = {
-    "lambert": LambertLight(ambient=(0.3, 0.4, 0.5), directional=(0.6, 0.5, 0.4), direction=(0.3, 1.0, 0.6)),
-    "phong": PhongLight(ambient=0.3, directional=0.6, direction=(0.5, 0.8, 0.7), specular=0.3, shininess=5.0),
-    "sh": SHLight(np.random.default_rng(3).normal(scale=0.3, size=(3, 9)) + SHLight.ambient(0.8).coefficients),
-}
+    return two_cameras((H, W))
 
 
 def settings(**kw):
@@ -76,7 +61,7 @@ CASES += [("pixel", "lambert"), ("pixel", "sh")]
 
 @pytest.mark.parametrize("shading,light_name", CASES)
 def test_render_path_gradients_match_finite_differences(shading, light_name):
-    v, f, albedo = scene()
+    v, f, albedo = sphere_scene()
     cams, light = cameras(), LIGHTS[light_name]
     renderer = Renderer(settings(), shading=shading)
     cot = _cot(len(cams))
@@ -110,7 +95,7 @@ def test_render_path_gradients_match_finite_differences(shading, light_name):
 
 def test_unlit_uv_texture_gradients_and_single_camera_sum():
     """shading='none' with a uv texture; one Camera for a batch of two meshes sums its gradient."""
-    v, f, _ = scene(4)
+    v, f, _ = sphere_scene(4)
     rng = np.random.default_rng(5)
     uvs = rng.uniform(0, 1, (len(v), 2))
     image = rng.uniform(0, 1, (1, 6, 5, 3))
@@ -134,7 +119,7 @@ def test_unlit_uv_texture_gradients_and_single_camera_sum():
 
 
 def test_only_requested_gradients_are_returned():
-    v, f, albedo = scene()
+    v, f, albedo = sphere_scene()
     renderer = Renderer(settings(outputs=("rgb",)))
     out = renderer.forward(v, f, cameras()[0], albedo=albedo, grads=("light",))
     g = renderer.backward(out, grad_rgb=np.ones_like(out.rgb))
@@ -147,7 +132,7 @@ def test_only_requested_gradients_are_returned():
 def test_focal_group_is_the_camera_groups_focal_to_the_bit(single):
     """grads=("focal",) returns camera's focal gradients (checked against finite differences
     above) and nothing else, for one Camera (summed over the batch) or a list."""
-    v, f, albedo = scene()
+    v, f, albedo = sphere_scene()
     verts = np.stack([v, v + [0.05, -0.02, 0.1]])
     cams = cameras()[0] if single else cameras()[:2]
     cot = _cot(2, seed=8)
@@ -165,7 +150,7 @@ def test_focal_group_is_the_camera_groups_focal_to_the_bit(single):
 def test_per_call_sigma_gamma_and_depth_equal_a_renderer_of_those_settings():
     """forward(sigma=, gamma=, near=, far=) gives the images and gradients, to the bit, of a
     renderer made with those settings, and draws with the renderer's one rasteriser."""
-    v, f, albedo = scene()
+    v, f, albedo = sphere_scene()
     run = dict(sigma=2e-4, gamma=3e-3, near=0.8, far=7.0)
     cot = _cot(1, seed=4)
     renders = []
@@ -187,7 +172,7 @@ def test_settings_are_read_only():
 
 
 def test_backward_refuses_the_output_of_another_renderer():
-    v, f, albedo = scene()
+    v, f, albedo = sphere_scene()
     other = Renderer(settings(), shading="face")
     out = other.forward(v, f, cameras()[0], albedo=albedo, grads=("vertices",))
     with pytest.raises(ValueError, match=r"^output was made by another Renderer \(shading='face'"):
@@ -213,7 +198,7 @@ def test_own_context_and_queue_reach_the_rasterizer_and_change_nothing():
 
     from softras_cl.cl.device import select_device
 
-    v, f, albedo = scene()
+    v, f, albedo = sphere_scene()
     ctx = cl.Context([select_device()])
     queue = cl.CommandQueue(ctx)
     default = Renderer(settings()).forward(v, f, cameras()[0], albedo=albedo, light=LambertLight())
@@ -228,7 +213,7 @@ def test_own_context_and_queue_reach_the_rasterizer_and_change_nothing():
 
 
 def test_bad_scene_input_is_named():
-    v, f, albedo = scene()
+    v, f, albedo = sphere_scene()
     renderer = Renderer(settings())
     with pytest.raises(ValueError, match="image_size"):
         renderer.forward(v, f, Camera.look_at((0, 0, 3), (0, 0, 0), image_size=(10, 10)), albedo=albedo)
@@ -255,6 +240,6 @@ def test_per_pixel_shading_agrees_with_per_vertex_on_a_fine_mesh():
 
 
 def test_per_pixel_shading_rejects_phong():
-    v, f, albedo = scene()
+    v, f, albedo = sphere_scene()
     with pytest.raises(ValueError, match="light"):
         Renderer(settings(), shading="pixel").forward(v, f, cameras()[0], albedo=albedo, light=LIGHTS["phong"])
