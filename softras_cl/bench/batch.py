@@ -86,15 +86,15 @@ def run_config(samples, options: dict, workers: int, threads: int, out: Path) ->
     """fit_many on a fresh LocalCluster: timings and per-face fitted values and metrics."""
     from distributed import Client
 
-    from softras_cl.fitting import batch
+    from softras_cl.fitting.batch.client import fit_many
+    from softras_cl.fitting.batch.cluster import local_cluster
 
     start = time.perf_counter()
-    with batch.local_cluster(workers, threads) as cluster, Client(cluster) as client:
+    with local_cluster(workers, threads) as cluster, Client(cluster) as client:
         client.wait_for_workers(workers)
         startup = time.perf_counter() - start
         start = time.perf_counter()
-        result = batch.fit_many([s["photo_path"] for s in samples], out, options=options, client=client,
-                                progress=False)
+        result = fit_many([s["photo_path"] for s in samples], out, options=options, client=client, progress=False)
         seconds = time.perf_counter() - start
     bad = [r for r in result.rows if r["status"] != "ok"]
     if bad:
@@ -143,7 +143,7 @@ def _reference_row(model, samples, reference) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from softras_cl.fitting.batch import import_distributed
+    from softras_cl.fitting.batch.cluster import import_distributed
     from softras_cl.fitting.models.face_loaders import load_demo_face_model
 
     configs = parse_configs(args.configs)

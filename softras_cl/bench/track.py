@@ -264,7 +264,7 @@ class _GivenLandmarks:
 
 def follower_for(mode: str, sequence: dict, rng: np.random.Generator):
     """The tracker's landmark source: MediaPipe ("detected") or the true landmarks + noise."""
-    from softras_cl.fitting.recipes.face_track import FaceFollower
+    from softras_cl.fitting.detection.follow import FaceFollower
 
     if mode == "detected":
         return FaceFollower()
@@ -275,7 +275,8 @@ def run_tracker(model, sequence: dict, config, follower_factory, scan: int) -> d
     """Track one sequence from its mp4 as track-face does (the per-frame fits, then the fixed-lag
     smoothing); its results, identity and timings (the per-frame stage: the frames' fits, light
     included, and the smoothing)."""
-    from softras_cl.fitting.recipes.face_track import FixedLagSmoother, FrameTracker, identity_from_video
+    from softras_cl.fitting.jobs.face_video import identity_from_video
+    from softras_cl.fitting.recipes.face_track import FixedLagSmoother, FrameTracker
     from softras_cl.io.video import open_video
 
     start = time.perf_counter()
