@@ -14,6 +14,7 @@ held-out shapes: voxel IoU (32^3 over [-1, 1]^3) per category of the prediction,
 sphere, and of nearest-neighbour retrieval of a training shape (by silhouette IoU against all
 training images, and against every training shape rendered from the input's own camera).
 Writes results.json (with provenance), figure.png, model.pt and the loss history to --out.
+Needs PyTorch: pip install 'softras-cl[torch]'.
 """
 from __future__ import annotations
 

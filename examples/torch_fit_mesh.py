@@ -11,7 +11,7 @@ per-vertex offsets with Adam on 1 - soft IoU (all views in one batched render) p
 Laplacian smoothness term and an edge-length term, with sigma lowered from 1e-4 to 1e-5 on the
 way. The nlopt fit is softras_cl.fitting.recipes.silhouette (L-BFGS under its sigma schedule).
 Prints, for both, the mean 2D IoU of the hard silhouettes, the volume IoU to the target and the
-wall time.
+wall time. Needs PyTorch: pip install 'softras-cl[torch]'.
 """
 from __future__ import annotations
 

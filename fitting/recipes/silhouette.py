@@ -25,7 +25,7 @@ optimiser, float64, double-sided faces (see :func:`silhouette_settings`), binary
 of the surface (that no silhouette constrains) smooth, which is what the 3D metrics measure.
 
 Metrics to a target mesh: :func:`chamfer_distance` (points sampled on both surfaces) and
-:func:`volume_iou` (inside tests on a common grid; both meshes must be closed).
+:func:`volume_iou` (inside tests on a common grid, by ray parity; both meshes must be closed).
 """
 from __future__ import annotations
 
@@ -251,18 +251,57 @@ def chamfer_distance(a_points, b_points, count: int = 20000, seed: int = 0) -> f
     return float(0.5 * (d_ab.mean() + d_ba.mean()))
 
 
+def _corners(mesh) -> np.ndarray:
+    """The triangles of ``mesh`` (a trimesh.Trimesh or a (vertices, faces) pair) as (F, 3, 3)
+    float64 corner positions."""
+    v, f = (mesh.vertices, mesh.faces) if hasattr(mesh, "faces") else mesh
+    return np.asarray(v, np.float64)[np.asarray(f)]
+
+
+def _upward_crossings(corners: np.ndarray, xs, ys, zs, chunk: int = 64) -> np.ndarray:
+    """(len(xs), len(ys), len(zs)) int: how many triangles (``corners`` (F, 3, 3)) a ray from
+    each grid point (xs[i], ys[j], zs[k]) straight up (+z) crosses. A column through an edge or a
+    corner of the triangles' xy projections counts it for one triangle only (the top-left rule
+    on triangles turned counter-clockwise), so a closed surface is crossed an odd number of
+    times from inside; triangles seen edge-on from above are skipped."""
+    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+    area = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    seen = area != 0
+    a, b, c, turn = a[seen], b[seen], c[seen], (area[seen] < 0)[:, None]
+    b, c = np.where(turn, c, b), np.where(turn, b, c)
+    px, py = (g.ravel() for g in np.meshgrid(xs, ys, indexing="ij"))
+    # steps[p, k] - steps[p, k + 1]: the crossings above zs[k] of column p, summed below
+    steps = np.zeros((len(px), len(zs) + 1), np.int64)
+    for s in range(0, len(a), chunk):
+        ta, tb, tc = a[s:s + chunk, None], b[s:s + chunk, None], c[s:s + chunk, None]
+        weights, covered = [], True
+        for u, v in ((tb, tc), (tc, ta), (ta, tb)):          # the edge facing each corner
+            dx, dy = v[..., 0] - u[..., 0], v[..., 1] - u[..., 1]
+            w = dx * (py - u[..., 1]) - dy * (px - u[..., 0])
+            top_left = (dy < 0) | ((dy == 0) & (dx < 0))
+            weights.append(w)
+            covered = covered & ((w > 0) | ((w == 0) & top_left))
+        t, col = np.nonzero(covered)
+        w0, w1, w2 = (w[t, col] for w in weights)
+        z = (w0 * ta[t, 0, 2] + w1 * tb[t, 0, 2] + w2 * tc[t, 0, 2]) / (w0 + w1 + w2)
+        np.add.at(steps, (col, 0), 1)
+        np.add.at(steps, (col, np.searchsorted(zs, z)), -1)   # grid points below z see it
+    return np.cumsum(steps[:, :-1], axis=1).reshape(len(xs), len(ys), len(zs))
+
+
 def volume_iou(mesh_a, mesh_b, resolution: int = 48, padding: float = 0.02) -> float:
-    """Volume IoU of two closed meshes (trimesh.Trimesh or (vertices, faces)): inside tests
-    (trimesh ``contains``) of a ``resolution``^3 grid of cell centres spanning both meshes'
-    joint bounding box (grown by ``padding`` of its size). 1 for identical solids."""
-    a, b = _trimesh(mesh_a), _trimesh(mesh_b)
-    lo = np.minimum(a.bounds[0], b.bounds[0])
-    hi = np.maximum(a.bounds[1], b.bounds[1])
+    """Volume IoU of two closed meshes (trimesh.Trimesh or (vertices, faces)): inside tests of a
+    ``resolution``^3 grid of cell centres spanning both meshes' joint bounding box (grown by
+    ``padding`` of its size), a point being inside when a ray from it crosses the surface an odd
+    number of times. 1 for identical solids. numpy only (the same answers as trimesh's
+    ``contains`` on the example's and the tests' meshes, without its ray engines)."""
+    a, b = _corners(mesh_a), _corners(mesh_b)
+    both = np.concatenate([a.reshape(-1, 3), b.reshape(-1, 3)])
+    lo, hi = both.min(0), both.max(0)
     pad = padding * (hi - lo).max()
     lo, hi = lo - pad, hi + pad
     n = int(resolution)
     axes = [lo[i] + (np.arange(n) + 0.5) * (hi[i] - lo[i]) / n for i in range(3)]
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    in_a, in_b = a.contains(grid), b.contains(grid)
+    in_a, in_b = (_upward_crossings(m, *axes) % 2 == 1 for m in (a, b))
     union = np.count_nonzero(in_a | in_b)
     return float(np.count_nonzero(in_a & in_b) / union) if union else 1.0
