@@ -17,6 +17,10 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterator
 
 from softras_cl.errors import InputError
+from softras_cl.fitting.recipes import body_settings, face_settings
+from softras_cl.fitting.recipes.body_settings import BodyFitConfig
+from softras_cl.fitting.recipes.face_settings import COARSE_MESH, LANDMARK_MAPS, FaceFitConfig
+from softras_cl.fitting.recipes.track_settings import TrackConfig
 
 __all__ = ["Option", "FitOptions", "FACE", "BODY", "TRACK", "FITS", "yes_no"]
 
@@ -145,16 +149,6 @@ def _coarse_mesh(edges: float) -> float | None:
     return edges or None
 
 
-def _face_config(budget: str, **changes):
-    from softras_cl.fitting.recipes.face import FaceFitConfig
-    return FaceFitConfig.from_budget(budget, **changes)
-
-
-def _body_config(budget: str, **changes):
-    from softras_cl.fitting.recipes.body import BodyFitConfig
-    return BodyFitConfig.from_budget(budget, **changes)
-
-
 def parse_background(text: str) -> tuple[float, float, float]:
     """'r,g,b' -> (r, g, b) floats; ValueError naming the option otherwise."""
     try:
@@ -167,8 +161,6 @@ def parse_background(text: str) -> tuple[float, float, float]:
 
 
 def _face_options() -> tuple[Option, ...]:
-    from softras_cl.fitting.recipes.face import BUDGETS, COARSE_MESH, LANDMARK_MAPS
-
     return (
         Option("model", str, None, "face model file: the project's .npz, BFM 2009 .mat, BFM 2017 .h5 or "
                "FLAME .pkl (default: the demo model shipped with softras-cl)", recorded=False, file=True),
@@ -176,7 +168,7 @@ def _face_options() -> tuple[Option, ...]:
                "vertex indices or 'face b0 b1 b2' rows (.txt/.npy), or a FLAME landmark embedding",
                recorded=False, file=True),
         Option("budget", str, "default", "schedule: evaluations and sigma/gamma steps (default: default); "
-               "`softras-cl bench face` shows what each costs and gains", choices=tuple(sorted(BUDGETS))),
+               "`softras-cl bench face` shows what each costs and gains", choices=tuple(sorted(face_settings.BUDGETS))),
         Option("size", int, 256, "longest side in pixels of the working image the fit runs at (default 256)",
                field="size"),
         Option("photo_weight", float, None, "weight of the photometric term (default 100, i.e. pixel noise "
@@ -207,8 +199,6 @@ def _face_options() -> tuple[Option, ...]:
 
 
 def _body_options() -> tuple[Option, ...]:
-    from softras_cl.fitting.recipes.body import BUDGETS, BodyFitConfig
-
     d = BodyFitConfig()
     return (
         Option("model", str, None, "body model file: SMPL .pkl/.npz or the project's .npz "
@@ -223,7 +213,7 @@ def _body_options() -> tuple[Option, ...]:
         Option("background", str, "0,0,0", "background colour of a part-coloured target, linear RGB "
                "'r,g,b' (default 0,0,0)", field="background", to_config=parse_background),
         Option("budget", str, "default", "schedule: evaluations and sigma/gamma steps (default: default); "
-               "`softras-cl bench body` shows what each costs and gains", choices=tuple(sorted(BUDGETS))),
+               "`softras-cl bench body` shows what each costs and gains", choices=tuple(sorted(body_settings.BUDGETS))),
         Option("size", int, d.size, f"longest side in pixels of the working image (default {d.size})",
                field="size"),
         Option("distance", float, d.distance, f"camera distance from the body in metres (default "
@@ -245,15 +235,11 @@ def _body_options() -> tuple[Option, ...]:
     )
 
 
-def _track_config(budget: str, **changes):
-    from softras_cl.fitting.recipes.face_track import TrackConfig
+def _track_config(budget: str, **changes) -> TrackConfig:
     return TrackConfig(identity_budget=budget, **changes)
 
 
 def _track_options() -> tuple[Option, ...]:
-    from softras_cl.fitting.recipes.face import BUDGETS
-    from softras_cl.fitting.recipes.face_track import TrackConfig
-
     d = TrackConfig()
     return (
         Option("model", str, None, "face model file, as for fit-face (default: the demo model shipped with "
@@ -274,7 +260,7 @@ def _track_options() -> tuple[Option, ...]:
                "on the landmarks corrected by the detector offsets the one before found (default "
                f"{d.identity_passes}; 1: one fit on the landmarks as detected)", field="identity_passes", metavar="N"),
         Option("budget", str, d.identity_budget, f"schedule of the identity fit on the keyframes (default: "
-               f"{d.identity_budget}; see fit-face --budget)", choices=tuple(sorted(BUDGETS))),
+               f"{d.identity_budget}; see fit-face --budget)", choices=tuple(sorted(face_settings.BUDGETS))),
         Option("size", int, d.size, f"working size in pixels of the identity fit (default {d.size})", field="size"),
         Option("frame_iters", int, d.frame_iters, f"evaluations of each frame's fit (default {d.frame_iters})",
                field="frame_iters"),
@@ -301,7 +287,7 @@ def _track_options() -> tuple[Option, ...]:
     )
 
 
-FACE = FitOptions("fit-face", _face_options(), _face_config)
-BODY = FitOptions("fit-body", _body_options(), _body_config)
+FACE = FitOptions("fit-face", _face_options(), FaceFitConfig.from_budget)
+BODY = FitOptions("fit-body", _body_options(), BodyFitConfig.from_budget)
 FITS = {"face": FACE, "body": BODY}      # batch item kind -> its fit's options
 TRACK = FitOptions("track-face", _track_options(), _track_config)

@@ -57,13 +57,12 @@ so that colour goes into the albedo.
 """
 from __future__ import annotations
 
-import dataclasses
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from softras_cl.checks import check_finite, number
+from softras_cl.checks import check_finite
 from softras_cl.errors import InputError
 from softras_cl.scene.camera import Camera
 from softras_cl.scene.rotation import RodriguesContext, matrix_to_axis_angle, rodrigues, rodrigues_vjp
@@ -77,194 +76,17 @@ from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.models.face_model import LinearContext
 from softras_cl.fitting.models.mesh_lod import coarse_faces
 from softras_cl.fitting.params import Block, ParamSet
+from softras_cl.fitting.recipes.face_settings import (BUDGETS, COARSE_MESH, COARSE_SIGMA, MIN_LANDMARK_SPREAD,
+                                                      MIN_ROBUST_SCALE, MIN_SIZE, ROBUST_SCALE, FaceFitConfig,
+                                                      input_check)
 from softras_cl.fitting.recipes.contour import ContourChoice, ContourLandmarks, jaw_candidates
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
-__all__ = ["FaceFitConfig", "Crop", "FaceScene", "FaceFit", "BUDGETS", "landmark_weights", "default_stages",
+__all__ = ["Crop", "FaceScene", "FaceFit", "landmark_weights", "default_stages",
            "depth_range", "half_resolution", "initial_pose", "initial_light", "prepare_photo", "face_params", "FaceObjective",
            "prepare_fit", "fit_face", "check_dense_inputs", "detected_dense", "psnr"]
 
-# Smallest working image (pixels a side). Measured on astronaut with the fast budget: the face
-# region left after the 2-pixel erosion and the eye and mouth cut-outs has 0 pixels at 16 (PSNR
-# NaN), 23 at 24, 66 at 32 and 245 at 48. A photo's face must therefore span at least
-# MIN_SIZE / 2 pixels (the working image is twice the landmarks' extent).
-MIN_SIZE = 32
-# Smallest ratio of the landmarks' two singular values (centred): a face spans an area (0.92 on
-# both shipped photos); points on a line, or all at one point, fix no pose.
-MIN_LANDMARK_SPREAD = 0.05
 CAMERA_ROTATION = np.diag([1.0, -1.0, -1.0])   # world (y up, camera looks down -z) -> OpenCV
-# Photometric stages whose sigma is at least this render at half the working resolution (see
-# FaceObjective.photo_level): the first stage of every budget. FaceFitConfig.coarse_sigma's default.
-COARSE_SIGMA = 1e-4
-# ... and draw a coarser face list (fitting.models.mesh_lod): the model's vertices clustered in
-# cubes of this many median edge lengths (at half size a working pixel spans about two edges of
-# the demo face). FaceFitConfig.coarse_mesh's default.
-COARSE_MESH = 2.0
-# Robust photometric term (FaceObjective.start_stage): Geman-McClure scale = ROBUST_SCALE x the
-# median per-pixel linear-RGB error at a stage's start, never below MIN_ROBUST_SCALE (an error
-# that small is noise, not something the model cannot explain).
-ROBUST_SCALE = 2.0
-MIN_ROBUST_SCALE = 0.1
-# FaceFitConfig.contour_landmarks: how the jaw-line landmarks find their model points
-CONTOUR_LANDMARKS = ("sliding", "fixed")
-# FaceFitConfig.landmark_map: which model points the 68 landmarks are tied to (landmark_model)
-LANDMARK_MAPS = ("auto", "model", "face-mesh")
-
-# Schedules: (sigma, gamma, evaluations) per photometric stage, and the landmark stage's budget.
-BUDGETS = {
-    "fast": dict(landmark_iters=100, photo_stages=((1e-4, 3e-3, 40), (1e-5, 1e-3, 60))),
-    "default": dict(landmark_iters=150,
-                    photo_stages=((1e-4, 3e-3, 100), (3e-5, 1e-3, 20), (1e-5, 1e-3, 100))),
-    "thorough": dict(landmark_iters=200,
-                     photo_stages=((1e-4, 3e-3, 80), (3e-5, 1e-3, 100), (1e-5, 1e-3, 150),
-                                   (3e-6, 1e-3, 100))),
-}
-
-
-@dataclass(frozen=True)
-class FaceFitConfig:
-    """Every knob of :func:`fit_face`.
-
-    size: the working image is a square around the landmarks (see :func:`prepare_photo`)
-        shrunk to at most this many pixels a side (never enlarged).
-    focal: focal length in pixels of the full photo, or None to fit it (initial guess from
-        ``fov_deg`` across the longer side).
-    landmark_iters / photo_stages: the schedule (see BUDGETS; photo_stages holds
-        (sigma, gamma, evaluations) or (sigma, gamma, evaluations, stall_rel) per stage: the
-        evaluations are the stage's cap, stall_rel its convergence stop, see stall_window).
-    weights: loss-term weights by name (see the module docstring for their meaning).
-    mask_erosion / forehead: the face region (see FaceObjective.face_region).
-    robust_scale: the photometric term's Geman-McClure scale in multiples of the median
-        per-pixel colour error at each photometric stage's start (see FaceObjective), or None
-        for the plain sum of squared errors.
-    stall_window: the window of the photometric stages' convergence stop, in evaluations
-        (fitting.solver.Stage: a stage given a stall_rel ends once its best loss improved by at
-        most stall_rel relative over stall_window evaluations; 0: run every stage's whole
-        budget). The landmark stage, cheap and the start of everything after it, always runs
-        to nlopt's own stop or its budget.
-    coarse_sigma: photometric stages whose sigma is at least this compare the photo at half
-        the working resolution (FaceObjective.photo_level; None: never).
-    coarse_mesh: those stages draw the model's faces clustered in cubes of this many median
-        edge lengths (fitting.models.mesh_lod.coarse_faces; None: the model's own faces).
-    contour_landmarks: "sliding": each jaw-line landmark (iBUG 0-16) whose fixed model point
-        is turned away from the camera is the model's occluding contour point nearest to it,
-        re-chosen at every evaluation (fitting.recipes.contour); "fixed": every landmark is a fixed
-        point of the model.
-    landmark_map: which model points the 68 landmarks are tied to. "model": the model's own
-        iBUG 300-W points, where an annotator (and dlib) puts them; "face-mesh": where MediaPipe
-        Face Mesh puts the mesh points that stand for them (fitting.keypoints.face_mesh), from the
-        model's Face Mesh correspondence (its dense points; a point the correspondence does not
-        use keeps the model's own, with no weight: tied_landmarks); "auto": "face-mesh" for landmarks MediaPipe found
-        (fit_face's ``detector``) on a model with that correspondence, else "model". On the
-        demo face MediaPipe's points lie a mean 0.06 and up to 0.18 eye distances from the model's own (brows
-        and jaw most): tied to the model's own, the fit takes that offset for shape.
-    dense_weight: weight of each dense landmark (MediaPipe Face Mesh's 468 points, those the
-        model's dense_use marks) relative to one of the 68 landmarks, in every stage that has
-        the landmarks; 0: no dense term. Needs a model with dense points (FaceModel.has_dense)
-        and the photo's dense points (fit_face's ``dense``).
-    n_id / n_exp / n_albedo: use only the first components of the model (None: all).
-    dtype: rasteriser precision; float64 keeps line searches clean.
-    """
-    size: int = 256
-    focal: float | None = None
-    fov_deg: float = 30.0
-    landmark_iters: int = BUDGETS["default"]["landmark_iters"]
-    photo_stages: tuple = BUDGETS["default"]["photo_stages"]
-    stall_window: int = 0
-    coarse_sigma: float | None = COARSE_SIGMA
-    coarse_mesh: float | None = COARSE_MESH
-    weights: dict = field(default_factory=lambda: dict(
-        landmarks=1.0 / 4.0, photo=100.0, id_prior=1.0, exp_prior=1.0,
-        albedo_prior=1.0, sh_white=1000.0, focal_prior=1.0))
-    landmark_weight_photo: float = 5.0    # landmark weight in the photometric stages, relative
-    robust_scale: float | None = ROBUST_SCALE
-    mask_erosion: int = 2
-    forehead: float = 0.15
-    contour_landmarks: str = "sliding"
-    landmark_map: str = "auto"
-    dense_weight: float = 0.0
-    n_id: int | None = None
-    n_exp: int | None = None
-    n_albedo: int | None = None
-    dtype: str = "float64"
-
-    def __post_init__(self):
-        _check_face_config(self)
-
-    @classmethod
-    def from_budget(cls, name: str, photo_weight: float | None = None, **changes) -> "FaceFitConfig":
-        """The config of a schedule budget (BUDGETS), optionally with another photo weight."""
-        if name not in BUDGETS:
-            raise InputError(f"budget must be one of {sorted(BUDGETS)}, got {name!r}")
-        config = cls(**{**BUDGETS[name], **changes})
-        if photo_weight is None:
-            return config
-        _check(lambda: number("photo_weight", photo_weight, positive=True))
-        return dataclasses.replace(config, weights={**config.weights, "photo": float(photo_weight)})
-
-
-def _check(fn):
-    """Run a softras_cl.checks check, turning its ValueError into InputError (exit 2)."""
-    try:
-        return fn()
-    except InputError:
-        raise
-    except ValueError as e:
-        raise InputError(str(e)) from None
-
-
-def _int_at_least(name: str, value, low: int, why: str = "") -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-        raise InputError(f"{name} must be an integer >= {low}{why}, got {value!r}")
-
-
-def _check_face_config(c: FaceFitConfig) -> None:
-    """InputError naming the first bad field of a FaceFitConfig."""
-    _int_at_least("size", c.size, MIN_SIZE, f" (pixels a side of the working image; below {MIN_SIZE} "
-                  "the face region left to fit the photo is a few pixels or none)")
-    if c.focal is not None:
-        _check(lambda: number("focal", c.focal, positive=True))
-    fov = _check(lambda: number("fov_deg", c.fov_deg))
-    if not 0 < fov < 180:
-        raise InputError(f"fov_deg must be in (0, 180) degrees, got {c.fov_deg!r}")
-    _int_at_least("landmark_iters", c.landmark_iters, 0)
-    for i, stage in enumerate(c.photo_stages):
-        if len(stage) not in (3, 4):
-            raise InputError(f"photo_stages[{i}] must be (sigma, gamma, evaluations) or (sigma, gamma, "
-                             f"evaluations, stall_rel), got {stage!r}")
-        _check(lambda: number(f"photo_stages[{i}] sigma", stage[0], positive=True))
-        _check(lambda: number(f"photo_stages[{i}] gamma", stage[1], positive=True))
-        _int_at_least(f"photo_stages[{i}] evaluations", stage[2], 0)
-        if len(stage) == 4 and _check(lambda: number(f"photo_stages[{i}] stall_rel", stage[3])) < 0:
-            raise InputError(f"photo_stages[{i}] stall_rel must be >= 0, got {stage[3]!r}")
-    for name, w in c.weights.items():
-        if _check(lambda: number(f"weights[{name!r}]", w)) < 0:
-            raise InputError(f"weights[{name!r}] must be >= 0, got {w!r}")
-    if _check(lambda: number("landmark_weight_photo", c.landmark_weight_photo)) < 0:
-        raise InputError(f"landmark_weight_photo must be >= 0, got {c.landmark_weight_photo!r}")
-    _int_at_least("mask_erosion", c.mask_erosion, 0)
-    _int_at_least("stall_window", c.stall_window, 0, " (evaluations; 0: no convergence stop)")
-    if c.coarse_sigma is not None:
-        _check(lambda: number("coarse_sigma", c.coarse_sigma, positive=True))
-    if c.coarse_mesh is not None:
-        _check(lambda: number("coarse_mesh", c.coarse_mesh, positive=True))
-    if c.robust_scale is not None:
-        _check(lambda: number("robust_scale", c.robust_scale, positive=True))
-    if _check(lambda: number("forehead", c.forehead)) < 0:
-        raise InputError(f"forehead must be >= 0, got {c.forehead!r}")
-    for name in ("n_id", "n_exp", "n_albedo"):
-        if getattr(c, name) is not None:
-            _int_at_least(name, getattr(c, name), 0)
-    if c.contour_landmarks not in CONTOUR_LANDMARKS:
-        raise InputError(f"contour_landmarks must be one of {', '.join(map(repr, CONTOUR_LANDMARKS))}, "
-                         f"got {c.contour_landmarks!r}")
-    if c.landmark_map not in LANDMARK_MAPS:
-        raise InputError(f"landmark_map must be one of {', '.join(map(repr, LANDMARK_MAPS))}, "
-                         f"got {c.landmark_map!r}")
-    if _check(lambda: number("dense_weight", c.dense_weight)) < 0:
-        raise InputError(f"dense_weight must be >= 0 (0: no dense landmark term), got {c.dense_weight!r}")
-    if c.dtype not in ("float32", "float64"):
-        raise InputError(f"dtype must be 'float32' or 'float64', got {c.dtype!r}")
 
 
 def landmark_weights() -> np.ndarray:
@@ -307,11 +129,11 @@ def _check_inputs(photo, landmarks) -> tuple[np.ndarray, np.ndarray]:
     img = np.asarray(photo, np.float64)
     if img.ndim != 3 or img.shape[2] != 3:
         raise InputError(f"photo must be an (H, W, 3) RGB image, got shape {img.shape}")
-    _check(lambda: check_finite("photo", img))
+    input_check(lambda: check_finite("photo", img))
     pts = np.asarray(landmarks, np.float64)
     if pts.shape != (ibug68.COUNT, 2):
         raise InputError(f"landmarks must have shape ({ibug68.COUNT}, 2), got {pts.shape}")
-    _check(lambda: check_finite("landmarks", pts))
+    input_check(lambda: check_finite("landmarks", pts))
     h, w = img.shape[:2]
     outside = (pts[:, 0] < -0.5) | (pts[:, 0] > w - 0.5) | (pts[:, 1] < -0.5) | (pts[:, 1] > h - 0.5)
     if outside.any():
@@ -977,7 +799,7 @@ def check_dense_inputs(config: FaceFitConfig, model, dense) -> None:
     points = np.asarray(dense, np.float64)
     if points.shape != (model.n_dense, 2):
         raise InputError(f"dense points must have shape ({model.n_dense}, 2), got {points.shape}")
-    _check(lambda: check_finite("dense points", points))
+    input_check(lambda: check_finite("dense points", points))
 
 
 def _dense_option(config: FaceFitConfig) -> str:

@@ -441,12 +441,12 @@ def test_coarse_mesh_option_sets_the_fit_config(command):
 
     module = import_module(f"softras_cl.cli.{command.replace('-', '_')}")
     kind = command.split('-')[1]
-    recipe = import_module(f"softras_cl.fitting.recipes.{kind}")
+    settings = import_module(f"softras_cl.fitting.recipes.{kind}_settings")
 
     def config(*extra):
         args = build_parser(command).parse_args([command, "in.png", "--out", "o", *extra])
         return FITS[kind].config(module._options(args))
 
-    assert config().coarse_mesh == recipe.COARSE_MESH
+    assert config().coarse_mesh == settings.COARSE_MESH
     assert config("--coarse-mesh", "2.5").coarse_mesh == 2.5
     assert config("--coarse-mesh", "0").coarse_mesh is None

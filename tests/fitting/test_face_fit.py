@@ -8,7 +8,7 @@ import pytest
 
 from softras_cl.scene.rotation import axis_angle_to_matrix
 from softras_cl.fitting.keypoints import ibug68
-from softras_cl.fitting.recipes import face
+from softras_cl.fitting.recipes import face, face_settings
 from softras_cl.bench.face import aligned_rmse, synthetic_face
 from softras_cl.fitting.solver import Stage
 from softras_cl.scene.shading import sh_ambient
@@ -509,7 +509,7 @@ def test_sliding_jaw_points_find_the_silhouette_the_fixed_ones_miss(demo):
     world, _ = scene.geometry(sample["truth"])
     clean = sample["clean_landmarks"]
     errors = {}
-    for contour_landmarks in face.CONTOUR_LANDMARKS:
+    for contour_landmarks in face_settings.CONTOUR_LANDMARKS:
         config = face.FaceFitConfig(size=128, contour_landmarks=contour_landmarks)
         objective, _, _ = face.prepare_fit(sample["photo"], sample["landmarks"], demo, config)
         assert (objective.contour is None) == (contour_landmarks == "fixed")
