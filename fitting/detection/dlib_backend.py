@@ -58,7 +58,12 @@ def _candidate(predictor, image: np.ndarray, rect, score: float, found_by: str) 
     return FaceCandidate(box, float(score), points, None, "dlib", found_by)
 
 
-def find(image: np.ndarray, upsample: int = 1, min_score: float = 0.5) -> list[FaceCandidate]:
+#: find()'s options and their defaults
+DEFAULTS = dict(upsample=1, min_score=0.5)
+
+
+def find(image: np.ndarray, upsample: int = DEFAULTS["upsample"],
+         min_score: float = DEFAULTS["min_score"]) -> list[FaceCandidate]:
     """Every face dlib finds in an (H, W, 3) uint8 RGB image, unordered.
 
     upsample: how many times the image is doubled before the HOG detector runs; 1 finds faces

@@ -13,7 +13,7 @@ import numpy as np
 
 from softras_cl.io.images import read_rgb8
 from softras_cl.fitting.detection.faces import FaceCandidate, ImplausibleFaceError, implausible_landmarks
-from softras_cl.fitting.detection.find import (Detection, as_rgb8, check_backend, detect_face, find_faces,
+from softras_cl.fitting.detection.find import (FACE_MESH_BACKENDS, Detection, as_rgb8, check_backend, detect_face, find_faces,
                                                no_face_error)
 
 #: suffixes of landmark files looked for beside a photo, in order of precedence
@@ -53,6 +53,12 @@ class PhotoLandmarks:
     path: Path | None = None
     face: FaceCandidate | None = None
     detection: Detection | None = None
+
+    @property
+    def on_face_mesh(self) -> bool:
+        """Whether the points are Face Mesh's (a FACE_MESH_BACKENDS detector found them), not an
+        annotator's iBUG points (a file, dlib): fit_face ties them to the model accordingly."""
+        return self.source in FACE_MESH_BACKENDS
 
     @property
     def index(self) -> int | None:

@@ -20,9 +20,11 @@ from softras_cl.fitting.detection.faces import (ORDER, DetectorUnavailableError,
 
 BACKENDS = ("mediapipe", "dlib")
 DEFAULT_BACKEND = "mediapipe"
+#: backends whose 68 landmarks are Face Mesh points (fitting.keypoints.face_mesh), not iBUG annotations
+FACE_MESH_BACKENDS = ("mediapipe",)
 _MODULES = {"mediapipe": mediapipe_backend, "dlib": dlib_backend}
 #: the options each backend's find() takes
-OPTIONS = {"mediapipe": ("tiles",), "dlib": ("upsample", "min_score")}
+OPTIONS = {"mediapipe": ("tiles",), "dlib": tuple(dlib_backend.DEFAULTS)}
 
 
 def available_backends() -> list[str]:
@@ -58,8 +60,8 @@ def find_faces(image, backend: str | None = None, **options) -> list[FaceCandida
     """Every face in an (H, W, 3) uint8 RGB image, in the stated ORDER (largest box first).
 
     backend: "mediapipe" (None: the default) or "dlib".
-    options, mediapipe: tiles (True: the tile pyramid for small faces); dlib: upsample (1),
-        min_score (0.5) (mediapipe_backend / dlib_backend have the details).
+    options, mediapipe: tiles (True: the tile pyramid for small faces); dlib: upsample and
+        min_score (dlib_backend.DEFAULTS; mediapipe_backend / dlib_backend have the details).
     Returns [] when there is no face. Raises ValueError for a bad image, backend or option and
     DetectorUnavailableError (an ImportError) when the backend is not installed.
     """

@@ -98,7 +98,8 @@ class FacePhotoJob(FitJob):
         if self.photo is None:
             self.read()
         return fit_face(self.photo.linear, self.landmarks.points, self.model, self.config, out_dir=folder,
-                        progress=progress, resume=resume, dense=self.dense, detector=self.landmarks.source)
+                        progress=progress, resume=resume, dense=self.dense,
+                        face_mesh_landmarks=self.landmarks.on_face_mesh)
 
     def write(self, fit, folder: Path, metrics: dict, seconds: float) -> dict:
         from softras_cl.fitting.reports.face import write_outputs
@@ -162,7 +163,8 @@ class FaceViewsJob(FitJob):
             self.read()
         return fit_face_views([p.linear for p in self.photos], [f.points for f in self.landmarks], self.model,
                               self.config, out_dir=folder, progress=progress, resume=resume,
-                              same_camera=self.same_camera, detectors=[f.source for f in self.landmarks])
+                              same_camera=self.same_camera,
+                              face_mesh_landmarks=[f.on_face_mesh for f in self.landmarks])
 
     def write(self, fit, folder: Path, metrics: dict, seconds: float) -> dict:
         from softras_cl.fitting.reports.face_views import write_views_outputs

@@ -682,11 +682,12 @@ class FaceFit:
 
 
 def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), out_dir=None,
-             progress: bool = True, resume: bool = False, dense=None, detector: str | None = None) -> FaceFit:
+             progress: bool = True, resume: bool = False, dense=None, face_mesh_landmarks: bool = False) -> FaceFit:
     """Fit ``model`` to a photo (H, W, 3) linear RGB and its 68 landmarks (68, 2) pixels.
 
-    detector: the backend that found the landmarks ("mediapipe", "dlib"; None: a file), for
-    config.landmark_map "auto" (see :func:`landmark_model`).
+    face_mesh_landmarks: the landmarks are Face Mesh's points (a detector such as MediaPipe's put
+    them there: fitting.detection.PhotoLandmarks.on_face_mesh), not an annotator's iBUG points,
+    for config.landmark_map "auto" (see :func:`landmark_model`).
 
     dense: the photo's dense points (N, 2) pixels, MediaPipe Face Mesh's 468 (see
     :func:`detected_dense`), for config.dense_weight > 0 (ignored at 0); InputError, before any
@@ -700,7 +701,7 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
         raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
                          f"{ibug68.COUNT} iBUG points (pass a landmark mapping file with the model)")
     check_dense_inputs(config, model, dense)
-    model, point_weights = tied_landmarks(model, config.landmark_map, detector)
+    model, point_weights = tied_landmarks(model, config.landmark_map, face_mesh_landmarks)
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
     objective, crop, params = prepare_fit(photo, landmarks, model, config, dense, point_weights)
     check_landmark_layout(landmarks)      # after prepare_fit's input checks (shape, area, size)
@@ -743,15 +744,15 @@ def prepare_fit(photo, landmarks, model, config: FaceFitConfig,
 
 
 
-def landmark_model(model, landmark_map: str, detector: str | None = None):
-    """``model`` with its 68 landmarks tied as FaceFitConfig.landmark_map says, for landmarks
-    found by ``detector`` (None: read from a file): the model itself for "model", or a model
+def landmark_model(model, landmark_map: str, face_mesh_landmarks: bool = False):
+    """``model`` with its 68 landmarks tied as FaceFitConfig.landmark_map says, for landmarks that
+    are Face Mesh's points (``face_mesh_landmarks``) or an annotator's: the model itself for "model", or a model
     whose landmark i is the model's Face Mesh point MP468_TO_IBUG68[i] (dense_faces/dense_bary)
     where its correspondence uses that point (dense_use), the model's own landmark elsewhere.
     InputError for "face-mesh" on a model without a Face Mesh correspondence."""
     check_landmark_map(landmark_map, model)
     has_face_mesh = model.n_dense == face_mesh.COUNT
-    if landmark_map == "model" or (landmark_map == "auto" and not (detector == "mediapipe" and has_face_mesh)):
+    if landmark_map == "model" or (landmark_map == "auto" and not (face_mesh_landmarks and has_face_mesh)):
         return model
     mesh_points = face_mesh.MP468_TO_IBUG68
     used = model.dense_use[mesh_points]
@@ -760,14 +761,14 @@ def landmark_model(model, landmark_map: str, detector: str | None = None):
     return model.with_landmarks(faces, bary)
 
 
-def tied_landmarks(model, landmark_map: str, detector: str | None = None) -> tuple[object, np.ndarray]:
+def tied_landmarks(model, landmark_map: str, face_mesh_landmarks: bool = False) -> tuple[object, np.ndarray]:
     """(:func:`landmark_model`'s model, the landmark term's (68,) weights for its landmarks):
     :func:`landmark_weights`, with 0 for the points a Face Mesh tie leaves at the model's own
     point (the correspondence does not use their Face Mesh vertex: jaw 0-3 and 13-16, inner
     lower lip 65-67): MediaPipe puts most of them 0.05-0.17 eye distances away, and weighted they bent
     the shape (bench face, detected landmarks, 10 faces per bin, paired: shape error 11% +- 4%
     lower at |yaw| 0-15 without them, 5% +- 2% at 15-45)."""
-    tied = landmark_model(model, landmark_map, detector)
+    tied = landmark_model(model, landmark_map, face_mesh_landmarks)
     weights = landmark_weights()
     if tied is not model:
         weights[~model.dense_use[face_mesh.MP468_TO_IBUG68]] = 0.0

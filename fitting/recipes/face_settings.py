@@ -86,7 +86,7 @@ class FaceFitConfig:
         Face Mesh puts the mesh points that stand for them (fitting.keypoints.face_mesh), from the
         model's Face Mesh correspondence (its dense points; a point the correspondence does not
         use keeps the model's own, with no weight: tied_landmarks); "auto": "face-mesh" for landmarks MediaPipe found
-        (fit_face's ``detector``) on a model with that correspondence, else "model". On the
+        (fit_face's ``face_mesh_landmarks``) on a model with that correspondence, else "model". On the
         demo face MediaPipe's points lie a mean 0.06 and up to 0.18 eye distances from the model's own (brows
         and jaw most): tied to the model's own, the fit takes that offset for shape.
     dense_weight: weight of each dense landmark (MediaPipe Face Mesh's 468 points, those the

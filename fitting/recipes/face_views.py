@@ -153,12 +153,12 @@ class View:
     params: ParamSet
 
 
-def prepare_view(photo, landmarks, model, config: FaceFitConfig, detector: str | None = None) -> View:
-    """Photo (H, W, 3) linear RGB and its landmarks (68, 2) pixels, found by ``detector`` (as
-    fit_face's) -> the View fit_face would start from (working image, camera, initial pose and
+def prepare_view(photo, landmarks, model, config: FaceFitConfig, face_mesh_landmarks: bool = False) -> View:
+    """Photo (H, W, 3) linear RGB and its landmarks (68, 2) pixels, Face Mesh's points or not (as
+    fit_face's ``face_mesh_landmarks``) -> the View fit_face would start from (working image, camera, initial pose and
     light; the landmarks tied as config.landmark_map says). ResultError when the landmarks
     cannot be a face's (fitting.keypoints.plausibility.check_landmark_layout)."""
-    tied, point_weights = tied_landmarks(model, config.landmark_map, detector)
+    tied, point_weights = tied_landmarks(model, config.landmark_map, face_mesh_landmarks)
     view = View(*prepare_fit(photo, landmarks, tied, config, point_weights=point_weights))
     check_landmark_layout(landmarks)      # after prepare_fit's input checks (shape, area, size)
     return view
@@ -204,7 +204,7 @@ def _check_views(photos, landmarks, config: FaceFitConfig, same_camera: bool) ->
 
 def fit_face_views(photos, landmarks, model, config: FaceFitConfig | None = None, out_dir=None,
                    progress: bool = True, resume: bool = False, same_camera: bool = False,
-                   detectors=None) -> FaceViewsFit:
+                   face_mesh_landmarks=None) -> FaceViewsFit:
     """Fit one identity and albedo of ``model`` to several photos of a person, each with its
     own pose, expression, light and (unless ``same_camera``) focal length.
 
@@ -212,9 +212,9 @@ def fit_face_views(photos, landmarks, model, config: FaceFitConfig | None = None
     config: used as given (None: ``joint_config(FaceFitConfig())``, the joint fit's defaults);
     out_dir, progress, resume: as for fit_face (one checkpoint.npz of the joint blocks);
     same_camera: the photos (all of one size, portrait or landscape) share one focal length,
-    fitted (config.focal must be None); detectors: the backend that found each photo's
-    landmarks, as fit_face's ``detector`` (None: all from files): each view ties its landmarks
-    as config.landmark_map says for its own.
+    fitted (config.focal must be None); face_mesh_landmarks: whether each photo's landmarks are
+    Face Mesh's points, as fit_face's (None: none are): each view ties its landmarks as
+    config.landmark_map says for its own.
     """
     config = joint_config(FaceFitConfig()) if config is None else config
     _check_views(photos, landmarks, config, same_camera)
@@ -222,8 +222,8 @@ def fit_face_views(photos, landmarks, model, config: FaceFitConfig | None = None
         raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
                          f"{ibug68.COUNT} iBUG points (pass a landmark mapping file with the model)")
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
-    detectors = [None] * len(photos) if detectors is None else detectors
-    views = [prepare_view(p, lm, model, config, d) for p, lm, d in zip(photos, landmarks, detectors)]
+    on_mesh = [False] * len(photos) if face_mesh_landmarks is None else face_mesh_landmarks
+    views = [prepare_view(p, lm, model, config, m) for p, lm, m in zip(photos, landmarks, on_mesh)]
     objective = FaceViewsObjective([v.objective for v in views], same_camera)
     stages = joint_stages(default_stages(config, fit_focal=config.focal is None), len(views), objective.shared)
     result = fit(joint_params([v.params for v in views], objective.shared), objective, stages, out_dir=out_dir,

@@ -176,7 +176,7 @@ def detect_samples(samples: list[dict]) -> tuple[list[dict], list[dict], int]:
             continue
         found = dict(dense=detected_dense(chosen), detect_seconds=time.perf_counter() - start)
         truth.append(dict(sample, **found))
-        detected.append(dict(sample, landmarks=chosen.landmarks.copy(), detector="mediapipe", **found))
+        detected.append(dict(sample, landmarks=chosen.landmarks.copy(), face_mesh_landmarks=True, **found))
     return truth, detected, missed
 
 
@@ -402,7 +402,7 @@ def fit_one(model, sample: dict, config) -> dict:
 
     start, cpu = time.perf_counter(), time.process_time()
     fit = fit_face(sample["photo"], sample["landmarks"], model, config, progress=False, dense=sample.get("dense"),
-                   detector=sample.get("detector"))
+                   face_mesh_landmarks=sample.get("face_mesh_landmarks", False))
     row = evaluate(fit, sample, model, time.perf_counter() - start)
     stages = [h["stage"] for h in fit.result.history]
     # CPU time of the whole process (host and the OpenCL CPU device's threads): on a shared

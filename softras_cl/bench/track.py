@@ -301,9 +301,10 @@ def run_tracker(model, sequence: dict, config, follower_factory, scan: int) -> d
 
 
 def run_independent(model, sequence: dict, landmarks: np.ndarray, config, frames: int,
-                    detector: str | None) -> list:
+                    face_mesh_landmarks: bool) -> list:
     """fit-face on each of the first ``frames`` frames alone, from the given landmarks (T, 68, 2)
-    found by ``detector`` (fit_face's; None: the true ones): (its FaceFit, or the ValueError that
+    (Face Mesh's points when ``face_mesh_landmarks``: MediaPipe's; else the true ones, as fit_face
+    takes it): (its FaceFit, or the ValueError that
     stopped it (a fit that put the face behind the camera), seconds) per frame."""
     from softras_cl.fitting.recipes.face import fit_face
     from softras_cl.srgb import to_linear
@@ -316,7 +317,7 @@ def run_independent(model, sequence: dict, landmarks: np.ndarray, config, frames
         start = time.perf_counter()
         try:
             fit = fit_face(to_linear(frame.image / 255.0), landmarks[frame.index], model, config, progress=False,
-                           detector=detector)
+                           face_mesh_landmarks=face_mesh_landmarks)
         except ValueError as error:
             fit = error
         fits.append((fit, time.perf_counter() - start))
@@ -381,8 +382,8 @@ def run_sequence(model, rng, index: int, args, config, face_config, folder: Path
     tracker = FrameTracker(model, identity, (args.size, args.size), config)
     used = np.array([r.detected if r.detected is not None else np.full((ibug68.COUNT, 2), np.nan) for r in results])
     n = min(args.independent, len(results))
-    detector = "mediapipe" if args.landmarks == "detected" else None
-    independent = independent_measures(model, run_independent(model, sequence, _filled(used), face_config, n, detector),
+    on_mesh = args.landmarks == "detected"            # MediaPipe's: Face Mesh points
+    independent = independent_measures(model, run_independent(model, sequence, _filled(used), face_config, n, on_mesh),
                                        sequence)
     fitted = np.array([r.fitted for r in results])
     vertices = np.array([world_vertices(model, identity, r.values) for r in results])

@@ -7,9 +7,7 @@ from pathlib import Path
 
 from softras_cl.cli.shared import add_face_choice
 from softras_cl.fitting.detection import BACKENDS, ORDER
-
-#: the options only the dlib backend takes (argparse dest -> its default)
-DLIB_OPTIONS = {"upsample": 1, "min_score": 0.5}
+from softras_cl.fitting.detection.dlib_backend import DEFAULTS as DLIB_OPTIONS     # argparse dest -> default
 
 
 def face_out_path(out, index: int) -> Path:
@@ -136,8 +134,9 @@ def register(sub) -> None:
     which.add_argument("--all-faces", action="store_true",
                        help="write every face whose landmarks form a face, FILE_N.pts for face N")
     p.add_argument("--upsample", type=int, default=None, metavar="N",
-                   help="dlib: double the image N times before detecting (default 1: faces down to "
-                        "about 40 px; 0: about 80 px, 3x faster)")
+                   help=f"dlib: double the image N times before detecting (default {DLIB_OPTIONS['upsample']}: "
+                        "faces down to about 40 px; 0: about 80 px, 3x faster)")
     p.add_argument("--min-score", type=float, default=None, metavar="S",
-                   help="dlib: drop detections scoring below S (default 0.5; dlib's own threshold is 0)")
+                   help=f"dlib: drop detections scoring below S (default {DLIB_OPTIONS['min_score']}; dlib's own "
+                        "threshold is 0)")
     p.set_defaults(func=_run_detect)

@@ -415,3 +415,12 @@ def test_mesh_score_of_a_frontal_face_is_high():
     image, _ = astronaut()
     found = det.find_faces(image)
     assert mp.mesh_score(image, found[0].dense) > 0.85
+
+
+@pytest.mark.parametrize("source, on_mesh", [("mediapipe", True), ("dlib", False), ("file", False), ("beside", False)])
+def test_only_mediapipes_landmarks_are_face_mesh_points(source, on_mesh):
+    """PhotoLandmarks.on_face_mesh: what fit_face's "auto" tie reads (MediaPipe's 68 are Face
+    Mesh points; dlib's and a file's are iBUG annotations)."""
+    from softras_cl.fitting.detection import PhotoLandmarks
+
+    assert PhotoLandmarks(np.zeros((68, 2)), source).on_face_mesh is on_mesh

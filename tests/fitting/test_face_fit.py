@@ -615,10 +615,9 @@ def _landmark_points(model) -> np.ndarray:
     return model.landmarks(model.mean_shape)[0]
 
 
-@pytest.mark.parametrize("landmark_map, detector, tied", [
-    ("auto", "mediapipe", True), ("face-mesh", None, True), ("face-mesh", "dlib", True),
-    ("auto", None, False), ("auto", "dlib", False), ("model", "mediapipe", False)])
-def test_landmark_map_ties_mediapipes_landmarks_to_its_face_mesh_points(landmark_map, detector, tied):
+@pytest.mark.parametrize("landmark_map, on_mesh, tied", [
+    ("auto", True, True), ("face-mesh", False, True), ("auto", False, False), ("model", True, False)])
+def test_landmark_map_ties_mediapipes_landmarks_to_its_face_mesh_points(landmark_map, on_mesh, tied):
     """"face-mesh" (and "auto" for MediaPipe's landmarks): landmark i is the model's Face Mesh
     point MP468_TO_IBUG68[i] where the correspondence uses it, the model's own point elsewhere;
     otherwise the model's own 68 points."""
@@ -626,7 +625,7 @@ def test_landmark_map_ties_mediapipes_landmarks_to_its_face_mesh_points(landmark
     from softras_cl.fitting.models.face_loaders import load_demo_face_model
 
     model = load_demo_face_model()
-    points = _landmark_points(face.landmark_model(model, landmark_map, detector))
+    points = _landmark_points(face.landmark_model(model, landmark_map, on_mesh))
     own = _landmark_points(model)
     if not tied:
         np.testing.assert_array_equal(points, own)
@@ -642,42 +641,42 @@ def test_landmark_map_ties_mediapipes_landmarks_to_its_face_mesh_points(landmark
 def test_landmark_map_face_mesh_needs_a_model_with_face_mesh_points(toy):
     from softras_cl.errors import InputError
 
-    assert face.landmark_model(toy, "auto", "mediapipe") is toy
+    assert face.landmark_model(toy, "auto", True) is toy
     with pytest.raises(InputError, match="landmark_map 'face-mesh' needs a face model with MediaPipe Face "
                                          "Mesh's 468 points"):
         face.landmark_model(toy, "face-mesh")
 
 
-@pytest.mark.parametrize("detector", ["mediapipe", None])
-def test_fit_face_ties_the_landmarks_as_their_detector_asks(demo, detector):
-    """fit_face's detector reaches landmark_map "auto": the fit's scene model, its fitted landmarks
-    and its outputs use the tied points."""
+@pytest.mark.parametrize("on_mesh", [True, False])
+def test_fit_face_ties_the_landmarks_as_their_detector_asks(demo, on_mesh):
+    """fit_face's face_mesh_landmarks reaches landmark_map "auto": the fit's scene model, its
+    fitted landmarks and its outputs use the tied points."""
     sample = _turned_face(demo, yaw_deg=10.0, size=64)
     config = face.FaceFitConfig(size=64, landmark_iters=5, photo_stages=(), contour_landmarks="fixed")
-    fit = face.fit_face(sample["photo"], sample["landmarks"], demo, config, progress=False, detector=detector)
-    expected = face.landmark_model(demo, "auto", detector)
+    fit = face.fit_face(sample["photo"], sample["landmarks"], demo, config, progress=False, face_mesh_landmarks=on_mesh)
+    expected = face.landmark_model(demo, "auto", on_mesh)
     np.testing.assert_array_equal(_landmark_points(fit.scene.model), _landmark_points(expected))
     world, _ = fit.scene.geometry(fit.values)
     projected, _ = fit.scene.camera(fit.values["focal"][0]).project_pixels(expected.landmarks(world)[0])
     np.testing.assert_allclose(fit.fitted_landmarks(), projected, atol=1e-9)
 
 
-@pytest.mark.parametrize("detector", ["mediapipe", None])
-def test_points_a_face_mesh_tie_leaves_at_the_models_own_have_no_weight(demo, detector):
+@pytest.mark.parametrize("on_mesh", [True, False])
+def test_points_a_face_mesh_tie_leaves_at_the_models_own_have_no_weight(demo, on_mesh):
     """tied_landmarks: with the Face Mesh tie, the 11 points its correspondence does not use (they
     keep the model's own point, far from MediaPipe's) weigh 0 in the landmark term, in the fit's
     objective and in its half-resolution copy; otherwise the weights are landmark_weights()."""
     from softras_cl.fitting.keypoints.face_mesh import MP468_TO_IBUG68
 
-    tied, weights = face.tied_landmarks(demo, "auto", detector)
+    tied, weights = face.tied_landmarks(demo, "auto", on_mesh)
     unused = ~demo.dense_use[MP468_TO_IBUG68]
     expected = face.landmark_weights()
-    if detector == "mediapipe":
+    if on_mesh:
         assert unused.sum() == 11
         expected[unused] = 0.0
     np.testing.assert_array_equal(weights, expected)
     sample = _turned_face(demo, yaw_deg=10.0, size=64)
     config = face.FaceFitConfig(size=64, landmark_iters=3, photo_stages=(), contour_landmarks="fixed")
-    fit = face.fit_face(sample["photo"], sample["landmarks"], demo, config, progress=False, detector=detector)
+    fit = face.fit_face(sample["photo"], sample["landmarks"], demo, config, progress=False, face_mesh_landmarks=on_mesh)
     np.testing.assert_array_equal(fit.objective.landmark_weights, expected)
     np.testing.assert_array_equal(fit.objective._half_size().landmark_weights, expected)

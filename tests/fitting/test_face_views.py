@@ -120,16 +120,17 @@ def demo():
 TINY = dict(landmark_iters=15, photo_stages=((1e-4, 3e-3, 6), (1e-5, 1e-3, 6)))
 
 
-@pytest.mark.parametrize("same_camera, detector", [(False, None), (True, None), (False, "mediapipe")])
-def test_one_photo_fit_is_the_single_photo_fit(demo, same_camera, detector):
+@pytest.mark.parametrize("same_camera, on_mesh", [(False, False), (True, False), (False, True)])
+def test_one_photo_fit_is_the_single_photo_fit(demo, same_camera, on_mesh):
     """Same parameter layout, stages and objective: the fitted values and every evaluation's
     loss are those of fit_face (one photo's camera is its own with same_camera too; landmarks
     MediaPipe found are tied to its Face Mesh points in both)."""
     sample = synthetic_face(demo, np.random.default_rng(7), size=64)
     config = face.FaceFitConfig(size=64, **TINY)
-    single = face.fit_face(sample["photo"], sample["landmarks"], demo, config, progress=False, detector=detector)
+    single = face.fit_face(sample["photo"], sample["landmarks"], demo, config, progress=False,
+                           face_mesh_landmarks=on_mesh)
     joint = face_views.fit_face_views([sample["photo"]], [sample["landmarks"]], demo, config, progress=False,
-                                      same_camera=same_camera, detectors=[detector])
+                                      same_camera=same_camera, face_mesh_landmarks=[on_mesh])
     assert [h["loss"] for h in joint.result.history] == [h["loss"] for h in single.result.history]
     for b, v in single.values.items():
         np.testing.assert_array_equal(joint.views[0].values[b], v, err_msg=b)

@@ -29,10 +29,12 @@ def check_landmark_files(folder: Path, model, given: np.ndarray) -> None:
     17 may slide to the occluding contour, fitting.recipes.contour: the other 51 are the model's own
     points), at the mean distance from the given points (over those the fit weighs) that
     params.json reports as the landmark error."""
+    from softras_cl.fitting.detection.find import FACE_MESH_BACKENDS
     from softras_cl.fitting.recipes.face import tied_landmarks
 
     params = json.loads((folder / "params.json").read_text())
-    tied, weights = tied_landmarks(model, "auto", params["landmarks_input"]["source"])     # the fit's default
+    on_mesh = params["landmarks_input"]["source"] in FACE_MESH_BACKENDS
+    tied, weights = tied_landmarks(model, "auto", on_mesh)     # the fit's default
     detected, fitted = read_pts(folder / "landmarks_detected.pts"), read_pts(folder / "landmarks_fitted.pts")
     np.testing.assert_allclose(detected, given, atol=1e-9)
     np.testing.assert_allclose(fitted[17:], projected_model_landmarks(folder, tied)[17:], atol=1e-6)
