@@ -16,6 +16,7 @@ from softras_cl.errors import InputError
 from softras_cl.fitting.detection import resolve_landmarks
 from softras_cl.fitting.jobs.run import FitJob
 from softras_cl.fitting.model_cache import load_model
+from softras_cl.fitting.recipes.face_settings import joint_config
 from softras_cl.fitting.run_options import FACE
 from softras_cl.fitting.run_records import face_landmarks_source, face_record
 from softras_cl.io.images import read_photo
@@ -124,8 +125,6 @@ class FaceViewsJob(FitJob):
 
     def __init__(self, photos: list, landmarks: list | None = None, options: dict | None = None, *,
                  same_camera: bool = False, recorded=None):
-        from softras_cl.fitting.recipes.face_views import joint_config
-
         self.paths, self.landmark_files = list(photos), landmarks or [None] * len(photos)
         self.options = FACE.values(options or {})
         self.config = joint_config(FACE.config(self.options))

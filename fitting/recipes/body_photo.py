@@ -43,28 +43,13 @@ from softras_cl.fitting.recipes.body import (BodyFit, BodyFitConfig, BodyObjecti
                                              initial_translation, prepare_target, reprojection, rest_values)
 from softras_cl.fitting import losses
 from softras_cl.fitting.keypoints.pose33 import KeypointLayout, keypoint_layout
+from softras_cl.fitting.recipes.body_settings import OBJECTIVES, PHOTO_BUDGETS, PHOTO_WEIGHTS
 from softras_cl.fitting.solver import Stage, fit
 
-__all__ = ["PHOTO_BUDGETS", "PHOTO_WEIGHTS", "OBJECTIVES", "MIN_VISIBILITY", "BodyPhotoObjective",
+__all__ = ["MIN_VISIBILITY", "BodyPhotoObjective",
            "BodyPhotoFit", "keypoint_weights", "camera_distance", "photo_stages", "photo_params",
            "mask_misses", "fit_body_photo"]
 
-# (torso evaluations, pose evaluations, ((sigma, gamma, evaluations) per silhouette stage))
-PHOTO_BUDGETS = {
-    "fast": dict(torso_iters=30, pose_iters=60, silhouette_stages=((1e-4, 1e-2, 40),)),
-    "default": dict(torso_iters=40, pose_iters=100, silhouette_stages=((1e-4, 1e-2, 60), (1e-5, 1e-3, 60))),
-    "thorough": dict(torso_iters=60, pose_iters=150,
-                     silhouette_stages=((3e-4, 3e-2, 100), (1e-4, 1e-2, 100), (1e-5, 1e-3, 100))),
-}
-# Weights of the terms (sums in working px^2, rad^2 / sigma^2): measured on `bench body-photo`'s
-# 20 photos of seed 0 and checked on 20 of seed 1 (docs/body_photos.md): a pose prior 16 times
-# the body recipe's (its sigmas quartered) and a silhouette at 3 (not 10) keep the limbs whose
-# depth one view leaves open near the rest pose and let a loose detector mask pull less (PA-MPJPE
-# mean 79 -> 65 mm and 82 -> 70 mm on the two sets). The depth term at 0.3 (with the detector's
-# tight crops): mean 58.5 -> 57.4, 64.1 -> 57.2 and 90.3 -> 81.0 mm on seeds 0, 1, 2 (1.0: worse).
-PHOTO_WEIGHTS = dict(torso=1.0, keypoints=1.0, depth=0.3, silhouette=3.0, pose_prior=16.0, shape_prior=1.0,
-                     translation_prior=1.0, limits=100.0)
-OBJECTIVES = {"full": ("keypoints", "silhouette"), "keypoints": ("keypoints",), "mask": ("silhouette",)}
 MIN_VISIBILITY = 0.3            # a keypoint the detector is less sure of than this is not used
 ROBUST_FRACTION = 0.1           # Geman-McClure scale / the working image's longer side
 START_YAWS = (0, 90, 180, -90)  # degrees about the vertical: the torso stage's starts

@@ -13,7 +13,7 @@ import numpy as np
 from softras_cl.checks import number
 from softras_cl.errors import InputError
 
-__all__ = ["FaceFitConfig", "input_check", "BUDGETS", "COARSE_MESH", "COARSE_SIGMA", "LANDMARK_MAPS", "CONTOUR_LANDMARKS",
+__all__ = ["FaceFitConfig", "input_check", "joint_config", "LANDMARK_WEIGHT_PHOTO", "BUDGETS", "COARSE_MESH", "COARSE_SIGMA", "LANDMARK_MAPS", "CONTOUR_LANDMARKS",
            "MIN_SIZE", "MIN_LANDMARK_SPREAD", "ROBUST_SCALE", "MIN_ROBUST_SCALE"]
 
 # Smallest working image (pixels a side). Measured on astronaut with the fast budget: the face
@@ -196,3 +196,16 @@ def _check_face_config(c: FaceFitConfig) -> None:
         raise InputError(f"dense_weight must be >= 0 (0: no dense landmark term), got {c.dense_weight!r}")
     if c.dtype not in ("float32", "float64"):
         raise InputError(f"dtype must be 'float32' or 'float64', got {c.dtype!r}")
+
+
+# FaceFitConfig.landmark_weight_photo of the joint fit. The single fit's 5 (10 before) keeps one
+# photo's unexplained pixels from bending the shape; over several photos 10 made the landmarks'
+# noise the limit (docs/face_views.md: bench face-views at 128 px, 10 against 1 and 5 against 1).
+LANDMARK_WEIGHT_PHOTO = 1.0
+
+
+def joint_config(config: FaceFitConfig) -> FaceFitConfig:
+    """The config of a joint fit of several photos (fitting.recipes.face_views): ``config``
+    with the joint fit's landmark weight in the photometric stages
+    (LANDMARK_WEIGHT_PHOTO); everything else as given."""
+    return dataclasses.replace(config, landmark_weight_photo=LANDMARK_WEIGHT_PHOTO)

@@ -35,28 +35,17 @@ from softras_cl.fitting.keypoints.plausibility import check_landmark_layout
 from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.recipes.face import (FaceFit, FaceFitConfig, FaceObjective, default_stages, prepare_fit,
                                              tied_landmarks)
+from softras_cl.fitting.recipes.face_settings import joint_config
 from softras_cl.fitting.solver import FitResult, Stage, fit
 from softras_cl.scene.renderer import SHARP
 
-__all__ = ["SHARED", "PRIORS_ONCE", "LANDMARK_WEIGHT_PHOTO", "joint_config", "view_block", "focal_scales", "FaceViewsObjective", "FaceViewsFit", "joint_params",
+__all__ = ["SHARED", "PRIORS_ONCE", "view_block", "focal_scales", "FaceViewsObjective", "FaceViewsFit", "joint_params",
            "joint_stages", "prepare_view", "fit_face_views"]
 
 SHARED = ("id", "albedo")                  # blocks common to every photo of the person
 PRIORS_ONCE = ("id_prior", "albedo_prior")  # their priors: counted in the first photo's objective only
 CAMERA = ("focal",)                         # shared too with same_camera, its prior counted once
 CAMERA_PRIORS = ("focal_prior",)
-# FaceFitConfig.landmark_weight_photo of the joint fit. The single fit's 5 (10 before) keeps one
-# photo's unexplained pixels from bending the shape; over several photos 10 made the landmarks'
-# noise the limit (docs/face_views.md: bench face-views at 128 px, 10 against 1 and 5 against 1).
-LANDMARK_WEIGHT_PHOTO = 1.0
-
-
-def joint_config(config: FaceFitConfig) -> FaceFitConfig:
-    """``config`` with the joint fit's landmark weight in the photometric stages
-    (LANDMARK_WEIGHT_PHOTO); everything else as given."""
-    return dataclasses.replace(config, landmark_weight_photo=LANDMARK_WEIGHT_PHOTO)
-
-
 def view_block(name: str, k: int, shared=SHARED) -> str:
     """The joint fit's name of photo k's block ``name`` ("exp" -> "exp.0"; shared blocks keep
     their name)."""

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from softras_cl.errors import InputError
-from softras_cl.fitting.recipes.face_settings import FaceFitConfig
+from softras_cl.fitting.recipes.face_settings import FaceFitConfig, joint_config
 
 __all__ = ["TrackConfig"]
 
@@ -77,8 +77,6 @@ class TrackConfig:
         bench track's path-traced frames (textured, shadowed faces, whose detected landmarks
         bend the shape) the identity's error ratio went 1.41 -> 1.18 and 1.73 -> 1.39 on two
         sequences, on softras-cl's frames 0.20 -> 0.22 (docs/face_tracking.md)."""
-        from softras_cl.fitting.recipes.face_views import joint_config
-
         config = joint_config(FaceFitConfig.from_budget(self.identity_budget, size=self.size))
         weights = dict(config.weights, id_prior=config.weights["id_prior"] * self.keyframes)
         return dataclasses.replace(config, weights=weights)

@@ -177,7 +177,7 @@ def format_table(summary: dict, rest: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from softras_cl.fitting.recipes.body import BUDGETS
+    from softras_cl.fitting.recipes.body_settings import BUDGETS
 
     if args.quick:
         args.poses, args.size, args.budgets = 1, 32, "fast"

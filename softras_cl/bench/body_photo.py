@@ -281,8 +281,7 @@ def format_table(summary: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from softras_cl.fitting.recipes.body import BodyFitConfig
-    from softras_cl.fitting.recipes.body_photo import OBJECTIVES, PHOTO_BUDGETS
+    from softras_cl.fitting.recipes.body_settings import OBJECTIVES, PHOTO_BUDGETS, BodyFitConfig
     from softras_cl.validate.mitsuba import mitsuba_available
 
     if args.quick:

@@ -647,7 +647,7 @@ def format_mitsuba(doc: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from softras_cl.fitting.recipes.face import BUDGETS
+    from softras_cl.fitting.recipes.face_settings import BUDGETS
 
     from softras_cl.bench.tools import parse_budgets
 

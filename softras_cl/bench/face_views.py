@@ -119,7 +119,8 @@ def run_subject(model, photos: list[dict], config, one_camera: bool = False) -> 
     """Fit each photo alone, then all jointly (one_camera: with one shared focal length); the
     subject's row."""
     from softras_cl.fitting.recipes.face import fit_face
-    from softras_cl.fitting.recipes.face_views import fit_face_views, joint_config
+    from softras_cl.fitting.recipes.face_settings import joint_config
+    from softras_cl.fitting.recipes.face_views import fit_face_views
 
     true_id = photos[0]["truth"]["id"]
     single, single_shape, single_wall, single_cpu = [], [], [], []
@@ -198,8 +199,7 @@ def save_chart(rows: list[dict], path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from softras_cl.fitting.recipes.face import BUDGETS, FaceFitConfig
-    from softras_cl.fitting.recipes.face_views import LANDMARK_WEIGHT_PHOTO
+    from softras_cl.fitting.recipes.face_settings import BUDGETS, LANDMARK_WEIGHT_PHOTO, FaceFitConfig
 
     if args.subjects < 1 or args.views < 2 or args.size < 32:
         raise InputError(f"--subjects must be >= 1, --views >= 2 and --size >= 32, got {args.subjects}, "

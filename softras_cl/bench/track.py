@@ -522,7 +522,7 @@ def save_pictures(rows: list[dict], folder: Path) -> None:
 def run(args: argparse.Namespace) -> int:
     from softras_cl.fitting.models.face_loaders import load_demo_face_model
     from softras_cl.fitting.recipes.face import FaceFitConfig
-    from softras_cl.fitting.recipes.face_track import TrackConfig
+    from softras_cl.fitting.recipes.track_settings import TrackConfig
 
     from softras_cl.validate.mitsuba import mitsuba_available
 
@@ -562,7 +562,7 @@ def run(args: argparse.Namespace) -> int:
 
 def register(which) -> None:
     """Add `track` to the `softras-cl bench` subparsers."""
-    from softras_cl.fitting.recipes.face_track import TrackConfig
+    from softras_cl.fitting.recipes.track_settings import TrackConfig
 
     p = add_bench_parser(which, __doc__, "track", help="the face tracker on synthetic talking heads against per-frame fits")
     p.add_argument("--sequences", type=int, default=3, help="synthetic sequences, one identity each (default 3)")

@@ -8,7 +8,7 @@ import pytest
 from support.face_outputs import check_landmark_files
 
 from softras_cl.bench.face_views import subject
-from softras_cl.fitting.recipes import face, face_views
+from softras_cl.fitting.recipes import face, face_settings, face_views
 from softras_cl.io.images import write_image
 
 TINY = dict(landmark_iters=10, photo_stages=((1e-4, 3e-3, 4), (1e-5, 1e-3, 4)))
@@ -113,7 +113,7 @@ def test_same_camera_clashes_are_refused(person, tmp_path, run_cli, extra, says)
 
 
 def test_same_camera_fits_one_focal_with_the_joint_landmark_weight(person, tmp_path, run_cli, monkeypatch):
-    """--same-camera: one focal block; and the joint fit's landmark weight (face_views.joint_config)
+    """--same-camera: one focal block; and the joint fit's landmark weight (face_settings.joint_config)
     in the photometric stage, not the single fit's."""
     monkeypatch.setitem(face.BUDGETS, "fast", dict(landmark_iters=3, photo_stages=((1e-4, 3e-3, 2),)))
     (a, a_lmk), (b, b_lmk) = person
@@ -126,7 +126,7 @@ def test_same_camera_fits_one_focal_with_the_joint_landmark_weight(person, tmp_p
     assert json.loads((out / "run.json").read_text())["options"]["same_camera"] is True
     stages = {s["name"]: s for s in json.loads((out / "history.json").read_text())["stages"]}
     assert (stages["photo-1"]["weights"]["landmarks"]
-            == stages["landmarks"]["weights"]["landmarks"] * face_views.LANDMARK_WEIGHT_PHOTO)
+            == stages["landmarks"]["weights"]["landmarks"] * face_settings.LANDMARK_WEIGHT_PHOTO)
 
 
 def test_same_person_needs_two_photos(person, tmp_path, run_cli):

@@ -104,7 +104,7 @@ def test_identity_fit_weighs_its_prior_once_per_keyframe():
     """The keyframes share the detector's errors: the joint identity fit's id prior is the
     single photo fit's times the keyframes; the other weights are the joint fit's own."""
     from softras_cl.fitting.recipes.face import FaceFitConfig
-    from softras_cl.fitting.recipes.face_views import joint_config
+    from softras_cl.fitting.recipes.face_settings import joint_config
 
     single = joint_config(FaceFitConfig.from_budget("fast", size=256))
     for n in (1, 4, 6):
