@@ -23,6 +23,9 @@ from pathlib import Path
 
 from softras_cl.errors import ResultError, SoftrasError
 from softras_cl.fitting.batch.items import Item
+from softras_cl.fitting.detection import landmarks_beside, resolve_landmarks
+from softras_cl.fitting.jobs.body import body_job
+from softras_cl.fitting.jobs.face_photo import FacePhotoJob
 from softras_cl.fitting.jobs.run import fit_and_write
 from softras_cl.fitting.run_records import completed
 from softras_cl.io.outputs import LOCK_NAME, OutputFolder, json_safe
@@ -39,9 +42,7 @@ def item_job(item: Item):
     """The job of an item (fitting.jobs: FacePhotoJob, BodyPhotoJob, BodyTargetJob), made as
     the single-photo command makes it from the same options."""
     if item.kind == "face":
-        from softras_cl.fitting.jobs.face_photo import FacePhotoJob
         return FacePhotoJob(item.photo, item.landmarks, item.opts, face=item.face, all_faces=item.all_faces)
-    from softras_cl.fitting.jobs.body import body_job
     return body_job(item.photo, item.landmarks, item.opts)
 
 
@@ -124,8 +125,6 @@ def face_numbers(item: Item) -> list[int]:
     """The numbers of the faces the detector finds in an item whose landmarks are detected,
     those whose landmarks form a face (fitting.detection.ORDER: largest first); [] when its
     landmarks come from a file (or the photo cannot be read: its fit then reports why)."""
-    from softras_cl.fitting.detection import landmarks_beside, resolve_landmarks
-
     if item.landmarks is not None or landmarks_beside(item.photo) is not None:
         return []
     try:
