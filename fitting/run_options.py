@@ -17,12 +17,13 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterator
 
 from softras_cl.errors import InputError
+from softras_cl.fitting.detection.faces import ORDER
 from softras_cl.fitting.recipes import body_settings, face_settings
 from softras_cl.fitting.recipes.body_settings import BodyFitConfig
 from softras_cl.fitting.recipes.face_settings import COARSE_MESH, LANDMARK_MAPS, FaceFitConfig
 from softras_cl.fitting.recipes.track_settings import TrackConfig
 
-__all__ = ["Option", "FitOptions", "FACE", "BODY", "TRACK", "FITS", "yes_no"]
+__all__ = ["Option", "FitOptions", "FACE", "BODY", "TRACK", "FITS", "yes_no", "FACE_HELP", "FACE_BOX_HELP"]
 
 
 def yes_no(text: str) -> bool:
@@ -149,6 +150,13 @@ def _coarse_mesh(edges: float) -> float | None:
     return edges or None
 
 
+# the help of --face and --face-box, wherever a command chooses among the detected faces
+FACE_HELP = (f"use face N (0 = the first; faces are numbered {ORDER}; the default is the largest; "
+             "detect-landmarks lists them)")
+FACE_BOX_HELP = ("use the face in this box (pixels: top-left corner, width, height): the detected face "
+                 "that overlaps it best, else the landmarks found in the box itself")
+
+
 def parse_background(text: str) -> tuple[float, float, float]:
     """'r,g,b' -> (r, g, b) floats; ValueError naming the option otherwise."""
     try:
@@ -246,10 +254,9 @@ def _track_options() -> tuple[Option, ...]:
                "softras-cl)", recorded=False, file=True),
         Option("fps", float, None, "frames per second of a folder of frames (frame k at k / FPS s); a video "
                "file's frames carry their own times"),
-        Option("face", int, None, "follow the N-th face found in the first frame with a face (numbered "
-               "largest first; default: the largest)", metavar="N"),
-        Option("face_box", str, None, "follow the face in this box of the first frame with a face: x,y,w,h "
-               "in pixels", metavar="X,Y,W,H"),
+        Option("face", int, None, FACE_HELP + "; in the first frame with a face, then followed", metavar="N"),
+        Option("face_box", str, None, FACE_BOX_HELP + "; in the first frame with a face, then followed",
+               metavar="X,Y,W,H"),
         Option("chunk", int, 100, "frames per chunk of outputs: each chunk is written when done and "
                "--resume goes on at the first unfinished one (default 100)", metavar="FRAMES"),
         Option("scan", int, 150, "the identity's keyframes are chosen among the first FRAMES frames "

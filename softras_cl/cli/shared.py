@@ -79,15 +79,11 @@ def add_face_choice(parser) -> argparse._MutuallyExclusiveGroup:
     """Add --face N and --face-box X,Y,W,H (dest face, face_box: an int and a string, None when
     not given; parse_face_box reads the string) to `parser` as a mutually exclusive group, and
     return the group (detect-landmarks and fit-face add --all-faces to it)."""
-    from softras_cl.fitting.detection.faces import ORDER
+    from softras_cl.fitting.run_options import FACE_BOX_HELP, FACE_HELP
 
     which = parser.add_mutually_exclusive_group()
-    which.add_argument("--face", type=int, default=None, metavar="N",
-                       help=f"use face N (0 = the first; faces are numbered {ORDER}; the default "
-                            "is the largest; detect-landmarks lists them)")
-    which.add_argument("--face-box", default=None, metavar="X,Y,W,H",
-                       help="use the face in this box (pixels: top-left corner, width, height): the "
-                            "detected face that overlaps it best, else the landmarks found in the box itself")
+    which.add_argument("--face", type=int, default=None, metavar="N", help=FACE_HELP)
+    which.add_argument("--face-box", default=None, metavar="X,Y,W,H", help=FACE_BOX_HELP)
     return which
 
 
