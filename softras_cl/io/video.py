@@ -5,11 +5,13 @@ Reading (:func:`open_video`): every frame is a :class:`Frame`, an (H, W, 3) uint
 as it is meant to be shown (the stream's display matrix, or an older file's ``rotate`` tag,
 applied: a phone's portrait video comes out upright) with its presentation time in seconds
 from the stream's own timestamps, so a variable frame rate is kept. A folder of frames is its
-image files in name order, frame k at time k / fps.
+image files in name order, numbers by their value (1.png, 2.png, ..., 10.png, as ffmpeg's %d.png
+names them), frame k at time k / fps; every frame must have the first one's size (upright).
 
 Bad input is an InputError naming the file: one PyAV cannot open, no video stream, or a stream
 that breaks off (a truncated download): :class:`VideoReadError` is raised once the frames that
-could be decoded have been yielded, so a caller keeps what it did with them.
+could be decoded have been yielded, so a caller keeps what it did with them (the frames the
+decoder still held at the break come with their presentation times too).
 
 Writing (:class:`VideoWriter`): H.264 (yuv420p, no audio) into an .mp4 (index first), each frame at its
 given time (times in milliseconds, so a variable rate stays variable).
@@ -19,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import glob
 import math
+import re
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -91,8 +94,13 @@ class VideoSource:
         return self._folder_frames(start) if self.is_folder else self._video_frames(start)
 
     def _folder_frames(self, start: int) -> Iterator[Frame]:
+        size = None
         for index in range(start, len(self.files)):
-            yield Frame(index, index / self.fps, _read_frame(self.files[index]))
+            image = _read_frame(self.files[index])
+            size = size or image.shape[:2]
+            if image.shape[:2] != size:       # changed since the folder was opened
+                raise InputError(_other_size(self.files[index], image.shape[:2], self.files[start], size))
+            yield Frame(index, index / self.fps, image)
 
     def _video_frames(self, start: int) -> Iterator[Frame]:
         index, error = 0, None
@@ -102,7 +110,7 @@ class VideoSource:
             for decoded, error in _decoded(container, stream):
                 if decoded is not None:
                     if index >= start:
-                        yield Frame(index, _frame_time(decoded, index, self.fps),
+                        yield Frame(index, _frame_time(decoded, index, self.fps, stream.time_base),
                                     upright(decoded.to_ndarray(format="rgb24"), decoded.rotation or tag))
                     index += 1
         if error is not None:
@@ -129,10 +137,14 @@ def _decoded(container, stream) -> Iterator[tuple]:
         yield None, e
 
 
-def _frame_time(decoded, index: int, fps: float | None) -> float:
-    """A decoded frame's presentation time in seconds (index / fps when it has none)."""
-    if decoded.time is not None:
+def _frame_time(decoded, index: int, fps: float | None, time_base=None) -> float:
+    """A decoded frame's presentation time in seconds: its timestamp in its own time base, else
+    in the stream's ``time_base`` (the frames a decoder gives when flushed after a break carry a
+    timestamp but no time base: PyAV's ``time`` is NaN), else index / fps."""
+    if decoded.time is not None and math.isfinite(decoded.time):
         return float(decoded.time)
+    if decoded.pts is not None and time_base:
+        return float(decoded.pts * time_base)
     return index / fps if fps else float(index)
 
 
@@ -222,14 +234,59 @@ def expand_videos(inputs) -> list[Path]:
 
 
 def _folder_source(path: Path, fps: float | None) -> VideoSource:
-    files = tuple(_files(path, IMAGE_SUFFIXES))
+    files = tuple(sorted(_files(path, IMAGE_SUFFIXES), key=_frame_order))
     if not files:
         raise InputError(f"no frames in the folder {path} (looked for {', '.join(IMAGE_SUFFIXES)})")
     if fps is None:
         raise InputError(f"the folder of frames {path} needs --fps (its frames' rate: frame k is at k / fps s)")
     if not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
         raise InputError(f"--fps must be a positive number of frames per second, got {fps!r}")
+    _check_frame_sizes(files)
     return VideoSource(path, files, float(fps), len(files))
+
+
+def _frame_order(path: Path) -> tuple:
+    """The sort key of a frame file: its name with each run of digits compared by value, so that
+    ``2.png`` comes before ``10.png`` (names of one width, ``0002.png``, keep their plain order);
+    the name itself breaks ties (``01.png``, ``1.png``)."""
+    parts = re.split(r"(\d+)", path.name)
+    return tuple(int(p) if i % 2 else p for i, p in enumerate(parts)), path.name
+
+
+# EXIF orientations that turn an image a quarter (width and height swap when shown upright)
+_QUARTER_TURNS = (5, 6, 7, 8)
+
+
+def _frame_size(path: Path) -> tuple[int, int]:
+    """(height, width) of a frame file as read_rgb8 gives it (upright by its EXIF orientation),
+    from its header; InputError naming it when it cannot be read."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as img:
+            width, height = img.size
+            if img.getexif().get(0x0112) in _QUARTER_TURNS:
+                width, height = height, width
+    except Exception as e:    # Pillow raises many kinds (OSError, SyntaxError, ...)
+        raise InputError(f"cannot read frame {path}: {type(e).__name__}: {e}") from None
+    return height, width
+
+
+def _other_size(path: Path, size, first: Path, first_size) -> str:
+    """The message about a frame whose (height, width) is not the first frame's."""
+    return (f"frame {path} is {size[1]}x{size[0]}, but the frames before it are {first_size[1]}x{first_size[0]} "
+            f"(the first: {first}): every frame of a folder must have one size (a stray image, a crop "
+            "or a thumbnail among the frames?)")
+
+
+def _check_frame_sizes(files) -> None:
+    """InputError naming the first frame whose size is not the first frame's (read from the
+    headers, before any frame is decoded)."""
+    first = _frame_size(files[0])
+    for path in files[1:]:
+        size = _frame_size(path)
+        if size != first:
+            raise InputError(_other_size(path, size, files[0], first))
 
 
 class VideoWriter:

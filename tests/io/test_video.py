@@ -152,3 +152,62 @@ def test_expand_videos_names_files_folders_of_videos_or_frames_and_globs(tmp_pat
         expand_videos([tmp_path / "missing.mp4"])
     with pytest.raises(InputError, match="no videos or folders match"):
         expand_videos([str(tmp_path / "*.avi")])
+
+
+def test_frames_decoded_after_a_break_keep_their_times(tmp_path):
+    """A cut file (60% of its bytes): the frames the decoder still holds at the break come with
+    their presentation times (they had none: NaN), then the break is reported."""
+    times = [33 * k for k in range(30)]
+    write_mp4(tmp_path / "full.mp4", times, faststart=True, frame=noisy_frame)
+    data = (tmp_path / "full.mp4").read_bytes()
+    (tmp_path / "cut.mp4").write_bytes(data[: int(len(data) * 0.6)])
+    frames = []
+    with pytest.raises(VideoReadError, match="cut.mp4 breaks off after") as caught:
+        for frame in open_video(tmp_path / "cut.mp4").frames():
+            frames.append(frame)
+    assert 0 < len(frames) == caught.value.frames_read < 30
+    ms = [f.time * 1000 for f in frames]
+    assert np.all(np.isfinite(ms)) and np.all(np.diff(ms) > 0), ms
+    assert set(round(t) for t in ms) <= set(times), ms
+
+
+def _save_frames(folder, images, names):
+    from PIL import Image
+
+    folder.mkdir()
+    for image, name in zip(images, names):
+        Image.fromarray(image).save(folder / name)
+
+
+def test_folder_frames_numbered_without_zeros_come_in_number_order(tmp_path):
+    """1.png ... 12.png (as ffmpeg's %d.png writes them) are frames 1 to 12, not 1, 10, 11, 12, 2, ...:
+    the folder gives the frames a video of them gives, at the same times."""
+    images = [marked_frame(k) for k in range(12)]
+    _save_frames(tmp_path / "plain", images, [f"{k + 1}.png" for k in range(12)])
+    _save_frames(tmp_path / "named", images, [f"take2_frame{k + 1}.png" for k in range(12)])
+    for folder in ("plain", "named"):
+        frames = list(open_video(tmp_path / folder, fps=10).frames())
+        assert [f.time for f in frames] == [k / 10 for k in range(12)]
+        for frame, image in zip(frames, images):
+            np.testing.assert_array_equal(frame.image, image, err_msg=f"{folder}: frame {frame.index}")
+
+
+def test_folder_frames_of_another_size_are_refused_before_any_frame(tmp_path):
+    """A frame of another size (here the third; a stray thumbnail, a crop) is named when the
+    folder is opened; a frame turned by its EXIF orientation counts upright."""
+    from PIL import Image
+
+    images = [marked_frame(k) for k in range(4)]
+    images[2] = np.zeros((H + 2, W, 3), np.uint8)
+    _save_frames(tmp_path / "sizes", images, [f"{k:04d}.png" for k in range(4)])
+    other = r"frame .*0002\.png is 64x50, but the frames before it are 64x48 \(the first: .*0000\.png\)"
+    with pytest.raises(InputError, match=other):
+        open_video(tmp_path / "sizes", fps=10)
+
+    images = [marked_frame(k) for k in range(3)]
+    _save_frames(tmp_path / "turned", images, [f"{k:04d}.jpg" for k in range(3)])
+    exif = Image.Exif()
+    exif[0x0112] = 6                               # shown turned a quarter: 48x64
+    Image.fromarray(images[1]).save(tmp_path / "turned/0001.jpg", exif=exif)
+    with pytest.raises(InputError, match=r"0001\.jpg is 48x64"):
+        open_video(tmp_path / "turned", fps=10)
