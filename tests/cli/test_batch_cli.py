@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parents[2]
 DATA = REPO / "examples" / "data"
 BIN = Path(sys.executable).parent
 SMALL = ["--size", "40", "--budget", "fast", "--n-id", "4", "--n-exp", "4", "--n-albedo", "2", "--no-progress"]
-sys.path.insert(0, str(REPO / "tests" / "fitting"))
+sys.path.insert(0, str(REPO / "tests" / "fitting" / "batch"))
 from test_batch import make_photos  # noqa: E402
 
 

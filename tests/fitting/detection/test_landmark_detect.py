@@ -13,7 +13,7 @@ from softras_cl.fitting import detection as ld
 from softras_cl.fitting.detection import mediapipe_backend
 from softras_cl.io.images import read_rgb8
 
-DATA = Path(__file__).resolve().parents[2] / "examples" / "data"
+DATA = Path(__file__).resolve().parents[3] / "examples" / "data"
 PHOTOS = {"astronaut": "astronaut.png", "grace_hopper": "grace_hopper.jpg"}
 
 

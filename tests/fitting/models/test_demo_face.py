@@ -7,7 +7,7 @@ import pytest
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-PATH = Path(__file__).resolve().parents[2] / "fitting" / "models" / "data" / "demo_face.npz"
+PATH = Path(__file__).resolve().parents[3] / "fitting" / "models" / "data" / "demo_face.npz"
 
 # iBUG 300-W mirror pairs (subject's right, subject's left) and the points on the mid line
 PAIRS = ([(k, 16 - k) for k in range(8)] + [(17 + k, 26 - k) for k in range(5)]

@@ -11,7 +11,7 @@ from support.face_files import (N_V, face_normals, grid_face, write_bfm2009, wri
 from softras_cl.fitting.models.face_loaders import read_landmark_mapping
 from softras_cl.fitting.models.face_loaders import load_face_model
 
-DEMO = Path(__file__).resolve().parents[2] / "fitting" / "models" / "data" / "demo_face.npz"
+DEMO = Path(__file__).resolve().parents[3] / "fitting" / "models" / "data" / "demo_face.npz"
 
 
 def one_std(model, prefix):

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "face_host_parts.py"
+SCRIPT = Path(__file__).resolve().parents[3] / "scripts" / "face_host_parts.py"
 
 
 def test_face_host_parts_times_every_part_of_both_stages(tmp_path):

@@ -6,7 +6,7 @@ from softras_cl.fitting.recipes.face_settings import BUDGETS
 from softras_cl.fitting.reports.stages import fit_stages_markdown, stage_rows
 from softras_cl.fitting.solver import Stage
 
-PAGE = Path(__file__).resolve().parents[1] / "docs" / "fit_stages.md"
+PAGE = Path(__file__).resolve().parents[3] / "docs" / "fit_stages.md"
 
 
 def test_the_page_is_current():
