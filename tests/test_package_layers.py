@@ -527,13 +527,6 @@ def test_checker_finds_third_party_imports(tmp_path):
 # ------------------------------------------------------------------------------------------------
 # tests/fitting mirrors fitting/: each subpackage's tests in the folder of the same name
 
-# fitting subpackages with no test folder of their own, and where they are tested instead. An entry
-# must go once tests/fitting/<name>/ holds a test file (the test below then fails until it does).
-UNMIRRORED = {
-    "jobs": "through the commands (tests/cli) and tests/fitting/test_run_options.py",
-}
-
-
 def unmirrored_subpackages(package: Path, tests: Path) -> list[str]:
     """The subpackages under `package` (folders with an __init__.py, as paths relative to it) whose
     folder of the same relative path under `tests` holds no test_*.py file."""
@@ -548,9 +541,7 @@ def unmirrored_subpackages(package: Path, tests: Path) -> list[str]:
 def test_fitting_tests_mirror_its_subpackages():
     fitting = package_dirs(PYPROJECT)["softras_cl.fitting"]
     missing = unmirrored_subpackages(fitting, REPO / "tests" / "fitting")
-    assert missing == sorted(UNMIRRORED), (
-        f"subpackages of {fitting} without tests in tests/fitting/<subpackage>/: {missing}; "
-        f"known exceptions (UNMIRRORED in {__file__}): {sorted(UNMIRRORED)}")
+    assert missing == [], f"subpackages of {fitting} without tests in tests/fitting/<subpackage>/: {missing}"
 
 
 def test_checker_finds_a_subpackage_without_tests(tmp_path):

@@ -1,17 +1,14 @@
 """Bodies from photos: the keypoint map on the model, the new objective terms' gradients, the
-stages, the input kinds, the EXIF field of view, and (with mediapipe) detection of a rendered
-person, the no-person error and a fit of a synthetic photo."""
+stages, and (with mediapipe) detection of a rendered person, the no-person error and a fit of a
+synthetic photo. The input kinds and the EXIF field of view: tests/fitting/jobs."""
 import numpy as np
 import pytest
 
 from softras_cl.errors import InputError
 from softras_cl.fitting.recipes import body
 from softras_cl.fitting.keypoints.pose33 import KEYPOINT_MAP, head_landmarks, keypoint_layout
-from softras_cl.fitting.jobs.body import input_kind
-from softras_cl.fitting.jobs.body_photo import photo_fov
 from softras_cl.fitting.recipes.body_photo import BodyPhotoObjective, camera_distance, keypoint_weights, photo_stages
 from softras_cl.fitting.solver import Stage
-from softras_cl.io.images import write_image
 
 
 def test_every_keypoint_of_the_map_lands_on_a_demo_body_point(demo_body_model):
@@ -112,35 +109,6 @@ def test_camera_distance_puts_the_model_torso_on_the_detected_one(demo_body_mode
     assert camera_distance(demo_body_model, layout, 2 * pixels, weights, focal) == pytest.approx(depth / 2)
     weights[layout.names.index("left_shoulder")] = 0
     assert camera_distance(demo_body_model, layout, pixels, weights, focal) is None
-
-
-def test_input_kind_tells_part_coloured_targets_from_photos(tmp_path, examples_data):
-    parts = np.zeros((40, 40, 3))
-    parts[10:30, 15:25] = (0.2, 0.5, 0.7)
-    write_image(tmp_path / "parts.png", parts)
-    assert input_kind(tmp_path / "parts.png") == "parts"
-    assert input_kind(examples_data / "astronaut.png") == "photo"
-    assert input_kind(examples_data / "astronaut.png", "parts") == "parts"
-    assert input_kind(examples_data / "astronaut.png", joints=True) == "parts"     # joints: a rendered target
-    assert input_kind(examples_data / "people" / "cameraman.png") == "photo"                   # grey, not a mask
-    assert input_kind(tmp_path / "parts.png", silhouette=True) == "mask"
-    np.save(tmp_path / "t.npy", parts)
-    assert input_kind(tmp_path / "t.npy") == "parts"
-    with pytest.raises(InputError, match="--input must be one of"):
-        input_kind(tmp_path / "parts.png", "video")
-
-
-def test_photo_fov_reads_the_exif_35mm_focal_length(tmp_path):
-    from PIL import Image
-
-    image = Image.new("RGB", (300, 200))
-    exif = image.getexif()
-    exif.get_ifd(0x8769)[41989] = 50                     # 50 mm equivalent, by the diagonal
-    image.save(tmp_path / "exif.jpg", exif=exif)
-    image.save(tmp_path / "plain.jpg")
-    expected = 2 * np.degrees(np.arctan(np.tan(np.arctan(43.27 / 2 / 50)) * 200 / np.hypot(200, 300)))
-    assert photo_fov(tmp_path / "exif.jpg", (200, 300)) == pytest.approx(expected)
-    assert photo_fov(tmp_path / "plain.jpg", (200, 300)) is None
 
 
 @pytest.fixture(scope="module")
