@@ -105,13 +105,34 @@ def _to_linear_rgb(data: np.ndarray, maxval: float) -> np.ndarray:
     return rgb
 
 
+def _image_file(path) -> Path:
+    """``path`` as a Path when it is a regular file (or a link to one), without opening it (a
+    FIFO would block): FileNotFoundError when nothing is there, InputError saying what it is
+    when it is a folder, a FIFO, a device or a socket."""
+    import stat
+
+    path = Path(path)
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        raise FileNotFoundError(f"image file not found: {path}") from None
+    except OSError as e:
+        raise InputError(f"cannot read image {path}: {e.strerror or e}") from None
+    if stat.S_ISDIR(mode):
+        raise InputError(f"{path} is a directory, not an image file")
+    if not stat.S_ISREG(mode):
+        kind = ("a FIFO" if stat.S_ISFIFO(mode) else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode)
+                else "a socket" if stat.S_ISSOCK(mode) else "a special file")
+        raise InputError(f"{path} is not a regular file ({kind}); give an image file")
+    return path
+
+
 def _decode(path) -> tuple[np.ndarray, float]:
     """An image file, upright by its EXIF orientation -> ((H, W, C) stored integers with C in
-    {1, 2, 3, 4}, their maximum value). FileNotFoundError for a missing file, ValueError naming
-    it for one that cannot be decoded or is empty."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"image file not found: {path}")
+    {1, 2, 3, 4}, their maximum value). FileNotFoundError for a missing file, InputError for a
+    folder or another file that is not a regular one (_image_file), ValueError naming it for one
+    that cannot be decoded or is empty."""
+    path = _image_file(path)
     try:
         if _png_bit_depth(path) == 16:
             data, maxval = _read_png16(path)
