@@ -60,11 +60,17 @@ class BodyPhotoJob(FitJob):
 
     def read(self) -> None:
         """Read the photo, find the person (NoPersonError naming the photo when none), read the
-        field of view from its EXIF, load the model."""
+        field of view from its EXIF, load the model; ResultError, before anything is written,
+        when the camera would stand inside the body (fitting.recipes.body_photo.check_in_view:
+        a --fov near 180 degrees)."""
+        from softras_cl.fitting.recipes.body_photo import check_in_view, photo_setup
+
         self.model = load_model("body", self.options["model"])
         self.photo = read_photo(self.path)
         self.detection = detect_person(self.photo.rgb8, str(self.path))
         self.fov = photo_fov(self.path, self.photo.rgb8.shape[:2])
+        check_in_view(photo_setup(self.photo.rgb8.shape[:2], self.detection, self.model, self.config, self.fov),
+                      self.model)
 
     def describe(self) -> str:
         """One line about the person found."""

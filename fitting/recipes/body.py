@@ -66,6 +66,8 @@ __all__ = ["HINGE_LIMITS", "BodyTarget", "BodyScene",
 
 TRANSLATION_SIGMA = 0.3          # metres
 DEPTH_RANGE = 5.0                # metres between the near and far planes, centred on the body
+MIN_DEPTH = 0.01                 # metres: a posed body nearer the camera than this is refused (too_close)
+TOO_CLOSE_LOSS = 1e12            # the loss of such a body: more than any body in view scores
 
 # Hinge joints: direction (model frame) the child bone moves to when the joint flexes, and the
 # (lower, upper) limits in rad of (flexion, twist about the bone, sideways bend).
@@ -269,6 +271,16 @@ class BodyScene:
         self.renderer = Renderer(self.settings, shading="none")
         self._variants: dict = {}       # render(**changes): a renderer per set of changes
 
+    def too_close(self, state: BodyPose) -> bool:
+        """Whether a vertex or joint of the posed body ``state`` lies nearer the camera than
+        MIN_DEPTH, or behind it, where it cannot be projected. The objective gives such a body
+        TOO_CLOSE_LOSS and no gradient, so the solver's line search steps back: a long step
+        from a poor start (a photo cut at the waist, a very wide --fov) would otherwise stop the
+        fit with "vertices are behind the camera"."""
+        axis, offset = self.camera.rotation_matrix()[2], float(self.camera.translation[2])
+        nearest = min(float((state.vertices @ axis).min()), float((state.joints @ axis).min())) + offset
+        return nearest < MIN_DEPTH
+
     def pose(self, values: dict) -> tuple[BodyPose, BodyContext]:
         """The body posed by the blocks ``values`` (betas, body_pose, global_rotation,
         translation): (BodyPose, BodyContext for model.forward_vjp)."""
@@ -335,6 +347,8 @@ class BodyObjective:
             self.observer(values, stage)
         w = stage.weights
         state, body_ctx = self.scene.pose(values)
+        if self.scene.too_close(state):
+            return TOO_CLOSE_LOSS, {}, {"too_close": TOO_CLOSE_LOSS}
         terms, out = self.prior_terms(values, w), None
         if w.get("image") or w.get("silhouette"):
             out = self.scene.render(state.vertices, stage.sigma, stage.gamma, grads=("vertices",),

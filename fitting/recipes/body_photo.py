@@ -48,7 +48,7 @@ from softras_cl.fitting.solver import Stage, fit
 
 __all__ = ["MIN_VISIBILITY", "BodyPhotoObjective",
            "BodyPhotoFit", "keypoint_weights", "camera_distance", "photo_stages", "photo_params",
-           "mask_misses", "fit_body_photo"]
+           "mask_misses", "PhotoSetup", "photo_setup", "check_in_view", "fit_body_photo"]
 
 MIN_VISIBILITY = 0.3            # a keypoint the detector is less sure of than this is not used
 ROBUST_FRACTION = 0.1           # Geman-McClure scale / the working image's longer side
@@ -315,18 +315,24 @@ def _torso_translation(scene: BodyScene, values: dict, layout, targets: np.ndarr
     return values["translation"] + np.array([shift[0], -shift[1], 0.0]) * depth / float(scene.camera.focal[1])
 
 
-def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFitConfig(), budget: str = "default",
-                   fov_deg: float | None = None, objective: str = "full", weights: dict | None = None,
-                   out_dir=None, progress: bool = True, resume: bool = False) -> BodyPhotoFit:
-    """Fit ``model`` to a detected person (fitting.detection.people.PersonDetection) of a photo
-    of ``photo_size`` (H, W).
+@dataclass(frozen=True)
+class PhotoSetup:
+    """What a photo fit starts from (:func:`photo_setup`): the config with the camera's field of
+    view and distance, the target (the person mask at the working size), the keypoint layout,
+    the keypoints (K, 2) in working pixels with their weights (K,) and where the field of view
+    came from."""
+    config: BodyFitConfig
+    data: object
+    layout: KeypointLayout
+    keypoints: np.ndarray
+    seen: np.ndarray
+    fov_source: str
 
-    config: size, fov_deg (used when ``fov_deg`` is None: no EXIF focal), height, robust_px,
-    coarse_mesh, dtype of fitting.recipes.body (its distance is replaced by camera_distance's);
-    budget: PHOTO_BUDGETS; objective: OBJECTIVES (the bench's ablations); weights: the terms'
-    weights (default PHOTO_WEIGHTS). out_dir / progress / resume: as fitting.recipes.body.fit_body
-    (checkpoints, Ctrl-C keeps the best). ResultError when the detection's mask is empty or full.
-    """
+
+def photo_setup(photo_size, detection, model, config: BodyFitConfig = BodyFitConfig(),
+                fov_deg: float | None = None) -> PhotoSetup:
+    """The camera and the targets of a photo fit (fit_body_photo's arguments); ResultError when
+    the detection's mask is empty or full."""
     if not 0.0 < (detection.mask > 0.5).mean() < 1.0:
         raise ResultError("the detector's person mask is empty or fills the whole photo: nothing to fit")
     layout = keypoint_layout(model)
@@ -339,6 +345,44 @@ def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFit
     distance = camera_distance(model, layout, keypoints, seen, focal)
     if distance is not None:
         config = replace(config, distance=distance)
+    return PhotoSetup(config, data, layout, keypoints, seen, fov_source)
+
+
+def check_in_view(setup: PhotoSetup, model) -> None:
+    """ResultError when the model in its rest pose at the origin, where the fit starts, reaches
+    the camera (BodyScene.too_close): the field of view is so wide (--fov near 180 degrees) that
+    the camera distance at which the model's torso is as long as the detected one lies inside
+    the body. No fit could put the body in view."""
+    scene = BodyScene(model, setup.data.alpha.shape, setup.config)
+    state, _ = scene.pose(rest_values(model))
+    if scene.too_close(state):
+        source = "the photo's EXIF focal length" if setup.fov_source.startswith("EXIF") else "--fov"
+        raise ResultError(
+            f"the body cannot be fitted in view: with a field of view of {setup.config.fov_deg:g} degrees "
+            f"(from {source}) the camera would stand {setup.config.distance:.3g} m from the person "
+            "(where the model's torso looks as long as the detected one), inside the body; give the "
+            "photo's field of view across its shorter side with a smaller --fov")
+
+
+def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFitConfig(), budget: str = "default",
+                   fov_deg: float | None = None, objective: str = "full", weights: dict | None = None,
+                   out_dir=None, progress: bool = True, resume: bool = False) -> BodyPhotoFit:
+    """Fit ``model`` to a detected person (fitting.detection.people.PersonDetection) of a photo
+    of ``photo_size`` (H, W).
+
+    config: size, fov_deg (used when ``fov_deg`` is None: no EXIF focal), height, robust_px,
+    coarse_mesh, dtype of fitting.recipes.body (its distance is replaced by camera_distance's);
+    budget: PHOTO_BUDGETS; objective: OBJECTIVES (the bench's ablations); weights: the terms'
+    weights (default PHOTO_WEIGHTS). out_dir / progress / resume: as fitting.recipes.body.fit_body
+    (checkpoints, Ctrl-C keeps the best). ResultError when the detection's mask is empty or full,
+    or when the camera would stand inside the body (check_in_view). While fitting, a body that
+    reaches the camera is refused by the objective (BodyScene.too_close), so the fit keeps it in
+    front of the camera.
+    """
+    setup = photo_setup(photo_size, detection, model, config, fov_deg)
+    check_in_view(setup, model)
+    config, data, layout = setup.config, setup.data, setup.layout
+    keypoints, seen, fov_source = setup.keypoints, setup.seen, setup.fov_source
     scene = BodyScene(model, data.alpha.shape, config)
     robust = config.robust_px if config.robust_px is not None else ROBUST_FRACTION * max(data.alpha.shape)
     faces = None if config.coarse_mesh is None else coarse_faces(model.v_template, model.faces, config.coarse_mesh)
