@@ -1,7 +1,8 @@
 """A photo's 68 landmarks: the user's file, a file beside the photo, or a detector.
 
 resolve_landmarks(photo, landmarks=None) is what a command calls: an explicit file, else a file
-beside the photo (landmarks_beside), else the detector (find.detect_face: the largest face, or
+beside the photo (landmarks_beside; checked against the detector's faces when one is installed:
+check_beside), else the detector (find.detect_face: the largest face, or
 the one --face / --face-box names), else an error that says how to install one.
 """
 from __future__ import annotations
@@ -11,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from softras_cl.errors import InputError
 from softras_cl.io.images import read_rgb8
 from softras_cl.fitting.detection.faces import FaceCandidate, ImplausibleFaceError, implausible_landmarks
 from softras_cl.fitting.detection.find import (FACE_MESH_BACKENDS, Detection, as_rgb8, check_backend, detect_face, find_faces,
@@ -18,6 +20,8 @@ from softras_cl.fitting.detection.find import (FACE_MESH_BACKENDS, Detection, as
 
 #: suffixes of landmark files looked for beside a photo, in order of precedence
 BESIDE_SUFFIXES = (".pts", ".txt", ".npy")
+#: a file beside the photo must overlap a detected face this much (check_beside)
+MIN_BESIDE_IOU = 0.25
 
 
 def landmarks_beside(photo) -> Path | None:
@@ -83,7 +87,8 @@ def resolve_landmarks(photo, landmarks=None, *, all_faces: bool = False, backend
 
     Returns a non-empty list of PhotoLandmarks. Raises FileNotFoundError (missing photo or
     explicit file), ValueError naming the file (unreadable photo or landmark file, wrong point
-    count, a point outside the photo), NoFaceError (no face found), InputError (--face number
+    count, a point outside the photo; a file beside the photo that overlaps none of the faces
+    the detector finds: check_beside), NoFaceError (no face found), InputError (--face number
     not found), ImplausibleFaceError (exit 1), DetectorUnavailableError (an ImportError and
     InputError: no file and the detector is not installed; its message says what to install).
     """
@@ -96,11 +101,54 @@ def resolve_landmarks(photo, landmarks=None, *, all_faces: bool = False, backend
         return [PhotoLandmarks(read_landmarks(landmarks, image_size=size), "file", Path(landmarks))]
     found = landmarks_beside(photo) if beside else None
     if found is not None:
-        return [PhotoLandmarks(read_landmarks(found, image_size=size), "beside", found)]
+        points = read_landmarks(found, image_size=size)
+        check_beside(found, points, img, str(photo))
+        return [PhotoLandmarks(points, "beside", found)]
     if all_faces:
         return _every_face(img, str(photo), check_backend(backend), options)
     detection = detect_face(img, backend, face=face, face_box=face_box, name=str(photo), **options)
     return [_detected(detection)]
+
+
+def check_beside(path: Path, points: np.ndarray, img: np.ndarray, name: str) -> None:
+    """Check the landmark file beside a photo against the faces the default detector finds in
+    it (when it is installed): InputError naming the file when faces are found and none of their
+    boxes overlaps the box of the file's (68, 2) points by an IoU of at least MIN_BESIDE_IOU, as
+    when the file is another photo's (the astronaut with Grace Hopper's points: IoU 0.05; its own
+    points: 0.80). A file beside the photo is taken without being asked for, so a wrong one would
+    otherwise fit another face's points without a word. No face found, or no detector: the file
+    is used as it is."""
+    from softras_cl.fitting.detection.find import default_backend
+
+    backend = default_backend()
+    if backend is None:
+        return
+    faces = find_faces(img, backend)
+    if not faces:
+        return
+    box = np.concatenate([points.min(0), points.max(0) - points.min(0)])
+    overlaps = [box_iou(box, face.box) for face in faces]
+    best = int(np.argmax(overlaps))
+    if overlaps[best] >= MIN_BESIDE_IOU:
+        return
+    x, y, w, h = faces[best].box
+    raise InputError(
+        f"the landmark file beside the photo, {path}, does not overlap the face the detector finds in "
+        f"{name} (its points span x {box[0]:.0f}-{box[0] + box[2]:.0f}, y {box[1]:.0f}-{box[1] + box[3]:.0f}; "
+        f"of the {len(faces)} face(s) found, face {best} at box {x:.0f},{y:.0f},{w:.0f},{h:.0f} overlaps them "
+        f"best, IoU {overlaps[best]:.2f} < {MIN_BESIDE_IOU}): is it another photo's? Give the right file "
+        "with --landmarks FILE, or move it away to use the detector")
+
+
+def box_iou(a, b) -> float:
+    """IoU of two (x, y, w, h) boxes."""
+    ax0, ay0, aw, ah = (float(v) for v in a)
+    bx0, by0, bw, bh = (float(v) for v in b)
+    iw = max(0.0, min(ax0 + aw, bx0 + bw) - max(ax0, bx0))
+    ih = max(0.0, min(ay0 + ah, by0 + bh) - max(ay0, by0))
+    inter = iw * ih
+    union = aw * ah + bw * bh - inter
+    return inter / union if union > 0 else 0.0
 
 
 def _detected(detection: Detection) -> PhotoLandmarks:

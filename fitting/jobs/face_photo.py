@@ -78,8 +78,13 @@ class FacePhotoJob(FitJob):
         """Read the photo, find its landmarks (the detection, when detected, is in
         ``self.landmarks.detection``), load the model; ValueError/OSError on bad input,
         ImplausibleFaceError (exit 1) for a detected face that is no face."""
+        from softras_cl.fitting.detection import landmarks_beside
         from softras_cl.fitting.recipes.face import check_dense_inputs, detected_dense
+        from softras_cl.fitting.run_records import refuse_face_choice
 
+        beside = None if self.landmarks_file is not None else landmarks_beside(self.path)
+        if beside is not None:          # before the file is checked against the detector's faces
+            refuse_face_choice(beside, True, self.face, self.face_box)
         self.photo = read_photo(self.path)
         self.landmarks = face_landmarks(self.photo, self.landmarks_file, self.face, self.face_box, self.all_faces)
         self.model = face_model(self.options)

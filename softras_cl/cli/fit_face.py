@@ -92,11 +92,15 @@ def _options(args: argparse.Namespace) -> dict:
 
 
 def say_detection(found, name: str | None = None) -> None:
-    """Print, for detected landmarks (fitting.detection.PhotoLandmarks), every face found, the
-    one fitted ("*") and why; ``name``: the photo's, before the lines (several photos)."""
-    if found.detection is None:
-        return
-    for line in found.detection.describe():
+    """Print where the landmarks (fitting.detection.PhotoLandmarks) came from when fit-face
+    found them itself: the file beside the photo (one line), or every face detected, the one
+    fitted ("*") and why; nothing for a --landmarks file. ``name``: the photo's, before the
+    lines (several photos)."""
+    if found.source == "beside":
+        lines = [f"landmarks: {found.path} (the file beside the photo; --landmarks FILE gives another)"]
+    else:
+        lines = [] if found.detection is None else found.detection.describe()
+    for line in lines:
         print(line if name is None else f"{name}: {line}")
 
 
