@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from softras_cl.errors import InputError
 from softras_cl.fitting.detection import resolve_landmarks
 from softras_cl.fitting.jobs.run import FitJob
@@ -22,7 +24,7 @@ from softras_cl.fitting.run_records import face_landmarks_source, face_record
 from softras_cl.io.images import read_photo
 from softras_cl.io.outputs import stable_names
 
-__all__ = ["FacePhotoJob", "FaceViewsJob", "face_model", "face_landmarks"]
+__all__ = ["FacePhotoJob", "FaceViewsJob", "face_model", "face_landmarks", "check_uncut"]
 
 REQUIRED = ("landmark_error_px_full", "psnr_face_db")     # finite, or the fit failed
 
@@ -47,13 +49,44 @@ def face_landmarks(photo, landmarks=None, face: int | None = None, face_box=None
     ``face_box``; with ``all_faces``, face number ``face`` among those whose landmarks form a
     face. ``photo``: a softras_cl.io.images.Photo (decoded once)."""
     if not all_faces:
-        return resolve_landmarks(photo.path, landmarks, image=photo.rgb8, face=face, face_box=face_box)[0]
-    found = [f for f in resolve_landmarks(photo.path, landmarks, image=photo.rgb8, all_faces=True)
-             if f.index == face]
-    if not found:
-        raise InputError(f"face {face} of {photo.path} is no longer found among the faces whose "
-                         "landmarks form a face")
+        found = resolve_landmarks(photo.path, landmarks, image=photo.rgb8, face=face, face_box=face_box)
+    else:
+        found = [f for f in resolve_landmarks(photo.path, landmarks, image=photo.rgb8, all_faces=True)
+                 if f.index == face]
+        if not found:
+            raise InputError(f"face {face} of {photo.path} is no longer found among the faces whose "
+                             "landmarks form a face")
+    check_uncut(found[0], photo)
     return found[0]
+
+
+def check_uncut(found, photo) -> None:
+    """InputError when detected landmarks (fitting.detection.PhotoLandmarks) reach past the
+    border of the photo (a Photo): the detector found a face the photo cuts, whose landmarks it
+    places where the face would go on. The fit needs every landmark on the photo (a file's
+    points are checked as the file is read)."""
+    if found.detection is None:
+        return
+    h, w = photo.rgb8.shape[:2]
+    x, y = found.points[:, 0], found.points[:, 1]
+    outside = np.flatnonzero((x < -0.5) | (x > w - 0.5) | (y < -0.5) | (y > h - 0.5))
+    if outside.size:
+        raise InputError(f"face {found.index} found in {photo.path} is cut by the photo's border: its "
+                         f"landmarks {_ranges(outside)} lie outside the {w}x{h} photo; fit-face fits whole "
+                         "faces: give a photo (or a crop) with the whole face in it, or the face's 68 points "
+                         "on the photo as a file (--landmarks)")
+
+
+def _ranges(indices) -> str:
+    """Sorted integers as "0-3, 7, 13-16"."""
+    runs, start = [], None
+    for i, k in enumerate(indices):
+        if start is None:
+            start = k
+        if i + 1 == len(indices) or indices[i + 1] != k + 1:
+            runs.append(f"{start}" if start == k else f"{start}-{k}")
+            start = None
+    return ", ".join(runs)
 
 
 class FacePhotoJob(FitJob):
