@@ -8,7 +8,7 @@ from pathlib import Path
 
 from softras_cl.errors import InputError
 from softras_cl.fitting.run_options import BODY, FACE, FitOptions
-from softras_cl.io.outputs import COMPLETE_RECORD, file_sha256, json_safe
+from softras_cl.io.outputs import COMPLETE_RECORD, OUTPUTS, file_sha256, json_safe, missing_outputs
 
 __all__ = ["face_landmarks_source", "refuse_face_choice", "face_record", "body_record", "completed"]
 
@@ -68,12 +68,15 @@ def body_record(target, joints, options: dict) -> dict:
 
 
 def completed(folder: Path, record: dict) -> dict | None:
-    """folder/complete.json when it holds ``record`` (and is a finished run), else None."""
+    """folder/complete.json when it holds ``record`` and is a finished run whose outputs are all
+    there (when it lists them, OUTPUTS: each file with its size), else None."""
     try:
         doc = json.loads((Path(folder) / COMPLETE_RECORD).read_text())
     except (OSError, ValueError):
         return None
     want = json.loads(json.dumps(json_safe(record), default=str))
-    if isinstance(doc, dict) and doc.get("status") == "done" and all(doc.get(k) == v for k, v in want.items()):
-        return doc
-    return None
+    if not (isinstance(doc, dict) and doc.get("status") == "done" and all(doc.get(k) == v for k, v in want.items())):
+        return None
+    if OUTPUTS in doc and missing_outputs(folder, doc[OUTPUTS]):
+        return None
+    return doc

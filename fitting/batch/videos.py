@@ -15,7 +15,7 @@ from softras_cl.errors import InputError, SoftrasError
 from softras_cl.fitting.batch.items import collect_items
 from softras_cl.fitting.batch.results import ResultsTable
 from softras_cl.fitting.batch.tasks import describe, make_row
-from softras_cl.fitting.jobs.face_video import check_options, run_record, track_video
+from softras_cl.fitting.jobs.face_video import BrokenVideoError, check_options, run_record, track_video
 from softras_cl.fitting.run_options import TRACK
 from softras_cl.fitting.run_records import completed
 from softras_cl.io.outputs import RUN_RECORD, OutputFolder, json_safe
@@ -58,9 +58,10 @@ def _summary(complete: dict) -> dict:
 
 
 def _track_item(item, out: Path, progress: bool) -> dict:
-    """Track one video into ``out``/NAME (skipped when that folder holds its complete run;
-    resumed when it holds its interrupted one); its results row. KeyboardInterrupt when Ctrl-C
-    stopped it."""
+    """Track one video into ``out``/NAME (skipped when that folder holds its complete run with
+    every output; resumed when it holds its interrupted one, or a complete one that lost an
+    output); its results row (a video that breaks off: failed, with the frames written before
+    the break). KeyboardInterrupt when Ctrl-C stopped it."""
     start = time.perf_counter()
     values = TRACK.values(item.opts)
     folder = out / item.name
@@ -72,6 +73,10 @@ def _track_item(item, out: Path, progress: bool) -> dict:
             return make_row(item, "skipped", folder, _summary(done), done.get("seconds"))
         resume = _read_json(folder / RUN_RECORD) == json.loads(json.dumps(json_safe(record), default=str))
         run = track_video(item.photo, folder, values, resume=resume, progress=progress)
+    except BrokenVideoError as error:           # the frames before the break are written
+        print(f"track-face: {item.name}: failed: {describe(error)}")
+        return make_row(item, "failed", error.folder, _summary(error.summary), time.perf_counter() - start,
+                        error=describe(error))
     except (SoftrasError, ValueError, OSError) as error:
         print(f"track-face: {item.name}: failed: {describe(error)}")
         return make_row(item, "failed", seconds=time.perf_counter() - start, error=describe(error))

@@ -2,7 +2,8 @@
 
 - ``identity.npz`` (id, albedo, sh, focal in frame pixels, pixel_scale, keyframes, the joint
   fit's metrics as JSON text) and
-  ``identity.ply`` (the neutral face of the identity, albedo vertex colours, model frame);
+  ``identity.ply`` (the neutral face of the identity, albedo vertex colours, model frame; written
+  first: the .npz marks both written, and --resume writes a lost .ply again);
 - ``chunks/chunk_NNNN.npz``: one chunk's frames: index, time (s), held (bool), rotation (N, 3),
   translation (N, 3), exp (N, K) (after the fixed-lag smoothing; ``fit_rotation``,
   ``fit_translation``, ``fit_exp``: each frame's own fit, before it), sh (N, 3, 9) (each frame's
@@ -10,8 +11,9 @@
   frame pixels, 0-based (detected NaN where no face was found), the weighted loss terms
   (``term_NAME`` (N,), NaN when held), evaluations and seconds of each frame's fit, and the
   tracker's state after the chunk (``state_*``, where --resume goes on). Written last of a
-  chunk's files: a chunk is done when it exists. ``chunks/chunk_NNNN.jsonl``: the same, a JSON
-  line per frame; ``chunks/overlay_NNNN.mp4``: the chunk's overlay frames;
+  chunk's files: a chunk is done when it exists with the others (:func:`chunk_done`).
+  ``chunks/chunk_NNNN.jsonl``: the same, a JSON line per frame; ``chunks/overlay_NNNN.mp4``: the
+  chunk's overlay frames;
 - at the end: ``frames.npz`` / ``frames.jsonl`` (all chunks), ``overlay.mp4`` (each frame, and
   beside it the fitted face drawn over it; no audio), ``track.png`` (head angles, expression and
   the loss terms over time, frames without a face shaded);
@@ -35,8 +37,9 @@ from softras_cl.fitting.recipes.face_track import (FRAME_BLOCKS, FrameResult, Id
 from softras_cl.io.meshes import save_mesh
 from softras_cl.io.outputs import atomic_path, json_safe, write_bytes, write_figure
 
-__all__ = ["CHUNKS", "MESHES", "OVERLAY_MAX", "ChunkWriter", "MeshExporter", "write_identity", "read_identity", "chunk_path", "write_chunk",
-           "read_chunk", "OverlayDrawer", "finish_outputs", "TERMS"]
+__all__ = ["CHUNKS", "MESHES", "OVERLAY_MAX", "ChunkWriter", "MeshExporter", "write_identity", "write_identity_mesh",
+           "read_identity", "chunk_path", "chunk_files", "chunk_done", "write_chunk", "read_chunk", "output_names",
+           "FINAL_OUTPUTS", "OverlayDrawer", "finish_outputs", "TERMS"]
 
 CHUNKS = "chunks"
 MESHES = "meshes"
@@ -45,9 +48,15 @@ TERMS = ("landmarks", "exp_prior", "smooth_pose", "smooth_exp", "light_residual"
 
 
 def write_identity(folder: Path, identity: Identity, model) -> None:
-    """identity.npz (its metrics as JSON text in ``metrics``) and identity.ply (module docstring)."""
+    """identity.ply, then identity.npz (its metrics as JSON text in ``metrics``; module
+    docstring): the .npz, which --resume reads, marks both written."""
+    write_identity_mesh(folder, identity, model)
     with atomic_path(folder / "identity.npz") as tmp:
         np.savez(tmp, **identity.to_arrays(), metrics=np.array(json.dumps(json_safe(identity.metrics))))
+
+
+def write_identity_mesh(folder: Path, identity: Identity, model) -> None:
+    """identity.ply: the identity's neutral face, albedo vertex colours, model frame."""
     shape = model.shape(identity.id, np.zeros(model.n_exp))[0]
     save_mesh(folder / "identity.ply", shape, model.faces,
               colors=np.clip(model.albedo(identity.albedo)[0], 0.0, 1.0))
@@ -118,6 +127,31 @@ def read_history(folder: Path, k: int, lag: int) -> list[FrameResult]:
                               arrays["fitted"][i], bool(arrays["held"][i]), {}, 0, 0.0)
                   for i in range(len(arrays["index"]))] + frames
     return frames[max(0, len(frames) - lag):] if lag else []
+
+
+def chunk_files(k: int) -> list[str]:
+    """Chunk k's files, relative to the output folder: its .jsonl, its overlay part and its .npz."""
+    return [chunk_path(Path(), k, suffix, stem).as_posix()
+            for suffix, stem in ((".jsonl", "chunk"), (".mp4", "overlay"), (".npz", "chunk"))]
+
+
+def chunk_done(folder: Path, k: int) -> bool:
+    """Whether every file of chunk k is in ``folder`` (a chunk whose .npz is there but another
+    file is lost is done again on --resume)."""
+    return all((folder / name).is_file() for name in chunk_files(k))
+
+
+FINAL_OUTPUTS = ("identity.npz", "identity.ply", "frames.npz", "frames.jsonl", "overlay.mp4", "track.png")
+
+
+def output_names(folder: Path, chunks: int, export_meshes: str | None = None) -> list[str]:
+    """The files of a finished run of ``chunks`` chunks in ``folder``, relative to it: the
+    identity, each chunk's files, the final outputs and, with ``export_meshes`` ("ply", "obj"),
+    the meshes exported (one per frame after the first face)."""
+    names = list(FINAL_OUTPUTS) + [name for k in range(chunks) for name in chunk_files(k)]
+    if export_meshes is not None and (folder / MESHES).is_dir():
+        names += sorted(p.relative_to(folder).as_posix() for p in (folder / MESHES).glob(f"frame_*.{export_meshes}"))
+    return names
 
 
 def read_chunk(folder: Path, k: int) -> tuple[dict, TrackerState] | None:

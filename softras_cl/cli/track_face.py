@@ -32,8 +32,13 @@ written when done), then frames.npz and frames.jsonl (every frame: time, held, r
 translation, expression, light, detected and fitted landmarks, the loss terms), overlay.mp4 (each
 frame beside the fitted face drawn over it; no audio), track.png (pose, expression and the loss
 terms over time), with --export-meshes a mesh per frame in meshes/, run.json and, last,
-complete.json. Ctrl-C or SIGTERM keeps the chunks done (exit 130); --resume goes on at the first
-unfinished chunk.
+complete.json (listing every output with its size: a run is done while they are all there). Ctrl-C
+or SIGTERM keeps the chunks done (exit 130); --resume goes on at the first unfinished chunk and
+writes again any output of the finished part that is missing. A video that breaks off (truncated
+or damaged) is tracked up to the break: the outputs of the frames before it are written, stderr
+says where it broke off, exit 1 (no complete.json). A folder of frames is read in name order,
+numbers by value (2.png before 10.png); its frames must all have one size. A run refused (exit 2)
+leaves --out as it found it.
 
 Several videos: give several video files, folders (a folder holding video files: each of them; a
 folder of images: one video of frames) or quoted glob patterns, and/or --manifest CSV (a 'video'
@@ -44,8 +49,8 @@ two share a name), one after the other, or side by side on a Dask cluster with -
 local cluster of N processes; extra "batch") or --scheduler; --fps applies to the folders of
 frames among them.
 Running the same command again skips every video whose folder holds a complete run with the same
-inputs and options, goes on with an interrupted one at its first unfinished chunk, and redoes the
-others. --out also gets results.csv, results.jsonl (one row per video: status ok, skipped,
+inputs and options and all its outputs, goes on with an interrupted one at its first unfinished
+chunk (or one that lost an output: that is written again), and redoes the others. --out also gets results.csv, results.jsonl (one row per video: status ok, skipped,
 failed or cancelled, the error, frames, frames held, frames per second) and summary.png. Exit
 code 0 when every video was tracked, 1 when some failed, 130 on Ctrl-C (the chunks done are
 kept)."""

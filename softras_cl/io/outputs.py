@@ -38,12 +38,14 @@ from softras_cl.errors import InputError, OutputError
 
 __all__ = ["atomic_path", "replaced_file", "check_output_file", "write_bytes", "write_text",
            "write_json", "write_figure", "json_safe", "file_sha256", "OutputFolder", "LOCK_NAME",
-           "RUN_RECORD", "COMPLETE_RECORD", "INPUT_FILES", "stable_names"]
+           "RUN_RECORD", "COMPLETE_RECORD", "INPUT_FILES", "OUTPUTS", "output_sizes", "missing_outputs",
+           "stable_names"]
 
 LOCK_NAME = ".softras-cl.lock"
 RUN_RECORD = "run.json"
 COMPLETE_RECORD = "complete.json"
 INPUT_FILES = "files"         # complete.json's list of the input files, as the command named them
+OUTPUTS = "outputs"           # complete.json's output files, {path relative to the folder: size in bytes}
 # atomic_path's temporary files: ".STEM.XXXXXXXX.tmp.SUFFIX" (8 characters from mkstemp)
 TEMP_MARK = ".tmp"
 _TEMPORARY = re.compile(r"^\..+\.[A-Za-z0-9_]{8}" + re.escape(TEMP_MARK) + r"(\.[^.]+)?$")
@@ -205,6 +207,36 @@ def _read_json(path: Path):
         return json.loads(path.read_text())
     except (OSError, ValueError):
         return None
+
+
+def output_sizes(folder, names) -> dict:
+    """{name: size in bytes} of the output files ``names`` (paths relative to ``folder``), for
+    complete.json's OUTPUTS; OutputError naming the first one that is not there."""
+    sizes = {}
+    for name in names:
+        try:
+            sizes[name] = (Path(folder) / name).stat().st_size
+        except OSError as e:
+            raise OutputError(f"{Path(folder) / name} is missing after the run wrote it: "
+                              f"{_describe(e)}") from None
+    return sizes
+
+
+def missing_outputs(folder, listed) -> list[str]:
+    """The outputs of ``listed`` (complete.json's OUTPUTS: {relative path: size}) that are not in
+    ``folder`` or no longer have their size (cut short, replaced); ["outputs"] when ``listed``
+    is not such a mapping."""
+    if not isinstance(listed, dict):
+        return [OUTPUTS]
+    missing = []
+    for name, size in listed.items():
+        try:
+            whole = (Path(folder) / name).stat().st_size == size
+        except OSError:
+            whole = False
+        if not whole:
+            missing.append(name)
+    return missing
 
 
 def _check_folder_path(path, option: str) -> Path:
