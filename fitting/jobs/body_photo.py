@@ -7,6 +7,7 @@ through fitting.reports.body."""
 from __future__ import annotations
 
 import math
+import time
 from pathlib import Path
 
 from softras_cl.errors import InputError
@@ -65,6 +66,7 @@ class BodyPhotoJob(FitJob):
         a --fov near 180 degrees)."""
         from softras_cl.fitting.recipes.body_photo import check_in_view, photo_setup
 
+        self.started = time.perf_counter()
         self.model = load_model("body", self.options["model"])
         self.photo = read_photo(self.path)
         self.detection = detect_person(self.photo.rgb8, str(self.path))

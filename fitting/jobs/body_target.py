@@ -6,6 +6,7 @@ fitting.reports.body. Photos of people go to fitting.jobs.body_photo."""
 from __future__ import annotations
 
 import io
+import time
 from pathlib import Path
 
 import numpy as np
@@ -89,6 +90,7 @@ class BodyTargetJob(FitJob):
         """Read the target and joints and check them against the model (ValueError/OSError)."""
         from softras_cl.fitting.recipes.body import prepare_target
 
+        self.started = time.perf_counter()
         self.model = load_model("body", self.options["model"])
         self.target = read_target(self.path, self.silhouette)
         if self.joints_file is not None:

@@ -10,6 +10,7 @@ one joint fit (fitting.recipes.face_views), written by fitting.reports.face_view
 """
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -115,6 +116,7 @@ class FacePhotoJob(FitJob):
         from softras_cl.fitting.recipes.face import check_dense_inputs, detected_dense
         from softras_cl.fitting.run_records import refuse_face_choice
 
+        self.started = time.perf_counter()
         beside = None if self.landmarks_file is not None else landmarks_beside(self.path)
         if beside is not None:          # before the file is checked against the detector's faces
             refuse_face_choice(beside, True, self.face, self.face_box)
@@ -172,6 +174,7 @@ class FaceViewsJob(FitJob):
 
     def read(self) -> None:
         """Read every photo once and find its landmarks, then load the model."""
+        self.started = time.perf_counter()
         self.photos = [read_photo(p) for p in self.paths]
         self.landmarks = [face_landmarks(photo, f) for photo, f in zip(self.photos, self.landmark_files)]
         self.model = face_model(self.options)

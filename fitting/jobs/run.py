@@ -11,15 +11,16 @@ from __future__ import annotations
 import contextlib
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator, Protocol
 
+from softras_cl.errors import OutputError
 from softras_cl.fitting.metrics import finite_metrics
 from softras_cl.interrupts import Caught, first_interrupt_calls
 from softras_cl.io.outputs import INPUT_FILES, OutputFolder
 
-__all__ = ["FitJob", "FitRun", "run_fit", "fit_and_write", "finishing_outputs"]
+__all__ = ["FitJob", "FitRun", "run_fit", "fit_and_write", "finishing_outputs", "check_out"]
 
 
 class FitJob(Protocol):
@@ -27,6 +28,7 @@ class FitJob(Protocol):
 
     command: the command named in run records and locks ("fit-face", "fit-body").
     required: the metrics that must be finite for the fit to count (else ResultError).
+    started: (optional) time.perf_counter() when read() began, for run_fit's seconds.
     """
     command: str
     required: tuple[str, ...]
@@ -50,8 +52,11 @@ class FitJob(Protocol):
 
 @dataclass
 class FitRun:
-    """What a run reports: the metrics written, the fit's seconds, whether it was stopped early
-    (Ctrl-C/SIGTERM during the fit or while writing), and the output folder."""
+    """What a run reports: the metrics written, its seconds, whether it was stopped early
+    (Ctrl-C/SIGTERM during the fit or while writing), and the output folder. seconds: the fit's
+    alone from fit_and_write (what complete.json and params.json record); from run_fit, the
+    whole run's, from the job's ``started`` (set when it began reading its inputs: decoding the
+    photo, detection) to the last file written, when the job has one."""
     metrics: dict
     seconds: float
     interrupted: bool
@@ -94,4 +99,29 @@ def run_fit(job: FitJob, out, *, resume: bool = False, overwrite: bool = False, 
         replacing = folder.begin(job.record(), resume=resume, overwrite=overwrite)
         if replacing:
             print(replacing)
-        return fit_and_write(job, folder, progress, resume)
+        run = fit_and_write(job, folder, progress, resume)
+    started = getattr(job, "started", None)
+    return run if started is None else replace(run, seconds=time.perf_counter() - started)
+
+
+def check_out(out, option: str = "--out") -> None:
+    """Check, before a job reads its inputs, that ``out`` can be its output folder, creating
+    nothing: OutputError (exit 3) naming ``option`` when it is empty, an existing file, a folder
+    that cannot be written, or cannot be created where it would go (run_fit's OutputFolder says
+    the same later; a large photo took 36 s to read and search before this was said)."""
+    import os
+
+    text = os.fspath(out) if isinstance(out, os.PathLike) else out
+    if not isinstance(text, str) or not text.strip():
+        raise OutputError(f"{option} must name a folder, got {out!r}")
+    folder = Path(text)
+    if folder.exists() and not folder.is_dir():
+        raise OutputError(f"{option} {folder} exists and is not a folder")
+    parent = folder
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise OutputError(f"{option} {folder}: cannot create the folder: {parent} is not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        what = "cannot write in it" if parent == folder else f"cannot create the folder in {parent}"
+        raise OutputError(f"{option} {folder}: {what}: permission denied or a read-only file system")
