@@ -91,7 +91,9 @@ def read_manifest(path, kind: str = "face") -> list[dict]:
     """A CSV manifest -> list of dict(photo=Path, landmarks=Path or None, name=str or None,
     options=dict). Columns: photo (or target; kind "track": video), optional landmarks (or
     joints; not for "track") and name, and any option of the fit (ITEM_OPTIONS[kind]; dashes or underscores); an empty
-    cell takes the command's value. Relative paths are relative to the manifest's folder."""
+    cell takes the command's value. Relative paths are relative to the manifest's folder.
+    InputError naming the manifest and the line of a cell that is no value of its option, or of
+    a photo (kinds face and body) that is not a file, before any item runs."""
     path = Path(path)
     try:
         with open(path, newline="") as f:
@@ -115,12 +117,27 @@ def _manifest_row(path: Path, line: int, row: dict, kind: str) -> dict:
     side = _first_cell(row, SIDE_COLUMNS[kind])
     name = row.pop("name", "") or None
     fit = ITEM_OPTIONS[kind]
-    options = dict(fit.parse_cell(k, v) for k, v in row.items() if v)
+    try:
+        options = dict(fit.parse_cell(k, v) for k, v in row.items() if v)
+    except InputError as e:             # "manifest column 'size': 'abc' is not a int"
+        raise InputError(f"{e} (manifest {path} line {line})") from None
     for key in options:
         if fit[key].file:
             options[key] = str(path.parent / options[key])
+    if kind != "track" and not (path.parent / photo).is_file():
+        _missing_photo(path.parent / photo, path, line)
     return dict(photo=path.parent / photo, landmarks=(path.parent / side) if side else None,
                 name=name, options=options)
+
+
+def _missing_photo(photo: Path, manifest: Path, line: int) -> None:
+    """InputError for a manifest's photo that is not a file, naming the manifest and its line
+    (a missing one used to fail its item with a bare "[Errno 2] ...")."""
+    if photo.is_dir():
+        raise InputError(f"{photo} is a directory, not a photo (manifest {manifest} line {line})")
+    if photo.exists():
+        raise InputError(f"{photo} is not a regular file (manifest {manifest} line {line})")
+    raise InputError(f"photo not found: {photo} (manifest {manifest} line {line})")
 
 
 def _first_cell(row: dict, columns: tuple) -> str:

@@ -51,6 +51,29 @@ def check_batch_args(args: argparse.Namespace) -> None:
     check_cluster_args(args)
 
 
+def check_faces_found(items) -> None:
+    """--all-faces on one photo whose landmarks are detected: NoFaceError (exit 2, as without
+    --all-faces) when the detector finds no face in it, before the batch starts (it used to
+    become a failed item, exit 1). Several photos: each one's own row says so."""
+    from softras_cl.fitting.detection import landmarks_beside, resolve_landmarks
+
+    if len(items) == 1 and items[0].kind == "face" and items[0].landmarks is None \
+            and landmarks_beside(items[0].photo) is None:
+        resolve_landmarks(items[0].photo, None, all_faces=True)
+
+
+def say_interrupted(kind: str, result) -> None:
+    """One line on stderr after Ctrl-C: how many items finished, that they are kept, where the
+    table is, and how to go on (a batch printed nothing there)."""
+    import sys
+
+    finished = {status: n for status, n in result.counts.items() if status != "cancelled"}
+    details = ", ".join(f"{n} {status}" for status, n in finished.items()) or "none"
+    print(f"softras-cl fit-{kind}: interrupted: {sum(finished.values())} of {len(result.rows)} items finished "
+          f"({details}), kept and listed in {result.out}/results.csv; run the same command again to fit "
+          "the others", file=sys.stderr)
+
+
 def run_batch(args: argparse.Namespace, kind: str, inputs: list[str], options: dict,
               side_file: str | None) -> int:
     """Fit every item (softras_cl.fitting.batch), print one summary line; the exit code."""
@@ -62,11 +85,14 @@ def run_batch(args: argparse.Namespace, kind: str, inputs: list[str], options: d
     items = collect_items(inputs, kind, options, manifest=args.manifest, landmarks=side_file,
                           face=getattr(args, "face", None))
     load_model(kind, options.get("model"), options.get("model_landmarks"))   # a bad model: exit 2 now
+    if getattr(args, "all_faces", False):
+        check_faces_found(items)
     result = fit_many(items, args.out, kind, **cluster_values(args), all_faces=getattr(args, "all_faces", False),
                       progress=not args.no_progress)
     counts = ", ".join(f"{n} {s}" for s, n in result.counts.items())
     print(f"fit-{kind}: {len(result.rows)} items: {counts}; results in {result.out}/results.csv")
     if result.interrupted:
+        say_interrupted(kind, result)
         return EXIT_INTERRUPTED
     if result.failed:
         first = result.failed[0]

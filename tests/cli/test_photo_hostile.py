@@ -242,7 +242,7 @@ def test_a_bad_manifest_cell_names_the_file_and_line(run_cli, tmp_path, examples
     result = run_cli("fit-face", "--manifest", manifest, "--out", tmp_path / "batch")
     assert result.code == EXIT_INPUT
     line = one_line(result)
-    assert f"manifest {manifest} line 3: " in line and "size" in line and "abc" in line
+    assert line.endswith(f"manifest column 'size': 'abc' is not a int (manifest {manifest} line 3)")
 
 
 def test_a_missing_photo_in_a_manifest(run_cli, tmp_path):
@@ -258,15 +258,15 @@ def test_ctrl_c_in_a_batch_says_so(run_cli, tmp_path, examples_data, monkeypatch
     from softras_cl.fitting.batch import client
 
     def interrupted(items, out, kind, **kwargs):
-        rows = [dict(status="ok"), dict(status="skipped")]
-        return client.BatchResult(rows, True, Path(out), {"ok": 1, "skipped": 1})
+        rows = [dict(status="ok"), dict(status="skipped"), dict(status="cancelled")]
+        return client.BatchResult(rows, True, Path(out), {"ok": 1, "skipped": 1, "cancelled": 1})
 
     monkeypatch.setattr(client, "fit_many", interrupted)
     result = run_cli("fit-face", examples_data / "astronaut.png", examples_data / "grace_hopper.jpg",
                      "--out", tmp_path / "batch", "--no-progress")
     assert result.code == EXIT_INTERRUPTED
-    assert one_line(result) == (f"softras-cl fit-face: interrupted: 2 items finished and kept (1 ok, 1 skipped), "
-                                f"listed in {tmp_path / 'batch'}/results.csv; run the same command again to "
+    assert one_line(result) == (f"softras-cl fit-face: interrupted: 2 of 3 items finished (1 ok, 1 skipped), kept "
+                                f"and listed in {tmp_path / 'batch'}/results.csv; run the same command again to "
                                 "fit the others")
 
 
