@@ -103,22 +103,23 @@ class VideoSource:
             yield Frame(index, index / self.fps, image)
 
     def _video_frames(self, start: int) -> Iterator[Frame]:
-        index, error = 0, None
+        index, error, last = 0, None, None
         with _opened(self.path) as container:
             stream = container.streams.video[0]
             tag = _rotate_tag(stream)
             for decoded, error in _decoded(container, stream):
                 if decoded is not None:
+                    last = _frame_time(decoded, index, self.fps, stream.time_base)
                     if index >= start:
-                        yield Frame(index, _frame_time(decoded, index, self.fps, stream.time_base),
-                                    upright(decoded.to_ndarray(format="rgb24"), decoded.rotation or tag))
+                        yield Frame(index, last, upright(decoded.to_ndarray(format="rgb24"), decoded.rotation or tag))
                     index += 1
+        at = "" if last is None else f"the last at {last:.2f} s; "
         if error is not None:
-            raise VideoReadError(f"video {self.path} breaks off after {index} frames (truncated or "
+            raise VideoReadError(f"video {self.path} breaks off after {index} frames ({at}truncated or "
                                  f"damaged: {error})", index)
         if self.frame_count is not None and index < self.frame_count:
             raise VideoReadError(f"video {self.path} breaks off after {index} of the {self.frame_count} frames "
-                                 "its header announces (truncated?)", index)
+                                 f"its header announces ({at}truncated?)", index)
 
 
 def _decoded(container, stream) -> Iterator[tuple]:
