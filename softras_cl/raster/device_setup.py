@@ -56,17 +56,24 @@ class DeviceSetup:
         ny) tile ranges (binning.face_tiles; a scratch array that the next call overwrites)."""
         n = mesh.batch * mesh.n_faces
         vertices = self.pool.take(mesh.vertices.nbytes)
-        geom = self.pool.take(n * FACE_STRIDE * self.real.itemsize)
-        ranges_buf = self.pool.take(n * 16)
-        if self._kernel is None:
-            self._kernel = build_kernel(self.ctx, "face_setup.cl", "face_setup", self._defines)
         upload = cl.enqueue_copy(self.queue, vertices, np.ascontiguousarray(mesh.vertices), is_blocking=False)
-        launch(self._kernel, self.queue, (-(-n // GROUP[0]) * GROUP[0],), GROUP, np.int32(n), *self._settings_args(settings),
-               vertices, self._faces(mesh.faces, mesh.n_vertices), geom, ranges_buf)
+        geom, ranges_buf = self.run_device(vertices, self._faces(mesh.faces, mesh.n_vertices), n, settings)
         ranges = self._scratch.get("ranges", (n, 4), np.int32)
         cl.enqueue_copy(self.queue, ranges, ranges_buf, is_blocking=True)
         upload.wait()
         self.pool.give([vertices, ranges_buf])     # an in-order queue: later users come after
+        return geom, ranges
+
+    def run_device(self, vertices: cl.Buffer, rows: cl.Buffer, n: int, settings: RasterSettings) -> tuple:
+        """(records, ranges) of n >= 1 faces from device data: `vertices` (B*V, 3) float64 and
+        `rows` (n, 3) int32 (b * V + index): pooled buffers of the (n, FACE_STRIDE) `real`
+        records and of the (n, 4) int32 tile ranges, both left on the device."""
+        geom = self.pool.take(n * FACE_STRIDE * self.real.itemsize)
+        ranges = self.pool.take(n * 16)
+        if self._kernel is None:
+            self._kernel = build_kernel(self.ctx, "face_setup.cl", "face_setup", self._defines)
+        launch(self._kernel, self.queue, (-(-n // GROUP[0]) * GROUP[0],), GROUP, np.int32(n),
+               *self._settings_args(settings), vertices, rows, geom, ranges)
         return geom, ranges
 
     def _faces(self, faces: np.ndarray, n_vertices: int) -> cl.Buffer:

@@ -92,9 +92,11 @@ class MeshInputs:
         return grad.sum(0, keepdims=True) if self.colors_batch == 1 else grad
 
 
-def _float_array(name: str, value, trailing: tuple, allow_unbatched: bool = True) -> tuple[np.ndarray, bool]:
+def _float_array(name: str, value, trailing: tuple, allow_unbatched: bool = True,
+                 values: bool = True) -> tuple[np.ndarray, bool]:
     """Check a float array of shape (B, *trailing) or (*trailing); every size must be >= 1
-    (None entries: any size)."""
+    (None entries: any size). values=False checks the dtype and shape only (a stand-in of the
+    data: softras_cl.raster.device_inputs) and returns the array as it is."""
     arr = np.asarray(value)
     if not np.issubdtype(arr.dtype, np.floating):
         raise TypeError(f"{name} must be a float32 or float64 array, got dtype {arr.dtype}")
@@ -108,8 +110,9 @@ def _float_array(name: str, value, trailing: tuple, allow_unbatched: bool = True
                              f"(n >= 1), got {arr.shape}")
     if batched and arr.shape[0] < 1:
         raise ValueError(f"{name} has batch size 0; expected at least 1")
-    check_finite(name, arr)
-    arr = arr.astype(np.float64)
+    if values:
+        check_finite(name, arr)
+        arr = arr.astype(np.float64)
     return (arr if batched else arr[None]), batched
 
 
@@ -132,7 +135,7 @@ def _shape_text(trailing: tuple, allow_unbatched: bool) -> str:
     return f"(B, {dims})" + (f" or ({dims})" if allow_unbatched else "")
 
 
-def _check_faces(faces, n_vertices: int, batch: int) -> np.ndarray:
+def _check_faces(faces, n_vertices: int, batch: int, values: bool = True) -> np.ndarray:
     arr = np.asarray(faces)
     if arr.ndim not in (2, 3) or arr.shape[-1] != 3:
         raise ValueError(f"faces must have shape (F, 3) or (B, F, 3), got {arr.shape}")
@@ -142,6 +145,8 @@ def _check_faces(faces, n_vertices: int, batch: int) -> np.ndarray:
         raise TypeError(f"faces must be an integer array, got dtype {arr.dtype}")
     if arr.ndim == 3 and arr.shape[0] != batch:
         raise ValueError(f"faces has batch size {arr.shape[0]} but vertices has {batch}")
+    if not values:
+        return np.broadcast_to(arr, (batch, *arr.shape[-2:]))
     if (arr.min() < 0 or arr.max() >= n_vertices):
         raise ValueError(f"faces must index vertices in [0, {n_vertices - 1}], "
                          f"got values in [{arr.min()}, {arr.max()}]")
@@ -158,11 +163,16 @@ def _match_batch(name: str, arr: np.ndarray, batch: int) -> np.ndarray:
 
 
 def check_inputs(s: RasterSettings, vertices, faces, colors=None, face_textures=None,
-                 texture_image=None, uvs=None, normals=None, light=None) -> MeshInputs:
-    """Validate forward() arguments against the settings; returns batched float64/int64 arrays."""
-    verts, v_batched = _float_array("vertices", vertices, (None, 3))
+                 texture_image=None, uvs=None, normals=None, light=None, values: bool = True) -> MeshInputs:
+    """Validate forward() arguments against the settings; returns batched float64/int64 arrays.
+
+    values=False checks what the arguments are (dtypes, shapes, which are given) but not their
+    values (finite, in range, face indices): the arrays are stand-ins of device data whose values
+    softras_cl.raster.device_inputs checks on the device; the MeshInputs returned then holds
+    the stand-ins as given (with a batch axis), for their shapes."""
+    verts, v_batched = _float_array("vertices", vertices, (None, 3), values=values)
     b, n_vertices = verts.shape[0], verts.shape[1]
-    mesh = MeshInputs(verts, _check_faces(faces, n_vertices, b), vertices_batched=v_batched)
+    mesh = MeshInputs(verts, _check_faces(faces, n_vertices, b, values), vertices_batched=v_batched)
     given = {k: v for k, v in dict(colors=colors, face_textures=face_textures,
                                     texture_image=texture_image, uvs=uvs).items() if v is not None}
     wanted = _COLOUR_ARGS[s.texture] if "rgb" in s.outputs else ()
@@ -174,20 +184,24 @@ def check_inputs(s: RasterSettings, vertices, faces, colors=None, face_textures=
         if name not in given:
             raise ValueError(f"settings.texture={s.texture!r} with 'rgb' output needs {name}=")
     if "colors" in given:
-        mesh.colors, mesh.colors_batched = _float_array("colors", colors, (n_vertices, 3))
+        mesh.colors, mesh.colors_batched = _float_array("colors", colors, (n_vertices, 3), values=values)
     if "face_textures" in given:
         f = mesh.n_faces
-        mesh.face_textures, mesh.colors_batched = _float_array("face_textures", face_textures, (f, None, None, 3))
+        mesh.face_textures, mesh.colors_batched = _float_array("face_textures", face_textures, (f, None, None, 3),
+                                                                         values=values)
         if mesh.face_textures.shape[2] != mesh.face_textures.shape[3]:
             raise ValueError(f"face_textures must be (B, F, R, R, 3) with square R x R texels, "
                              f"got {mesh.face_textures.shape}")
     if "texture_image" in given:
-        mesh.texture_image, mesh.colors_batched = _float_array("texture_image", texture_image, (None, None, 3))
-        mesh.uvs, _ = _float_array("uvs", uvs, (n_vertices, 2))
-    _check_lighting(s, mesh, normals, light)
+        mesh.texture_image, mesh.colors_batched = _float_array("texture_image", texture_image, (None, None, 3),
+                                                                         values=values)
+        mesh.uvs, _ = _float_array("uvs", uvs, (n_vertices, 2), values=values)
+    _check_lighting(s, mesh, normals, light, values)
     color = next((getattr(mesh, n) for n in ("colors", "face_textures", "texture_image")
                   if getattr(mesh, n) is not None), None)
     mesh.colors_batch = color.shape[0] if color is not None else 1
+    if not values:
+        return mesh
     for name in ("vertices", "colors", "face_textures", "texture_image", "uvs", "normals", "light"):
         check_float32_range(name, getattr(mesh, name), s.dtype)
     for name in ("colors", "face_textures", "texture_image", "uvs", "normals"):
@@ -196,7 +210,7 @@ def check_inputs(s: RasterSettings, vertices, faces, colors=None, face_textures=
     return mesh
 
 
-def _check_lighting(s: RasterSettings, mesh: MeshInputs, normals, light) -> None:
+def _check_lighting(s: RasterSettings, mesh: MeshInputs, normals, light, values: bool = True) -> None:
     """Per-pixel lighting inputs: vertex normals like the colours, and 27 light parameters."""
     lit = s.lighting != "none" and "rgb" in s.outputs
     for name, value in (("normals", normals), ("light", light)):
@@ -205,13 +219,15 @@ def _check_lighting(s: RasterSettings, mesh: MeshInputs, normals, light) -> None
         if not lit and value is not None:
             raise ValueError(f"{name} was given but settings.lighting is 'none' (or there is no rgb output)")
     if lit:
-        mesh.normals, _ = _float_array("normals", normals, (mesh.n_vertices, 3))
-        mesh.light, _ = _float_array("light", np.ravel(light), (LIGHT_PARAMS,), allow_unbatched=True)
+        mesh.normals, _ = _float_array("normals", normals, (mesh.n_vertices, 3), values=values)
+        mesh.light, _ = _float_array("light", np.ravel(light), (LIGHT_PARAMS,), allow_unbatched=True,
+                                     values=values)
         mesh.light = mesh.light[0]
 
 
-def check_cotangent(name: str, value, shape: tuple, produced: bool) -> np.ndarray | None:
-    """A backward() cotangent: None, or an array of `shape`, the shape of its output."""
+def check_cotangent(name: str, value, shape: tuple, produced: bool, values: bool = True) -> np.ndarray | None:
+    """A backward() cotangent: None, or an array of `shape`, the shape of its output (values=False:
+    its dtype and shape only, as check_inputs)."""
     if value is None:
         return None
     if not produced:
@@ -222,6 +238,7 @@ def check_cotangent(name: str, value, shape: tuple, produced: bool) -> np.ndarra
         raise TypeError(f"{name} must be a float array, got dtype {arr.dtype}")
     if arr.shape != want:
         raise ValueError(f"{name} must have shape {want}, got {arr.shape}")
-    check_finite(name, arr)
+    if values:
+        check_finite(name, arr)
     return arr
 

@@ -11,16 +11,21 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 import pyopencl as cl
+import pyopencl.array as cla
 
 from softras_cl.cl.device import has_fp64, has_int64_atomics, kernel_layout, resolve_context, vector_lanes
 from softras_cl.cl.layout import (CORNER_COLORS, FACE_STRIDE, GPU_BWD_GROUP, GPU_CHUNK, GPU_TILE_W, LANES,
                                   LIGHT_PARAMS, TILE_H, vertex_attr_width)
 from softras_cl.cl.program import build_kernel, launch
 from softras_cl.raster.binning import Bins, RoiTiles, bin_tiles, face_setup, face_tiles, tile_grid
+from softras_cl.raster.device_arrays import DeviceArrays
+from softras_cl.raster.device_bins import DeviceBinning, DeviceBins
+from softras_cl.raster.device_inputs import (ValueChecks, any_bad, check_context, is_device_array, on_host,
+                                             standin)
 from softras_cl.raster.device_setup import DeviceSetup
 from softras_cl.raster.inputs import MeshInputs, check_cotangent, check_inputs
 from softras_cl.raster.memory import check_forward_memory
@@ -61,6 +66,7 @@ class FaceBuffers:
     tile_start, tile_faces, face_start, face_slots: int32, the arrays of the same names in Bins
         (the last two only with gradients, for the backward's sums; else the dummy buffer)
     owned: the pooled buffers behind them (the others are sub-buffers of these, or the dummy)
+    arrays: pyopencl arrays behind the others (the device-resident path), kept alive with them
     """
     geom: cl.Buffer
     attr: cl.Buffer
@@ -71,6 +77,7 @@ class FaceBuffers:
     face_start: cl.Buffer
     face_slots: cl.Buffer
     owned: list
+    arrays: list = field(default_factory=list)
 
 
 @dataclass
@@ -99,7 +106,9 @@ class RasterContext:
     device inputs. images: the forward's outputs as device buffers of (planes, B, Hp, Wp) reals,
     keyed "rgb" (3 planes), "alpha", "depth" (1 plane each), requested outputs only. state: the
     per-pixel device state. The device buffers go back to the rasteriser's pool when the context
-    is garbage collected.
+    is garbage collected. device_faces: the faces as given, a pyopencl array, when the forward
+    took device arrays (then `mesh` holds stand-ins for the shapes, `bins` are DeviceBins and
+    backward returns pyopencl arrays); else None.
     """
     rasterizer: "SoftRasterizer"
     settings: RasterSettings
@@ -109,9 +118,10 @@ class RasterContext:
     buffers: FaceBuffers
     images: dict[str, cl.Buffer]
     state: PixelState
+    device_faces: cla.Array | None = None
 
     def nbytes(self) -> int:
-        """Bytes kept: bin arrays (host) and device buffers, each buffer counted once."""
+        """Bytes kept: bin arrays (host or device) and device buffers, each buffer counted once."""
         host = sum(a.nbytes for a in (self.bins.tile_start, self.bins.tile_faces,
                                       self.bins.face_start, self.bins.face_slots))
         return host + sum(b.size for b in self.device_buffers())
@@ -233,18 +243,22 @@ class SoftRasterizer:
         normals (B, V, 3) and light (27,) only with per-pixel lighting (settings.lighting).
         grads: the gradients backward() will be asked for, subset of ("vertices", "colors");
         with per-pixel lighting "colors" also gives "normals" and "light".
+
+        Device-resident inputs: when any array argument is a pyopencl.array.Array (in this
+        rasteriser's context: `queue`), every input is checked, set up and binned on the device
+        and the images come back as pyopencl arrays (docs/api.md, "Device-resident calls").
         """
         t = time.perf_counter()
         s = self.call_settings(sigma=sigma, gamma=gamma, near=near, far=far)
         grads = _check_grads(grads, s)
         if grads:
             check_float32_gradients(s)
+        inputs = dict(vertices=vertices, faces=faces, colors=colors, face_textures=face_textures,
+                      texture_image=texture_image, uvs=uvs, normals=normals, light=light)
+        if any(is_device_array(v) for v in inputs.values()):
+            return self._forward_device(s, inputs, grads, roi, t)
         mesh = check_inputs(s, vertices, faces, colors, face_textures, texture_image, uvs, normals, light)
-        if ("colors" in grads and s.texture == "uv" and not has_int64_atomics(self.device)
-                and not self.device.endian_little):
-            raise ValueError(f"texture='uv' gradients need cl_khr_int64_base_atomics or a little-endian "
-                             f"device (32-bit word pairs); device {self.device.name!r} has neither")
-        check_forward_memory(s, self.device, mesh.batch, mesh.n_faces, grads, mesh.tex_res, mesh.tex_shape)
+        self._check_resources(s, mesh, grads)
         tiles = self.roi_tiles(roi, mesh.batch)
         geom, ranges = self._face_setup(mesh, s)
         t = self._stage("setup", t)
@@ -265,6 +279,166 @@ class SoftRasterizer:
             self.pool.give(list(images.values()) + buffers.owned)
         self._stage("forward", t, finish=True)
         return RasterOutput(*crops, saved)
+
+    def _check_resources(self, s: RasterSettings, mesh: MeshInputs, grads: tuple) -> None:
+        """The device's support for the call (uv gradients) and its memory (ResourceError)."""
+        if ("colors" in grads and s.texture == "uv" and not has_int64_atomics(self.device)
+                and not self.device.endian_little):
+            raise ValueError(f"texture='uv' gradients need cl_khr_int64_base_atomics or a little-endian "
+                             f"device (32-bit word pairs); device {self.device.name!r} has neither")
+        check_forward_memory(s, self.device, mesh.batch, mesh.n_faces, grads, mesh.tex_res, mesh.tex_shape)
+
+    # ---- device-resident path --------------------------------------------------------------
+    @property
+    def device_arrays(self) -> DeviceArrays:
+        if not hasattr(self, "_device_arrays"):
+            self._device_arrays = DeviceArrays(self.ctx, self.queue)
+        return self._device_arrays
+
+    @property
+    def value_checks(self) -> ValueChecks:
+        if not hasattr(self, "_value_checks"):
+            self._value_checks = ValueChecks(self.ctx)
+        return self._value_checks
+
+    @property
+    def device_binning(self) -> DeviceBinning:
+        if not hasattr(self, "_device_binning"):
+            self._device_binning = DeviceBinning(self.ctx, self.queue, self.grid)
+        return self._device_binning
+
+    def _check_device_inputs(self, s: RasterSettings, inputs: dict) -> tuple[MeshInputs, dict]:
+        """(MeshInputs of stand-ins for the shapes, {name: pyopencl array or None}) of forward's
+        arguments, some of them pyopencl arrays: their context, then what they are (on the host,
+        from their shapes and dtypes), then their values (one device reduction each). Numpy
+        arguments among them are uploaded. Anything wrong raises the numpy path's error."""
+        for name, value in inputs.items():
+            check_context(name, value, self.ctx)
+        try:
+            mesh = check_inputs(s, **{n: standin(v) for n, v in inputs.items()}, values=False)
+        except (ValueError, TypeError):
+            check_inputs(s, **{n: on_host(v) for n, v in inputs.items()})      # the numpy path's first error
+            raise
+        dev = {n: v if v is None or is_device_array(v) else cla.to_device(self.queue, np.ascontiguousarray(v))
+               for n, v in inputs.items()}
+        if dev["light"] is not None:
+            dev["light"] = dev["light"].reshape(-1)
+        counts = [self.value_checks.count_bad_floats(v, s.dtype == "float32")
+                  for n, v in dev.items() if v is not None and n != "faces"]
+        if dev["faces"].size:
+            counts.append(self.value_checks.count_bad_indices(dev["faces"], mesh.n_vertices))
+        if any_bad(counts):
+            check_inputs(s, **{n: on_host(v) for n, v in inputs.items()})
+            raise RuntimeError("the device input checks found bad values that the host checks did not")
+        return mesh, dev
+
+    def _forward_device(self, s: RasterSettings, inputs: dict, grads: tuple, roi, t: float) -> RasterOutput:
+        """forward() of device-resident inputs: images as pyopencl arrays (the numpy path's bits)."""
+        mesh, dev = self._check_device_inputs(s, inputs)
+        self._check_resources(s, mesh, grads)
+        if mesh.n_faces == 0:       # nothing to set up or bin: the numpy path's background images
+            out = self.forward(**{n: on_host(v) for n, v in inputs.items()}, grads=grads, roi=on_host(roi),
+                               sigma=s.sigma, gamma=s.gamma, near=s.near, far=s.far)
+            out = RasterOutput(*(None if a is None else cla.to_device(self.queue, a)
+                                 for a in (out.rgb, out.alpha, out.depth)), out.saved)
+            return out
+        tiles = self.roi_tiles(on_host(roi), mesh.batch)
+        batch, n = mesh.batch, mesh.batch * mesh.n_faces
+        rows = self.device_arrays.face_rows(dev["faces"], batch, mesh.n_vertices)
+        geom, ranges = self._device_face_setup(s, mesh, dev, rows)
+        t = self._stage("setup", t, finish=True)
+        bins = self.device_binning.run(ranges, batch, mesh.n_faces, tiles)
+        self.pool.give([ranges])
+        t = self._stage("binning", t, finish=True)
+        buffers = self._device_face_buffers(mesh, dev, rows, geom, bins, n)
+        state = self._state_buffers(batch) if grads else None
+        t = self._stage("upload", t, finish=True)
+        images = self._run_forward(s, mesh, buffers, state)
+        outs = self._images_to_arrays(images, batch, state is not None)
+        saved = RasterContext(self, s, mesh, grads, bins, buffers, images, state, dev["faces"]) if grads else None
+        if saved is not None:
+            self.pool.give_when_dead(saved, saved.device_buffers())
+        else:
+            self.pool.give(list(images.values()) + buffers.owned)   # an in-order queue: later users come after
+        self._stage("forward", t, finish=True)
+        return RasterOutput(*(outs.get(n) for n in ("rgb", "alpha", "depth")), saved)
+
+    def _device_face_setup(self, s: RasterSettings, mesh: MeshInputs, dev: dict, rows: cla.Array) -> tuple:
+        """(pooled records buffer, pooled (B*F, 4) int32 tile-range buffer) of the device inputs:
+        kernel face_setup on the device's float64 vertices; without cl_khr_fp64 the host's
+        set-up of the downloaded vertices (binning.face_setup, face_tiles), uploaded."""
+        n = mesh.batch * mesh.n_faces
+        if self.setup is not None:
+            vertices = self.device_arrays.contiguous(dev["vertices"], np.float64)
+            return self.setup.run_device(vertices.data, rows.data, n, s)
+        host = check_inputs(s, on_host(dev["vertices"]), on_host(dev["faces"]))
+        geom, drawable = face_setup(host, s)
+        ranges = face_tiles(geom, drawable, s, self.grid).astype(np.int32)
+        bufs = [self.pool.take(a.nbytes) for a in (np.ascontiguousarray(geom, self.real), ranges)]
+        for buf, a in zip(bufs, (np.ascontiguousarray(geom, self.real), ranges)):
+            cl.enqueue_copy(self.queue, buf, a, is_blocking=True)
+        return bufs[0], bufs[1]
+
+    def _device_face_buffers(self, mesh: MeshInputs, dev: dict, rows: cla.Array, geom: cl.Buffer,
+                             bins: DeviceBins, n: int) -> FaceBuffers:
+        """FaceBuffers of the device inputs: per-face colour data gathered and cast on the device
+        as MeshInputs.face_attributes() and the rasteriser's upload do on the host."""
+        s, real, arrays = self.settings, self.real, self.device_arrays
+        ndims = dict(colors=3, normals=3, uvs=3, face_textures=5, texture_image=4)
+        dev = {n: _with_batch_axis(v, ndims[n]) if n in ndims else v for n, v in dev.items()}
+        attr = tex_image = light = None
+        if dev["colors"] is not None:
+            lit = dev["normals"] is not None
+            attr = cla.empty(self.queue, (n, vertex_attr_width(lit)), real)
+            arrays.gather_corners(attr, dev["colors"], rows, mesh.n_vertices, attr.shape[1], 0)
+            if lit:
+                arrays.gather_corners(attr, dev["normals"], rows, mesh.n_vertices, attr.shape[1], CORNER_COLORS)
+                light = arrays.contiguous(dev["light"], real)
+        elif dev["face_textures"] is not None:
+            attr = arrays.broadcast(dev["face_textures"], mesh.batch, real)
+        elif dev["uvs"] is not None:
+            attr = cla.empty(self.queue, (n, 6), real)
+            arrays.gather_corners(attr, dev["uvs"], rows, mesh.n_vertices, 6, 0)
+            tex_image = arrays.broadcast(dev["texture_image"], mesh.batch, real)
+        dummy = self._dummy()
+        data = lambda a: dummy if a is None else a.data
+        return FaceBuffers(geom, data(attr), data(tex_image), data(light), bins.tile_start.data,
+                           bins.tile_faces.data, bins.face_start.data, bins.face_slots.data, [geom],
+                           [a for a in (attr, tex_image, light, rows) if a is not None])
+
+    def _images_to_arrays(self, images: dict, batch: int, save_state: bool) -> dict:
+        """{name: pyopencl array} (B, H, W[, 3]) of the forward's planes, by kernel planes_to_pixels."""
+        s, g = self.settings, self.grid
+        outs = {n: cla.empty(self.queue, (batch, s.height, s.width) + ((3,) if n == "rgb" else ()), self.real)
+                for n in images}
+        dummy, names = self._dummy(), ("rgb", "alpha", "depth")
+        launch(self._kernel("planes_to_pixels", (), save_state), self.queue, (_round_up(g.wp // self.lanes), s.height, batch),
+               GROUP, *self._layout_args(), *(images.get(n, dummy) for n in names),
+               *(outs[n].data if n in outs else dummy for n in names))
+        return outs
+
+    def _check_device_cotangents(self, saved: RasterContext, given: dict) -> dict:
+        """{name: C-contiguous pyopencl array of the kernel dtype, or None} of backward's
+        cotangents when its forward took device arrays: checked as _check_device_inputs checks
+        forward's arguments (the numpy path's errors)."""
+        s, batch = saved.settings, saved.mesh.batch
+        checked = {}
+        for name, value in given.items():
+            check_context(name, value, self.ctx)
+            args = (_cot_shape(name, batch, s), name[len("grad_"):] in s.outputs)
+            try:
+                check_cotangent(name, standin(value), *args, values=False)
+            except (ValueError, TypeError):
+                check_cotangent(name, on_host(value), *args)
+                raise
+            if value is not None and not is_device_array(value):
+                value = cla.to_device(self.queue, np.ascontiguousarray(value))
+            checked[name] = value
+        counts = {n: self.value_checks.count_bad_floats(v, False) for n, v in checked.items() if v is not None}
+        for name, count in counts.items():
+            if any_bad([count]):
+                check_cotangent(name, on_host(checked[name]), _cot_shape(name, batch, s), True)
+        return {n: None if v is None else self.device_arrays.contiguous(v, self.real) for n, v in checked.items()}
 
     def call_settings(self, **run) -> RasterSettings:
         """The settings of one forward: these settings with the RUN_FIELDS values given in `run`
@@ -295,14 +469,21 @@ class SoftRasterizer:
         saved = _own_context(self, output)
         s, mesh = saved.settings, saved.mesh
         t = time.perf_counter()
-        cot = {name: check_cotangent(name, g, _cot_shape(name, mesh.batch, s), name[len("grad_"):] in s.outputs)
-               for name, g in (("grad_rgb", grad_rgb), ("grad_alpha", grad_alpha), ("grad_depth", grad_depth))}
-        t = self._stage("cotangent_checks", t)
+        given = dict(grad_rgb=grad_rgb, grad_alpha=grad_alpha, grad_depth=grad_depth)
+        if saved.device_faces is not None:
+            cot = self._check_device_cotangents(saved, given)
+        else:
+            cot = {name: check_cotangent(name, on_host(g), _cot_shape(name, mesh.batch, s),
+                                         name[len("grad_"):] in s.outputs) for name, g in given.items()}
+        t = self._stage("cotangent_checks", t, finish=saved.device_faces is not None)
         slots = self._run_backward(saved, cot, t)
         t = time.perf_counter()
-        grads = self._gather_grads(saved, slots)
+        if saved.device_faces is not None:
+            grads = self._gather_grads_device(saved, slots)
+        else:
+            grads = self._gather_grads(saved, slots)
         self.pool.give(b for b in slots.values() if isinstance(b, cl.Buffer))
-        self._stage("reductions", t)
+        self._stage("reductions", t, finish=saved.device_faces is not None)
         return grads
 
     # ---- kernels ---------------------------------------------------------------------------
@@ -390,7 +571,9 @@ class SoftRasterizer:
         fixed-point scale}. t: perf_counter at the start of backward (stage timing)."""
         s, real, mesh, bins = saved.settings, self.real, saved.mesh, saved.bins
         g = self.grid
-        shapes, scale = self._slot_shapes(mesh, saved.grads, max(len(bins.tile_faces), 1), cot["grad_rgb"])
+        # the device bins' tile lists are not cut at the region of interest: n_entries bounds them
+        n_list = bins.n_entries if isinstance(bins, DeviceBins) else len(bins.tile_faces)
+        shapes, scale = self._slot_shapes(mesh, saved.grads, max(n_list, 1), cot["grad_rgb"])
         kernel_grads = tuple(x for x in saved.grads if x != "colors" or {"attr", "tex"} & set(shapes))
         if not kernel_grads:    # colour gradients only, and no rgb cotangent: all zero
             return dict(pos=None, attr=None, light=None, tex=None, scale=scale)
@@ -420,7 +603,10 @@ class SoftRasterizer:
                dummy if g_dot is None else g_dot, *self._state_args(saved.state), real.type(scale),
                *(out_bufs.get(k, dummy) for k in ("pos", "attr", "light", "tex")))
         tex = None
-        if "tex" in shapes:
+        if "tex" in shapes and saved.device_faces is not None:
+            tex = self.device_arrays.fixed_to_float(cla.Array(self.queue, shapes["tex"][0], np.int64,
+                                                              data=out_bufs["tex"]), scale)
+        elif "tex" in shapes:
             tex = self.scratch.get("slot_tex", *shapes["tex"])
             self._transfers.append(cl.enqueue_copy(self.queue, tex, out_bufs["tex"], is_blocking=False))
             self._sync()        # the texel sums are read on the host next; else _gather_grads waits
@@ -442,11 +628,74 @@ class SoftRasterizer:
             return shapes, 1.0
         if s.texture == "uv":
             shapes["tex"] = ((mesh.batch, *mesh.tex_shape, 3), np.int64)
-            return shapes, _fixed_point_scale(grad_rgb, real)
+            return shapes, _fixed_point_scale(self._abs_bound(grad_rgb), real)
         shapes["attr"] = ((n_entries, widths["attr"]), real)
         if s.lighting != "none":
             shapes["light"] = ((n_entries, widths["light"]), real)
         return shapes, 1.0
+
+    def _abs_bound(self, grad_rgb) -> float:
+        """max over the batch of sum |grad_rgb[b]| (numpy, or device reductions for a pyopencl
+        array: their sums may round differently in the last bits)."""
+        if is_device_array(grad_rgb):
+            return max(float(x.get()) for x in self.device_arrays.abs_sums(grad_rgb)) if grad_rgb.size else 0.0
+        return float(np.abs(grad_rgb).sum(axis=(1, 2, 3)).max()) if grad_rgb.size else 0.0
+
+    def _gather_grads_device(self, saved: RasterContext, slots: dict) -> dict:
+        """_gather_grads for a device-resident forward: the same sums, left on the device as
+        float64 pyopencl arrays shaped like the inputs (_shape_grads' shapes and batch sums)."""
+        mesh, grads, arrays, q = saved.mesh, saved.grads, self.device_arrays, self.queue
+        bins = saved.buffers.face_start, saved.buffers.face_slots
+        n_faces = mesh.batch * mesh.n_faces
+        sums = {k: self.sums.face_sums(slots[k], width, *bins, n_faces)
+                for k, width in self._slot_widths(mesh).items() if slots.get(k) is not None}
+        faces = []
+
+        def on_vertices(face_sums, width: int, offset: int) -> cla.Array:
+            shape = (mesh.batch, mesh.n_vertices, 3)
+            if face_sums is None:
+                return cla.zeros(q, shape, np.float64)
+            if not faces:       # the corner index is built on the host (reduce.corner_index)
+                faces.append(np.broadcast_to(saved.device_faces.get(), (mesh.batch, mesh.n_faces, 3)))
+            buf = self.sums.vertex_sums(face_sums, width, offset, faces[0], mesh.n_vertices)
+            out = cla.empty(q, shape, self.sums.dtype)
+            cl.enqueue_copy(q, out.data, buf, byte_count=out.nbytes)
+            self.pool.give([buf])
+            return arrays.contiguous(out, np.float64)
+
+        def per_face(name: str, width: int) -> cla.Array:
+            if name not in sums:
+                return cla.zeros(q, (n_faces, width), np.float64)
+            out = cla.empty(q, (n_faces, width), self.sums.dtype)
+            cl.enqueue_copy(q, out.data, sums[name], byte_count=out.nbytes)
+            return arrays.contiguous(out, np.float64)
+
+        out = {}
+        if "vertices" in grads:
+            v = on_vertices(sums.get("pos"), 9, 0)
+            out["vertices"] = v if mesh.vertices_batched else v.reshape(mesh.n_vertices, 3)
+        if "colors" in grads:
+            s = self.settings
+            if s.texture == "uv":
+                tex = slots["tex"]
+                colors = cla.zeros(q, (mesh.batch, *mesh.tex_shape, 3), np.float64) if tex is None else tex
+            elif s.texture == "face":
+                r = mesh.tex_res
+                colors = per_face("attr", r * r * 3).reshape(mesh.batch, mesh.n_faces, r, r, 3)
+            else:
+                width = vertex_attr_width(s.lighting != "none")
+                colors = on_vertices(sums.get("attr"), width, 0)
+                if s.lighting != "none":
+                    out["normals"] = on_vertices(sums.get("attr"), width, CORNER_COLORS)
+                    out["light"] = arrays.sum_rows(per_face("light", LIGHT_PARAMS) if "light" in sums
+                                                   else cla.zeros(q, (1, LIGHT_PARAMS), np.float64))
+            if not mesh.colors_batched:
+                colors = arrays.sum_rows(colors)
+            elif mesh.colors_batch == 1:
+                colors = arrays.sum_rows(colors, keepdims=True)
+            out["colors"] = colors
+        self.pool.give(sums.values())       # an in-order queue: later users come after
+        return out
 
     def _gather_grads(self, saved: RasterContext, slots: dict) -> dict:
         """Sum the (tile, face) slots per face in a fixed order, then faces onto vertices (on the
@@ -622,7 +871,11 @@ class SoftRasterizer:
         soft = s.color_agg == "softmax" and {"rgb", "depth"} & set(s.outputs)
         planes["g_dot"] = self.pool.take(npix * itemsize) if soft else None
         t = time.perf_counter()
-        uploaded, sources = self._upload_parts("cotangents", {n: (cot[n], self.real) for n in names if cot[n] is not None})
+        if saved.device_faces is not None:      # checked device arrays of the kernel dtype
+            uploaded, sources = [], {n: cot[n].data for n in names if cot[n] is not None}
+        else:
+            uploaded, sources = self._upload_parts("cotangents", {n: (cot[n], self.real) for n in names
+                                                                  if cot[n] is not None})
         self._stage("cotangent_upload", t, finish=True)
         dummy, all_names = self._dummy(), ("grad_rgb", "grad_alpha", "grad_depth")
         launch(self._kernel("soft_raster_cotangents", kernel_grads, True), self.queue,
@@ -660,18 +913,24 @@ def _check_local_memory(device: cl.Device, real_size: int) -> None:
                          f"{device.name!r} has {device.local_mem_size}: use layout='cpu'")
 
 
+def _with_batch_axis(value, ndim: int):
+    """A pyopencl array of `ndim` - 1 dimensions (unbatched) with a leading axis of 1; others as
+    they are."""
+    return value.reshape((1,) + value.shape) if value is not None and value.ndim == ndim - 1 else value
+
+
 def _round_up(n: int) -> int:
     """n rounded up to a whole number of work-groups along x (the kernels skip the extra items)."""
     return -(-n // GROUP[0]) * GROUP[0]
 
 
-def _fixed_point_scale(grad_rgb: np.ndarray, real: np.dtype) -> float:
+def _fixed_point_scale(bound: float, real: np.dtype) -> float:
     """Power of two that maps uv-texel gradient sums into int64 without overflow.
 
-    Every texel's sum is bounded by sum |dL/drgb| over the image (weights and bilinear taps sum
-    to at most 1), so that bound times the scale stays below 2^62.
+    Every texel's sum is bounded by `bound`, the largest sum |dL/drgb| over an image
+    (SoftRasterizer._abs_bound; weights and bilinear taps sum to at most 1), so that bound times
+    the scale stays below 2^62.
     """
-    bound = float(np.abs(grad_rgb).sum(axis=(1, 2, 3)).max()) if grad_rgb.size else 0.0
     top = 100 if real == np.float32 else 1000
     if bound == 0.0:
         return 1.0
