@@ -84,6 +84,15 @@ def settings_for(size: int, **changes):
     return RasterSettings(image_size=(size, size), **{**BASE_SETTINGS, **changes})
 
 
+def io_list(text: str) -> tuple[str, ...]:
+    """'numpy,device' -> ("numpy", "device"), for argparse."""
+    names = tuple(t.strip() for t in text.split(",") if t.strip())
+    bad = [n for n in names if n not in IO]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(f"--io takes {', '.join(IO)}, comma-separated; got {text!r}")
+    return names
+
+
 def layout_list(text: str) -> tuple[str, ...]:
     """'cpu,gpu' -> ("cpu", "gpu"), for argparse: RasterSettings.layout values."""
     from softras_cl.raster.settings import LAYOUTS as KNOWN
@@ -96,12 +105,31 @@ def layout_list(text: str) -> tuple[str, ...]:
 
 
 # ---- measurements ------------------------------------------------------------------------
-def run_once(raster, scene: Scene):
-    """One forward (with GRADS saved) and backward: (forward s, forward+backward s, output, grads)."""
+IO = ("numpy", "device")                         # numpy in/out, and device-resident (pyopencl arrays)
+QUICK_IO = ("numpy",)                            # --quick times the numpy row only (unless --io)
+
+
+def scene_inputs(raster, scene: Scene, io: str) -> dict:
+    """forward's and backward's arrays of the scene: numpy, or (io "device") pyopencl arrays on
+    the rasteriser's queue, uploaded once (as a fit on the device keeps them there)."""
+    inputs = dict(vertices=scene.vertices, faces=scene.faces, colors=scene.colors,
+                  grad_rgb=scene.grad_rgb, grad_alpha=scene.grad_alpha)
+    if io == "numpy":
+        return inputs
+    import pyopencl.array as cla
+
+    return {n: cla.to_device(raster.queue, np.ascontiguousarray(a)) for n, a in inputs.items()}
+
+
+def run_once(raster, scene: Scene, inputs: dict | None = None):
+    """One forward (with GRADS saved) and backward: (forward s, forward+backward s, output, grads).
+    inputs: scene_inputs (default: numpy); device results are waited for (queue.finish)."""
+    a = inputs or scene_inputs(raster, scene, "numpy")
     t0 = time.perf_counter()
-    out = raster.forward(scene.vertices, scene.faces, colors=scene.colors, grads=GRADS)
+    out = raster.forward(a["vertices"], a["faces"], colors=a["colors"], grads=GRADS)
     t1 = time.perf_counter()
-    grads = raster.backward(out, grad_rgb=scene.grad_rgb, grad_alpha=scene.grad_alpha)
+    grads = raster.backward(out, grad_rgb=a["grad_rgb"], grad_alpha=a["grad_alpha"])
+    raster.queue.finish()
     return t1 - t0, time.perf_counter() - t0, out, grads
 
 
@@ -109,7 +137,7 @@ STAGES = ("setup", "binning", "upload", "forward", "cotangent_checks", "cotangen
           "backward", "reductions")
 
 
-def time_raster(raster, scene: Scene, repeats: int) -> dict:
+def time_raster(raster, scene: Scene, repeats: int, io: str = "numpy") -> dict:
     """Median forward, forward+backward and forward+backward CPU ms of `repeats` runs after one
     warm-up (which compiles), then the median ms of each stage (SoftRasterizer.stage_ms) over
     `repeats` more runs; those wait for the device at every stage boundary, so the stages add up
@@ -117,18 +145,19 @@ def time_raster(raster, scene: Scene, repeats: int) -> dict:
     does (keeping them all alive made every run pay fresh allocations and page faults).
 
     Returns dict(fwd_ms, fwdbwd_ms, fwdbwd_cpu_ms, stage_ms, out, grads) with the last run's
-    output and gradients.
+    output and gradients. io: "numpy" or "device" inputs and outputs (scene_inputs).
     """
-    run_once(raster, scene)
+    inputs = scene_inputs(raster, scene, io)
+    run_once(raster, scene, inputs)
     times = []
     for _ in range(max(repeats, 1)):
         cpu = time.process_time()
-        fwd, fwdbwd, out, grads = run_once(raster, scene)
+        fwd, fwdbwd, out, grads = run_once(raster, scene, inputs)
         times.append((fwd, fwdbwd, time.process_time() - cpu))
     stages = []
     for _ in range(max(repeats, 1)):
         raster.stage_ms = {}
-        run_once(raster, scene)
+        run_once(raster, scene, inputs)
         stages.append(raster.stage_ms)
     raster.stage_ms = None
     stage_ms = {k: statistics.median(st.get(k, 0.0) for st in stages) for k in STAGES}
@@ -136,7 +165,7 @@ def time_raster(raster, scene: Scene, repeats: int) -> dict:
     return dict(fwd_ms=fwd, fwdbwd_ms=fwdbwd, fwdbwd_cpu_ms=cpu, stage_ms=stage_ms, out=out, grads=grads)
 
 
-def kernel_times(scene: Scene, layout: str, repeats: int) -> dict:
+def kernel_times(scene: Scene, layout: str, repeats: int, io: str = "numpy") -> dict:
     """Device time of the kernels alone in one forward+backward, from OpenCL profiling events on
     a queue of their own (host work such as the checks and the binning, and the transfers, are
     left out): dict(kernel_ms: median of the runs' sums, kernel_ms_by_name: {kernel: median ms})
@@ -150,11 +179,12 @@ def kernel_times(scene: Scene, layout: str, repeats: int) -> dict:
     device, ctx, _ = resolve_context(None, None, None)
     queue = cl.CommandQueue(ctx, device, properties=cl.command_queue_properties.PROFILING_ENABLE)
     raster = SoftRasterizer(settings_for(scene.size, layout=layout), device, ctx, queue)
-    run_once(raster, scene)
+    inputs = scene_inputs(raster, scene, io)
+    run_once(raster, scene, inputs)
     runs = []
     for _ in range(max(repeats, 1)):
         with recorded_launches() as log:
-            run_once(raster, scene)
+            run_once(raster, scene, inputs)
         runs.append(launch_device_ms(log))
     names = sorted({name for run in runs for name in run})
     return dict(kernel_ms=statistics.median(sum(run.values()) for run in runs),
@@ -292,17 +322,19 @@ def reference_results(scene: Scene, settings, ours: list[dict]) -> list[dict]:
 
 
 # ---- the three parts ---------------------------------------------------------------------
-def raster_row(scene: Scene, repeats: int, layout: str, pairs: int) -> tuple[dict, dict]:
+def raster_row(scene: Scene, repeats: int, layout: str, pairs: int, io: str = "numpy") -> tuple[dict, dict]:
     """Speed/memory row of one config with RasterSettings.layout `layout` (the row's "layout" is
-    the one it resolved to) and the timing result, for the reference comparison. pairs:
-    count_pairs of the scene."""
+    the one it resolved to) and numpy or device-resident inputs and outputs (`io`), and the
+    timing result, for the reference comparison. pairs: count_pairs of the scene."""
     from softras_cl.raster.rasterizer import SoftRasterizer
 
     raster = SoftRasterizer(settings_for(scene.size, layout=layout))
-    timing = time_raster(raster, scene, repeats)
-    row = dict(faces=scene.n_faces, size=scene.size, layout=raster.layout, layout_asked=layout,
+    timing = time_raster(raster, scene, repeats, io)
+    if io == "device":      # the reference compares numpy images
+        timing["out"].rgb, timing["out"].alpha = timing["out"].rgb.get(), timing["out"].alpha.get()
+    row = dict(faces=scene.n_faces, size=scene.size, layout=raster.layout, layout_asked=layout, io=io,
                fwd_ms=timing["fwd_ms"], fwdbwd_ms=timing["fwdbwd_ms"],
-               fwdbwd_cpu_ms=timing["fwdbwd_cpu_ms"], **kernel_times(scene, layout, repeats),
+               fwdbwd_cpu_ms=timing["fwdbwd_cpu_ms"], **kernel_times(scene, layout, repeats, io),
                load_avg=os.getloadavg()[0],
                stage_ms=timing["stage_ms"], **{f"{k}_ms": v for k, v in timing["stage_ms"].items()},
                pairs=pairs, ns_per_pair=1e6 * timing["fwdbwd_ms"] / pairs if pairs else None,
@@ -356,14 +388,15 @@ def accuracy_rows(scene: Scene, variants: list[tuple], repeats: int, progress) -
 
 
 # ---- output --------------------------------------------------------------------------------
-RASTER_COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("layout", "layout", "s"), ("fwd ms", "fwd_ms", ".2f"),
+RASTER_COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("layout", "layout", "s"), ("in/out", "io", "s"),
+                  ("fwd ms", "fwd_ms", ".2f"),
                   ("fwd+bwd ms", "fwdbwd_ms", ".2f"), ("fwd+bwd CPU ms", "fwdbwd_cpu_ms", ".2f"),
                   ("kernels ms", "kernel_ms", ".2f"), ("load", "load_avg", ".1f"), ("pairs", "pairs", ",d"), ("ns/pair", "ns_per_pair", ".2f"),
                   ("pairs/(HWF)", "pairs_frac", ".2e"), ("bin entries", "bin_entries", ",d"),
                   ("saved MiB", "saved_mib", ".1f"), ("peak RSS MiB", "peak_rss_mib", ".0f"),
                   ("ref ms", "ref_ms", ".0f"), ("ref/fwd", "ref_ratio", ",.0f"), ("ref err", "ref_max_err", ".1e")]
-STAGE_COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("layout", "layout", "s"),
-                 ("fwd+bwd ms", "fwdbwd_ms", ".2f"),
+STAGE_COLUMNS = [("faces", "faces", "d"), ("size", "size", "d"), ("layout", "layout", "s"), ("in/out", "io", "s"),
+                 ("fwd+bwd ms", "fwdbwd_ms", ".2f"), ("kernels ms", "kernel_ms", ".2f"),
                  *((name.replace("_", " "), f"{name}_ms", ".2f") for name in STAGES)]
 ACCURACY_COLUMNS = [("dist_eps", "dist_eps", "g"), ("dtype", "dtype", "s"), ("fast_math", "fast_math", ""),
                     ("fwd ms", "fwd_ms", ".2f"), ("fwd+bwd ms", "fwdbwd_ms", ".2f"),
@@ -465,7 +498,8 @@ def plan(args: argparse.Namespace) -> dict:
     if args.repeats is not None and args.repeats < 1:
         raise ValueError(f"--repeats must be >= 1, got {args.repeats}")
     speed_only = bool(getattr(args, "speed_only", False))
-    return dict(sizes=args.sizes or quick["sizes"], faces=faces, layouts=getattr(args, "layout", None) or LAYOUTS,
+    io = getattr(args, "io", None) or (QUICK_IO if args.quick else IO)
+    return dict(sizes=args.sizes or quick["sizes"], faces=faces, layouts=getattr(args, "layout", None) or LAYOUTS, io=io,
                 repeats=args.repeats or quick["repeats"], scene=quick["scene"],
                 variants=[] if speed_only else accuracy_variants(args.quick), speed_only=speed_only)
 
@@ -473,7 +507,9 @@ def plan(args: argparse.Namespace) -> dict:
 def run_benchmark(p: dict, progress) -> dict:
     """Run the three parts of `plan` p; `progress` is a tqdm bar advanced once per step."""
     settings = {k: v for k, v in asdict(settings_for(1)).items() if k != "image_size"}
-    result = dict(device=device_info(), repeats=p["repeats"], settings=settings, raster=[], accuracy=[],
+    from softras_cl.provenance import cpu_model
+
+    result = dict(device=device_info(), cpu=cpu_model(), repeats=p["repeats"], settings=settings, raster=[], accuracy=[],
                   accuracy_scene=dict(faces=p["scene"][0], size=p["scene"][1]))
     to_compare = []                    # (rows, timings) of the configs the dense reference runs on
     for size in p["sizes"]:
@@ -482,10 +518,11 @@ def run_benchmark(p: dict, progress) -> dict:
             pairs = count_pairs(scene, settings_for(size))
             rows, timings = [], []
             for layout in p["layouts"]:
-                progress.set_description(f"raster {n} faces {size}^2 layout {layout}")
-                row, timing = raster_row(scene, p["repeats"], layout, pairs)
-                rows.append(row)
-                timings.append(timing)
+                for io in p["io"]:
+                    progress.set_description(f"raster {n} faces {size}^2 layout {layout} {io} in/out")
+                    row, timing = raster_row(scene, p["repeats"], layout, pairs, io)
+                    rows.append(row)
+                    timings.append(timing)
                 progress.update()
             result["raster"] += rows
             if rows[0]["ref_note"] is None and not p.get("speed_only"):
@@ -531,4 +568,8 @@ def register(which) -> None:
                    help="kernel work layouts to time, comma-separated: auto (by device type), cpu, gpu "
                         f"(RasterSettings.layout; default {','.join(LAYOUTS)}); each row records the "
                         "layout it ran")
+    p.add_argument("--io", type=io_list, default=None,
+                   help="inputs and outputs to time, comma-separated: numpy (arrays in and out through "
+                        "the host) and device (pyopencl arrays on the rasteriser's queue, uploaded once); "
+                        f"default {','.join(IO)} ({','.join(QUICK_IO)} with --quick)")
     add_output_options(p, "directory for raster.json and raster.png (default out/bench)", run_raster, shown="tables")
