@@ -1,8 +1,7 @@
 """A photo's 68 landmarks: the user's file, a file beside the photo, or a detector.
 
 resolve_landmarks(photo, landmarks=None) is what a command calls: an explicit file, else a file
-beside the photo (landmarks_beside; checked against the detector's faces when one is installed:
-check_beside), else the detector (find.detect_face: the largest face, or
+beside the photo (landmarks_beside), else the detector (find.detect_face: the largest face, or
 the one --face / --face-box names), else an error that says how to install one.
 """
 from __future__ import annotations
@@ -87,8 +86,7 @@ def resolve_landmarks(photo, landmarks=None, *, all_faces: bool = False, backend
 
     Returns a non-empty list of PhotoLandmarks. Raises FileNotFoundError (missing photo or
     explicit file), ValueError naming the file (unreadable photo or landmark file, wrong point
-    count, a point outside the photo; a file beside the photo that overlaps none of the faces
-    the detector finds: check_beside), NoFaceError (no face found), InputError (--face number
+    count, a point outside the photo), NoFaceError (no face found), InputError (--face number
     not found), ImplausibleFaceError (exit 1), DetectorUnavailableError (an ImportError and
     InputError: no file and the detector is not installed; its message says what to install).
     """
@@ -101,9 +99,7 @@ def resolve_landmarks(photo, landmarks=None, *, all_faces: bool = False, backend
         return [PhotoLandmarks(read_landmarks(landmarks, image_size=size), "file", Path(landmarks))]
     found = landmarks_beside(photo) if beside else None
     if found is not None:
-        points = read_landmarks(found, image_size=size)
-        check_beside(found, points, img, str(photo))
-        return [PhotoLandmarks(points, "beside", found)]
+        return [PhotoLandmarks(read_landmarks(found, image_size=size), "beside", found)]
     if all_faces:
         return _every_face(img, str(photo), check_backend(backend), options)
     detection = detect_face(img, backend, face=face, face_box=face_box, name=str(photo), **options)
@@ -112,7 +108,8 @@ def resolve_landmarks(photo, landmarks=None, *, all_faces: bool = False, backend
 
 def check_beside(path: Path, points: np.ndarray, img: np.ndarray, name: str) -> None:
     """Check the landmark file beside a photo against the faces the default detector finds in
-    it (when it is installed): InputError naming the file when faces are found and none of their
+    it (when it is installed; fit-face's jobs call it, resolve_landmarks does not): InputError
+    naming the file when faces are found and none of their
     boxes overlaps the box of the file's (68, 2) points by an IoU of at least MIN_BESIDE_IOU, as
     when the file is another photo's (the astronaut with Grace Hopper's points: IoU 0.05; its own
     points: 0.80). A file beside the photo is taken without being asked for, so a wrong one would

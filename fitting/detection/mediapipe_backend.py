@@ -97,25 +97,25 @@ def available() -> bool:
 
 class _Locked:
     """A MediaPipe solution object and a lock (a graph runs one image at a time). Its C++ side
-    logs a dozen lines to stderr (TensorFlow Lite's delegate, feedback tensors, the landmark
-    projection) when it starts and on its first face: stderr is silenced until then."""
+    logs to stderr (TensorFlow Lite's delegate, feedback tensors, the landmark projection) when
+    it starts, on its first face or pose, and now and then later, from its own threads, as
+    their calculators start: stderr is silenced while it runs (the file descriptor, for the
+    time of each call), so that a command prints one line per error."""
 
     def __init__(self, solution):
-        self.solution, self.lock, self.quiet = solution, threading.Lock(), True
+        self.solution, self.lock = solution, threading.Lock()
 
     def process(self, image: np.ndarray):
-        with self.lock:
-            if not self.quiet:
-                return self.solution.process(np.ascontiguousarray(image))
-            with _quiet_stderr():
-                result = self.solution.process(np.ascontiguousarray(image))
-            self.quiet = not (getattr(result, "detections", None) or getattr(result, "multi_face_landmarks", None))
-            return result
+        with self.lock, quiet_stderr():
+            return self.solution.process(np.ascontiguousarray(image))
 
 
 @contextmanager
-def _quiet_stderr():
-    """Send file descriptor 2 to /dev/null (not only sys.stderr: the C++ side writes to it)."""
+def quiet_stderr():
+    """Send file descriptor 2 to /dev/null (not only sys.stderr: the C++ side writes to it).
+    The finders hold it for their whole search, not only for each model call: the models' own
+    threads log as their calculators open, which can fall between two calls (a feedback-tensor
+    line came through about one run in four that way)."""
     sys.stderr.flush()
     saved = os.dup(2)
     try:
@@ -129,7 +129,7 @@ def _quiet_stderr():
 
 def _started(make) -> _Locked:
     """A solution made by make() with stderr silenced (it logs when its graph starts)."""
-    with _quiet_stderr():
+    with quiet_stderr():
         return _Locked(make())
 
 
@@ -304,8 +304,10 @@ def _mesh_box(candidate: FaceCandidate) -> np.ndarray:
 
 
 def find(image: np.ndarray, tiles: bool = True) -> list[FaceCandidate]:
-    """Every face with its Face Mesh points (module docstring), unordered. image: (H, W, 3) uint8."""
-    meshed = [c for c in (_meshed(image, d) for d in detect(image, tiles)) if c is not None]
+    """Every face with its Face Mesh points (module docstring), unordered. image: (H, W, 3) uint8.
+    stderr is silenced throughout (quiet_stderr)."""
+    with quiet_stderr():
+        meshed = [c for c in (_meshed(image, d) for d in detect(image, tiles)) if c is not None]
     kept = suppress_overlaps(np.array([_mesh_box(c) for c in meshed]).reshape(-1, 4),
                              np.array([c.score for c in meshed]), MESH_IOU)
     return [meshed[i] for i in kept]
@@ -315,5 +317,6 @@ def find_in_box(image: np.ndarray, box, margin: float = 1.5) -> FaceCandidate | 
     """Face Mesh on an upright square crop around a given (x, y, w, h) box, `margin` times its
     longer side: the face in it, or None."""
     x, y, w, h = box
-    dense = mesh_in_crop(image, (x + w / 2, y + h / 2), margin * max(w, h))
+    with quiet_stderr():
+        dense = mesh_in_crop(image, (x + w / 2, y + h / 2), margin * max(w, h))
     return None if dense is None else _candidate(box, float("nan"), dense, "Face Mesh on the given box", 0.0)

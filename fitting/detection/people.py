@@ -98,17 +98,20 @@ def people_available() -> bool:
 
 @lru_cache(maxsize=None)
 def _pose():
+    """The pose model, its C++ side's log lines kept off stderr (mediapipe_backend._started)."""
     from mediapipe.python.solutions import pose
 
-    return pose.Pose(static_image_mode=True, model_complexity=1, enable_segmentation=True,
-                     min_detection_confidence=MIN_SCORE)
+    return mediapipe_backend._started(lambda: pose.Pose(static_image_mode=True, model_complexity=1,
+                                                        enable_segmentation=True,
+                                                        min_detection_confidence=MIN_SCORE))
 
 
 @lru_cache(maxsize=None)
 def _selfie():
+    """The selfie segmentation model, quiet as _pose."""
     from mediapipe.python.solutions import selfie_segmentation
 
-    return selfie_segmentation.SelfieSegmentation(model_selection=0)
+    return mediapipe_backend._started(lambda: selfie_segmentation.SelfieSegmentation(model_selection=0))
 
 
 def _pose_in(image: np.ndarray, x0: int, y0: int, full_shape) -> tuple | None:
@@ -163,13 +166,14 @@ def detect_person(image, name: str = "the photo") -> PersonDetection:
     if not people_available():
         raise DetectorUnavailableError(PEOPLE_INSTALL_HINT)
     image = as_rgb8(image)
-    selfie = _selfie().process(image).segmentation_mask > 0.5
-    regions = person_regions(selfie)
-    found, how = None, ""
-    if len(regions) <= 1:
-        found, how = _pose_in(image, 0, 0, image.shape), "the whole photo"
-    if regions:
-        found, how = _largest_in_regions(image, regions, selfie, found if len(regions) == 1 else None)
+    with mediapipe_backend.quiet_stderr():          # the models' own log lines
+        selfie = _selfie().process(image).segmentation_mask > 0.5
+        regions = person_regions(selfie)
+        found, how = None, ""
+        if len(regions) <= 1:
+            found, how = _pose_in(image, 0, 0, image.shape), "the whole photo"
+        if regions:
+            found, how = _largest_in_regions(image, regions, selfie, found if len(regions) == 1 else None)
     if found is None:
         raise NoPersonError(f"no person found in {name} (MediaPipe pose); give a photo of a person, "
                             f"or a part-coloured target or mask with --input parts|mask")

@@ -17,6 +17,7 @@ import numpy as np
 
 from softras_cl.errors import InputError
 from softras_cl.fitting.detection import resolve_landmarks
+from softras_cl.fitting.detection.files import check_beside
 from softras_cl.fitting.jobs.run import FitJob
 from softras_cl.fitting.model_cache import load_model
 from softras_cl.fitting.recipes.face_settings import joint_config
@@ -57,6 +58,8 @@ def face_landmarks(photo, landmarks=None, face: int | None = None, face_box=None
         if not found:
             raise InputError(f"face {face} of {photo.path} is no longer found among the faces whose "
                              "landmarks form a face")
+    if found[0].source == "beside":
+        check_beside(found[0].path, found[0].points, photo.rgb8, str(photo.path))
     check_uncut(found[0], photo)
     return found[0]
 
