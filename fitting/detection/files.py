@@ -111,7 +111,7 @@ def check_beside(path: Path, points: np.ndarray, img: np.ndarray, name: str) -> 
     it (when it is installed; fit-face's jobs call it, resolve_landmarks does not): InputError
     naming the file when faces are found and none of their
     boxes overlaps the box of the file's (68, 2) points by an IoU of at least MIN_BESIDE_IOU, as
-    when the file is another photo's (the astronaut with Grace Hopper's points: IoU 0.05; its own
+    when the file is another photo's (the astronaut with Grace Hopper's points: IoU 0.04; its own
     points: 0.80). A file beside the photo is taken without being asked for, so a wrong one would
     otherwise fit another face's points without a word. No face found, or no detector: the file
     is used as it is."""

@@ -84,8 +84,8 @@ def check_mask(mask: np.ndarray, path, option: str) -> None:
     if share < MIN_MASK_SHARE:
         raise InputError(f"{option} says {path} is a mask, but it is not one: its two most common levels "
                          f"(of {MASK_LEVELS}) hold {share:.0%} of its pixels, a mask's (the body and the "
-                         f"background) at least {MIN_MASK_SHARE:.0%}; for a photo of a person leave {option} "
-                         "out (--input photo)")
+                         f"background) at least {MIN_MASK_SHARE:.0%}; for a photo of a person "
+                         + ("leave --silhouette out" if option == "--silhouette" else "give --input photo or auto"))
 
 
 def _numbers(values: np.ndarray, what: str, expected: str) -> np.ndarray:
