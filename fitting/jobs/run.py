@@ -15,12 +15,11 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator, Protocol
 
-from softras_cl.errors import OutputError
 from softras_cl.fitting.metrics import finite_metrics
 from softras_cl.interrupts import Caught, first_interrupt_calls
 from softras_cl.io.outputs import INPUT_FILES, OutputFolder
 
-__all__ = ["FitJob", "FitRun", "run_fit", "fit_and_write", "finishing_outputs", "check_out"]
+__all__ = ["FitJob", "FitRun", "run_fit", "fit_and_write", "finishing_outputs"]
 
 
 class FitJob(Protocol):
@@ -102,26 +101,3 @@ def run_fit(job: FitJob, out, *, resume: bool = False, overwrite: bool = False, 
         run = fit_and_write(job, folder, progress, resume)
     started = getattr(job, "started", None)
     return run if started is None else replace(run, seconds=time.perf_counter() - started)
-
-
-def check_out(out, option: str = "--out") -> None:
-    """Check, before a job reads its inputs, that ``out`` can be its output folder, creating
-    nothing: OutputError (exit 3) naming ``option`` when it is empty, an existing file, a folder
-    that cannot be written, or cannot be created where it would go (run_fit's OutputFolder says
-    the same later; a large photo took 36 s to read and search before this was said)."""
-    import os
-
-    text = os.fspath(out) if isinstance(out, os.PathLike) else out
-    if not isinstance(text, str) or not text.strip():
-        raise OutputError(f"{option} must name a folder, got {out!r}")
-    folder = Path(text)
-    if folder.exists() and not folder.is_dir():
-        raise OutputError(f"{option} {folder} exists and is not a folder")
-    parent = folder
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir():
-        raise OutputError(f"{option} {folder}: cannot create the folder: {parent} is not a folder")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        what = "cannot write in it" if parent == folder else f"cannot create the folder in {parent}"
-        raise OutputError(f"{option} {folder}: {what}: permission denied or a read-only file system")

@@ -84,9 +84,9 @@ def run_one(args: argparse.Namespace, target) -> int:
     target's and joints' checks, before --out is touched)."""
     from softras_cl.fitting.jobs.body import body_job
     from softras_cl.fitting.jobs.body_photo import BodyPhotoJob
-    from softras_cl.fitting.jobs.run import check_out
+    from softras_cl.io.outputs import check_output_folder
 
-    check_out(args.out)                 # before the target is read (a photo: and searched)
+    check_output_folder(args.out)                 # before the target is read (a photo: and searched)
     job = body_job(target, args.joints, _options(args), recorded=args)
     job.read()
     if isinstance(job, BodyPhotoJob):

@@ -144,9 +144,9 @@ def _single_landmarks(files: list[str] | None) -> str | None:
 def run_one(args: argparse.Namespace, photo) -> int:
     """Fit one photo into --out (fitting.jobs.face_photo.FacePhotoJob)."""
     from softras_cl.fitting.jobs.face_photo import FacePhotoJob
-    from softras_cl.fitting.jobs.run import check_out
+    from softras_cl.io.outputs import check_output_folder
 
-    check_out(args.out)                 # before the photo is read and searched
+    check_output_folder(args.out)                 # before the photo is read and searched
     job = FacePhotoJob(photo, args.landmarks, _options(args), face=args.face, face_box=_face_box(args),
                        recorded=args)
     job.read()
@@ -187,10 +187,10 @@ def run_same_person(args: argparse.Namespace) -> int:
     """Several photos of one person into --out (fitting.jobs.face_photo.FaceViewsJob)."""
     from softras_cl.fitting.jobs.face_photo import FaceViewsJob
 
-    from softras_cl.fitting.jobs.run import check_out
+    from softras_cl.io.outputs import check_output_folder
 
     paths = _check_same_person(args)
-    check_out(args.out)
+    check_output_folder(args.out)
     job = FaceViewsJob(paths, args.landmarks, _options(args), same_camera=args.same_camera, recorded=args)
     job.read()
     for photo, landmarks in zip(paths, job.landmarks):

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from support.track_clips import FAST, FPS, FRAMES, SIZE, TINY, talking_head
 
 from softras_cl.errors import InputError
 from softras_cl.fitting.recipes import face
@@ -13,18 +14,12 @@ from softras_cl.fitting.recipes.face_track import FrameTracker
 
 pytestmark = [pytest.mark.video, pytest.mark.detect]
 
-TINY = dict(landmark_iters=10, photo_stages=((1e-4, 3e-3, 4), (1e-5, 1e-3, 4)))
-FAST = ["--size", "64", "--budget", "fast", "--keyframes", "2", "--chunk", "4", "--no-progress"]
-FRAMES, FPS, SIZE = 9, 10.0, 128
 
 
 @pytest.fixture(scope="module")
 def video(tmp_path_factory, demo_face_model):
     """A 9-frame, 128 px synthetic talking head at 10 fps (bench track's generator) and its truth."""
-    from softras_cl.bench.track import make_sequence
-
-    folder = tmp_path_factory.mktemp("video")
-    return make_sequence(demo_face_model, np.random.default_rng(3), FRAMES, SIZE, FPS, "coffee", folder / "head.mp4")
+    return talking_head(demo_face_model, tmp_path_factory.mktemp("video") / "head.mp4")
 
 
 @pytest.fixture

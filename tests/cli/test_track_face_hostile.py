@@ -8,14 +8,12 @@ import json
 
 import numpy as np
 import pytest
+from support.track_clips import FAST, FPS, SIZE, TINY, talking_head
 
 from softras_cl.fitting.recipes import face
 
 pytestmark = [pytest.mark.video, pytest.mark.detect]
 
-TINY = dict(landmark_iters=10, photo_stages=((1e-4, 3e-3, 4), (1e-5, 1e-3, 4)))
-FAST = ["--size", "64", "--budget", "fast", "--keyframes", "2", "--chunk", "4", "--no-progress"]
-FRAMES, FPS, SIZE = 9, 10.0, 128
 
 
 @pytest.fixture(scope="module")
@@ -23,11 +21,11 @@ def clips(tmp_path_factory, demo_face_model):
     """A 9-frame synthetic talking head (head.mp4, bench track's generator); its frames six times
     over (54 frames, H.264 with B-frames: long.mp4); long.mp4 with its last 40% of bytes cut
     (cut.mp4) and with 10,000 bytes cut from its middle (gouged.mp4)."""
-    from softras_cl.bench.track import make_sequence, write_sequence
+    from softras_cl.bench.track import write_sequence
     from softras_cl.io.video import open_video
 
     folder = tmp_path_factory.mktemp("clips")
-    head = make_sequence(demo_face_model, np.random.default_rng(3), FRAMES, SIZE, FPS, "coffee", folder / "head.mp4")
+    head = talking_head(demo_face_model, folder / "head.mp4")
     images = [f.image for f in open_video(head["path"]).frames()]
     write_sequence(folder / "long.mp4", images * 6, FPS)
     data = (folder / "long.mp4").read_bytes()
