@@ -8,7 +8,7 @@ landmarks do not form a face. Backends: "mediapipe" (the default; mediapipe_back
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -23,6 +23,11 @@ DEFAULT_BACKEND = "mediapipe"
 #: backends whose 68 landmarks are Face Mesh points (fitting.keypoints.face_mesh), not iBUG annotations
 FACE_MESH_BACKENDS = ("mediapipe",)
 _MODULES = {"mediapipe": mediapipe_backend, "dlib": dlib_backend}
+#: photos whose longer side is over this many px are searched on a copy reduced to it (faces by
+#: find_faces, people by people.detect_person), the results scaled back to the photo's pixels:
+#: the models see 128-256 px crops anyway, and an 8000 x 6000 photo took about two minutes and
+#: 3 GB searched at full size (docs/reliability.md)
+DETECT_MAX_SIDE = 2048
 #: the options each backend's find() takes
 OPTIONS = {"mediapipe": ("tiles",), "dlib": tuple(dlib_backend.DEFAULTS)}
 
@@ -56,13 +61,39 @@ def as_rgb8(image) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
+def reduced_copy(image: np.ndarray, max_side: int = DETECT_MAX_SIDE) -> tuple[np.ndarray, float]:
+    """(the (H, W, 3) uint8 image reduced so that its longer side is ``max_side`` (area-averaged),
+    the factor from its pixels to the image's (> 1)); the image itself and 1.0 when it is no
+    larger."""
+    from PIL import Image
+
+    h, w = image.shape[:2]
+    if max(h, w) <= max_side:
+        return image, 1.0
+    scale = max_side / max(h, w)
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    small = np.asarray(Image.fromarray(image).resize(size, Image.BOX))
+    return np.ascontiguousarray(small), w / size[0]
+
+
+def _scaled(candidate: FaceCandidate, factor: float, note: str) -> FaceCandidate:
+    """A face found on a reduced copy in the photo's pixels: the box (on the pixel grid) times
+    ``factor``, pixel centres p as (p + 0.5) * factor - 0.5."""
+    def points(p):
+        return None if p is None else (p + 0.5) * factor - 0.5
+
+    return replace(candidate, box=candidate.box * factor, landmarks=points(candidate.landmarks),
+                   dense=points(candidate.dense), found_by=candidate.found_by + note)
+
+
 def find_faces(image, backend: str | None = None, **options) -> list[FaceCandidate]:
     """Every face in an (H, W, 3) uint8 RGB image, in the stated ORDER (largest box first).
 
     backend: "mediapipe" (None: the default) or "dlib".
     options, mediapipe: tiles (True: the tile pyramid for small faces); dlib: upsample and
         min_score (dlib_backend.DEFAULTS; mediapipe_backend / dlib_backend have the details).
-    Returns [] when there is no face. Raises ValueError for a bad image, backend or option and
+    An image over DETECT_MAX_SIDE px is searched on a reduced copy (reduced_copy), the faces given
+    in its own pixels. Returns [] when there is no face. Raises ValueError for a bad image, backend or option and
     DetectorUnavailableError (an ImportError) when the backend is not installed.
     """
     img = as_rgb8(image)
@@ -71,7 +102,12 @@ def find_faces(image, backend: str | None = None, **options) -> list[FaceCandida
     if unknown:
         raise ValueError(f"the {backend} backend takes the options {', '.join(OPTIONS[backend])}, "
                          f"not {', '.join(sorted(unknown))}")
-    return sort_candidates(_MODULES[backend].find(img, **options))
+    small, factor = reduced_copy(img)
+    found = _MODULES[backend].find(small, **options)
+    if factor != 1.0:
+        note = f", on a copy reduced to {small.shape[1]} x {small.shape[0]} px"
+        found = [_scaled(c, factor, note) for c in found]
+    return sort_candidates(found)
 
 
 @dataclass(frozen=True)

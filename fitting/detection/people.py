@@ -22,13 +22,16 @@ Finding the person (:func:`detect_person`):
 3. the pose model's own segmentation mask of that person is the person mask;
 4. no pose found anywhere: :class:`NoPersonError` (exit 1), naming the photo.
 
+A photo over DETECT_MAX_SIDE px is searched on a reduced copy (find.reduced_copy); the keypoints,
+box and mask come back in the photo's own pixels.
+
 Coordinates: keypoints (33, 2) float64 (x, y), 0-based pixel centres (x right, y down), as the
 face layer's landmarks; boxes (x, y, w, h) on the pixel grid (pixel (i, j) covers [i, i + 1)).
 """
 from __future__ import annotations
 
 import importlib.util
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -37,7 +40,7 @@ import numpy as np
 from softras_cl.errors import ResultError
 from softras_cl.fitting.detection import mediapipe_backend
 from softras_cl.fitting.detection.faces import DetectorUnavailableError
-from softras_cl.fitting.detection.find import as_rgb8
+from softras_cl.fitting.detection.find import as_rgb8, reduced_copy
 from softras_cl.fitting.keypoints import pose33
 
 __all__ = ["PersonDetection", "NoPersonError", "detect_person", "people_available",
@@ -51,6 +54,13 @@ MIN_REGION = 0.02                       # a selfie-mask region of at least this 
 REGION_MARGINS = (0.1, 0.25)            # a region's crops: its box widened by these on each side
 SPILL = 0.1                             # keypoints this far (of the region's size) past a crop: grow it
 CUT_SHARE = 0.1                         # a mask along this share of a crop's inner edge, keypoints past it: cut off
+# When a region's crops and the whole photo find no pose (the pose model's person detector is
+# fickle: on two cameramen side by side it found neither in the REGION_MARGINS crops, yet each
+# at 0.05 or 0.4), the crops at these margins are tried in turn; one counts only when its
+# person mask agrees with the region's selfie mask by FALLBACK_AGREEMENT (IoU), so that an
+# object the selfie model took for a person does not become one
+FALLBACK_MARGINS = (0.05, 0.4, 0.5)
+FALLBACK_AGREEMENT = 0.5
 
 
 class NoPersonError(ResultError):
@@ -162,53 +172,109 @@ def _crop(shape, region, margin: float) -> tuple[int, int, int, int]:
 
 def detect_person(image, name: str = "the photo") -> PersonDetection:
     """The person of an (H, W, 3) uint8 RGB photo (module docstring); NoPersonError naming
-    ``name`` when there is none; DetectorUnavailableError when mediapipe is not installed."""
+    ``name`` when there is none; DetectorUnavailableError when mediapipe is not installed. A
+    photo over DETECT_MAX_SIDE px is searched on a reduced copy (:func:`reduced_copy`) and the
+    result given in the photo's own pixels."""
     if not people_available():
         raise DetectorUnavailableError(PEOPLE_INSTALL_HINT)
     image = as_rgb8(image)
+    small, factor = reduced_copy(image)
+    found = _detect_person(small, name)
+    if factor == 1.0:
+        return found
+    return _enlarged(found, factor, image.shape, f"; searched on a copy reduced to {small.shape[1]} x "
+                                                 f"{small.shape[0]} px (the photo is {image.shape[1]} x {image.shape[0]})")
+
+
+def _enlarged(found: PersonDetection, factor: float, shape, note: str) -> PersonDetection:
+    """A detection on a reduced copy in the pixels of the photo of ``shape`` (H, W, ...): pixel
+    centres scaled by ``factor``, the mask enlarged (bilinear) to the photo's size."""
+    from PIL import Image
+
+    points = (found.keypoints + 0.5) * factor - 0.5
+    mask = Image.fromarray(found.mask.astype(np.float32)).resize((shape[1], shape[0]), Image.BILINEAR)
+    return replace(found, keypoints=points, mask=np.clip(np.asarray(mask, np.float64), 0.0, 1.0),
+                   box=keypoint_box(points, shape), note=found.note + note)
+
+
+def _detect_person(image: np.ndarray, name: str) -> PersonDetection:
+    """detect_person on the image as it is."""
     with mediapipe_backend.quiet_stderr():          # the models' own log lines
         selfie = _selfie().process(image).segmentation_mask > 0.5
         regions = person_regions(selfie)
-        found, how = None, ""
-        if len(regions) <= 1:
-            found, how = _pose_in(image, 0, 0, image.shape), "the whole photo"
-        if regions:
-            found, how = _largest_in_regions(image, regions, selfie, found if len(regions) == 1 else None)
-    if found is None:
+        whole = _pose_in(image, 0, 0, image.shape) if len(regions) <= 1 else None
+        people = _people_in_regions(image, regions, selfie, whole) if regions else (
+            [] if whole is None else [(whole, "the whole photo")])
+    if not people:
         raise NoPersonError(f"no person found in {name} (MediaPipe pose); give a photo of a person, "
                             f"or a part-coloured target or mask with --input parts|mask")
-    points, visibility, mask, depth = found
+    chosen = max(range(len(people)), key=lambda i: _area(people[i][0][0], image.shape))
+    (points, visibility, mask, depth), how = people[chosen]
     note = f"{len(regions)} person-like region(s) in the selfie mask; pose model on {how}"
+    if len(people) > 1:
+        note += "; " + choice_note(people, chosen, image.shape)
     return PersonDetection(points, visibility, mask, keypoint_box(points, image.shape),
                            float(visibility[list(pose33.TORSO)].mean()), len(regions), note, depth)
 
 
+def choice_note(people, chosen: int, shape) -> str:
+    """Which of several people found (``people``: (pose as _pose_in, how) each) was fitted and
+    why: the largest keypoint box, as fit-face chooses the largest face."""
+    boxes = [[int(round(v)) for v in keypoint_box(pose[0], shape)] for pose, _ in people]
+    listed = ", ".join(f"{'*' if i == chosen else ''}person {i} at box {b}" for i, b in enumerate(boxes))
+    return (f"{len(people)} people found ({listed}); fitted person {chosen}, the largest (its keypoints' "
+            "box has the largest area); crop the photo to fit another")
+
+
 def _largest_in_regions(image: np.ndarray, regions, selfie: np.ndarray, whole) -> tuple:
-    """(the pose (as _pose_in) of the largest keypoint box among the regions' best passes, or
-    None; what it was run on). A region's passes: its crops (REGION_MARGINS), ``whole`` (the
-    whole photo's pose, or None) and, when the first crop's keypoints reach past its edges, a
-    crop grown to hold them (:func:`_grown_crop`). Its best pass: of the passes whose person the
-    crop did not cut off (:func:`_truncated`; all of them if every one was), the one whose mask
-    agrees best with the region's part of the ``selfie`` mask (H, W) bool."""
-    best, best_area, best_how = None, -1.0, ""
+    """(the pose (as _pose_in) of the largest keypoint box among the regions' people
+    (:func:`_people_in_regions`), or None; what it was run on)."""
+    people = _people_in_regions(image, regions, selfie, whole)
+    if not people:
+        return None, ""
+    return max(people, key=lambda p: _area(p[0][0], image.shape))
+
+
+def _people_in_regions(image: np.ndarray, regions, selfie: np.ndarray, whole) -> list[tuple]:
+    """(pose as _pose_in, what it was run on) of each region where a person was found
+    (:func:`_region_person`), in the regions' order."""
+    people = [_region_person(image, region, selfie, whole) for region in regions]
+    return [p for p in people if p is not None]
+
+
+def _region_person(image: np.ndarray, region, selfie: np.ndarray, whole) -> tuple | None:
+    """(the region's best pass's pose, how) or None. A region's passes: its crops
+    (REGION_MARGINS), ``whole`` (the whole photo's pose, or None) and, when the first crop's
+    keypoints reach past its edges, a crop grown to hold them (:func:`_grown_crop`). Its best
+    pass: of the passes whose person the crop did not cut off (:func:`_truncated`; all of them if
+    every one was), the one whose mask agrees best with the region's part of the ``selfie`` mask
+    (H, W) bool. When no pass finds a pose, :func:`_fallback_person`."""
     height, width = image.shape[:2]
-    for region in regions:
-        passes = [] if whole is None else [(whole, "the whole photo", (0, 0, width, height))]
-        crops = [_crop_pass(image, _crop(image.shape, region, m), f"a person-like region's crop (margin {m:g})")
-                 for m in REGION_MARGINS]
-        grown = None if crops[0][0] is None else _grown_crop(image.shape, region, crops[0][0][0], crops[0][2])
-        if grown is not None:
-            crops.append(_crop_pass(image, grown, "a person-like region's crop grown to its keypoints "
-                                                  f"(margin {REGION_MARGINS[0]:g})"))
-        passes = [p for p in passes + crops if p[0] is not None]
-        if not passes:
-            continue
-        uncut = [p for p in passes if not _truncated(p[0], p[2], region, image.shape)] or passes
-        mine = _region_mask(selfie, region)
-        pose, how, _ = max(uncut, key=lambda p: _agreement(p[0][2] > 0.5, mine))
-        if _area(pose[0], image.shape) > best_area:
-            best, best_area, best_how = pose, _area(pose[0], image.shape), how
-    return best, best_how
+    passes = [] if whole is None else [(whole, "the whole photo", (0, 0, width, height))]
+    crops = [_crop_pass(image, _crop(image.shape, region, m), f"a person-like region's crop (margin {m:g})")
+             for m in REGION_MARGINS]
+    grown = None if crops[0][0] is None else _grown_crop(image.shape, region, crops[0][0][0], crops[0][2])
+    if grown is not None:
+        crops.append(_crop_pass(image, grown, "a person-like region's crop grown to its keypoints "
+                                              f"(margin {REGION_MARGINS[0]:g})"))
+    passes = [p for p in passes + crops if p[0] is not None]
+    mine = _region_mask(selfie, region)
+    if not passes:
+        return _fallback_person(image, region, mine)
+    uncut = [p for p in passes if not _truncated(p[0], p[2], region, image.shape)] or passes
+    pose, how, _ = max(uncut, key=lambda p: _agreement(p[0][2] > 0.5, mine))
+    return pose, how
+
+
+def _fallback_person(image: np.ndarray, region, mine: np.ndarray) -> tuple | None:
+    """The first of the region's crops at FALLBACK_MARGINS whose pose's mask agrees with the
+    region's selfie mask ``mine`` by FALLBACK_AGREEMENT: (pose, how), or None."""
+    for margin in FALLBACK_MARGINS:
+        pose, how, _ = _crop_pass(image, _crop(image.shape, region, margin),
+                                  f"a person-like region's crop (margin {margin:g}, after the others found no pose)")
+        if pose is not None and _agreement(pose[2] > 0.5, mine) >= FALLBACK_AGREEMENT:
+            return pose, how
+    return None
 
 
 def _crop_pass(image: np.ndarray, crop, how: str) -> tuple:

@@ -57,28 +57,35 @@ class BodyPhotoJob(FitJob):
         self.options = BODY.values(options or {})
         self.config = BODY.config(self.options)
         self.recorded = self.options if recorded is None else recorded
-        self.photo = self.detection = self.fov = self.model = None
+        self.photo = self.detection = self.fov = self.model = self.parts = None
 
     def read(self) -> None:
-        """Read the photo, find the person (NoPersonError naming the photo when none), read the
+        """Read the photo, find the person (NoPersonError naming the photo when none), say which
+        body parts are in view (InputError when too little is: check_enough_in_view), read the
         field of view from its EXIF, load the model; ResultError, before anything is written,
         when the camera would stand inside the body (fitting.recipes.body_photo.check_in_view:
         a --fov near 180 degrees)."""
-        from softras_cl.fitting.recipes.body_photo import check_in_view, photo_setup
+        from softras_cl.fitting.recipes.body_photo import (check_enough_in_view, check_in_view, parts_in_view,
+                                                           photo_setup)
 
         self.started = time.perf_counter()
         self.model = load_model("body", self.options["model"])
         self.photo = read_photo(self.path)
         self.detection = detect_person(self.photo.rgb8, str(self.path))
+        self.parts = parts_in_view(self.detection.keypoints, self.detection.visibility, self.photo.rgb8.shape[:2])
+        check_enough_in_view(self.parts, str(self.path))
         self.fov = photo_fov(self.path, self.photo.rgb8.shape[:2])
         check_in_view(photo_setup(self.photo.rgb8.shape[:2], self.detection, self.model, self.config, self.fov),
                       self.model)
 
     def describe(self) -> str:
-        """One line about the person found."""
+        """Two lines: the person found (and, of several, which and why), and the body parts in
+        view (fitting.recipes.body_photo.in_view_line)."""
+        from softras_cl.fitting.recipes.body_photo import in_view_line
+
         box = [int(round(v)) for v in self.detection.box]
         return (f"person in {self.path}: box {box}, torso visibility {self.detection.score:.2f}; "
-                f"{self.detection.note}")
+                f"{self.detection.note}\n{in_view_line(self.parts)}")
 
     def record(self) -> dict:
         return body_record(self.path, None, self.options)

@@ -46,7 +46,8 @@ from softras_cl.fitting.keypoints.pose33 import KeypointLayout, keypoint_layout
 from softras_cl.fitting.recipes.body_settings import OBJECTIVES, PHOTO_BUDGETS, PHOTO_WEIGHTS
 from softras_cl.fitting.solver import Stage, fit
 
-__all__ = ["MIN_VISIBILITY", "BodyPhotoObjective",
+__all__ = ["MIN_VISIBILITY", "BODY_PARTS", "parts_in_view", "in_view_line", "check_enough_in_view",
+           "fit_objective", "BodyPhotoObjective",
            "BodyPhotoFit", "keypoint_weights", "camera_distance", "photo_stages", "photo_params",
            "mask_misses", "PhotoSetup", "photo_setup", "check_in_view", "fit_body_photo"]
 
@@ -71,6 +72,52 @@ LIMB_CHAINS = (("left_shoulder", "left_elbow", "left_wrist", "left_hand"),
                ("right_shoulder", "right_elbow", "right_wrist", "right_hand"),
                ("left_hip", "left_knee", "left_ankle", "left_foot"),
                ("right_hip", "right_knee", "right_ankle", "right_foot"))
+
+
+# The body's parts as the detector's keypoints (fitting.keypoints.pose33 numbering) tell them:
+# what is said to be in view, and what decides how a photo is fitted (fit_objective,
+# check_enough_in_view)
+BODY_PARTS = (("head", tuple(range(0, 11))), ("shoulders", (11, 12)), ("arms", tuple(range(13, 23))),
+              ("hips", (23, 24)), ("legs", tuple(range(25, 33))))
+
+
+def parts_in_view(keypoints: np.ndarray, visibility: np.ndarray, image_size) -> dict[str, int]:
+    """How many of each BODY_PARTS' keypoints (33, 2) pixels the detector saw (visibility (33,)
+    at least MIN_VISIBILITY, inside the (H, W) photo), by part name."""
+    h, w = image_size
+    inside = ((keypoints[:, 0] >= -0.5) & (keypoints[:, 0] <= w - 0.5)
+              & (keypoints[:, 1] >= -0.5) & (keypoints[:, 1] <= h - 0.5))
+    seen = inside & (visibility >= MIN_VISIBILITY)
+    return {name: int(seen[list(index)].sum()) for name, index in BODY_PARTS}
+
+
+def in_view_line(parts: dict[str, int]) -> str:
+    """"in view: head, shoulders, arms; not in view: hips, legs" (a pair with one of two seen:
+    "shoulders (one of two)")."""
+    sizes = dict((name, len(index)) for name, index in BODY_PARTS)
+    shown = [name + (" (one of two)" if sizes[name] == 2 and n == 1 else "") for name, n in parts.items() if n]
+    missing = [name for name, n in parts.items() if not n]
+    return (f"in view: {', '.join(shown) or 'nothing'}"
+            + (f"; not in view: {', '.join(missing)}" if missing else ""))
+
+
+def check_enough_in_view(parts: dict[str, int], name: str) -> None:
+    """InputError when neither both shoulders nor both hips are in view (``parts``:
+    parts_in_view): the torso's size and turn, from which the camera and the body's place are
+    set, cannot be told (a face close-up: fit-face fits faces)."""
+    if parts["shoulders"] < 2 and parts["hips"] < 2:
+        raise InputError(f"too little of the body is in view in {name} to fit a body ({in_view_line(parts)}): "
+                         "a body fit needs both shoulders or both hips; for a face use fit-face, or give a "
+                         "photo that shows the person's upper body")
+
+
+def fit_objective(parts: dict[str, int], objective: str = "full") -> str:
+    """The objective a photo is fitted with: "keypoints" instead of "full" when no hip is in view
+    (``parts``: parts_in_view; a portrait or a close-up, cut by the frame above the hips): its
+    person mask is the upper body's clothes and hair, cut off by the frame, and the silhouette
+    grew the body into it (the astronaut's head fitted at twice its size; keypoints only: the
+    head on the photo's head); otherwise ``objective``."""
+    return "keypoints" if objective == "full" and parts["hips"] == 0 else objective
 
 
 def keypoint_weights(layout: KeypointLayout, keypoints: np.ndarray, visibility: np.ndarray,
@@ -247,6 +294,7 @@ class BodyPhotoFit(BodyFit):
     detection: object = None
     fov_source: str = ""
     mask_misses: tuple = ()
+    objective: str = "full"
 
     def metrics(self) -> dict:
         """BodyFit's (silhouette IoU against the person mask) and the mean keypoint error over
@@ -381,6 +429,11 @@ def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFit
     """
     setup = photo_setup(photo_size, detection, model, config, fov_deg)
     check_in_view(setup, model)
+    chosen = fit_objective(parts_in_view(detection.keypoints, detection.visibility, photo_size), objective)
+    if chosen != objective and progress:
+        print("no hip in view: the keypoints in view are fitted with the priors, without the person mask's "
+              "silhouette (a portrait's mask is clothes and hair cut by the frame)")
+    objective = chosen
     config, data, layout = setup.config, setup.data, setup.layout
     keypoints, seen, fov_source = setup.keypoints, setup.seen, setup.fov_source
     scene = BodyScene(model, data.alpha.shape, config)
@@ -401,7 +454,7 @@ def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFit
         init = _initial_values(model, scene, layout, keypoints, seen, data.alpha)
     result = fit(photo_params(model, init, scene), objective_fn, stages, out_dir=out_dir, progress=progress, resume=resume)
     return BodyPhotoFit(result.values, scene, data, result, layout, keypoints, seen, detection, fov_source,
-                        tuple(missed))
+                        tuple(missed), objective)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -166,9 +166,10 @@ def write_photo_outputs(fit, photo: np.ndarray, out_dir, extra: dict | None = No
     """write_outputs of a fit of a photo (fitting.recipes.body_photo.BodyPhotoFit; photo (H, W, 3)
     linear RGB), then keypoints.png, mask.png and figure.png; params.json also holds the
     detection (keypoints, visibility, box, score, people), the keypoints used with their
-    weights and the field of view's source."""
+    weights, the field of view's source and the objective fitted ("keypoints" for a photo with
+    no hip in view: fitting.recipes.body_photo.fit_objective)."""
     metrics = fit.metrics() if metrics is None else metrics
-    extra = dict(extra or {}, detection=fit.detection.to_json(), fov_source=fit.fov_source,
+    extra = dict(extra or {}, detection=fit.detection.to_json(), fov_source=fit.fov_source, objective=fit.objective,
                  keypoints=dict(names=list(fit.layout.names), detector=fit.layout.detector.tolist(),
                                 weights=fit.weights.round(4).tolist(),
                                 fitted_px=fit.fitted_keypoints_full().round(2).tolist()))
