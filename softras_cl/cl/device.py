@@ -4,8 +4,9 @@ Order of choice (`select_device`):
 1. `SOFTRAS_CL_DEVICE`: "P:D" (platform and device index, "P" alone means device 0) or a
    case-insensitive substring of "platform name + platform version + device name", e.g. "pocl 3.1".
 2. `PYOPENCL_CTX`: pyopencl's format, "P:D" where each part is an index or a name substring.
-3. The best device found: GPUs, then CPUs (CPU platforms ranked by `PREFERRED_CPU_PLATFORMS`),
-   then anything else; ties keep pyopencl's order.
+3. The best device found whose compiler works (`compiler_fault`: a PoCL whose LLVM does not know
+   the CPU fails every build with "unknown target CPU 'generic'"): GPUs, then CPUs (CPU platforms
+   ranked by `PREFERRED_CPU_PLATFORMS`), then anything else; ties keep pyopencl's order.
 
 `resolve_context` turns a user's optional device, context and queue into a consistent triple.
 """
@@ -15,6 +16,7 @@ import functools
 import logging
 import os
 import re
+import warnings
 
 import pyopencl as cl
 
@@ -115,6 +117,39 @@ def _from_pyopencl_env(entries, value: str):
     return matches[0]
 
 
+PROBE_KERNEL = "__kernel void probe(__global float *x) { x[get_global_id(0)] *= 2.0f; }"
+
+
+@functools.cache
+def _compiler_fault(platform: cl.Platform, device: cl.Device) -> str | None:
+    with warnings.catch_warnings():         # pyopencl warns about the failed build's log as well
+        warnings.simplefilter("ignore")
+        try:
+            cl.Program(cl.Context([device]), PROBE_KERNEL).build()
+        except cl.Error as e:
+            lines = [line.strip() for line in str(e).splitlines() if "error" in line.lower()]
+            return (lines[-1] if lines else str(e).strip().splitlines()[0])[:200]
+    return None
+
+
+def compiler_fault(device: cl.Device) -> str | None:
+    """Why ``device``'s OpenCL compiler cannot build a trivial kernel (its first error line), or
+    None when it can. Probed once per device and process (tens of ms on PoCL)."""
+    return _compiler_fault(device.platform, device)
+
+
+def _usable_best(entries):
+    """The best-ranked device whose compiler works; DeviceError naming each fault when none does."""
+    faults = []
+    for entry in sorted(entries, key=_rank):
+        fault = compiler_fault(entry[3])
+        if fault is None:
+            return entry
+        faults.append(f"{entry[0]}:{entry[1]} {_label(entry[2], entry[3])}: {fault}")
+        logger.info("OpenCL device %d:%d cannot compile kernels, skipped: %s", entry[0], entry[1], fault)
+    raise DeviceError("no OpenCL device can compile kernels: " + "; ".join(faults))
+
+
 def _select(entries):
     value = os.environ.get(ENV_VAR, "").strip()
     if value:
@@ -122,7 +157,7 @@ def _select(entries):
     value = os.environ.get("PYOPENCL_CTX", "").strip()
     if value:
         return _from_pyopencl_env(entries, value)
-    return min(entries, key=_rank)
+    return _usable_best(entries)
 
 
 def select_device() -> cl.Device:
@@ -172,18 +207,19 @@ def list_devices() -> list[dict]:
     """Every OpenCL device, one dict each with keys: platform_index, device_index (int),
     platform_name, platform_version, device_name, type ("CPU"/"GPU"/"ACCELERATOR"/"OTHER"),
     compute_units (int), fp64, int64_atomics, local_mem_bytes (int), layout (the kernels' work
-    layout RasterSettings.layout="auto" picks there: "cpu" or "gpu"), chosen (bool; True for the
-    one `select_device` returns, none if the environment variable names no device)."""
+    layout RasterSettings.layout="auto" picks there: "cpu" or "gpu"), compiler_fault (None, or why
+    its compiler cannot build kernels: such a device is never chosen by default), chosen (bool;
+    True for the one `select_device` returns, none if the environment variable names no device)."""
     entries = _entries()
     try:
         chosen = _select(entries)
-    except ValueError:
+    except (ValueError, DeviceError):
         chosen = None
     return [dict(platform_index=pi, device_index=di, platform_name=p.name,
                  platform_version=p.version, device_name=d.name, type=_type_name(d),
                  compute_units=d.max_compute_units, fp64=has_fp64(d),
                  int64_atomics=has_int64_atomics(d), local_mem_bytes=d.local_mem_size,
-                 layout=kernel_layout(d, "auto"),
+                 layout=kernel_layout(d, "auto"), compiler_fault=compiler_fault(d),
                  chosen=chosen is not None and chosen[:2] == (pi, di))
             for pi, di, p, d in entries]
 

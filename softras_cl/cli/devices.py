@@ -23,6 +23,9 @@ def _run(args: argparse.Namespace) -> int:
         widths = [max(len(row[i]) for row in table) for i in range(len(table[0]))]
         for row in table:
             print("  ".join(c.ljust(w) for c, w in zip(row, widths)).rstrip())
+        for r in (r for r in rows if r["compiler_fault"]):
+            print(f"{r['platform_index']}:{r['device_index']} cannot compile kernels (never chosen by default): "
+                  f"{r['compiler_fault']}")
     device.select_device()   # a bad SOFTRAS_CL_DEVICE / PYOPENCL_CTX: InputError (exit 2), after the list
     return 0
 

@@ -124,3 +124,21 @@ def test_vector_lanes_follow_the_preferred_float_width(preferred, dtype, lanes):
     class Dev:
         preferred_vector_width_float = preferred
     assert device.vector_lanes(Dev(), dtype) == lanes
+
+
+def test_the_default_choice_skips_a_device_that_cannot_compile(monkeypatch):
+    """A device whose compiler fails (e.g. "unknown target CPU 'generic'") is passed over for the
+    next best; when none compiles, DeviceError names each fault."""
+    from softras_cl.cl import device as dev
+    from softras_cl.errors import DeviceError
+
+    platform = type("P", (), {"name": "PoCL", "version": "PoCL 3.1"})()
+    named = type("D", (), {"name": "cpu", "type": 0})
+    entries = [(0, 0, platform, named()), (1, 0, platform, named())]
+    faults = {id(entries[0][3]): "error: unknown target CPU 'generic'", id(entries[1][3]): None}
+    monkeypatch.setattr(dev, "compiler_fault", lambda d: faults[id(d)])
+    monkeypatch.setattr(dev, "_rank", lambda entry: (entry[0], 0))
+    assert dev._usable_best(entries) is entries[1]
+    faults[id(entries[1][3])] = "error: boom"
+    with pytest.raises(DeviceError, match="no OpenCL device can compile kernels: 0:0 .*unknown target CPU"):
+        dev._usable_best(entries)
