@@ -15,16 +15,16 @@ projection; a fit uses one), at any sigma, gamma, near and far given per call.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from softras_cl.checks import check_finite, float_array
-from softras_cl.scene import shading
+from softras_cl.cl.device import resolve_context
+from softras_cl.scene import device_render, shading
+from softras_cl.scene.render_inputs import (RenderContext, RenderOutput, _check_albedo, _light_vector,
+                                           _light_vector_vjp, _raster_grads, _views)
 from softras_cl.scene.camera import Camera, ProjectionContext
 from softras_cl.scene.rotation import rodrigues_vjp
 from softras_cl.raster.corners import scatter_corners
-from softras_cl.raster.rasterizer import RUN_FIELDS, ForwardImages, RasterOutput, SoftRasterizer
+from softras_cl.raster.rasterizer import RUN_FIELDS, SoftRasterizer
 from softras_cl.raster.settings import RasterSettings
 
 SHADINGS = ("vertex", "face", "pixel", "none")
@@ -32,38 +32,6 @@ SHADINGS = ("vertex", "face", "pixel", "none")
 # below 1e-4 within 0.003 NDC of an edge (0.4 pixel at 256 x 256), and the nearest surface wins.
 SHARP = (1e-6, 1e-4)
 GRAD_GROUPS = ("vertices", "albedo", "camera", "light", "focal")
-
-
-@dataclass
-class RenderContext:
-    """What Renderer.backward needs from one forward call.
-
-    renderer: the Renderer whose forward made it (only its backward takes it);
-    raster: the SoftRasterizer drawn with and raster_out its RasterOutput (with its own context);
-    cameras: the B Cameras, one per view, and cam_ctx their ProjectionContexts; shade_ctx:
-    shading.ShadeContext (vertex or face shading), shading.NormalsContext (pixel shading) or
-    None (unlit); light: the light used; grads: the groups backward returns; batched: whether
-    the vertices had a batch axis; single_camera: whether one Camera (not a list) was given;
-    albedo_shape: the shape of the albedo given (None without one).
-    """
-    raster: SoftRasterizer
-    raster_out: RasterOutput
-    cameras: list
-    cam_ctx: tuple[ProjectionContext, ...]
-    shade_ctx: object
-    light: object
-    grads: tuple
-    batched: bool
-    single_camera: bool
-    albedo_shape: tuple | None
-    renderer: "Renderer"
-
-
-@dataclass
-class RenderOutput(ForwardImages):
-    """Images (B, H, W[, 3]) of one Renderer.forward call (ForwardImages), and what backward
-    needs."""
-    saved: RenderContext | None = None
 
 
 class Renderer:
@@ -75,7 +43,9 @@ class Renderer:
     and lit per pixel in the kernel; Lambert or SH lights) or "none" (unlit: the colour input is
     drawn as it is, with any texture mode); device: a pyopencl.Device or None for the default;
     context, queue: a user's own pyopencl Context / in-order CommandQueue, checked as
-    SoftRasterizer checks them (softras_cl.cl.device.resolve_context).
+    SoftRasterizer checks them (softras_cl.cl.device.resolve_context). `device`, `context` and
+    `queue` hold the resolved ones: every rasteriser of the renderer runs on that queue, and
+    device-resident inputs (pyopencl arrays) are made on it.
 
     The settings are fixed for the renderer's life (read-only `settings`); sigma, gamma, near
     and far can be given to each forward instead.
@@ -88,8 +58,18 @@ class Renderer:
         if not isinstance(settings, RasterSettings):
             raise TypeError(f"settings must be a RasterSettings, got {type(settings).__name__}")
         self._base_settings, self.shading = settings, shading
-        self.device, self.context, self.queue = device, context, queue
+        self.device, self.context, self.queue = resolve_context(device, context, queue)
         self._rasterizers: dict = {}    # (texture, lighting, projection) -> SoftRasterizer
+
+    @property
+    def device_tools(self):
+        """The device-resident path's kernels and caches (softras_cl.scene.device_render), made
+        on first use."""
+        if not hasattr(self, "_device_tools"):
+            from softras_cl.scene.device_render import DeviceTools
+
+            self._device_tools = DeviceTools(self.context, self.queue)
+        return self._device_tools
 
     @property
     def settings(self) -> RasterSettings:
@@ -110,8 +90,19 @@ class Renderer:
         are rasterised (SoftRasterizer.forward), the rest is background without gradients;
         sigma, gamma, near, far: this call's values of those settings (None: the settings'
         own), checked as RasterSettings checks them.
+
+        Device-resident inputs: when vertices, faces, albedo (or an unlit texture input) is a
+        pyopencl.array.Array on this renderer's queue, the projection, normals, shading and
+        rasterisation run on the device and the images come back as pyopencl arrays
+        (softras_cl.scene.device_render; docs/api.md, "Device-resident calls"). Lights: Lambert
+        and SH (a PhongLight needs numpy inputs); needs cl_khr_fp64.
         """
         grads = _check_grad_groups(grads, self.shading)
+        args = dict(vertices=vertices, faces=faces, albedo=albedo, face_textures=face_textures,
+                    texture_image=texture_image, uvs=uvs)
+        if device_render.uses_device(args):
+            run = dict(zip(RUN_FIELDS, (sigma, gamma, near, far)))
+            return device_render.forward_device(self, args, cameras, light, grads, roi, run)
         single_camera = isinstance(cameras, Camera)
         cameras, verts, batched = _views(cameras, vertices, self.settings.image_size)
         faces = np.asarray(faces)
@@ -137,8 +128,14 @@ class Renderer:
         camera (a dict of rotation (3,), translation (3,), focal (2,) per view: a list when a
         list of cameras was given), focal ((2,) [dL/dfx, dL/dfy] per view, likewise: camera's
         focal without the rest of camera), light (dict of the light's parameters). output:
-        what this renderer's forward returned, with grads (ValueError for another's)."""
+        what this renderer's forward returned, with grads (ValueError for another's).
+
+        After a device-resident forward the cotangents may be pyopencl arrays (numpy ones are
+        uploaded); vertices and albedo gradients come back as float64 pyopencl arrays, camera,
+        focal and light gradients as numpy (summed on the device, read back)."""
         saved = self._own_context(output)
+        if saved.device is not None:
+            return device_render.backward_device(self, saved, grad_rgb, grad_alpha, grad_depth)
         g_raster = saved.raster.backward(saved.raster_out, grad_rgb, grad_alpha, grad_depth)
         g_shade = self._shading_vjp(saved, g_raster)
         camera = "camera" in saved.grads or ("focal" if "focal" in saved.grads else False)
@@ -239,26 +236,6 @@ class Renderer:
         return g if len(saved.albedo_shape) == 3 else g.sum(0)
 
 
-def _light_vector(light) -> np.ndarray:
-    """The 27 light parameters of the per-pixel kernel (settings.lighting, docs/scene.md)."""
-    if isinstance(light, shading.SHLight):
-        return (light.coefficients * shading.SH_POLY_SCALE).ravel()
-    if type(light) is shading.LambertLight:
-        direction = light.direction / np.linalg.norm(light.direction)
-        return np.concatenate([light.ambient, light.directional, direction, np.zeros(18)])
-    raise ValueError(f"light: shading='pixel' supports LambertLight and SHLight, got {type(light).__name__}")
-
-
-def _light_vector_vjp(light, grad: np.ndarray) -> dict:
-    """Gradient of the 27 kernel light parameters -> the light's own parameters."""
-    if isinstance(light, shading.SHLight):
-        return dict(coefficients=grad.reshape(3, 9) * shading.SH_POLY_SCALE)
-    length = np.linalg.norm(light.direction)
-    unit = light.direction / length
-    g_unit = grad[6:9]
-    return dict(ambient=grad[0:3], directional=grad[3:6], direction=(g_unit - unit * (unit @ g_unit)) / length)
-
-
 def _camera_grads(camera: Camera, ctx: ProjectionContext, g_proj: dict, g_center) -> dict:
     """Projection gradients plus those reaching the camera centre c = -R^T t through shading
     (ctx: the camera's ProjectionContext)."""
@@ -270,43 +247,6 @@ def _camera_grads(camera: Camera, ctx: ProjectionContext, g_proj: dict, g_center
     return out
 
 
-def _views(cameras, vertices, image_size: tuple):
-    """(list of B cameras, (B, V, 3) float64 vertices, whether the vertices had a batch axis)."""
-    single = isinstance(cameras, Camera)
-    cams = [cameras] if single else list(cameras)
-    if not cams or not all(isinstance(c, Camera) for c in cams):
-        raise TypeError("cameras must be a Camera or a non-empty list of Camera objects")
-    verts = np.asarray(vertices, np.float64)
-    if verts.ndim not in (2, 3) or verts.shape[-1] != 3:
-        raise ValueError(f"vertices must have shape (V, 3) or (B, V, 3), got {verts.shape}")
-    batched = verts.ndim == 3
-    batch = verts.shape[0] if batched else len(cams)
-    if single:
-        cams = cams * batch
-    if len(cams) != batch:
-        raise ValueError(f"{len(cams)} cameras for a batch of {batch} meshes")
-    sizes = {tuple(c.image_size) for c in cams}
-    if sizes != {tuple(image_size)}:
-        raise ValueError(f"cameras have image_size {sorted(sizes)} but settings.image_size is {image_size}")
-    return cams, np.broadcast_to(verts, (batch, *verts.shape[-2:])), batched
-
-
-def _check_albedo(albedo, verts_shape: tuple) -> None:
-    """ValueError naming albedo unless it is None or a finite float (V, 3) or (B, V, 3) array
-    (B = 1 or the batch of verts_shape (B, V, 3)), before any shading or kernel runs."""
-    if albedo is None:
-        return
-    batch, n_vertices = verts_shape[:2]
-    arr = float_array("albedo", albedo)
-    per_vertex = (n_vertices, 3)
-    if not (arr.shape == per_vertex or (arr.ndim == 3 and arr.shape[1:] == per_vertex
-                                        and arr.shape[0] in (1, batch))):
-        batches = "1" if batch == 1 else f"1 or {batch}"
-        raise ValueError(f"albedo must have shape ({n_vertices}, 3) or (B, {n_vertices}, 3) with B = "
-                         f"{batches} (one RGB colour per vertex), got {arr.shape}")
-    check_finite("albedo", arr)
-
-
 def _check_grad_groups(grads, shading_mode: str) -> tuple:
     grads = tuple(grads)
     bad = [g for g in grads if g not in GRAD_GROUPS]
@@ -315,10 +255,3 @@ def _check_grad_groups(grads, shading_mode: str) -> tuple:
     if "light" in grads and shading_mode == "none":
         raise ValueError("grads asks for 'light' but shading='none' uses no light")
     return grads
-
-
-def _raster_grads(grads: tuple, shading_mode: str) -> tuple:
-    """What the rasteriser must differentiate for the requested groups."""
-    positions = {"vertices", "camera", "focal"} & set(grads)
-    colors = {"albedo", "light"} & set(grads) or (positions and shading_mode != "none")
-    return (("vertices",) if positions else ()) + (("colors",) if colors else ())
