@@ -7,11 +7,15 @@
 # Steps, each under its own time limit, so one stuck step cannot eat the call: install the
 # carried wheels (scripts/fetch_gpu_wheels.sh fills .whl/) and make the source tree importable;
 # list the machine's GPU driver files; find the GPU's OpenCL library and register it as an ICD;
-# `softras-cl devices`; determinism (the same forward+backward three times, hashed); a face fit
-# end to end; the raster bench at 1024^2 with each kernel layout; the kernel tests against the
-# float64 reference (tests/raster and the renderer's). Writes into $OUT: gpu_check.json (the
-# summary: scripts/gpu_check_report.py), junit.xml, bench_raster.json (the bench's raster.json)
-# and gpu_check_files.tar.gz (every log and report). Exit code 0 when the summary says "ok".
+# `softras-cl devices`; determinism (the same forward+backward three times, hashed); the
+# README's face fit end to end, cold (empty kernel cache) then warm; the raster bench at 1024^2
+# with each kernel layout, numpy and device-resident in/out; the product's jobs: track-face on a
+# 90-frame 640x480 talking head and a fit-face batch of 32 photos (fast budget); the kernel tests
+# against the float64 reference (tests/raster's device-resident path first, then the rest of
+# tests/raster and the renderer's). Writes into $OUT: gpu_check.json (the summary:
+# scripts/gpu_check_report.py), junit.xml and junit_device.xml, bench_raster.json (the bench's
+# raster.json) and gpu_check_files.tar.gz (every log and report). Exit code 0 when the summary
+# says "ok".
 #
 # Variables (all optional but OUT):
 #   GPU_CHECK_PYTHON      the Python to run (default python3)
@@ -21,10 +25,12 @@
 #                         "pocl 3.1" to rehearse on a CPU)
 #   GPU_CHECK_LAYOUTS     kernel layouts, comma-separated (default gpu,cpu), for the bench's
 #                         --layout and the determinism check; empty: neither names a layout
-#   GPU_CHECK_QUICK=1     small scenes, one repeat, the fast fit budget (a rehearsal on 2 cores)
+#   GPU_CHECK_QUICK=1     small scenes, one repeat, the fast fit budget, a 12-frame 320x240 clip
+#                         and 4 photos (a rehearsal on 2 cores)
 #   GPU_CHECK_DEADLINE_S  seconds the steps may take together (default 450); each step's limit
 #                         shrinks to what is left, and a step with under 5 s left is skipped
 #   GPU_CHECK_SCRATCH     working folder (default /tmp/gpu_check; emptied first)
+#   GPU_CHECK_DRY_RUN=1   run no step: print each with its limit and command (status "planned")
 set -uo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 REPO=$(pwd)
@@ -38,6 +44,7 @@ LAYOUTS=${GPU_CHECK_LAYOUTS-gpu,cpu}
 QUICK=${GPU_CHECK_QUICK:-0}
 DEADLINE_S=${GPU_CHECK_DEADLINE_S:-450}
 SCRATCH=$(realpath -m "${GPU_CHECK_SCRATCH:-/tmp/gpu_check}")
+DRY_RUN=${GPU_CHECK_DRY_RUN:-0}
 SITE=$SCRATCH/site
 LOGS=$SCRATCH/logs
 START=$SECONDS
@@ -45,10 +52,12 @@ START=$SECONDS
 # Options of the steps, as words (the step functions run in a new bash, which gets no arrays).
 if [ "$QUICK" = 1 ]; then
     BENCH_ARGS="--sizes 128 --faces 320,1280 --repeats 1" DETERMINISM_ARGS="--faces 1280 --size 128"
-    FIT_ARGS="--budget fast"
+    FIT_ARGS="--budget fast" CLIP_ARGS="--frames 12 --width 320 --height 240" TRACK_ARGS="--size 128"
+    PHOTOS=4
 else   # the published sizes (280 / 3.3k / 39k faces) lie between these icosphere counts
     BENCH_ARGS="--sizes 1024 --faces 320,1280,5120,20480,81920 --repeats 5" DETERMINISM_ARGS=""
-    FIT_ARGS="--budget default"
+    FIT_ARGS="--budget default" CLIP_ARGS="--frames 90 --width 640 --height 480" TRACK_ARGS=""
+    PHOTOS=32
 fi
 
 rm -rf "$SCRATCH" || exit 1
@@ -67,11 +76,15 @@ export PATH="$SCRATCH/bin:$PATH"
 # Kernel binaries cached in the scratch folder, so that every run starts cold as on a fresh
 # machine, unless SOFTRAS_CL_CACHE_DIR names a cache (a rehearsal on a slow CPU).
 export SOFTRAS_CL_CACHE_DIR="${SOFTRAS_CL_CACHE_DIR:-$SCRATCH/program_cache}"
+# The face fit's own cache, empty when its first run starts (cold: kernel builds included, even
+# when SOFTRAS_CL_CACHE_DIR names a kept cache); the warm fit, the clip, the track and the batch
+# find their kernels there, as on a machine that has run a fit before.
+FIT_CACHE=$SCRATCH/fit_program_cache
 
 # step NAME BUDGET_S FUNCTION [ARGS...]: run the exported FUNCTION in a new bash with its output
 # in logs/NAME.log, interrupted after BUDGET_S (less when the deadline is nearer) as by Ctrl-C,
 # so that pytest still writes its report and a fit its outputs, and killed 20 s later; append
-# NAME, status (ok, failed, timeout, skipped), exit code, seconds and limit to steps.tsv.
+# NAME, status (ok, failed, timeout, skipped; planned in a dry run), exit code, seconds and limit to steps.tsv.
 step() {
     local name=$1 budget=$2 left rc status t0 seconds
     shift 2
@@ -81,6 +94,11 @@ step() {
         printf '%s\tskipped\t\t\t%s\n' "$name" "$budget" >> "$SCRATCH/steps.tsv"
         echo "== $name: skipped (deadline)"
         return 125
+    fi
+    if [ "$DRY_RUN" = 1 ]; then
+        printf '%s\tplanned\t\t\t%s\n' "$name" "$budget" >> "$SCRATCH/steps.tsv"
+        echo "== $name (at most $budget s): $*"
+        return 0
     fi
     echo "== $name (at most $budget s)"
     t0=$(date +%s.%N)
@@ -102,7 +120,7 @@ install_packages() {
     ln -s "$REPO"/softras_cl/* "$SITE/shim/softras_cl/" || return 1
     ln -s "$REPO/kernels" "$SITE/shim/softras_cl/kernels" || return 1
     ln -s "$REPO/fitting" "$SITE/shim/softras_cl/fitting" || return 1
-    "$PY" -c "import sys, pyopencl, trimesh, png, nlopt
+    "$PY" -c "import sys, pyopencl, trimesh, png, nlopt, mako, distributed
 import softras_cl.fitting.solver, softras_cl.kernels, softras_cl.raster.rasterizer
 print('python', sys.version.split()[0], 'pyopencl', pyopencl.VERSION_TEXT)"
 }
@@ -144,9 +162,20 @@ gpu_present() {
     [ "${chosen%%$'\t'*}" = GPU ]
 }
 
-kernel_tests() {
+DEVICE_TESTS="tests/raster/test_device_path.py tests/raster/test_device_bins.py"   # the device-resident path
+
+device_tests() {   # first and on their own, so that an interrupted kernel_tests step cannot cut them
+    local files=() t
+    for t in $DEVICE_TESTS; do files+=("$REPO/$t"); done
+    "$PY" -m pytest -q -p no:cacheprovider --rootdir "$REPO" --junitxml="$SCRATCH/junit_device.xml" \
+        -o junit_family=xunit2 "${files[@]}"
+}
+
+kernel_tests() {   # the rest of tests/raster and the renderer's
+    local ignore=() t
+    for t in $DEVICE_TESTS; do ignore+=("--ignore=$REPO/$t"); done
     "$PY" -m pytest -q -p no:cacheprovider --rootdir "$REPO" --junitxml="$SCRATCH/junit.xml" \
-        -o junit_family=xunit2 "$REPO/tests/raster" "$REPO/tests/scene/test_renderer.py"
+        -o junit_family=xunit2 "${ignore[@]}" "$REPO/tests/raster" "$REPO/tests/scene/test_renderer.py"
 }
 
 determinism() {
@@ -155,17 +184,37 @@ determinism() {
 }
 
 bench_raster() {   # every layout of $LAYOUTS in one run (which counts each scene's pairs once)
-    softras-cl bench raster --speed-only $BENCH_ARGS ${LAYOUTS:+--layout "$LAYOUTS"} --out "$SCRATCH/bench"
+    softras-cl bench raster --speed-only $BENCH_ARGS ${LAYOUTS:+--layout "$LAYOUTS"} --io numpy,device \
+        --out "$SCRATCH/bench"
 }
 
 fit_face() {   # $1: output folder under $SCRATCH
-    softras-cl fit-face "$REPO/examples/data/astronaut.png" \
+    SOFTRAS_CL_CACHE_DIR="$FIT_CACHE" softras-cl fit-face "$REPO/examples/data/astronaut.png" \
         --landmarks "$REPO/examples/data/landmarks/astronaut.pts" --out "$SCRATCH/$1" --no-progress $FIT_ARGS
 }
 
-export REPO PY WHEELS SITE SCRATCH LAYOUTS BENCH_ARGS DETERMINISM_ARGS FIT_ARGS
+make_clip() {   # the talking head as a folder of PNG frames, with its landmarks
+    SOFTRAS_CL_CACHE_DIR="$FIT_CACHE" "$PY" "$REPO/scripts/gpu_check_jobs.py" clip "$SCRATCH/clip" $CLIP_ARGS
+}
+
+track_face() {   # track-face on it; the landmarks given, as the image has no MediaPipe
+    SOFTRAS_CL_CACHE_DIR="$FIT_CACHE" "$PY" "$REPO/scripts/gpu_check_jobs.py" track "$SCRATCH/clip" \
+        "$SCRATCH/track" --report "$SCRATCH/track_run.json" --no-progress $TRACK_ARGS
+}
+
+make_photos() {   # crops of the shipped photos, each with its landmark file beside it
+    "$PY" "$REPO/scripts/gpu_check_jobs.py" photos "$SCRATCH/photos" --count "$PHOTOS"
+}
+
+batch_fit() {   # one fit-face call on the folder: a local Dask cluster, one worker per core
+    SOFTRAS_CL_CACHE_DIR="$FIT_CACHE" softras-cl fit-face "$SCRATCH/photos" --budget fast \
+        --out "$SCRATCH/batch" --no-progress
+}
+
+export REPO PY WHEELS SITE SCRATCH LAYOUTS BENCH_ARGS DETERMINISM_ARGS FIT_ARGS FIT_CACHE CLIP_ARGS TRACK_ARGS \
+    PHOTOS DEVICE_TESTS
 export -f install_packages system_inventory find_opencl_driver list_devices loader_diagnosis gpu_present \
-    kernel_tests determinism bench_raster fit_face
+    device_tests kernel_tests determinism bench_raster fit_face make_clip track_face make_photos batch_fit
 
 run_steps() {
     step install 60 install_packages || return
@@ -189,9 +238,12 @@ run_steps() {
     fi
     # the measurements first; the tests last, with what is left (they are interrupted cleanly)
     step determinism 60 determinism
-    step fit_face 120 fit_face fit
+    step fit_face 120 fit_face fit               # an empty kernel cache: the builds included
     step fit_face_warm 60 fit_face fit_warm      # the kernels now come from the binary cache
     step bench_raster 200 bench_raster
+    step make_clip 45 make_clip && step track_face 120 track_face
+    step make_photos 20 make_photos && step batch_fit 120 batch_fit
+    step device_tests 120 device_tests
     step kernel_tests 300 kernel_tests
 }
 
@@ -201,8 +253,9 @@ quick_flag=()
 [ "$QUICK" = 1 ] && quick_flag=(--quick)
 timeout 30 "$PY" "$REPO/scripts/gpu_check_report.py" summary "$SCRATCH" "$OUT/gpu_check.json" "${quick_flag[@]}"
 summary_rc=$?
-cp "$SCRATCH/junit.xml" "$OUT/" 2> /dev/null
+cp "$SCRATCH/junit.xml" "$SCRATCH/junit_device.xml" "$OUT/" 2> /dev/null
 cp "$SCRATCH/bench/raster.json" "$OUT/bench_raster.json" 2> /dev/null
 tar -czf "$OUT/gpu_check_files.tar.gz" -C "$SCRATCH" --exclude=site --exclude=bin \
-    --exclude=program_cache --exclude='*.npz' --exclude='*.ply' --exclude='*.obj' --exclude='*.mtl' .
+    --exclude=program_cache --exclude=fit_program_cache --exclude=clip/frames --exclude=photos \
+    --exclude='batch/*/*' --exclude='*.mp4' --exclude='*.npz' --exclude='*.ply' --exclude='*.obj' --exclude='*.mtl' .
 exit $summary_rc

@@ -1,6 +1,7 @@
 """scripts/gpu_check.sh's parts that run without a GPU: the ICD finder (on fake file trees), the
-summary of a run (on fake step outputs), the determinism check (on this machine's device), the
-bare environment's package filter, and the script's plumbing when no step has time to run."""
+summary of a run (on fake step outputs), the determinism check and the product jobs' inputs and
+track-face stand-ins (on this machine's device, at tiny sizes), the bare environment's package
+filter, and the script's plumbing (no step with time to run; a dry run's plan)."""
 from __future__ import annotations
 
 import json
@@ -10,6 +11,7 @@ import sys
 from pathlib import Path
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from support.scripts import REPO, load_script
@@ -136,8 +138,8 @@ def bench_json(rows, device=None) -> str:
                                                    for r in rows]))
 
 
-def bench_row(layout, faces, fwdbwd_ms, size=1024):
-    return dict(layout=layout, layout_asked=layout, faces=faces, size=size, fwdbwd_ms=fwdbwd_ms,
+def bench_row(layout, faces, fwdbwd_ms, size=1024, io="numpy"):
+    return dict(layout=layout, layout_asked=layout, io=io, faces=faces, size=size, fwdbwd_ms=fwdbwd_ms,
                 kernel_ms=fwdbwd_ms / 2)
 
 
@@ -146,19 +148,40 @@ DEVICE = dict(name="NVIDIA H100 80GB HBM3", version="OpenCL 3.0 CUDA", platform=
 DEVICES = [dict(device_name="NVIDIA H100 80GB HBM3", platform_name="NVIDIA CUDA", type="GPU",
                 platform_version="OpenCL 3.0 CUDA 13.0.0", chosen=True)]
 STEPS = ("install\tok\t0\t3.5\t60\nkernel_tests\tok\t0\t40.25\t150\nfit_face\tok\t0\t4.75\t120\n"
-         "fit_face_warm\tok\t0\t1.75\t60\nbench_raster\tok\t0\t20\t200\n")
+         "fit_face_warm\tok\t0\t1.75\t60\nbench_raster\tok\t0\t20\t200\nmake_clip\tok\t0\t3\t45\n"
+         "track_face\tok\t0\t12.5\t120\nmake_photos\tok\t0\t1\t20\nbatch_fit\tok\t0\t16\t120\n"
+         "device_tests\tok\t0\t8\t120\n")
+JUNIT_DEVICE = """<?xml version="1.0" encoding="utf-8"?><testsuites><testsuite name="pytest" errors="0"
+failures="1" skipped="1" tests="4" time="2.5"><testcase classname="tests.raster.test_device_path" name="a"/>
+<testcase classname="tests.raster.test_device_path" name="b"><failure message="x"/></testcase>
+<testcase classname="tests.raster.test_device_bins" name="c"/>
+<testcase classname="tests.raster.test_device_bins" name="d"><skipped message="s"/></testcase>
+</testsuite></testsuites>"""
+TRACK = dict(status="done", seconds=9.0, identity_seconds=6.0, frames=90, frames_held=0, end_to_end_fps=10.0,
+             frame_fit_seconds=1.5, frame_fit_fps=60.0, keyframes=[0, 30, 60, 89])
 
 
-def fake_run(scratch: Path, steps: str = STEPS, junit: str = JUNIT, identical: bool = True) -> Path:
+def fake_run(scratch: Path, steps: str = STEPS, junit: str = JUNIT, identical: bool = True,
+             junit_device: str = JUNIT_DEVICE) -> Path:
     touch(scratch / "steps.tsv", steps)
     touch(scratch / "junit.xml", junit)
+    touch(scratch / "junit_device.xml", junit_device)
     touch(scratch / "devices.json", json.dumps(DEVICES))
     touch(scratch / "nvidia_smi.csv", "NVIDIA H100 80GB HBM3, 580.159.04, 81559 MiB\n")
     touch(scratch / "determinism.json", json.dumps(dict(device=DEVICE, identical=identical, runs=[])))
     rows = [bench_row("gpu", f, ms) for f, ms in ((320, 0.5), (5120, 1.0), (20480, 1.5), (81920, 4.0))]
-    touch(scratch / "bench/raster.json", bench_json(rows + [bench_row("cpu", 20480, 3.0)], DEVICE))
+    rows += [bench_row("gpu", 20480, 0.6, io="device"), bench_row("cpu", 20480, 3.0)]
+    touch(scratch / "bench/raster.json", bench_json(rows, DEVICE))
     touch(scratch / "fit/complete.json", json.dumps(dict(seconds=4.25)))
     touch(scratch / "fit_warm/complete.json", json.dumps(dict(seconds=1.25)))
+    touch(scratch / "clip/clip.json", json.dumps(dict(frames=90, width=640, height=480, fps=30.0, seed=7)))
+    touch(scratch / "track/complete.json", json.dumps(TRACK))
+    touch(scratch / "track_run.json", json.dumps(dict(rc=0, stand_ins=dict(landmarks="given"))))
+    for i in range(4):
+        touch(scratch / f"photos/photo_{i:03d}.png")
+    touch(scratch / "batch/results.jsonl", "".join(
+        json.dumps(dict(name=f"photo_{i:03d}", status="ok" if i < 3 else "failed", seconds=2.0 + i)) + "\n"
+        for i in range(4)) + "not json\n")
     return scratch
 
 
@@ -180,14 +203,30 @@ def test_junit_counts(report, tmp_path):
 
 def test_bench_rows_and_the_brackets_of_the_published_sizes(report, tmp_path):
     rows = report.bench_rows(fake_run(tmp_path))
-    assert [(r["layout"], r["faces"]) for r in rows] == [
-        ("cpu", 20480), ("gpu", 320), ("gpu", 5120), ("gpu", 20480), ("gpu", 81920)]
+    assert [(r["layout"], r["io"], r["faces"]) for r in rows] == [
+        ("cpu", "numpy", 20480), ("gpu", "device", 20480), ("gpu", "numpy", 320), ("gpu", "numpy", 5120),
+        ("gpu", "numpy", 20480), ("gpu", "numpy", 81920)]
+    brackets = report.paper_brackets(rows)
     gpu = {b["paper_faces"]: (b["below"] and b["below"]["faces"], b["above"] and b["above"]["faces"])
-           for b in report.paper_brackets(rows) if b["layout"] == "gpu"}
+           for b in brackets if (b["layout"], b["io"]) == ("gpu", "numpy")}
     assert gpu == {280: (None, 320), 3300: (320, 5120), 39000: (20480, 81920)}
-    # a bench from before --layout: rows without a layout
+    device = {b["paper_faces"]: (b["below"] and b["below"]["faces"], b["above"] and b["above"]["faces"])
+              for b in brackets if (b["layout"], b["io"]) == ("gpu", "device")}
+    assert device == {280: (None, 20480), 3300: (None, 20480), 39000: (20480, None)}
+    # a bench from before --layout and --io: rows without a layout or in/out
     touch(tmp_path / "old/bench/raster.json", bench_json([dict(faces=320, size=64, fwdbwd_ms=2.0)]))
-    assert [r["layout"] for r in report.bench_rows(tmp_path / "old")] == ["default"]
+    assert [(r["layout"], r["io"]) for r in report.bench_rows(tmp_path / "old")] == [("default", "numpy")]
+
+
+def test_end_to_end_times_numpy_and_device_resident_side_by_side(report, tmp_path):
+    pairs = report.end_to_end(report.bench_rows(fake_run(tmp_path)))
+    assert [(p["layout"], p["faces"]) for p in pairs] == [
+        ("cpu", 20480), ("gpu", 320), ("gpu", 5120), ("gpu", 20480), ("gpu", 81920)]
+    scene = next(p for p in pairs if (p["layout"], p["faces"]) == ("gpu", 20480))
+    assert scene == dict(layout="gpu", size=1024, faces=20480, numpy_ms=1.5, device_ms=0.6, kernel_ms=0.3,
+                         numpy_over_device=pytest.approx(2.5))
+    cpu = pairs[0]
+    assert cpu["numpy_ms"] == 3.0 and cpu["device_ms"] is None and cpu["numpy_over_device"] is None
 
 
 def test_summary_of_a_good_run(report, tmp_path):
@@ -196,42 +235,66 @@ def test_summary_of_a_good_run(report, tmp_path):
     assert s["nvidia_smi"] == dict(name="NVIDIA H100 80GB HBM3", driver_version="580.159.04", memory_total="81559 MiB")
     assert s["fit"] == dict(seconds=4.75, fit_seconds=4.25, warm_seconds=1.75, warm_fit_seconds=1.25,
                             budget="default")
-    assert s["targets"]["bench_scene_fwdbwd_ms"] == dict(target=2.0, measured=1.5, layout="gpu", kernel_ms=0.75,
-                                                          met=True)
+    assert s["targets"]["bench_scene_fwdbwd_ms"] == dict(target=2.0, measured=0.6, layout="gpu", io="device",
+                                                          kernel_ms=0.3, met=True)
+    assert [(p["layout"], p["faces"], p["device_ms"]) for p in s["end_to_end"] if p["device_ms"]] == [
+        ("gpu", 20480, 0.6)]
+    assert s["track"] == dict(clip=dict(frames=90, width=640, height=480, fps=30.0), frames=90, frames_held=0,
+                              end_to_end_fps=10.0, frame_fit_fps=60.0, seconds=9.0, identity_seconds=6.0,
+                              frame_fit_seconds=1.5, step_status="ok", step_seconds=12.5,
+                              stand_ins=dict(landmarks="given"))
+    assert s["batch"] == dict(photos=4, ok=3, failed=1, seconds=16.0, photos_per_s=3 / 16, mean_fit_seconds=3.0,
+                              budget="fast", cores=os.cpu_count(), step_status="ok")
+    # both JUnit reports added up, the device-resident path's files counted apart
+    assert (s["tests"]["tests"], s["tests"]["passed"], s["tests"]["skipped"]) == (14, 8, 3)
+    assert s["tests"]["failed_tests"] == ["tests.raster.test_device_path::b", "tests.raster.test_a::bad",
+                                          "tests.raster.test_b::broken"]
+    assert s["tests"]["device_path"] == dict(test_device_path=dict(tests=2, passed=1, failed=1, skipped=0),
+                                             test_device_bins=dict(tests=2, passed=1, failed=0, skipped=1))
     assert s["targets"]["fit_s"] == dict(target=2.0, measured=1.75, met=True)
     assert s["status"] == "failed"          # the JUnit file has a failure and an error
 
 
-@pytest.mark.parametrize("steps, junit, identical, expected", [
-    (STEPS, JUNIT.replace('errors="1"', 'errors="0"').replace('failures="1"', 'failures="0"'), True, "ok"),
-    (STEPS, JUNIT.replace('errors="1"', 'errors="0"').replace('failures="1"', 'failures="0"'), False, "failed"),
-    (STEPS + "bench_raster\ttimeout\t124\t200\t200\n", JUNIT.replace('errors="1"', 'errors="0"').replace(
-        'failures="1"', 'failures="0"'), True, "failed"),
-    ("install\tok\t0\t1\t60\ngpu_present\tfailed\t1\t0.5\t20\n", "", True, "no_gpu"),
+PASSING = JUNIT.replace('errors="1"', 'errors="0"').replace('failures="1"', 'failures="0"')
+PASSING_DEVICE = JUNIT_DEVICE.replace('failures="1"', 'failures="0"')
+
+
+@pytest.mark.parametrize("steps, junit, junit_device, identical, expected", [
+    (STEPS, PASSING, PASSING_DEVICE, True, "ok"),
+    (STEPS, PASSING, PASSING_DEVICE, False, "failed"),
+    (STEPS, PASSING, JUNIT_DEVICE, True, "failed"),           # a device-resident path test failed
+    (STEPS + "bench_raster\ttimeout\t124\t200\t200\n", PASSING, PASSING_DEVICE, True, "failed"),
+    (STEPS + "batch_fit\tskipped\t\t\t3\n", PASSING, PASSING_DEVICE, True, "failed"),
+    ("install\tok\t0\t1\t60\ngpu_present\tfailed\t1\t0.5\t20\n", "", "", True, "no_gpu"),
+    ("install\tplanned\t\t\t60\ngpu_present\tplanned\t\t\t20\n", "", "", True, "planned"),
 ])
-def test_overall_status(report, tmp_path, steps, junit, identical, expected):
-    s = report.summary(fake_run(tmp_path, steps, junit, identical), quick=False)
+def test_overall_status(report, tmp_path, steps, junit, junit_device, identical, expected):
+    s = report.summary(fake_run(tmp_path, steps, junit, identical, junit_device), quick=False)
     assert s["status"] == expected
     assert (s["note"] is not None) == (expected == "no_gpu")
 
 
 def test_digest_names_what_was_measured(report, tmp_path):
     lines = report.digest(report.summary(fake_run(tmp_path), quick=False)).splitlines()
-    assert lines[:6] == [
+    assert lines[:8] == [
         "status: failed",
         "device: NVIDIA H100 80GB HBM3 (GPU; OpenCL 3.0 CUDA; driver 580.159.04)",
-        "tests: 6 passed, 2 failed, 2 skipped of 10 run",
-        "bench scene fwd+bwd ms: cpu 3.000, gpu 1.500",
-        "face fit s: 4.75, again with its kernels built: 1.75",
+        "tests: 8 passed, 3 failed, 3 skipped of 14 run",
+        "bench scene fwd+bwd ms: cpu/numpy 3.000, gpu/device 0.600, gpu/numpy 1.500",
+        "face fit s: 4.75, again with its kernels built: 1.75 (fitting alone: 4.25, 1.25)",
+        "track-face: 90 frames, 10 frames/s end to end, 60 frames/s per-frame stage",
+        "fit-face batch: 3 of 4 photos in 16.0 s, 0.188 photos/s",
         "reruns identical: True"]
     stopped = report.digest(report.summary(touch(tmp_path / "s/steps.tsv", "").parent, quick=True))
     assert "tests: no report" in stopped and "bench scene fwd+bwd ms: not run" in stopped
+    assert "track-face: None frames" in stopped and "fit-face batch: None of None photos" in stopped
 
 
 def test_summary_of_a_run_that_stopped_at_once(report, tmp_path):
     touch(tmp_path / "steps.tsv", "install\tfailed\t1\t2\t60\n")
     s = report.summary(tmp_path, quick=True)
     assert s["status"] == "failed" and s["device"] is None and s["tests"] is None and s["bench"] == []
+    assert s["end_to_end"] == [] and s["track"] is None and s["batch"] is None
     assert s["targets"]["fit_s"] == dict(target=2.0, measured=None, met=None)
 
 
@@ -260,13 +323,59 @@ def test_determinism_check_hashes_three_runs_and_sees_a_changed_result(tmp_path)
     saved = json.loads(out.read_text())
     (run,) = saved["runs"]
     assert saved["identical"] and run["identical"] and len(run["hashes"]) == 3 and run["layout"] is None
-    import numpy as np
     rgb = np.zeros((1, 2, 2, 3), np.float32)
     grads = dict(vertices=np.zeros((3, 3)), colors=np.zeros((3, 3)))
     base = det.result_hash(SimpleNamespace(rgb=rgb, alpha=rgb[..., 0]), grads)
     grads["colors"][1, 2] = np.nextafter(0.0, 1.0)
     assert det.result_hash(SimpleNamespace(rgb=rgb, alpha=rgb[..., 0]), grads) != base
     assert det.layout_list(" cpu, gpu,") == ["cpu", "gpu"] and det.layout_list("") == []
+
+
+# ---- the product jobs' inputs and track-face's stand-ins (on this machine's device) ---------
+@pytest.fixture(scope="module")
+def jobs():
+    return load_script("scripts/gpu_check_jobs.py")
+
+
+def test_batch_photos_are_crops_with_their_landmarks_beside_them(jobs, tmp_path):
+    from PIL import Image
+
+    from softras_cl.io.landmarks import read_landmarks
+
+    paths = jobs.make_photos(tmp_path, 3)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "photo_000.png", "photo_000.pts", "photo_001.png", "photo_001.pts", "photo_002.png", "photo_002.pts"]
+    sizes = set()
+    for path in paths:
+        w, h = Image.open(path).size
+        sizes.add((w, h))
+        read_landmarks(path.with_suffix(".pts"), (h, w))        # every point inside the crop
+    assert len(sizes) == 3                                       # three different crops
+
+
+def test_track_face_on_the_clip_with_landmarks_given_and_no_video_encoder(jobs, tmp_path, monkeypatch):
+    from support.track_clips import FAST, TINY
+
+    from softras_cl.fitting.jobs import face_video
+    from softras_cl.fitting.recipes import face
+    from softras_cl.io import video
+
+    monkeypatch.setitem(face.BUDGETS, "fast", TINY)          # seconds, not a real identity fit
+    monkeypatch.setitem(sys.modules, "av", None)              # as on the GPU machine: no PyAV
+    clip, out, report = tmp_path / "clip", tmp_path / "track", tmp_path / "track_run.json"
+    info = jobs.make_clip(clip, frames=6, width=96, height=72, fps=10.0, seed=7)
+    assert info["frames"] == 6 and len(list((clip / "frames").glob("*.png"))) == 6
+    assert np.load(clip / "landmarks.npy").shape == (6, 68, 2)
+    follower, writer = face_video.FaceFollower, video.VideoWriter
+    assert jobs.main(["track", str(clip), str(out), "--report", str(report), *FAST]) == 0
+    assert (face_video.FaceFollower, video.VideoWriter) == (follower, writer)    # put back
+    done = json.loads((out / "complete.json").read_text())
+    assert done["frames"] == 6 and done["frames_held"] == 0
+    assert done["end_to_end_fps"] > 0 and done["frame_fit_fps"] > 0
+    assert (out / "overlay.mp4").read_text() == "not encoded (no PyAV)\n"
+    run = json.loads(report.read_text())
+    assert run["rc"] == 0 and run["stand_ins"]["overlay_video"] == "drawn, not encoded (no PyAV)"
+    assert run["stand_ins"]["landmarks"].startswith("given")
 
 
 # ---- the rehearsal's bare environment ------------------------------------------------------
@@ -297,3 +406,22 @@ def test_script_with_no_time_left_skips_every_step_and_still_reports(tmp_path):
     assert summary["status"] == "failed"
     assert summary["steps"] == [dict(name="install", status="skipped", rc=None, seconds=None, budget_s=0.0)]
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["gpu_check.json", "gpu_check_files.tar.gz"]
+
+
+def test_dry_run_plans_every_step_in_order_within_the_deadline(tmp_path):
+    env = dict(os.environ, OUT=str(tmp_path / "out"), GPU_CHECK_SCRATCH=str(tmp_path / "scratch"),
+               GPU_CHECK_DRY_RUN="1", GPU_CHECK_DEADLINE_S="400", GPU_CHECK_WHEELS=str(tmp_path / "no-wheels"),
+               GPU_CHECK_PYTHON=sys.executable)
+    proc = subprocess.run(["bash", str(REPO / "scripts/gpu_check.sh")], env=env, capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    summary = json.loads((tmp_path / "out/gpu_check.json").read_text())
+    assert summary["status"] == "planned"
+    plan = [(s["name"], s["budget_s"]) for s in summary["steps"]]
+    assert plan == [("install", 60), ("system", 30), ("find_opencl_driver", 40), ("devices", 60),
+                    ("gpu_present", 20), ("determinism", 60), ("fit_face", 120), ("fit_face_warm", 60),
+                    ("bench_raster", 200), ("make_clip", 45), ("track_face", 120), ("make_photos", 20),
+                    ("batch_fit", 120), ("device_tests", 120), ("kernel_tests", 300)]
+    assert all(s["status"] == "planned" for s in summary["steps"])
+    assert "== kernel_tests (at most 300 s): kernel_tests" in proc.stdout
+    assert not (tmp_path / "scratch/junit.xml").exists()            # nothing ran
