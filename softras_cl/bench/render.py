@@ -28,7 +28,9 @@ rasteriser backward and the rest -- measured by timing the stage functions in a 
 Renderer.forward/backward, next to the Renderer's own end-to-end time; 2. the end-to-end
 forward+backward time of one change at a time against the base scene: uv texture (unlit),
 per-face shading, per-pixel shading (when the renderer has it), depth output, double-sided
-faces, Lambert light, alpha only."""
+faces, Lambert light, alpha only, and the base scene device-resident (pyopencl inputs and
+cotangents on the renderer's queue, images and vertex/albedo gradients left on the device; its
+kernels' own time from OpenCL profiling events on a queue of their own)."""
 RENDER_MAIN = dict(subdivisions=5, size=512, texture=256, repeats=REPEATS)
 RENDER_QUICK = dict(subdivisions=3, size=64, texture=32, repeats=1)
 RENDER_DISTANCE, RENDER_FOV = 4.5, 30.0
@@ -46,7 +48,9 @@ EFFECTS = (("base", "base", "SH light, per-vertex shading, rgb + alpha"),
            ("depth", "+ depth output", "outputs rgb, alpha, depth (with a depth cotangent)"),
            ("double_sided", "double-sided", "double_sided=True"),
            ("lambert", "Lambert light", "the paper's Lambert light (ambient + directional) instead of SH"),
-           ("alpha_only", "alpha only", "outputs alpha only: no rgb, no shading, grads vertices + camera"))
+           ("alpha_only", "alpha only", "outputs alpha only: no rgb, no shading, grads vertices + camera"),
+           ("device", "device-resident", "the base scene with pyopencl inputs and cotangents on renderer.queue: "
+                                         "images, vertex and albedo gradients stay on the device"))
 
 
 @dataclass
@@ -102,8 +106,9 @@ def render_settings(size: int, **changes):
     return settings_for(size, **changes)
 
 
-def effect_call(scene: RenderScene, effect: str) -> tuple:
-    """(Renderer, forward kwargs, backward kwargs) of the base scene with one `effect` applied."""
+def effect_call(scene: RenderScene, effect: str, queue=None) -> tuple:
+    """(Renderer, forward kwargs, backward kwargs) of the base scene with one `effect` applied
+    (on `queue`, None: the default device's)."""
     from softras_cl.scene.renderer import Renderer
     from softras_cl.scene.shading import LambertLight
 
@@ -125,12 +130,25 @@ def effect_call(scene: RenderScene, effect: str) -> tuple:
     elif effect == "alpha_only":
         settings, shading_mode, color = settings.replace(outputs=("alpha",)), "none", {}
         grads = ("vertices", "camera")
-    elif effect != "base":
+    elif effect not in ("base", "device"):
         raise ValueError(f"unknown effect {effect!r}")
     cot = dict(grad_rgb=scene.grad_rgb, grad_alpha=scene.grad_alpha, grad_depth=scene.grad_depth)
     backward = {f"grad_{o}": cot[f"grad_{o}"] for o in settings.outputs}
     forward = dict(vertices=scene.vertices, faces=scene.faces, cameras=scene.camera, grads=grads, **color)
-    return Renderer(settings, shading=shading_mode), forward, backward
+    renderer = Renderer(settings, shading=shading_mode, queue=queue)
+    if effect == "device":      # cotangents in the kernels' dtype, as a loss on the device makes them
+        forward = device_arguments(renderer, forward)
+        backward = device_arguments(renderer, backward, settings.dtype)
+    return renderer, forward, backward
+
+
+def device_arguments(renderer, arguments: dict, dtype=None) -> dict:
+    """`arguments` with their numpy arrays uploaded to renderer.queue (pyopencl arrays), cast to
+    `dtype` first when given."""
+    import pyopencl.array as cla
+
+    return {k: cla.to_device(renderer.queue, np.ascontiguousarray(v, dtype)) if isinstance(v, np.ndarray) else v
+            for k, v in arguments.items()}
 
 
 def texel_gradients_supported() -> bool:
@@ -144,9 +162,40 @@ def renderer_once(renderer, forward: dict, backward: dict) -> tuple:
     """Renderer.forward then .backward: (forward s, forward+backward s, gradients)."""
     t0 = time.perf_counter()
     out = renderer.forward(**forward)
+    renderer.queue.finish()     # device-resident images: done when the queue is
     t1 = time.perf_counter()
     grads = renderer.backward(out, **backward)
+    renderer.queue.finish()
     return t1 - t0, time.perf_counter() - t0, grads
+
+
+def device_kernel_ms(scene: RenderScene, repeats: int) -> dict:
+    """Device time of the kernels alone in one device-resident forward+backward of the base
+    scene, from OpenCL profiling events on a queue of its own: the rasteriser's kernels and the
+    scene kernels (projection, normals, shading, their vjps, sums); pyopencl's own array and
+    reduction kernels (input checks, casts, binning scans) are not counted. dict(kernel_ms:
+    median of the runs' sums, fwdbwd_ms: median end-to-end ms of those runs, kernel_ms_by_name:
+    {kernel: median ms}) over `repeats` runs after one warm-up."""
+    import pyopencl as cl
+
+    from softras_cl.cl.device import resolve_context
+    from softras_cl.cl.program import launch_device_ms, recorded_launches
+
+    device, ctx, _ = resolve_context(None, None, None)
+    queue = cl.CommandQueue(ctx, device, properties=cl.command_queue_properties.PROFILING_ENABLE)
+    renderer, forward, backward = effect_call(scene, "device", queue)
+    renderer_once(renderer, forward, backward)
+    runs, walls = [], []
+    for _ in range(max(repeats, 1)):
+        renderer.device_tools.kernels.record = scene_log = []
+        with recorded_launches() as log:
+            walls.append(renderer_once(renderer, forward, backward)[1])
+        renderer.device_tools.kernels.record = None
+        runs.append(launch_device_ms(log + scene_log))
+    names = sorted({name for run in runs for name in run})
+    return dict(kernel_ms=statistics.median(sum(run.values()) for run in runs),
+                fwdbwd_ms=1e3 * statistics.median(walls),
+                kernel_ms_by_name={n: statistics.median(run.get(n, 0.0) for run in runs) for n in names})
 
 
 def mirror_once(raster, scene: RenderScene) -> tuple:
@@ -243,7 +292,8 @@ def warm_up_effects(scene: RenderScene, notes: list, progress) -> dict:
         else:
             try:
                 calls[key] = effect_call(scene, key)
-                renderer_once(*calls[key])
+                for _ in range(3 if key == "device" else 1):     # PoCL compiles per launch size
+                    renderer_once(*calls[key])
             except Exception as e:     # only the in-progress pixel mode may fail: say so, go on
                 if key != "pixel":
                     raise
@@ -303,7 +353,19 @@ def run_render_benchmark(p: dict, progress) -> dict:
             result["effects"].append(dict(effect=key, label=label, description=description,
                                           fwd_ms=1e3 * statistics.median(r[0] for r in runs), fwdbwd_ms=fwdbwd,
                                           ratio=fwdbwd / base_ms, added_ms=fwdbwd - base_ms))
+    if "device" in m["renderer"]:
+        result["device_grad_difference"] = max_relative_difference(base[-1][2], download(m["renderer"]["device"][-1][2]))
+        result["device_kernels"] = device_kernel_ms(scene, p["repeats"])
     return result
+
+
+def download(grads):
+    """Gradients with their pyopencl arrays downloaded (dicts and lists followed)."""
+    if isinstance(grads, dict):
+        return {k: download(v) for k, v in grads.items()}
+    if isinstance(grads, list):
+        return [download(v) for v in grads]
+    return grads.get() if hasattr(grads, "get") and not isinstance(grads, np.ndarray) else grads
 
 
 STAGE_COLUMNS = [("stage", "label", "s"), ("ms", "ms", ".1f"), ("share", "share", ".1f"),
@@ -341,7 +403,22 @@ def render_report_text(result: dict) -> str:
         f"  (texture {sc['texture_size']}^2{'' if sc['texel_gradients'] else ', no texel gradients: device lacks 64-bit atomics'}"
         "; texture and alpha only have no light gradient)",
         format_table_left(result["effects"], EFFECT_COLUMNS),
+        *device_lines(result),
         *(f"  {n}" for n in result["notes"])])
+
+
+def device_lines(result: dict) -> list[str]:
+    """The device-resident row's kernel time and gradient difference, when it ran."""
+    kernels = result.get("device_kernels")
+    if kernels is None:
+        return []
+    top = sorted(kernels["kernel_ms_by_name"].items(), key=lambda kv: -kv[1])[:3]
+    scene = sum(ms for name, ms in kernels["kernel_ms_by_name"].items() if name.startswith("scene_"))
+    return [f"  device-resident on a profiling queue: kernels {kernels['kernel_ms']:.2f} ms of "
+            f"{kernels['fwdbwd_ms']:.2f} ms fwd+bwd, the scene's (projection, normals, shading, vjps) "
+            f"{scene:.2f} ms",
+            f"  (largest: {', '.join(f'{n} {ms:.2f}' for n, ms in top)}); gradients vs numpy inputs: "
+            f"max relative difference {result['device_grad_difference']:.1e}"]
 
 
 def save_render_chart(result: dict, path: Path) -> None:

@@ -338,6 +338,7 @@ class SceneKernels:
         self.ctx, self.queue = ctx, queue
         self._built: dict = {}
         self._reductions: dict = {}
+        self.record: list | None = None     # a list: every launch's (name, event) is appended (bench)
 
     def __call__(self, name: str, n: int, *args) -> None:
         """Run kernel `name` over n elements on the queue (nothing for n = 0)."""
@@ -351,7 +352,9 @@ class SceneKernels:
                        f"#define SUM_CHUNK {SUM_CHUNK}\n")
             self._built[name] = ElementwiseKernel(self.ctx, arguments, body, f"scene_{name}",
                                                   preamble=PREAMBLE + defines)
-        self._built[name](*args, range=slice(n), queue=self.queue)
+        event = self._built[name](*args, range=slice(n), queue=self.queue)
+        if self.record is not None:
+            self.record.append((f"scene_{name}", event))
 
     def empty(self, shape, dtype=np.float64) -> cla.Array:
         return cla.empty(self.queue, shape, dtype)

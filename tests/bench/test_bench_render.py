@@ -70,3 +70,16 @@ def test_tables_are_printed_aligned(quick_run):
     for title, column in (("stage ", "forward ms"), ("effect ", "fwd+bwd ms")):
         header = next(i for i, line in enumerate(lines) if line.startswith(title) and column in line)
         assert len(lines[header]) == len(lines[header + 1])          # aligned columns
+
+
+def test_device_resident_row(quick_run):
+    """The base scene device-resident: a row of its own, its kernels' time, its gradients equal
+    to the numpy inputs' (1e-12: the scene stages' float64 sums in another order)."""
+    result = quick_run[0]
+    row = next(r for r in result["effects"] if r["effect"] == "device")
+    assert 0 < row["fwd_ms"] <= row["fwdbwd_ms"]
+    assert result["device_kernels"]["kernel_ms"] > 0
+    assert any(n.startswith("scene_") for n in result["device_kernels"]["kernel_ms_by_name"])
+    assert result["device_grad_difference"] < 1e-12
+    assert "device-resident on a profiling queue: kernels" in result["tables"]
+    assert result["device_kernels"]["fwdbwd_ms"] > 0
