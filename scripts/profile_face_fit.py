@@ -44,7 +44,6 @@ import collections
 import importlib
 import inspect
 import json
-import platform
 import shlex
 import statistics
 import subprocess
@@ -52,6 +51,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from softras_cl.provenance import cpu_model
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "examples" / "data"
@@ -326,16 +327,6 @@ def profiling_queue() -> None:
     dev = cl_device.select_device()
     ctx = cl.Context([dev])
     cl_device._contexts[dev] = (ctx, cl.CommandQueue(ctx, dev, properties=cl.command_queue_properties.PROFILING_ENABLE))
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def commit_of(path: Path) -> str:
