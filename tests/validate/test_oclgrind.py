@@ -183,6 +183,83 @@ def test_device_face_setup_is_clean_under_oclgrind_and_equals_the_host(tmp_path)
     assert proc.returncode == 0 and "face set-up equal" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-3000:]
 
 
+# The device-resident Renderer's scene kernels (softras_cl.scene.device_kernels: projection and its
+# vjp, normals over the CSR incidence list, Lambert/SH shading and their vjps, the fixed-order
+# sums, the device counts) on a small scene with a zero-area face and a vertex in no face, each
+# stage compared with the numpy path's. (The rasteriser's device binning is left out: pyopencl's
+# scan kernels hold an instruction Oclgrind cannot run, LLVM's `freeze`.)
+SCENE_STAGES = textwrap.dedent("""
+    import sys
+    import numpy as np
+    import pyopencl.array as cla
+    sys.path.insert(0, {scripts!r})
+    sys.path.insert(0, {tests!r})
+    import oclgrind_sweep as sweep
+    sweep.skip_pyopencl_nvidia_probe()
+    sweep.keep_buffers_alive()
+    from softras_cl import RasterSettings
+    from softras_cl.scene import device_render as dr, shading as sh
+    from softras_cl.scene.renderer import Renderer
+    from support.sphere_scene import LIGHTS, sphere_scene, two_cameras
+
+    def close(a, b, what):
+        a = a.get() if isinstance(a, cla.Array) else a
+        a, b = np.asarray(a).reshape(-1), np.asarray(b).reshape(-1)
+        assert np.abs(a - b).max() <= 1e-12 * max(np.abs(b).max(), 1e-300), what
+
+    v, f, albedo = sphere_scene()
+    v, albedo = np.concatenate([v, [[5.0, 5.0, 0.0]]]), np.concatenate([albedo, [[0.3, 0.3, 0.3]]])
+    f = np.concatenate([f, [[0, 0, 1]]])
+    cams = two_cameras((8, 10))
+    renderer = Renderer(RasterSettings(image_size=(8, 10)))
+    tools, q = renderer.device_tools, renderer.queue
+    rng = np.random.default_rng(0)
+    for per_vertex, light in ((True, "sh"), (False, "lambert")):
+        print("oclgrind-sweep: variant scene stages", per_vertex, light, file=sys.stderr, flush=True)
+        state = dr.project(tools, cams, cla.to_device(q, v))
+        close(state.screen, np.concatenate([c.project(v)[0] for c in cams]), "projection")
+        assert int(tools.kernels.count("behind", state.cam, state.params, np.int64(len(v))).get()) == 0
+        state.incidence = tools.incidence.get(cla.to_device(q, f), len(v))
+        state.normals = dr.face_normals_device(tools, state, per_vertex)
+        batch_v = np.broadcast_to(v, (2,) + v.shape)
+        normals, n_ctx = (sh.vertex_normals if per_vertex else sh.face_normals)(batch_v, f)
+        close(state.normals.unit, normals, "normals")
+        items = np.broadcast_to(albedo, (2,) + albedo.shape) if per_vertex else batch_v[:, f].mean(axis=2) * 0 + 0.5
+        colors = dr.shade_device(tools, state, LIGHTS[light], cla.to_device(q, items.reshape(-1, 3)), items.shape[1])
+        expected, l_ctx = LIGHTS[light].shade(normals, items)
+        close(colors, expected, "shading")
+        g = rng.normal(size=expected.shape)
+        g_n, g_albedo, g_light = dr.shade_vjp_device(tools, state, LIGHTS[light], cla.to_device(q, g.reshape(-1, 3)))
+        ref = LIGHTS[light].shade_vjp(l_ctx, g)
+        close(g_n, ref["normals"], "normals gradient")
+        close(g_albedo, ref["albedo"], "albedo gradient")
+        for name, value in g_light.items():
+            close(value, ref[name], name)
+        g_verts = dr.normals_vjp_device(tools, state, g_n)
+        close(g_verts, (sh.vertex_normals_vjp if per_vertex else sh.face_normals_vjp)(n_ctx, ref["normals"])["vertices"],
+              "vertex gradient")
+        g_screen = rng.normal(size=(2, len(v), 3))
+        g_cam, sums = dr.camera_vjp_device(tools, state, cla.to_device(q, g_screen), g_verts, True)
+        per_view = dr.camera_grads(cams, sums, False)
+        for b, cam in enumerate(cams):
+            ref = cam.project_vjp(cam.project(v)[1], g_screen[b:b + 1])
+            for name in ("rotation", "translation", "focal"):
+                close(per_view[b][name], ref[name], name)
+    print("scene stages equal")
+""")
+
+
+@pytest.mark.oclgrind
+@needs_oclgrind
+def test_device_scene_stages_are_clean_under_oclgrind_and_equal_numpy(tmp_path):
+    script = tmp_path / "scene_stages.py"
+    script.write_text(SCENE_STAGES.format(scripts=str(REPO / "scripts"), tests=str(REPO / "tests")))
+    proc = run_under_oclgrind([str(script)], timeout=900)
+    reports = oclgrind_reports(proc.stderr)
+    assert not reports, "\n\n".join(f"[{r.variant}]\n{r.text}" for r in reports[:10])
+    assert proc.returncode == 0 and "scene stages equal" in proc.stdout, proc.stdout[-2000:] + proc.stderr[-3000:]
+
+
 def test_sweep_covers_every_variant():
     """The sweep lists the whole build-time matrix, the extras and the Renderer paths."""
     names = subprocess.run([sys.executable, str(SWEEP), "--list"], capture_output=True,
