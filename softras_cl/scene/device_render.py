@@ -56,7 +56,8 @@ class DeviceState:
     """What the device backward needs from one forward.
 
     verts: (V, 3) or (B, V, 3) float64 world vertices, shared when 2-D; params (B, CAMERA_PARAMS)
-    camera parameters; cam (B, V, 3) camera-frame points; incidence (None when unlit); normals
+    camera parameters; cam (B, V, 3) camera-frame points; screen (B, V, 3) [x_ndc, y_ndc, Z], the
+    rasteriser's vertices; incidence (None when unlit); normals
     (None when unlit); albedo: the float64 albedo shaded (vertex: (V, 3) shared or (B, V, 3);
     face: (B*F, 3)); irradiance (B*N, 3) and cosines (B*N,) (Lambert) of the shading; light_vec:
     the light's device vector (Lambert: unit direction, ambient, directional; SH: coefficients *
@@ -65,6 +66,7 @@ class DeviceState:
     verts: cla.Array
     params: cla.Array
     cam: cla.Array
+    screen: cla.Array
     incidence: DeviceIncidence | None = None
     normals: Normals | None = None
     albedo: cla.Array | None = None
@@ -140,16 +142,14 @@ def to_device_args(tools: DeviceTools, args: dict) -> dict:
 
 
 def project(tools: DeviceTools, cameras: list, verts: cla.Array) -> DeviceState:
-    """Project the float64 world vertices (V, 3) or (B, V, 3) with B cameras: the state with
-    cam points, and the screen (B, V, 3) float64 device array in state.screen."""
+    """Project the float64 world vertices (V, 3) or (B, V, 3) with B cameras: a DeviceState with
+    the camera-frame points and the screen vertices (B, V, 3) float64."""
     k, batch = tools.kernels, len(cameras)
     n_vertices = verts.shape[-2]
     params = cla.to_device(tools.queue, camera_params(cameras))
     screen, cam = k.empty((batch, n_vertices, 3)), k.empty((batch, n_vertices, 3))
     k("project", batch * n_vertices, screen, cam, verts, params, np.int64(n_vertices), np.int32(verts.ndim == 2))
-    state = DeviceState(verts, params, cam, batch=batch, n_vertices=n_vertices)
-    state.screen = screen
-    return state
+    return DeviceState(verts, params, cam, screen, batch=batch, n_vertices=n_vertices)
 
 
 def value_counts(tools: DeviceTools, state: DeviceState, albedo) -> list:
