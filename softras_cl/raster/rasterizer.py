@@ -108,7 +108,8 @@ class RasterContext:
     per-pixel device state. The device buffers go back to the rasteriser's pool when the context
     is garbage collected. device_faces: the faces as given, a pyopencl array, when the forward
     took device arrays (then `mesh` holds stand-ins for the shapes, `bins` are DeviceBins and
-    backward returns pyopencl arrays); else None.
+    backward returns pyopencl arrays, or numpy arrays for numpy_io: a forward of numpy inputs
+    through the device path, see SoftRasterizer.numpy_via_device); else None.
     """
     rasterizer: "SoftRasterizer"
     settings: RasterSettings
@@ -119,6 +120,7 @@ class RasterContext:
     images: dict[str, cl.Buffer]
     state: PixelState
     device_faces: cla.Array | None = None
+    numpy_io: bool = False      # a device forward of numpy inputs: backward downloads the gradients
 
     def nbytes(self) -> int:
         """Bytes kept: bin arrays (host or device) and device buffers, each buffer counted once."""
@@ -168,6 +170,12 @@ class SoftRasterizer:
 
     One rasteriser renders at any sigma, gamma, near and far (forward's RUN_FIELDS arguments);
     the other settings are fixed: they select the kernel variant, the tiling and the buffers.
+
+    numpy_via_device: numpy inputs go through the device path (uploaded, checked, set up and
+    binned on the device, the results downloaded; the same bits as the host path, docs/api.md)
+    instead of the host path (host checks, set-up and binning). True on a GPU, where the host
+    passes and their transfers cost 30 times the kernels (docs/gpu_check.md); False on a CPU
+    device, where each device launch costs more than the host pass it replaces (docs/speed.md).
     """
 
     def __init__(self, settings: RasterSettings, device: cl.Device | None = None,
@@ -202,6 +210,7 @@ class SoftRasterizer:
         self.setup = (DeviceSetup(self.ctx, self.queue, self.pool, self.grid, self.real)
                       if has_fp64(self.device) else None)
         self.device_setup_faces = DEVICE_SETUP_FACES
+        self.numpy_via_device = bool(self.device.type & cl.device_type.GPU)
         # events of transfers in flight: pyopencl's transfer events wait for their transfer when
         # freed, so they are kept until _sync waits for all of them at once
         self._transfers: list = []
@@ -257,7 +266,13 @@ class SoftRasterizer:
                       texture_image=texture_image, uvs=uvs, normals=normals, light=light)
         if any(is_device_array(v) for v in inputs.values()):
             return self._forward_device(s, inputs, grads, roi, t)
-        mesh = check_inputs(s, vertices, faces, colors, face_textures, texture_image, uvs, normals, light)
+        if self.numpy_via_device:
+            return self._forward_numpy_via_device(s, inputs, grads, roi, t)
+        return self._forward_host(s, inputs, grads, roi, t)
+
+    def _forward_host(self, s: RasterSettings, inputs: dict, grads: tuple, roi, t: float) -> RasterOutput:
+        """forward() of numpy inputs on the host path: host checks, face set-up and binning."""
+        mesh = check_inputs(s, **inputs)
         self._check_resources(s, mesh, grads)
         tiles = self.roi_tiles(roi, mesh.batch)
         geom, ranges = self._face_setup(mesh, s)
@@ -332,13 +347,21 @@ class SoftRasterizer:
             raise RuntimeError("the device input checks found bad values that the host checks did not")
         return mesh, dev
 
+    def _forward_numpy_via_device(self, s: RasterSettings, inputs: dict, grads: tuple, roi,
+                                  t: float) -> RasterOutput:
+        """forward() of numpy inputs through the device path: the images downloaded, and the
+        context marked so that backward downloads the gradients."""
+        out = self._forward_device(s, inputs, grads, roi, t)
+        if out.saved is not None:
+            out.saved.numpy_io = True
+        return RasterOutput(*(None if a is None else a.get() for a in (out.rgb, out.alpha, out.depth)), out.saved)
+
     def _forward_device(self, s: RasterSettings, inputs: dict, grads: tuple, roi, t: float) -> RasterOutput:
         """forward() of device-resident inputs: images as pyopencl arrays (the numpy path's bits)."""
         mesh, dev = self._check_device_inputs(s, inputs)
         self._check_resources(s, mesh, grads)
-        if mesh.n_faces == 0:       # nothing to set up or bin: the numpy path's background images
-            out = self.forward(**{n: on_host(v) for n, v in inputs.items()}, grads=grads, roi=on_host(roi),
-                               sigma=s.sigma, gamma=s.gamma, near=s.near, far=s.far)
+        if mesh.n_faces == 0:       # nothing to set up or bin: the host path's background images
+            out = self._forward_host(s, {n: on_host(v) for n, v in inputs.items()}, grads, on_host(roi), t)
             out = RasterOutput(*(None if a is None else cla.to_device(self.queue, a)
                                  for a in (out.rgb, out.alpha, out.depth)), out.saved)
             return out
@@ -478,10 +501,12 @@ class SoftRasterizer:
         t = self._stage("cotangent_checks", t, finish=saved.device_faces is not None)
         slots = self._run_backward(saved, cot, t)
         t = time.perf_counter()
-        if saved.device_faces is not None:
-            grads = self._gather_grads_device(saved, slots)
-        else:
+        if saved.device_faces is None:
             grads = self._gather_grads(saved, slots)
+        elif saved.numpy_io:
+            grads = {k: v.get() for k, v in self._gather_grads_device(saved, slots).items()}
+        else:
+            grads = self._gather_grads_device(saved, slots)
         self.pool.give(b for b in slots.values() if isinstance(b, cl.Buffer))
         self._stage("reductions", t, finish=saved.device_faces is not None)
         return grads

@@ -167,3 +167,46 @@ def test_device_shape_and_dtype_errors_and_cotangent_checks_are_the_numpy_paths(
         raster.backward(out, **to_device(raster, cot))
     with pytest.raises(ValueError, match=r"^grad_rgb must have shape \(2, 13, 18, 3\), got \(2, 13, 18\)"):
         raster.backward(out, grad_rgb=to_device(raster, cot)["grad_alpha"])
+
+
+def numpy_io_paths(s, vertices, faces, colors, grads):
+    """(the host path's images and gradients, the same numpy call through the device path:
+    numpy_via_device, as a GPU's rasteriser takes numpy inputs) of one scene."""
+    results = []
+    for via_device in (False, True):
+        raster = SoftRasterizer(s)
+        raster.numpy_via_device = via_device
+        out = raster.forward(vertices=vertices, faces=faces, **colors, grads=grads)
+        images = {n: getattr(out, n) for n in s.outputs}
+        assert all(isinstance(a, np.ndarray) for a in images.values())
+        g = raster.backward(out, **cotangents(s, out)) if grads else {}
+        assert all(isinstance(a, np.ndarray) for a in g.values())
+        results.append((images, g))
+    return results
+
+
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+@pytest.mark.parametrize("variant", VARIANTS + LIT, ids=_ids(VARIANTS + LIT))
+def test_numpy_calls_through_the_device_path_equal_the_host_path(variant, dtype):
+    """numpy in, numpy out through the device path (a GPU's default) gives the host path's bits."""
+    s = settings(dtype=dtype, layout="cpu", **variant)
+    vertices, faces, colors = scene_inputs(s, 5)
+    grads = ("vertices", "colors") if "rgb" in s.outputs else ("vertices",)
+    assert_bit_identical(*numpy_io_paths(s, vertices, faces, colors, grads))
+
+
+def test_numpy_via_device_is_the_default_on_gpus_only():
+    import pyopencl as cl
+
+    raster = SoftRasterizer(settings())
+    assert raster.numpy_via_device == bool(raster.device.type & cl.device_type.GPU)
+
+
+def test_numpy_via_device_with_no_faces_gives_the_background():
+    s = settings(dtype="float64", layout="cpu")
+    raster = SoftRasterizer(s)
+    raster.numpy_via_device = True
+    out = raster.forward(np.zeros((3, 3)), np.zeros((0, 3), np.int64), colors=np.zeros((3, 3)), grads=("vertices",))
+    assert isinstance(out.alpha, np.ndarray) and not out.alpha.any()
+    g = raster.backward(out, grad_alpha=np.ones_like(out.alpha))
+    assert isinstance(g["vertices"], np.ndarray) and not g["vertices"].any()
