@@ -76,13 +76,14 @@ from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.models.face_model import LinearContext
 from softras_cl.fitting.models.mesh_lod import coarse_faces
 from softras_cl.fitting.params import Block, ParamSet
-from softras_cl.fitting.recipes.face_settings import (BUDGETS, COARSE_MESH, COARSE_SIGMA, MIN_LANDMARK_SPREAD,
+from softras_cl.fitting.recipes.face_settings import (BUDGETS, COARSE_MESH, COARSE_SIGMA, DETECTED_LANDMARK_SIGMA_MM,
+                                                      MIN_LANDMARK_SPREAD,
                                                       MIN_ROBUST_SCALE, MIN_SIZE, ROBUST_SCALE, FaceFitConfig,
                                                       input_check)
 from softras_cl.fitting.recipes.contour import ContourChoice, ContourLandmarks, jaw_candidates
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
-__all__ = ["Crop", "FaceScene", "FaceFit", "landmark_weights", "default_stages",
+__all__ = ["Crop", "FaceScene", "FaceFit", "landmark_weights", "detected_landmark_weights", "default_stages",
            "depth_range", "half_resolution", "initial_pose", "initial_light", "prepare_photo", "face_params", "FaceObjective",
            "prepare_fit", "fit_face", "check_dense_inputs", "detected_dense", "psnr"]
 
@@ -99,6 +100,18 @@ def landmark_weights() -> np.ndarray:
     w = np.ones(ibug68.COUNT)
     w[ibug68.JAW] = 0.5
     return w
+
+
+def detected_landmark_weights(used) -> np.ndarray:
+    """(68,) per-landmark weights for landmarks a detector found on Face Mesh's points, tied to them:
+    1 / sigma^2 of their measured noise (face_settings.DETECTED_LANDMARK_SIGMA_MM: MediaPipe's
+    eye points spread about 1.8 mm at the face, its brows 2.6, nose and lips 3.3, jaw 6.3), 0 where
+    ``used`` (68,) bool is False, scaled so that the used points weigh as much in all as
+    :func:`landmark_weights` gives them: the landmark term keeps its total weight against the
+    photo and the priors, shared out by how far each point can be trusted."""
+    used = np.asarray(used, bool)
+    w = np.where(used, 1.0 / DETECTED_LANDMARK_SIGMA_MM ** 2, 0.0)
+    return w * (landmark_weights()[used].sum() / w.sum())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -701,7 +714,8 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
         raise ValueError(f"the face model defines {model.n_landmarks} landmarks; fitting needs the "
                          f"{ibug68.COUNT} iBUG points (pass a landmark mapping file with the model)")
     check_dense_inputs(config, model, dense)
-    model, point_weights = tied_landmarks(model, config.landmark_map, face_mesh_landmarks)
+    model, point_weights = tied_landmarks(model, config.landmark_map, face_mesh_landmarks,
+                                          config.detected_landmark_weights)
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
     objective, crop, params = prepare_fit(photo, landmarks, model, config, dense, point_weights)
     check_landmark_layout(landmarks)      # after prepare_fit's input checks (shape, area, size)
@@ -761,17 +775,22 @@ def landmark_model(model, landmark_map: str, face_mesh_landmarks: bool = False):
     return model.with_landmarks(faces, bary)
 
 
-def tied_landmarks(model, landmark_map: str, face_mesh_landmarks: bool = False) -> tuple[object, np.ndarray]:
+def tied_landmarks(model, landmark_map: str, face_mesh_landmarks: bool = False,
+                   measured: bool = False) -> tuple[object, np.ndarray]:
     """(:func:`landmark_model`'s model, the landmark term's (68,) weights for its landmarks):
     :func:`landmark_weights`, with 0 for the points a Face Mesh tie leaves at the model's own
     point (the correspondence does not use their Face Mesh vertex: jaw 0-3 and 13-16, inner
     lower lip 65-67): MediaPipe puts most of them 0.05-0.17 eye distances away, and weighted they bent
     the shape (bench face, detected landmarks, 10 faces per bin, paired: shape error 11% +- 4%
-    lower at |yaw| 0-15 without them, 5% +- 2% at 15-45)."""
+    lower at |yaw| 0-15 without them, 5% +- 2% at 15-45). ``measured`` (FaceFitConfig's
+    detected_landmark_weights): for landmarks a detector found (``face_mesh_landmarks``) tied to Face
+    Mesh's points, the used points weigh by their measured noise instead
+    (:func:`detected_landmark_weights`); a file's landmarks keep :func:`landmark_weights`."""
     tied = landmark_model(model, landmark_map, face_mesh_landmarks)
     weights = landmark_weights()
     if tied is not model:
-        weights[~model.dense_use[face_mesh.MP468_TO_IBUG68]] = 0.0
+        used = model.dense_use[face_mesh.MP468_TO_IBUG68]
+        weights = detected_landmark_weights(used) if measured and face_mesh_landmarks else np.where(used, weights, 0.0)
     return tied, weights
 
 

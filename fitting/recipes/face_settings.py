@@ -13,7 +13,7 @@ import numpy as np
 from softras_cl.checks import number
 from softras_cl.errors import InputError
 
-__all__ = ["FaceFitConfig", "input_check", "joint_config", "LANDMARK_WEIGHT_PHOTO", "BUDGETS", "COARSE_MESH", "COARSE_SIGMA", "LANDMARK_MAPS", "CONTOUR_LANDMARKS",
+__all__ = ["FaceFitConfig", "input_check", "joint_config", "LANDMARK_WEIGHT_PHOTO", "DETECTED_LANDMARK_SIGMA_MM", "BUDGETS", "COARSE_MESH", "COARSE_SIGMA", "LANDMARK_MAPS", "CONTOUR_LANDMARKS",
            "MIN_SIZE", "MIN_LANDMARK_SPREAD", "ROBUST_SCALE", "MIN_ROBUST_SCALE"]
 
 # Smallest working image (pixels a side). Measured on astronaut with the fast budget: the face
@@ -40,6 +40,28 @@ MIN_ROBUST_SCALE = 0.1
 CONTOUR_LANDMARKS = ("sliding", "fixed")
 # FaceFitConfig.landmark_map: which model points the 68 landmarks are tied to (landmark_model)
 LANDMARK_MAPS = ("auto", "model", "face-mesh")
+
+# How far MediaPipe's 68 points (fitting.keypoints.face_mesh) lie from the model points the Face Mesh tie puts
+# them on (fitting.recipes.face.landmark_model "face-mesh"), per iBUG point: a robust standard deviation per
+# axis in mm at the face, sqrt(median |e|^2 / (2 ln 2)) of the 2D error e (a per-axis Gaussian's median
+# squared 2D error is 2 ln 2 sigma^2; any bias is counted in), e in pixels over the face's pixels per mm
+# (focal / depth). Measured on bench face's synthetic faces (softras_cl.bench.face: draw_faces, then
+# detect_samples, 256 px), seeds 100, 101 and 102, 20 faces per bin of |yaw| 0-15, 15-45 and 45-75 each
+# (151 faces detected: 60 / 57 / 34), against the tied points of the true face projected (hidden jaw
+# points moved to the silhouette as the bench's silhouette_jaw moves them), pooled over the bins, each
+# left/right pair given the RMS of its two. Per group, frontal (0-15) / 15-45 / 45-75 degrees: jaw 5.5 /
+# 7.6 / 14.1 mm, brows 1.9 / 2.6 / 5.6, nose 2.5 / 3.3 / 5.3, eyes 1.5 / 1.8 / 3.4, lips 2.8 / 3.3 / 8.1:
+# the jaw and lip points spread 3-4x and 2x more than the eyes' at every yaw. fit_face weighs landmarks
+# a detector found by 1 / sigma^2 (FaceFitConfig.detected_landmark_weights, face.detected_landmark_weights);
+# the 11 points the Face Mesh tie leaves at the model's own point (jaw 0-3, 13-16, inner lower lip 65-67)
+# weigh 0 whatever their row says. Seeds 0, 5 and 6 were kept for choosing and evaluating.
+DETECTED_LANDMARK_SIGMA_MM = np.array([
+    9.9, 9.6, 7.4, 8.6, 6.1, 5.8, 6.3, 6.7, 6.5, 6.7, 6.3, 5.8, 6.1, 8.6, 7.4, 9.6, 9.9,   # jaw 0-16
+    2.6, 2.7, 2.9, 2.6, 2.1, 2.1, 2.6, 2.9, 2.7, 2.6,                                    # brows 17-26
+    2.2, 3.3, 3.6, 3.7, 3.5, 3.2, 3.4, 3.2, 3.5,                                         # nose 27-35
+    1.9, 2.2, 1.9, 2.0, 1.6, 1.6, 2.0, 1.9, 2.2, 1.9, 1.6, 1.6,                          # eyes 36-47
+    2.2, 3.0, 3.3, 3.6, 3.3, 3.0, 2.2, 3.2, 3.8, 4.0, 3.8, 3.2,                          # outer lips 48-59
+    2.4, 3.3, 3.4, 3.3, 2.4, 5.7, 4.6, 5.7])                                             # inner lips 60-67
 
 # Schedules: (sigma, gamma, evaluations) per photometric stage, and the landmark stage's budget.
 BUDGETS = {
@@ -89,6 +111,10 @@ class FaceFitConfig:
         (fit_face's ``face_mesh_landmarks``) on a model with that correspondence, else "model". On the
         demo face MediaPipe's points lie a mean 0.06 and up to 0.18 eye distances from the model's own (brows
         and jaw most): tied to the model's own, the fit takes that offset for shape.
+    detected_landmark_weights: weigh landmarks a detector found on Face Mesh's points (fit_face's
+        ``face_mesh_landmarks``, tied to them by landmark_map) by their measured noise, 1 / sigma^2 of
+        DETECTED_LANDMARK_SIGMA_MM scaled to the same total weight (face.detected_landmark_weights);
+        False, and always for landmarks from a file: the jaw line half, the other points 1.
     dense_weight: weight of each dense landmark (MediaPipe Face Mesh's 468 points, those the
         model's dense_use marks) relative to one of the 68 landmarks, in every stage that has
         the landmarks; 0: no dense term. Needs a model with dense points (FaceModel.has_dense)
@@ -113,6 +139,7 @@ class FaceFitConfig:
     forehead: float = 0.15
     contour_landmarks: str = "sliding"
     landmark_map: str = "auto"
+    detected_landmark_weights: bool = True
     dense_weight: float = 0.0
     n_id: int | None = None
     n_exp: int | None = None
@@ -192,6 +219,8 @@ def _check_face_config(c: FaceFitConfig) -> None:
     if c.landmark_map not in LANDMARK_MAPS:
         raise InputError(f"landmark_map must be one of {', '.join(map(repr, LANDMARK_MAPS))}, "
                          f"got {c.landmark_map!r}")
+    if not isinstance(c.detected_landmark_weights, (bool, np.bool_)):
+        raise InputError(f"detected_landmark_weights must be True or False, got {c.detected_landmark_weights!r}")
     if input_check(lambda: number("dense_weight", c.dense_weight)) < 0:
         raise InputError(f"dense_weight must be >= 0 (0: no dense landmark term), got {c.dense_weight!r}")
     if c.dtype not in ("float32", "float64"):

@@ -251,6 +251,7 @@ def test_synthetic_demo_face_is_recovered(demo, tmp_path):
     (dict(weights=dict(photo=float("nan"))), "weights['photo'] must be a finite number"),
     (dict(dtype="float16"), "dtype must be 'float32' or 'float64'"),
     (dict(contour_landmarks="slide"), "contour_landmarks must be one of 'sliding', 'fixed', got 'slide'"),
+    (dict(detected_landmark_weights="yes"), "detected_landmark_weights must be True or False, got 'yes'"),
     (dict(robust_scale=0.0), "robust_scale must be > 0, got 0.0"),
     (dict(robust_scale=float("nan")), "robust_scale must be a finite number"),
     (dict(stall_window=-1), "stall_window must be an integer >= 0 (evaluations; 0: no convergence stop)"),
@@ -665,7 +666,8 @@ def test_fit_face_ties_the_landmarks_as_their_detector_asks(demo, on_mesh):
 def test_points_a_face_mesh_tie_leaves_at_the_models_own_have_no_weight(demo, on_mesh):
     """tied_landmarks: with the Face Mesh tie, the 11 points its correspondence does not use (they
     keep the model's own point, far from MediaPipe's) weigh 0 in the landmark term, in the fit's
-    objective and in its half-resolution copy; otherwise the weights are landmark_weights()."""
+    objective and in its half-resolution copy; otherwise the weights are landmark_weights(). The
+    detector's measured weights off (detected_landmark_weights False): the tie's weights as before."""
     from softras_cl.fitting.keypoints.face_mesh import MP468_TO_IBUG68
 
     tied, weights = face.tied_landmarks(demo, "auto", on_mesh)
@@ -676,7 +678,57 @@ def test_points_a_face_mesh_tie_leaves_at_the_models_own_have_no_weight(demo, on
         expected[unused] = 0.0
     np.testing.assert_array_equal(weights, expected)
     sample = _turned_face(demo, yaw_deg=10.0, size=64)
-    config = face.FaceFitConfig(size=64, landmark_iters=3, photo_stages=(), contour_landmarks="fixed")
+    config = face.FaceFitConfig(size=64, landmark_iters=3, photo_stages=(), contour_landmarks="fixed",
+                                detected_landmark_weights=False)
     fit = face.fit_face(sample["photo"], sample["landmarks"], demo, config, progress=False, face_mesh_landmarks=on_mesh)
     np.testing.assert_array_equal(fit.objective.landmark_weights, expected)
     np.testing.assert_array_equal(fit.objective._half_size().landmark_weights, expected)
+
+
+def test_detected_landmark_weights_follow_the_measured_noise(demo):
+    """detected_landmark_weights: 1 / sigma^2 of the measured table on the used points, 0 elsewhere,
+    the same total as landmark_weights() over the used points; mirror-image points alike; the
+    eyes weigh more than the brows, the brows more than the jaw."""
+    from softras_cl.fitting.keypoints import ibug68
+    from softras_cl.fitting.keypoints.face_mesh import MP468_TO_IBUG68
+    from softras_cl.fitting.recipes.face_settings import DETECTED_LANDMARK_SIGMA_MM
+
+    sigma = DETECTED_LANDMARK_SIGMA_MM
+    assert sigma.shape == (ibug68.COUNT,) and np.all(sigma > 0)
+    used = demo.dense_use[MP468_TO_IBUG68]
+    w = face.detected_landmark_weights(used)
+    assert np.all(w[~used] == 0.0) and np.all(w[used] > 0.0)
+    assert w.sum() == pytest.approx(face.landmark_weights()[used].sum(), rel=1e-12)
+    np.testing.assert_allclose(w[used] * sigma[used] ** 2, (w[used] * sigma[used] ** 2)[0], rtol=1e-12)
+    mirror = np.r_[16:-1:-1, 26:16:-1, 27:31, 35:30:-1, 45:41:-1, 47:45:-1, 39:35:-1, 41:39:-1,
+                   54:47:-1, 59:54:-1, 64:59:-1, 67:64:-1]
+    np.testing.assert_array_equal(sigma, sigma[mirror])
+    eyes, brows, jaw = (np.array([i for i in r if used[i]]) for r in (range(36, 48), ibug68.BROWS, ibug68.JAW))
+    assert w[eyes].mean() > w[brows].mean() > w[jaw].mean()
+
+
+@pytest.mark.parametrize("on_mesh, landmark_map", [(True, "auto"), (True, "face-mesh"), (False, "face-mesh"),
+                                                    (False, "auto")])
+def test_only_a_detectors_landmarks_get_the_measured_weights(demo, on_mesh, landmark_map):
+    """fit_face weighs landmarks a detector found on Face Mesh's points by their measured noise
+    (FaceFitConfig.detected_landmark_weights, the default), in the objective and its half-resolution
+    copy; a file's landmarks keep today's weights, tied to Face Mesh's points or not."""
+    from softras_cl.fitting.keypoints.face_mesh import MP468_TO_IBUG68
+
+    used = demo.dense_use[MP468_TO_IBUG68]
+    tied, weights = face.tied_landmarks(demo, landmark_map, on_mesh, measured=True)
+    _, today = face.tied_landmarks(demo, landmark_map, on_mesh, measured=False)
+    if on_mesh:
+        np.testing.assert_array_equal(weights, face.detected_landmark_weights(used))
+        assert not np.array_equal(weights, today)
+    else:
+        np.testing.assert_array_equal(weights, today)
+        expected = np.where(used, face.landmark_weights(), 0.0) if landmark_map == "face-mesh" else face.landmark_weights()
+        np.testing.assert_array_equal(today, expected)
+    sample = _turned_face(demo, yaw_deg=10.0, size=64)
+    config = face.FaceFitConfig(size=64, landmark_iters=3, photo_stages=(), contour_landmarks="fixed",
+                                landmark_map=landmark_map)
+    assert config.detected_landmark_weights is True
+    fit = face.fit_face(sample["photo"], sample["landmarks"], demo, config, progress=False, face_mesh_landmarks=on_mesh)
+    np.testing.assert_array_equal(fit.objective.landmark_weights, weights)
+    np.testing.assert_array_equal(fit.objective._half_size().landmark_weights, weights)
