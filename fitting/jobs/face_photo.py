@@ -7,9 +7,16 @@ face, face N, the face in a box, or face N of --all-faces), fits them with
 fitting.recipes.face.fit_face and writes through fitting.reports.face.
 :class:`FaceViewsJob`, several photos of one person (--same-person): the same for each photo,
 one joint fit (fitting.recipes.face_views), written by fitting.reports.face_views.
+
+The focal length: --focal fixes it; else a photo's EXIF 35 mm equivalent focal length, when it has
+one, sets where the fit starts it and centres its prior (:func:`exif_focal`; the fit still moves
+it: a crop or a digital zoom keeps the EXIF of the whole frame); else a 30 degree field of view
+across the longer side (FaceFitConfig.fov_deg) does.
 """
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 from pathlib import Path
 
@@ -26,9 +33,38 @@ from softras_cl.fitting.run_records import face_landmarks_source, face_record
 from softras_cl.io.images import read_photo
 from softras_cl.io.outputs import stable_names
 
-__all__ = ["FacePhotoJob", "FaceViewsJob", "face_model", "face_landmarks", "check_uncut"]
+__all__ = ["FacePhotoJob", "FaceViewsJob", "face_model", "face_landmarks", "check_uncut", "exif_focal",
+           "with_exif_focal"]
 
 REQUIRED = ("landmark_error_px_full", "psnr_face_db")     # finite, or the fit failed
+
+
+def exif_focal(path, image_size) -> tuple[float, float] | None:
+    """(focal length in pixels of an (H, W) photo, its field of view in degrees across the longer
+    side) from the photo's EXIF 35 mm equivalent focal length (by the frame diagonal, as
+    fitting.jobs.body_photo.photo_fov reads it), or None when the file has none."""
+    from softras_cl.fitting.jobs.body_photo import photo_fov
+
+    fov_short = photo_fov(path, image_size)
+    if fov_short is None:
+        return None
+    focal = 0.5 * min(image_size) / math.tan(math.radians(fov_short) / 2.0)
+    return focal, math.degrees(2.0 * math.atan(0.5 * max(image_size) / focal))
+
+
+def with_exif_focal(config, path, image_size):
+    """(config, where its focal length comes from: "--focal", "exif" or "prior"): ``config``
+    (FaceFitConfig) as given when it fixes the focal length (--focal wins: the user knows it) or
+    the photo has no EXIF focal length; else with fov_deg from the EXIF (:func:`exif_focal`), which
+    then sets the fit's initial focal length and the centre of its prior, in place of the typical
+    30 degrees (a camera's own record beats a guess; the fit still moves it, as crops and digital
+    zoom keep the whole frame's EXIF)."""
+    if config.focal is not None:
+        return config, "--focal"
+    found = exif_focal(path, image_size)
+    if found is None:
+        return config, "prior"
+    return dataclasses.replace(config, fov_deg=found[1]), "exif"
 
 
 def face_model(options: dict):
@@ -110,6 +146,7 @@ class FacePhotoJob(FitJob):
         self.config = FACE.config(self.options)
         self.recorded = self.options if recorded is None else recorded
         self.photo = self.landmarks = self.model = self.dense = None
+        self.focal_source = None
 
     def read(self) -> None:
         """Read the photo, find its landmarks (the detection, when detected, is in
@@ -124,6 +161,7 @@ class FacePhotoJob(FitJob):
         if beside is not None:          # before the file is checked against the detector's faces
             refuse_face_choice(beside, True, self.face, self.face_box)
         self.photo = read_photo(self.path)
+        self.config, self.focal_source = with_exif_focal(self.config, self.path, self.photo.rgb8.shape[:2])
         self.landmarks = face_landmarks(self.photo, self.landmarks_file, self.face, self.face_box, self.all_faces)
         self.model = face_model(self.options)
         self.dense = detected_dense(self.landmarks.face)
@@ -150,7 +188,8 @@ class FacePhotoJob(FitJob):
 
         return write_outputs(fit, self.photo.linear, self.landmarks, folder, metrics=metrics,
                              run_config=dict(fit=self.config, options=self.recorded),
-                             extra=dict(photo=str(self.path), seconds=seconds, budget=self.options["budget"]))
+                             extra=dict(photo=str(self.path), seconds=seconds, budget=self.options["budget"],
+                                        focal_source=self.focal_source))
 
     def summary(self, metrics: dict) -> str:
         return (f"landmark error {metrics['landmark_error_px_full']:.2f} px, face-region PSNR "
