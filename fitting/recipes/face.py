@@ -105,7 +105,7 @@ def landmark_weights() -> np.ndarray:
 def detected_landmark_weights(used) -> np.ndarray:
     """(68,) per-landmark weights for landmarks a detector found on Face Mesh's points, tied to them:
     1 / sigma^2 of their measured noise (face_settings.DETECTED_LANDMARK_SIGMA_MM: MediaPipe's
-    eye points spread about 1.8 mm at the face, its brows 2.6, nose and lips 3.3, jaw 6.3), 0 where
+    eye points spread about 1.9 mm at the face, its brows 2.6, nose 3.3, lips 3.5, jaw 4-12 6.3), 0 where
     ``used`` (68,) bool is False, scaled so that the used points weigh as much in all as
     :func:`landmark_weights` gives them: the landmark term keeps its total weight against the
     photo and the priors, shared out by how far each point can be trusted."""
