@@ -670,7 +670,7 @@ def test_points_a_face_mesh_tie_leaves_at_the_models_own_have_no_weight(demo, on
     detector's measured weights off (detected_landmark_weights False): the tie's weights as before."""
     from softras_cl.fitting.keypoints.face_mesh import MP468_TO_IBUG68
 
-    tied, weights = face.tied_landmarks(demo, "auto", on_mesh)
+    tied, weights = face.tied_landmarks(demo, "auto", on_mesh, measured=False)
     unused = ~demo.dense_use[MP468_TO_IBUG68]
     expected = face.landmark_weights()
     if on_mesh:
