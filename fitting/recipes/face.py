@@ -785,8 +785,7 @@ def tied_landmarks(model, landmark_map: str, face_mesh_landmarks: bool = False,
     lower at |yaw| 0-15 without them, 5% +- 2% at 15-45). ``measured`` (FaceFitConfig's
     detected_landmark_weights): for landmarks a detector found (``face_mesh_landmarks``) tied to Face
     Mesh's points, the used points weigh by their measured noise instead
-    (:func:`detected_landmark_weights`; the joint fit of several photos, fitting.recipes.face_views,
-    takes this default); a file's landmarks keep :func:`landmark_weights`."""
+    (:func:`detected_landmark_weights`); a file's landmarks keep :func:`landmark_weights`."""
     tied = landmark_model(model, landmark_map, face_mesh_landmarks)
     weights = landmark_weights()
     if tied is not model:

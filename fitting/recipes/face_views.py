@@ -147,7 +147,8 @@ def prepare_view(photo, landmarks, model, config: FaceFitConfig, face_mesh_landm
     fit_face's ``face_mesh_landmarks``) -> the View fit_face would start from (working image, camera, initial pose and
     light; the landmarks tied as config.landmark_map says). ResultError when the landmarks
     cannot be a face's (fitting.keypoints.plausibility.check_landmark_layout)."""
-    tied, point_weights = tied_landmarks(model, config.landmark_map, face_mesh_landmarks)
+    tied, point_weights = tied_landmarks(model, config.landmark_map, face_mesh_landmarks,
+                                         config.detected_landmark_weights)
     view = View(*prepare_fit(photo, landmarks, tied, config, point_weights=point_weights))
     check_landmark_layout(landmarks)      # after prepare_fit's input checks (shape, area, size)
     return view

@@ -187,3 +187,19 @@ def test_a_photo_whose_landmarks_cannot_be_a_face_is_refused(demo):
     landmarks = [sample["landmarks"], shuffled(sample["landmarks"], 0)]
     with pytest.raises(ResultError, match="not in the iBUG 300-W 68-point order"):
         face_views.fit_face_views([sample["photo"]] * 2, landmarks, demo, progress=False)
+
+
+def test_the_joint_fit_weighs_detected_landmarks_as_its_config_says(demo):
+    """detected_landmark_weights reaches each view of the joint fit: on, a detector's points
+    weigh by their measured noise; off, as a file's (the tie's unused points at 0)."""
+    sample = synthetic_face(demo, np.random.default_rng(7), size=64)
+    weights = {}
+    for measured in (True, False):
+        config = face.FaceFitConfig(size=64, detected_landmark_weights=measured, **TINY)
+        view = face_views.prepare_view(sample["photo"], sample["landmarks"], demo, config, face_mesh_landmarks=True)
+        weights[measured] = view.objective.landmark_weights
+    expected_on = face.tied_landmarks(demo, "auto", True, True)[1]
+    expected_off = face.tied_landmarks(demo, "auto", True, False)[1]
+    np.testing.assert_array_equal(weights[True], expected_on)
+    np.testing.assert_array_equal(weights[False], expected_off)
+    assert not np.array_equal(expected_on, expected_off)
