@@ -42,6 +42,34 @@ def test_choose_largest_by_default_and_says_so():
     assert det.choose_face(candidates[:1])[1] == "the only face found"
 
 
+def _meshed_candidate(box, mesh_box, score=0.9):
+    x, y, w, h = mesh_box
+    dense = np.array([[x, y], [x + w, y + h]], dtype=np.float64)
+    return det.FaceCandidate(np.array(box, dtype=np.float64), score, None, dense, "mediapipe", "test")
+
+
+@pytest.mark.parametrize("intended, other", [
+    # bench landmarks, seed 0, frame 14: a 33 px face turned 35 degrees and a 22 px face, whose
+    # full-range box is a px larger than the intended one's; their Face Mesh points say otherwise
+    (([498, 422, 30, 30], [501, 421, 30, 33]), ([250, 295, 31, 31], [251, 301, 25, 26])),
+    # frame 32: a 108 px face turned 57 degrees, whose Face Mesh points span less than those of
+    # the 66 px frontal face beside it; its box says otherwise
+    (([171, 420, 80, 80], [186, 417, 56, 74]), ([839, 420, 71, 71], [840, 412, 66, 75])),
+])
+def test_largest_is_the_mean_of_the_box_and_the_face_mesh_extent(intended, other):
+    first, second = _meshed_candidate(*intended), _meshed_candidate(*other)
+    assert first.size == pytest.approx((max(intended[0][2:]) + max(intended[1][2:])) / 2)
+    assert faces.sort_candidates([second, first]) == [first, second]
+    assert det.choose_face(faces.sort_candidates([second, first]))[0] == 0
+
+
+def test_size_without_face_mesh_points_follows_the_box_area():
+    box = _candidate([0, 0, 40, 10])
+    assert box.size == pytest.approx(20.0)
+    wide, square = _candidate([0, 0, 40, 10]), _candidate([0, 0, 19, 19])
+    assert faces.sort_candidates([square, wide]) == [wide, square]     # 400 > 361 px^2, as by area
+
+
 def test_sort_breaks_area_ties_by_score():
     low, high = _candidate([0, 0, 20, 20], 0.6), _candidate([40, 0, 20, 20], 0.95)
     assert faces.sort_candidates([low, high]) == [high, low]
@@ -377,25 +405,29 @@ def test_upright_roll_takes_another_quarter_turn_only_when_clearly_better(monkey
     assert roll == pytest.approx(0.1 + turn * math.pi / 2) and score == scores[turn]
 
 
-@pytest.mark.parametrize("upright, mesh_at, rescored, kept", [
-    (0.80, 2.0, None, 0.80),      # upright: kept on its own score, not scored again
-    (0.60, 2.0, 0.85, 0.85),      # below MIN_UPRIGHT_SCORE: kept on its Face Mesh crop's score ...
-    (0.60, 2.0, 0.65, None),      # ... dropped when that is low as well
-    (0.40, 2.0, 0.95, None),      # below MIN_RESCORED: dropped before Face Mesh runs
-    (0.80, 3.0, None, 0.80),      # Face Mesh finds it on the wider crop only
-    (0.80, None, None, None),     # on neither
+@pytest.mark.parametrize("upright, mesh_at, rescored, kept, tried", [
+    (0.80, (2.0,), {}, (0.80, 2.0), (2.0,)),                    # upright: kept on its own score, not scored again
+    (0.60, (2.0,), {2.0: 0.85}, (0.85, 2.0), (2.0,)),           # below MIN_UPRIGHT_SCORE: kept on its Face Mesh crop's score ...
+    (0.60, (2.0,), {2.0: 0.65}, None, (2.0, 3.0)),              # ... dropped when that is low and the wider crop has no face
+    (0.60, (2.0, 3.0), {2.0: 0.66, 3.0: 0.73}, (0.73, 3.0), (2.0, 3.0)),  # ... kept on the wider crop's mesh
+    (0.60, (2.0, 3.0), {2.0: 0.66, 3.0: 0.64}, None, (2.0, 3.0)),  # ... dropped when both are low
+    (0.40, (2.0,), {}, None, ()),                               # below MIN_RESCORED: dropped before Face Mesh runs
+    (0.80, (3.0,), {}, (0.80, 3.0), (2.0, 3.0)),                # Face Mesh finds it on the wider crop only
+    (0.60, (3.0,), {3.0: 0.65}, None, (2.0, 3.0)),              # ... scored once, not meshed a third time
+    (0.80, (), {}, None, (2.0, 3.0)),                           # on neither
 ])
-def test_a_face_is_kept_on_its_upright_score_or_its_face_mesh_crops(monkeypatch, upright, mesh_at, rescored, kept):
+def test_a_face_is_kept_on_its_upright_score_or_its_face_mesh_crops(monkeypatch, upright, mesh_at, rescored, kept, tried):
     calls = []
     monkeypatch.setattr(mp, "upright_roll", lambda image, center, side, roll: (0.0, upright))
 
     def mesh_in_crop(image, center, side, roll=0.0):
         calls.append(side / 10.0)
-        return np.zeros((478, 2)) if mesh_at is not None and side == pytest.approx(mesh_at * 10.0) else None
+        return np.full((478, 2), side / 10.0) if any(side == pytest.approx(m * 10.0) for m in mesh_at) else None
 
     def mesh_score(image, dense):
-        assert rescored is not None, "scored again though its upright score decides"
-        return rescored
+        margin = float(dense[0, 0])
+        assert margin in rescored, "scored again though its upright score decides"
+        return rescored[margin]
 
     monkeypatch.setattr(mp, "mesh_in_crop", mesh_in_crop)
     monkeypatch.setattr(mp, "mesh_score", mesh_score)
@@ -403,9 +435,9 @@ def test_a_face_is_kept_on_its_upright_score_or_its_face_mesh_crops(monkeypatch,
     candidate = mp._meshed(np.zeros((40, 40, 3), np.uint8), detection)
     assert (candidate is None) == (kept is None)
     if kept is not None:
-        assert candidate.score == kept
-    assert calls == ([] if upright < mp.MIN_RESCORED else [mp.CROP_MARGIN] if mesh_at == mp.CROP_MARGIN
-                     else [mp.CROP_MARGIN, mp.RETRY_MARGIN])
+        assert (candidate.score, candidate.dense[0, 0]) == kept      # the score and the mesh that earned it
+    assert calls == [pytest.approx(v) for v in tried]
+    assert mp.CROP_MARGIN == 2.0 and mp.RETRY_MARGIN == 3.0
 
 
 @pytest.mark.detect
