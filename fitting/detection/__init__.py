@@ -5,7 +5,7 @@ Backends (find.py): "mediapipe" (the default; MediaPipe's short- and full-range 
 on the whole image and on a pyramid of tiles; then Face Mesh, 478 points, on each face's
 upright crop, and 68 of its points for the iBUG ones, fitting.keypoints.face_mesh), "dlib" (opt-in,
 non-commercial 68-point model), and the user's own files (files.py). Every face is a FaceCandidate (faces.py); faces are listed and numbered
-largest box first; detect_face chooses one (the largest, --face N, --face-box X,Y,W,H) and says
+largest first; detect_face chooses one (the largest, --face N, --face-box X,Y,W,H) and says
 why, and refuses landmarks that do not form a face. docs/landmarks.md is the guide.
 
 Coordinates: landmarks (N, 2) float64 (x, y), 0-based pixel centres; boxes (x, y, w, h) on the

@@ -20,7 +20,7 @@ from softras_cl.fitting.keypoints import ibug68
 from softras_cl.fitting.keypoints.plausibility import layout_faults
 
 #: the order candidates are listed, numbered and chosen in (``--face N`` is the N-th)
-ORDER = "largest box first (ties: higher score first)"
+ORDER = "largest first (size: its box and its Face Mesh points; ties: higher score first)"
 
 
 class DetectorUnavailableError(InputError, ImportError):

@@ -1,6 +1,6 @@
 """Find the faces of an image with a backend, and choose one, saying which and why.
 
-find_faces(image, backend) lists every face (FaceCandidate), largest box first; detect_face adds
+find_faces(image, backend) lists every face (FaceCandidate), largest first; detect_face adds
 the choice (choose_face: the largest, --face N or --face-box) and refuses a chosen face whose
 landmarks do not form a face. Backends: "mediapipe" (the default; mediapipe_backend.py) and
 "dlib" (opt-in; dlib_backend.py). Nothing runs the dlib model unless "dlib" is asked for.
@@ -87,7 +87,7 @@ def _scaled(candidate: FaceCandidate, factor: float, note: str) -> FaceCandidate
 
 
 def find_faces(image, backend: str | None = None, **options) -> list[FaceCandidate]:
-    """Every face in an (H, W, 3) uint8 RGB image, in the stated ORDER (largest box first).
+    """Every face in an (H, W, 3) uint8 RGB image, in the stated ORDER (largest first).
 
     backend: "mediapipe" (None: the default) or "dlib".
     options, mediapipe: tiles (True: the tile pyramid for small faces); dlib: upsample and

@@ -11,7 +11,7 @@ are spread evenly (stratified, shuffled) over yaw -80..80 degrees and over face 
 px on a log scale, pitch and roll +-20 degrees; a face's width is its jaw width (iBUG points 0
 and 16 of its frontal face) in pixels at its distance. Every third frame holds a second face
 45-75% as wide, |yaw| <= 45, beside the first: the intended face is the first (the larger),
-which the detection layer's default choice (largest box first) must take. Renders are cached
+which the detection layer's default choice (largest first) must take. Renders are cached
 under --cache, so reruns only detect.
 
 The true landmarks are the model's 68 landmark points of each face projected by the camera

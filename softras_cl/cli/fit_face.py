@@ -29,7 +29,7 @@ far (exit 130; --resume continues it).
 
 Landmarks: --landmarks FILE, else a file beside the photo (PHOTO.pts/.txt/.npy, i.e. the photo's
 name with that suffix), else the face detector (MediaPipe, the "detect" extra): the largest face,
-or --face N (faces numbered largest box first), or --face-box X,Y,W,H; the faces found, the one
+or --face N (faces numbered largest first), or --face-box X,Y,W,H; the faces found, the one
 fitted and why are printed and written to detection.json; in a batch (below) --face N fits face N
 of each photo. A detected face whose landmarks do not form a face stops the run (exit 1) before
 fitting. Every fit also writes landmarks_detected.pts (the 68 points it was given) and

@@ -29,7 +29,7 @@ def test_largest_face_by_default(two_face_photo, tmp_path, run_cli):
     shown = run_cli("detect-landmarks", photo, "--out", tmp_path / "f.pts", "--overlay", tmp_path / "o.png")
     assert shown.code == 0, shown.err
     lines = shown.out.splitlines()
-    assert lines[0] == "2 faces found by mediapipe, numbered largest box first (ties: higher score first):"
+    assert lines[0] == "2 faces found by mediapipe, numbered largest first (size: its box and its Face Mesh points; ties: higher score first):"
     assert lines[1].startswith("* face 0: box ") and "chosen: the largest of 2 faces" in lines[1]
     assert lines[2].startswith("  face 1: box ") and "score 0.9" in lines[2]
     assert nme(read_pts(tmp_path / "f.pts"), large) < MAX_NME

@@ -39,10 +39,10 @@ def test_face_1_fits_the_smaller_face_says_why_and_records_it(two_face_photo, tm
     shown = run_cli("fit-face", photo, "--face", "1", "--out", out, *SMALL)
     assert shown.code == 0, shown.err
     lines = shown.out.splitlines()
-    assert lines[0] == "2 faces found by mediapipe, numbered largest box first (ties: higher score first):"
+    assert lines[0] == "2 faces found by mediapipe, numbered largest first (size: its box and its Face Mesh points; ties: higher score first):"
     assert lines[1].startswith("  face 0: box ") and "chosen" not in lines[1]
     assert lines[2].startswith("* face 1: box ") and lines[2].endswith("chosen: --face 1: number 1 of 2, "
-                                                                      "largest box first (ties: higher score first)")
+                                                                      "largest first (size: its box and its Face Mesh points; ties: higher score first)")
     detection = json.loads((out / "detection.json").read_text())
     assert detection["chosen"] == 1 and detection["backend"] == "mediapipe" and len(detection["candidates"]) == 2
     chosen = detection["candidates"][1]

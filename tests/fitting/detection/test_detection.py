@@ -78,7 +78,7 @@ def test_sort_breaks_area_ties_by_score():
 def test_choose_nth_face():
     candidates = [_candidate([0, 0, 40, 40]), _candidate([100, 0, 20, 20])]
     index, reason = det.choose_face(candidates, face=1)
-    assert index == 1 and reason.startswith("--face 1: number 1 of 2, largest box first")
+    assert index == 1 and reason.startswith("--face 1: number 1 of 2, largest first")
     with pytest.raises(InputError, match=r"--face 2: only 2 faces were found, numbered 0-1"):
         det.choose_face(candidates, face=2)
     with pytest.raises(InputError, match=r"--face -1"):
