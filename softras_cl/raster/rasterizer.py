@@ -173,7 +173,9 @@ class SoftRasterizer:
 
     numpy_via_device: numpy inputs go through the device path (uploaded, checked, set up and
     binned on the device, the results downloaded; the same bits as the host path, docs/api.md)
-    instead of the host path (host checks, set-up and binning). True on a GPU, where the host
+    instead of the host path (host checks, set-up and binning). True on a GPU or an accelerator
+    that does not also say it is a CPU (kernel_layout's "auto"; Oclgrind's simulator claims
+    every type and runs the host path), where the host
     passes and their transfers cost 30 times the kernels (docs/gpu_check.md); False on a CPU
     device, where each device launch costs more than the host pass it replaces (docs/speed.md).
     """
@@ -210,7 +212,7 @@ class SoftRasterizer:
         self.setup = (DeviceSetup(self.ctx, self.queue, self.pool, self.grid, self.real)
                       if has_fp64(self.device) else None)
         self.device_setup_faces = DEVICE_SETUP_FACES
-        self.numpy_via_device = bool(self.device.type & cl.device_type.GPU)
+        self.numpy_via_device = kernel_layout(self.device, "auto") == "gpu"
         # events of transfers in flight: pyopencl's transfer events wait for their transfer when
         # freed, so they are kept until _sync waits for all of them at once
         self._transfers: list = []

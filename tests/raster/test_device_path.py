@@ -186,8 +186,11 @@ def numpy_via_device_path(s, vertices, faces, colors, grads):
 def test_numpy_via_device_is_the_default_on_gpus_only():
     import pyopencl as cl
 
+    from softras_cl.cl.device import kernel_layout
+
     raster = SoftRasterizer(settings())
-    assert raster.numpy_via_device == bool(raster.device.type & cl.device_type.GPU)
+    assert raster.numpy_via_device == (kernel_layout(raster.device, "auto") == "gpu")
+    assert not raster.numpy_via_device or raster.device.type & cl.device_type.GPU
 
 
 def test_numpy_via_device_with_no_faces_gives_the_background():
