@@ -276,15 +276,17 @@ class FaceScene:
                     rotation=rodrigues_vjp(ctx.rot_ctx, g_world.T @ ctx.shape)["omega"])
 
     def render(self, values: dict, sigma: float, gamma: float, grads=(), albedo=None,
-               light=None, world=None, roi=None):
+               light=None, world=None, roi=None, faces=None):
         """Render the face; albedo (V, 3) / light: the model's if already computed, or others
         (for the report); world: the world vertices if already computed; roi: None or an (H, W)
         bool mask, the only pixels needed (Renderer.forward: other screen tiles are not
-        rasterised)."""
+        rasterised); faces: this scene's faces as a device copy (with device-resident world and
+        albedo: Renderer.forward's device path), None for self.faces."""
         world = self.geometry(values)[0] if world is None else world
         albedo = self.model.albedo(values["albedo"])[0] if albedo is None else albedo
         light = SHLight(values["sh"]) if light is None else light
-        return self.renderer.forward(world, self.faces, self.camera(values["focal"][0]),
+        faces = self.faces if faces is None else faces
+        return self.renderer.forward(world, faces, self.camera(values["focal"][0]),
                                      albedo=albedo, light=light, grads=grads, roi=roi, sigma=sigma,
                                      gamma=gamma, near=self.settings.near, far=self.settings.far)
 
@@ -478,12 +480,17 @@ class FaceObjective:
         model = self.scene.model
         faces = None if self.coarse_mesh is None else coarse_faces(model.mean_shape, model.faces, self.coarse_mesh)
         image, to_half = half_resolution(self.image)
-        return FaceObjective(self.scene.half_size(faces), image, to_half(self.target),
-                             mask_erosion=max(1, self.mask_erosion // 2) if self.mask_erosion else 0,
-                             focal0=self.focal0 * 0.5, forehead=self.forehead, coarse_sigma=None,
-                             robust_scale=self.robust_scale, contour=self.contour,
-                             dense=None if self.dense_target is None else to_half(self.dense_target),
-                             point_weights=self.landmark_weights)
+        return type(self)(self.scene.half_size(faces), image, to_half(self.target),
+                          mask_erosion=max(1, self.mask_erosion // 2) if self.mask_erosion else 0,
+                          focal0=self.focal0 * 0.5, forehead=self.forehead, coarse_sigma=None,
+                          robust_scale=self.robust_scale, contour=self.contour,
+                          dense=None if self.dense_target is None else to_half(self.dense_target),
+                          point_weights=self.landmark_weights, **self._level_options())
+
+    def _level_options(self) -> dict:
+        """Keyword arguments a half-resolution copy of this objective is made with beyond
+        FaceObjective's own (a subclass's shared resources)."""
+        return {}
 
     def set_depth_range(self, translation) -> None:
         """Fit near/far to a face at ``translation`` (:func:`depth_range`) in this objective's
@@ -493,41 +500,57 @@ class FaceObjective:
                 objective.scene.set_depth_range(translation)
 
     def __call__(self, values: dict, stage: Stage):
-        w = stage.weights
         world, geometry_ctx = self.scene.geometry(values)
-        terms = {}
-        if w.get("landmarks"):
-            terms["landmarks"] = self.landmark_term(values, world)
-        if w.get("dense"):
-            terms["dense"] = self.dense_term(values, world)
-        if w.get("photo"):
-            level = self.photo_level(stage.sigma)
-            scale = 1.0 if level is self else 0.5
-            level_values = values if level is self else dict(values, focal=values["focal"] * scale)
-            if level._mask_stage != stage.name:
-                self.set_depth_range(values["translation"])
-                level.start_stage(level_values, stage)
-            value, g = level.photo_term(level_values, world, stage.sigma, stage.gamma)
-            if level is not self:       # a half-size pixel stands for 4 working pixels
-                area = 1.0 / (scale * scale)
-                value, g = value * area, {k: v * area for k, v in g.items()}
-                g["focal"] = g["focal"] * scale
-            terms["photo"] = (value, g)
-        for name, block in (("id_prior", "id"), ("exp_prior", "exp"), ("albedo_prior", "albedo")):
-            if w.get(name):
-                value, g = losses.gaussian_prior(values[block], 1.0)
-                terms[name] = (value, {block: g["coeffs"]})
-        if w.get("sh_white"):
-            value, g = losses.sh_white(values["sh"])
-            terms["sh_white"] = (value, {"sh": g["coeffs"]})
-        if w.get("focal_prior"):
-            terms["focal_prior"] = self.focal_prior(values["focal"])
-        loss, grads, weighted = losses.weighted_sum(terms, w)
+        terms = self.point_terms(values, world, stage.weights)
+        if stage.weights.get("photo"):
+            terms["photo"] = self.photo(values, world, stage)
+        loss, grads, weighted = losses.weighted_sum(terms | self.prior_terms(values, stage.weights), stage.weights)
         g_world = grads.pop("world", None)
         if g_world is not None:                     # one pass through the model for all terms
             for name, g in self.scene.geometry_vjp(geometry_ctx, g_world).items():
                 grads[name] = grads.get(name, 0.0) + g
         return loss, grads, weighted
+
+    def point_terms(self, values: dict, world: np.ndarray, weights: dict) -> dict:
+        """The landmark and dense terms of positive weight, {name: (value, grads)}, on world
+        vertices (V, 3) float64 numpy."""
+        terms = {}
+        if weights.get("landmarks"):
+            terms["landmarks"] = self.landmark_term(values, world)
+        if weights.get("dense"):
+            terms["dense"] = self.dense_term(values, world)
+        return terms
+
+    def prior_terms(self, values: dict, weights: dict) -> dict:
+        """The prior terms of positive weight (coefficients, light, focal), {name: (value, grads)}."""
+        terms = {}
+        for name, block in (("id_prior", "id"), ("exp_prior", "exp"), ("albedo_prior", "albedo")):
+            if weights.get(name):
+                value, g = losses.gaussian_prior(values[block], 1.0)
+                terms[name] = (value, {block: g["coeffs"]})
+        if weights.get("sh_white"):
+            value, g = losses.sh_white(values["sh"])
+            terms["sh_white"] = (value, {"sh": g["coeffs"]})
+        if weights.get("focal_prior"):
+            terms["focal_prior"] = self.focal_prior(values["focal"])
+        return terms
+
+    def photo(self, values: dict, world, stage: Stage) -> tuple[float, dict]:
+        """The photometric term of a stage, (value, grads) in working pixels, at the resolution
+        :meth:`photo_level` picks (its stage set-up on the stage's first call); world: the world
+        vertices (V, 3), as :meth:`photo_term` takes them."""
+        level = self.photo_level(stage.sigma)
+        scale = 1.0 if level is self else 0.5
+        level_values = values if level is self else dict(values, focal=values["focal"] * scale)
+        if level._mask_stage != stage.name:
+            self.set_depth_range(values["translation"])
+            level.start_stage(level_values, stage)
+        value, g = level.photo_term(level_values, world, stage.sigma, stage.gamma)
+        if level is not self:       # a half-size pixel stands for 4 working pixels
+            area = 1.0 / (scale * scale)
+            value, g = value * area, {k: v * area for k, v in g.items()}
+            g["focal"] = g["focal"] * scale
+        return value, g
 
     def landmark_points(self, values: dict, world: np.ndarray) -> tuple[np.ndarray, LandmarkContext]:
         """The model's 68 landmarks projected, (68, 2) working pixels, with the sliding contour

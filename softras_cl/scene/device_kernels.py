@@ -332,10 +332,12 @@ KERNELS = {
 
 
 class SceneKernels:
-    """The kernels above for one OpenCL context, each built on first use."""
+    """The kernels above, and a caller's own (extra: name -> (arguments, body), the same form),
+    for one OpenCL context, each built on first use."""
 
-    def __init__(self, ctx: cl.Context, queue: cl.CommandQueue):
+    def __init__(self, ctx: cl.Context, queue: cl.CommandQueue, extra: dict | None = None):
         self.ctx, self.queue = ctx, queue
+        self.table = KERNELS | (extra or {})
         self._built: dict = {}
         self._reductions: dict = {}
         self.record: list | None = None     # a list: every launch's (name, event) is appended (bench)
@@ -347,7 +349,7 @@ class SceneKernels:
         if name not in self._built:
             from pyopencl.elementwise import ElementwiseKernel
 
-            arguments, body = KERNELS[name]
+            arguments, body = self.table[name]
             defines = (f"#define CAMERA_PARAMS {CAMERA_PARAMS}\n#define CAMERA_PRODUCTS {CAMERA_PRODUCTS}\n"
                        f"#define SUM_CHUNK {SUM_CHUNK}\n")
             self._built[name] = ElementwiseKernel(self.ctx, arguments, body, f"scene_{name}",
