@@ -154,3 +154,61 @@ def test_jaw_candidates_hold_each_side_of_the_face(demo_face_model):
     chin = sliding.candidates[8]                  # the chin: the lower part, both sides
     assert demo_face_model.mean_shape[chin, 1].max() <= fixed[:, 1].mean() + 1e-12
     assert x[chin].min() < 0 < x[chin].max()
+
+
+def _whole_mesh_front_facing(vertices, faces, eye):
+    """front_facing as it was first written (a (F, 3, 3) gather of the whole triangle list)."""
+    tri = np.asarray(vertices, np.float64)[faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    centroid = (tri[:, 0] + tri[:, 1] + tri[:, 2]) / 3.0
+    return np.einsum("fc,fc->f", normal, np.asarray(eye, np.float64) - centroid) > 0
+
+
+def _whole_mesh_choice(sliding, world, project, targets):
+    """The choice straight from its definition: every face's facing, every contour edge, then
+    each turned point's nearest candidate."""
+    front = _whole_mesh_front_facing(world, sliding.model.faces, np.zeros(3))
+    on_contour = np.nonzero(contour.contour_edges(front, sliding.edges))[0]
+    edge, t = np.full(len(sliding.points), -1), np.zeros(len(sliding.points))
+    for i, point in enumerate(sliding.points):
+        candidates = on_contour[sliding.candidate_edges[i, on_contour]]
+        if front[sliding.model.landmark_faces[point]] or not candidates.size:
+            continue
+        pixels, depth = project(world[sliding.edges.vertices[candidates].reshape(-1)])
+        k, t[i] = contour._nearest_on_segments((pixels[0::2], pixels[1::2], depth[0::2], depth[1::2]),
+                                               targets[point])
+        edge[i] = candidates[k]
+    return front, edge, t
+
+
+def test_the_choice_on_the_demo_face_is_the_whole_mesh_choice_bit_for_bit(demo_face_model):
+    """Random shapes and poses (frontal, turned either way, seen from behind) with the fit's
+    camera: the same faces turned, and the same edge and t for every point as the reference
+    (front_facing and contour_edges over the whole mesh, one point at a time)."""
+    from softras_cl.fitting.recipes.face import CAMERA_ROTATION
+    from softras_cl.scene.camera import Camera
+    from softras_cl.scene.rotation import axis_angle_to_matrix
+
+    model = demo_face_model
+    sliding = contour.jaw_candidates(model)
+    camera = Camera.from_opencv([[700.0, 0.0, 128.0], [0.0, 700.0, 128.0], [0.0, 0.0, 1.0]], CAMERA_ROTATION,
+                                np.zeros(3), (256, 256))
+    project = lambda p: (camera.project_pixels(p)[0], -p[:, 2])
+    rng = np.random.default_rng(7)
+    slid = np.zeros(len(sliding.points), bool)
+    for yaw in (0, 30, -30, 60, -60, 180):
+        for _ in range(2):
+            angles = np.radians([rng.uniform(-15, 15), yaw + rng.uniform(-5, 5), rng.uniform(-8, 8)])
+            shape, _ = model.shape(rng.normal(size=model.n_id), rng.normal(size=model.n_exp))
+            world = shape @ axis_angle_to_matrix(angles).T + [rng.uniform(-0.05, 0.05), 0.0, -0.6]
+            fixed, _ = model.landmarks(world)
+            targets = camera.project_pixels(fixed)[0] + rng.normal(scale=4.0, size=(len(fixed), 2))
+            front, edge, t = _whole_mesh_choice(sliding, world, project, targets)
+            np.testing.assert_array_equal(contour.front_facing(world, model.faces, np.zeros(3)), front)
+            choice = sliding.choose(world, project, targets)
+            np.testing.assert_array_equal(choice.edge, edge)
+            assert choice.t.tobytes() == t.tobytes()
+            slid |= choice.slid
+            if yaw == 180:                          # from behind: the jaw's sides turned away
+                assert not front[model.landmark_faces[sliding.points[[0, 1, 2, 3, 13, 14, 15, 16]]]].any()
+    assert slid[:8].any() and slid[9:].any()          # points slid on both sides of the chin
