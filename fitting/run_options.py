@@ -203,6 +203,10 @@ def _face_options() -> tuple[Option, ...]:
         Option("n_id", int, None, "identity components to use (default: all)", field="n_id"),
         Option("n_exp", int, None, "expression components to use (default: all)", field="n_exp"),
         Option("n_albedo", int, None, "albedo components to use (default: all)", field="n_albedo"),
+        Option("objective", str, "auto", "where the fit's objective runs: 'host' (numpy around the OpenCL "
+               "rasteriser), 'device' (the model, render, photometric term and gradients in OpenCL buffers; "
+               "needs float64) or 'auto' (the default: device on a GPU, host on a CPU; docs/speed.md)",
+               field="objective", choices=face_settings.OBJECTIVES, recorded=False),
     )
 
 

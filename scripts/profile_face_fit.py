@@ -388,13 +388,16 @@ def run(args) -> dict:
         finally:
             clock.stage = "(after the stages)"
     solver._Fit.run_stage = run_stage
-    call_fn = inspect.getattr_static(face.FaceObjective, "__call__")
+    from softras_cl.fitting.device.face_objective import DeviceFaceObjective
 
-    def objective_call(self, values, stage):
-        if clock.active:
-            stage_evals[stage.name] += 1
-        return call_fn(self, values, stage)
-    face.FaceObjective.__call__ = objective_call      # (timers: around the phase's own wrapper)
+    def counted(call_fn):
+        def objective_call(self, values, stage):
+            if clock.active:
+                stage_evals[stage.name] += 1
+            return call_fn(self, values, stage)
+        return objective_call
+    for objective_class in (face.FaceObjective, DeviceFaceObjective):   # (timers: around the phase's own wrapper)
+        objective_class.__call__ = counted(inspect.getattr_static(objective_class, "__call__"))
     # the span wraps everything else: patched last, outermost
     _patch(solver, "fit", fit_span)
 

@@ -769,7 +769,7 @@ def prepare_fit(photo, landmarks, model, config: FaceFitConfig,
     rotation, translation = initial_pose(mean_landmarks, target, focal, principal)
     scene = FaceScene(model, image.shape[:2], config.dtype, depth_range=depth_range(translation),
                       principal=principal)
-    objective = FaceObjective(scene, image, target, config.mask_erosion, focal0=focal,
+    objective = objective_class(config.objective, scene)(scene, image, target, config.mask_erosion, focal0=focal,
                               forehead=config.forehead, coarse_sigma=config.coarse_sigma,
                               robust_scale=config.robust_scale, coarse_mesh=config.coarse_mesh,
                               contour=jaw_candidates(model) if config.contour_landmarks == "sliding" else None,
@@ -779,6 +779,25 @@ def prepare_fit(photo, landmarks, model, config: FaceFitConfig,
     sh = initial_light(scene, values, image)
     return objective, crop, face_params(model, focal, rotation, translation, sh)
 
+
+
+def objective_class(where: str, scene: FaceScene) -> type:
+    """The objective class of FaceFitConfig.objective ``where`` for a scene: FaceObjective (the
+    numpy reference, "host") or fitting.device's DeviceFaceObjective ("device"; "auto" picks it
+    on a GPU with float64). InputError for "device" on a device without float64."""
+    from softras_cl.cl.device import has_fp64, kernel_layout
+
+    device = scene.renderer.device
+    if where == "auto":
+        where = "device" if kernel_layout(device, "auto") == "gpu" and has_fp64(device) else "host"
+    if where == "host":
+        return FaceObjective
+    if not has_fp64(device):
+        raise InputError(f"objective 'device' needs float64 (cl_khr_fp64), which {device.name.strip()!r} lacks: "
+                         "use objective 'host'")
+    from softras_cl.fitting.device.face_objective import DeviceFaceObjective
+
+    return DeviceFaceObjective
 
 
 def landmark_model(model, landmark_map: str, face_mesh_landmarks: bool = False):

@@ -63,6 +63,9 @@ DETECTED_LANDMARK_SIGMA_MM = np.array([
     2.2, 3.0, 3.3, 3.6, 3.3, 3.0, 2.2, 3.2, 3.8, 4.0, 3.8, 3.2,                          # outer lips 48-59
     2.4, 3.3, 3.4, 3.3, 2.4, 5.7, 4.6, 5.7])                                             # inner lips 60-67
 
+# FaceFitConfig.objective: where the objective of a fit runs
+OBJECTIVES = ("auto", "host", "device")
+
 # Schedules: (sigma, gamma, evaluations) per photometric stage, and the landmark stage's budget.
 BUDGETS = {
     "fast": dict(landmark_iters=100, photo_stages=((1e-4, 3e-3, 40), (1e-5, 1e-3, 60))),
@@ -121,6 +124,10 @@ class FaceFitConfig:
         and the photo's dense points (fit_face's ``dense``).
     n_id / n_exp / n_albedo: use only the first components of the model (None: all).
     dtype: rasteriser precision; float64 keeps line searches clean.
+    objective: where the objective runs. "host": numpy around the rasteriser's kernels (the
+        reference); "device": the model, render, photometric term and their vjps in OpenCL
+        buffers (fitting.device; needs a device with float64); "auto": "device" on a GPU with
+        float64, else "host" (on a CPU the device is the host's own cores: measured no faster).
     """
     size: int = 256
     focal: float | None = None
@@ -145,6 +152,7 @@ class FaceFitConfig:
     n_exp: int | None = None
     n_albedo: int | None = None
     dtype: str = "float64"
+    objective: str = "auto"
 
     def __post_init__(self):
         _check_face_config(self)
@@ -225,6 +233,8 @@ def _check_face_config(c: FaceFitConfig) -> None:
         raise InputError(f"dense_weight must be >= 0 (0: no dense landmark term), got {c.dense_weight!r}")
     if c.dtype not in ("float32", "float64"):
         raise InputError(f"dtype must be 'float32' or 'float64', got {c.dtype!r}")
+    if c.objective not in OBJECTIVES:
+        raise InputError(f"objective must be one of {', '.join(map(repr, OBJECTIVES))}, got {c.objective!r}")
 
 
 # FaceFitConfig.landmark_weight_photo of the joint fit. The single fit's 5 (10 before) keeps one

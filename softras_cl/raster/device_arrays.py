@@ -13,6 +13,8 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
+from softras_cl.cl.generated import shared_kernel
+
 _CTYPES = {np.dtype(np.float32): "float", np.dtype(np.float64): "double", np.dtype(np.int32): "int",
            np.dtype(np.int64): "long", np.dtype(np.uint32): "uint", np.dtype(np.uint64): "ulong",
            np.dtype(np.int16): "short", np.dtype(np.uint16): "ushort", np.dtype(np.int8): "char",
@@ -28,15 +30,12 @@ class DeviceArrays:
 
     def __init__(self, ctx: cl.Context, queue: cl.CommandQueue):
         self.ctx, self.queue = ctx, queue
-        self._kernels: dict = {}
 
     def _kernel(self, name: str, args: str, body: str):
-        key = (name, args)
-        if key not in self._kernels:
-            from pyopencl.elementwise import ElementwiseKernel
+        from pyopencl.elementwise import ElementwiseKernel
 
-            self._kernels[key] = ElementwiseKernel(self.ctx, args, body, name)
-        return self._kernels[key]
+        return shared_kernel(self.ctx, ("arrays", name, args, body),
+                             lambda: ElementwiseKernel(self.ctx, args, body, name))
 
     def contiguous(self, value: cla.Array, dtype) -> cla.Array:
         """`value` as a C-contiguous array of `dtype` (itself when it already is one)."""
@@ -115,10 +114,8 @@ class DeviceArrays:
         """Device scalars (float64) of sum |value[b]| per item b of the (B, ...) array."""
         from pyopencl.reduction import ReductionKernel
 
-        key = ("abs_sum", value.dtype)
-        if key not in self._kernels:
-            self._kernels[key] = ReductionKernel(self.ctx, np.float64, neutral="0", reduce_expr="a + b",
-                                                 map_expr="fabs((double)x[i])",
-                                                 arguments=f"__global const {ctype(value.dtype)} *x")
+        kernel = shared_kernel(self.ctx, ("abs_sum", value.dtype), lambda: ReductionKernel(
+            self.ctx, np.float64, neutral="0", reduce_expr="a + b", map_expr="fabs((double)x[i])",
+            arguments=f"__global const {ctype(value.dtype)} *x"))
         value = self.contiguous(value, value.dtype)
-        return [self._kernels[key](value[b].reshape(-1)) for b in range(value.shape[0])]
+        return [kernel(value[b].reshape(-1)) for b in range(value.shape[0])]

@@ -24,6 +24,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
+from softras_cl.cl.generated import shared_kernel
 from softras_cl.raster.binning import Grid
 
 INT32_LIMIT = 2 ** 31
@@ -54,11 +55,11 @@ class DeviceBins:
 
 
 class DeviceBinning:
-    """Bins faces into the tiles of `grid` on `queue` (kernels built on first use)."""
+    """Bins faces into the tiles of `grid` on `queue` (kernels built on first use, once per
+    context: softras_cl.cl.generated)."""
 
     def __init__(self, ctx: cl.Context, queue: cl.CommandQueue, grid: Grid):
         self.ctx, self.queue, self.grid = ctx, queue, grid
-        self._kernels = None
 
     def _build(self) -> tuple:
         """(scan, expand, sort, finish): pyopencl's templated kernels (they need Mako)."""
@@ -114,9 +115,7 @@ class DeviceBinning:
         binning.face_tiles) are in device buffer `ranges`. tiles: None or the (B * nty * ntx,)
         bool region of interest (binning.roi_tiles). ValueError when the (tile, face) pairs
         would overflow int32 (the host's message)."""
-        if self._kernels is None:
-            self._kernels = self._build()
-        scan, expand, sort, finish = self._kernels
+        scan, expand, sort, finish = shared_kernel(self.ctx, "binning", self._build)
         q, g = self.queue, self.grid
         count, n_tiles = batch * n_faces, batch * g.ntx * g.nty
         ranges = cla.Array(q, (4 * count,), np.int32, data=ranges)

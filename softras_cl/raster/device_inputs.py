@@ -15,6 +15,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
+from softras_cl.cl.generated import shared_kernel
 from softras_cl.raster.settings import FLOAT32_LIMIT
 
 
@@ -49,25 +50,21 @@ class ValueChecks:
 
     def __init__(self, ctx: cl.Context):
         self.ctx = ctx
-        self._kernels: dict = {}
 
     def _kernel(self, kind: str, dtype: np.dtype):
-        key = (kind, np.dtype(dtype))
-        if key not in self._kernels:
-            from pyopencl.reduction import ReductionKernel
+        from pyopencl.reduction import ReductionKernel
 
-            ctype = {np.float32: "float", np.float64: "double", np.int32: "int", np.int64: "long",
-                     np.uint32: "uint", np.uint64: "ulong", np.int16: "short", np.uint16: "ushort",
-                     np.int8: "char", np.uint8: "uchar"}[np.dtype(dtype).type]
-            if kind == "float":    # limit 0: finite only
-                args = f"__global const {ctype} *x, const {ctype} limit"
-                bad = "(isfinite(x[i]) && (limit == 0 || fabs(x[i]) <= limit)) ? 0 : 1"
-            else:
-                args = f"__global const {ctype} *x, const long upper"
-                bad = "((long)x[i] < 0 || (long)x[i] >= upper) ? 1 : 0"
-            self._kernels[key] = ReductionKernel(self.ctx, np.int64, neutral="0", reduce_expr="a + b",
-                                                 map_expr=bad, arguments=args)
-        return self._kernels[key]
+        ctype = {np.float32: "float", np.float64: "double", np.int32: "int", np.int64: "long",
+                 np.uint32: "uint", np.uint64: "ulong", np.int16: "short", np.uint16: "ushort",
+                 np.int8: "char", np.uint8: "uchar"}[np.dtype(dtype).type]
+        if kind == "float":    # limit 0: finite only
+            args = f"__global const {ctype} *x, const {ctype} limit"
+            bad = "(isfinite(x[i]) && (limit == 0 || fabs(x[i]) <= limit)) ? 0 : 1"
+        else:
+            args = f"__global const {ctype} *x, const long upper"
+            bad = "((long)x[i] < 0 || (long)x[i] >= upper) ? 1 : 0"
+        return shared_kernel(self.ctx, ("value check", kind, ctype), lambda: ReductionKernel(
+            self.ctx, np.int64, neutral="0", reduce_expr="a + b", map_expr=bad, arguments=args))
 
     def count_bad_floats(self, value: cla.Array, float32_kernels: bool) -> cla.Array:
         """Device scalar: how many values are NaN/Inf (or, with float32_kernels, beyond FLOAT32_LIMIT)."""

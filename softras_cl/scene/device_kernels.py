@@ -21,6 +21,7 @@ import numpy as np
 import pyopencl as cl
 import pyopencl.array as cla
 
+from softras_cl.cl.generated import shared_kernel
 from softras_cl.scene.shading import SH_Y0, SH_Y1, SH_Y2, SH_Y2_XXYY, SH_Y2_ZZ
 
 PREAMBLE = "#pragma OPENCL FP_CONTRACT OFF\n"
@@ -338,23 +339,20 @@ class SceneKernels:
     def __init__(self, ctx: cl.Context, queue: cl.CommandQueue, extra: dict | None = None):
         self.ctx, self.queue = ctx, queue
         self.table = KERNELS | (extra or {})
-        self._built: dict = {}
-        self._reductions: dict = {}
         self.record: list | None = None     # a list: every launch's (name, event) is appended (bench)
 
     def __call__(self, name: str, n: int, *args) -> None:
         """Run kernel `name` over n elements on the queue (nothing for n = 0)."""
         if n == 0:
             return
-        if name not in self._built:
-            from pyopencl.elementwise import ElementwiseKernel
+        from pyopencl.elementwise import ElementwiseKernel
 
-            arguments, body = self.table[name]
-            defines = (f"#define CAMERA_PARAMS {CAMERA_PARAMS}\n#define CAMERA_PRODUCTS {CAMERA_PRODUCTS}\n"
-                       f"#define SUM_CHUNK {SUM_CHUNK}\n")
-            self._built[name] = ElementwiseKernel(self.ctx, arguments, body, f"scene_{name}",
-                                                  preamble=PREAMBLE + defines)
-        event = self._built[name](*args, range=slice(n), queue=self.queue)
+        arguments, body = self.table[name]
+        defines = (f"#define CAMERA_PARAMS {CAMERA_PARAMS}\n#define CAMERA_PRODUCTS {CAMERA_PRODUCTS}\n"
+                   f"#define SUM_CHUNK {SUM_CHUNK}\n")
+        kernel = shared_kernel(self.ctx, ("scene", name, arguments, body), lambda: ElementwiseKernel(
+            self.ctx, arguments, body, f"scene_{name}", preamble=PREAMBLE + defines))
+        event = kernel(*args, range=slice(n), queue=self.queue)
         if self.record is not None:
             self.record.append((f"scene_{name}", event))
 
@@ -392,10 +390,9 @@ class SceneKernels:
             arguments = f"__global const {ctype(a.dtype)} *a, __global const {ctype(b.dtype)} *b"
             expr = "((long)a[i] != (long)b[i]) ? 1L : 0L"
             size = a.size
-        if key not in self._reductions:
-            from pyopencl.reduction import ReductionKernel
+        from pyopencl.reduction import ReductionKernel
 
-            self._reductions[key] = ReductionKernel(
-                self.ctx, np.int64, neutral="0", reduce_expr="a + b", map_expr=expr, arguments=arguments,
-                preamble=f"#define CAMERA_PARAMS {CAMERA_PARAMS}\n")
-        return self._reductions[key](*args, range=slice(size), queue=self.queue)
+        kernel = shared_kernel(self.ctx, ("scene count", key), lambda: ReductionKernel(
+            self.ctx, np.int64, neutral="0", reduce_expr="a + b", map_expr=expr, arguments=arguments,
+            preamble=f"#define CAMERA_PARAMS {CAMERA_PARAMS}\n"))
+        return kernel(*args, range=slice(size), queue=self.queue)
