@@ -8,7 +8,8 @@
 # carried wheels (scripts/fetch_gpu_wheels.sh fills .whl/) and make the source tree importable;
 # list the machine's GPU driver files; find the GPU's OpenCL library and register it as an ICD;
 # `softras-cl devices`; determinism (the same forward+backward three times, hashed); the
-# README's face fit end to end, cold (empty kernel cache) then warm; the raster bench at 1024^2
+# README's face fit end to end, cold (empty kernel cache) then warm (both with the device
+# objective a GPU gets), then warm with the numpy objective; the raster bench at 1024^2
 # with each kernel layout, numpy and device-resident in/out; the product's jobs: track-face on a
 # 90-frame 640x480 talking head and a fit-face batch of 32 photos (fast budget); the kernel tests
 # against the float64 reference (tests/raster's device-resident path first, then the rest of
@@ -162,7 +163,8 @@ gpu_present() {
     [ "${chosen%%$'\t'*}" = GPU ]
 }
 
-DEVICE_TESTS="tests/raster/test_device_path.py tests/raster/test_device_bins.py"   # the device-resident path
+# the device-resident path: the rasteriser's, and the face fit's objective
+DEVICE_TESTS="tests/raster/test_device_path.py tests/raster/test_device_bins.py tests/fitting/device"
 
 device_tests() {   # first and on their own, so that an interrupted kernel_tests step cannot cut them
     local files=() t
@@ -188,9 +190,11 @@ bench_raster() {   # every layout of $LAYOUTS in one run (which counts each scen
         --out "$SCRATCH/bench"
 }
 
-fit_face() {   # $1: output folder under $SCRATCH
+fit_face() {   # $1: output folder under $SCRATCH; more fit-face options after it
+    local out=$1
+    shift
     SOFTRAS_CL_CACHE_DIR="$FIT_CACHE" softras-cl fit-face "$REPO/examples/data/astronaut.png" \
-        --landmarks "$REPO/examples/data/landmarks/astronaut.pts" --out "$SCRATCH/$1" --no-progress $FIT_ARGS
+        --landmarks "$REPO/examples/data/landmarks/astronaut.pts" --out "$SCRATCH/$out" --no-progress $FIT_ARGS "$@"
 }
 
 make_clip() {   # the talking head as a folder of PNG frames, with its landmarks
@@ -240,6 +244,7 @@ run_steps() {
     step determinism 60 determinism
     step fit_face 120 fit_face fit               # an empty kernel cache: the builds included
     step fit_face_warm 60 fit_face fit_warm      # the kernels now come from the binary cache
+    step fit_face_host 60 fit_face fit_host --objective host   # the numpy objective, to compare
     step bench_raster 200 bench_raster
     step make_clip 45 make_clip && step track_face 120 track_face
     step make_photos 20 make_photos && step batch_fit 120 batch_fit

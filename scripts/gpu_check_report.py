@@ -22,7 +22,8 @@ then the other kernel tests), determinism.json (scripts/gpu_check_determinism.py
 bench/raster.json (`softras-cl bench raster`, one row per face count, size, layout and in/out:
 numpy arrays or device-resident pyopencl arrays), fit/complete.json and fit_warm/complete.json
 (`softras-cl fit-face`, run twice: the first with an empty kernel cache, the second finding its
-kernels there; "seconds": the fit without start-up), clip/clip.json and track/complete.json
+kernels there; "seconds": the fit without start-up; both with the objective a GPU gets, the
+device one) and fit_host/complete.json (the warm fit again with the numpy objective), clip/clip.json and track/complete.json
 (scripts/gpu_check_jobs.py's talking-head clip and `softras-cl track-face` on it;
 track_run.json: what stood in for MediaPipe and PyAV), photos/*.png and batch/results.jsonl
 (`softras-cl fit-face PHOTOS --budget fast`, one line per photo).
@@ -301,13 +302,15 @@ def summary(scratch: Path, quick: bool) -> dict:
     fit_s, warm_s = step_seconds(steps, "fit_face"), step_seconds(steps, "fit_face_warm")
     fit_report = read_json(scratch / "fit" / "complete.json") or {}
     warm_report = read_json(scratch / "fit_warm" / "complete.json") or {}
+    host_report = read_json(scratch / "fit_host" / "complete.json") or {}
     status = overall_status(steps, tests, determinism)
     return dict(status=status, note=NO_GPU_NOTE if status == "no_gpu" else None, quick=quick,
                 device=device_summary(scratch), nvidia_smi=nvidia_smi(scratch / "nvidia_smi.csv"),
                 icd=read_json(scratch / "icd.json"), devices=read_json(scratch / "devices.json"),
                 steps=steps, tests=tests, bench=rows, paper_sizes=paper_brackets(rows), end_to_end=end_to_end(rows),
                 fit=dict(seconds=fit_s, fit_seconds=fit_report.get("seconds"), warm_seconds=warm_s,
-                         warm_fit_seconds=warm_report.get("seconds"), budget="fast" if quick else "default"),
+                         warm_fit_seconds=warm_report.get("seconds"), host_seconds=step_seconds(steps, "fit_face_host"),
+                         host_fit_seconds=host_report.get("seconds"), budget="fast" if quick else "default"),
                 track=track_summary(scratch, steps), batch=batch_summary(scratch, steps, os.cpu_count()),
                 determinism=determinism, targets=targets(rows, warm_s if warm_s is not None else fit_s))
 
@@ -327,7 +330,9 @@ def digest(result: dict) -> str:
              "bench scene fwd+bwd ms: " + (", ".join(f"{k} {v:.3f}" for k, v in sorted(scene.items()))
                                            or "not run"),
              f"face fit s: {result['fit']['seconds']}, again with its kernels built: {result['fit']['warm_seconds']}"
-             f" (fitting alone: {_num(result['fit']['fit_seconds'])}, {_num(result['fit']['warm_fit_seconds'])})",
+             f" (fitting alone: {_num(result['fit']['fit_seconds'])}, {_num(result['fit']['warm_fit_seconds'])});"
+             f" numpy objective: {result['fit'].get('host_seconds')} (fitting alone: "
+             f"{_num(result['fit'].get('host_fit_seconds'))})",
              f"track-face: {track.get('frames')} frames, {_num(track.get('end_to_end_fps'))} frames/s end to end, "
              f"{_num(track.get('frame_fit_fps'))} frames/s per-frame stage",
              f"fit-face batch: {batch.get('ok')} of {batch.get('photos')} photos in {batch.get('seconds')} s, "

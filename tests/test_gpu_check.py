@@ -148,7 +148,7 @@ DEVICE = dict(name="NVIDIA H100 80GB HBM3", version="OpenCL 3.0 CUDA", platform=
 DEVICES = [dict(device_name="NVIDIA H100 80GB HBM3", platform_name="NVIDIA CUDA", type="GPU",
                 platform_version="OpenCL 3.0 CUDA 13.0.0", chosen=True)]
 STEPS = ("install\tok\t0\t3.5\t60\nkernel_tests\tok\t0\t40.25\t150\nfit_face\tok\t0\t4.75\t120\n"
-         "fit_face_warm\tok\t0\t1.75\t60\nbench_raster\tok\t0\t20\t200\nmake_clip\tok\t0\t3\t45\n"
+         "fit_face_warm\tok\t0\t1.75\t60\nfit_face_host\tok\t0\t2.5\t60\nbench_raster\tok\t0\t20\t200\nmake_clip\tok\t0\t3\t45\n"
          "track_face\tok\t0\t12.5\t120\nmake_photos\tok\t0\t1\t20\nbatch_fit\tok\t0\t16\t120\n"
          "device_tests\tok\t0\t8\t120\n")
 JUNIT_DEVICE = """<?xml version="1.0" encoding="utf-8"?><testsuites><testsuite name="pytest" errors="0"
@@ -174,6 +174,7 @@ def fake_run(scratch: Path, steps: str = STEPS, junit: str = JUNIT, identical: b
     touch(scratch / "bench/raster.json", bench_json(rows, DEVICE))
     touch(scratch / "fit/complete.json", json.dumps(dict(seconds=4.25)))
     touch(scratch / "fit_warm/complete.json", json.dumps(dict(seconds=1.25)))
+    touch(scratch / "fit_host/complete.json", json.dumps(dict(seconds=2.0)))
     touch(scratch / "clip/clip.json", json.dumps(dict(frames=90, width=640, height=480, fps=30.0, seed=7)))
     touch(scratch / "track/complete.json", json.dumps(TRACK))
     touch(scratch / "track_run.json", json.dumps(dict(rc=0, stand_ins=dict(landmarks="given"))))
@@ -234,7 +235,7 @@ def test_summary_of_a_good_run(report, tmp_path):
     assert s["device"] == dict(DEVICE, type="GPU")
     assert s["nvidia_smi"] == dict(name="NVIDIA H100 80GB HBM3", driver_version="580.159.04", memory_total="81559 MiB")
     assert s["fit"] == dict(seconds=4.75, fit_seconds=4.25, warm_seconds=1.75, warm_fit_seconds=1.25,
-                            budget="default")
+                            host_seconds=2.5, host_fit_seconds=2.0, budget="default")
     assert s["targets"]["bench_scene_fwdbwd_ms"] == dict(target=2.0, measured=0.6, layout="gpu", io="device",
                                                           kernel_ms=0.3, met=True)
     assert [(p["layout"], p["faces"], p["device_ms"]) for p in s["end_to_end"] if p["device_ms"]] == [
@@ -281,7 +282,8 @@ def test_digest_names_what_was_measured(report, tmp_path):
         "device: NVIDIA H100 80GB HBM3 (GPU; OpenCL 3.0 CUDA; driver 580.159.04)",
         "tests: 8 passed, 3 failed, 3 skipped of 14 run",
         "bench scene fwd+bwd ms: cpu/numpy 3.000, gpu/device 0.600, gpu/numpy 1.500",
-        "face fit s: 4.75, again with its kernels built: 1.75 (fitting alone: 4.25, 1.25)",
+        "face fit s: 4.75, again with its kernels built: 1.75 (fitting alone: 4.25, 1.25); "
+        "numpy objective: 2.5 (fitting alone: 2)",
         "track-face: 90 frames, 10 frames/s end to end, 60 frames/s per-frame stage",
         "fit-face batch: 3 of 4 photos in 16.0 s, 0.188 photos/s",
         "reruns identical: True"]
@@ -420,7 +422,7 @@ def test_dry_run_plans_every_step_in_order_within_the_deadline(tmp_path):
     plan = [(s["name"], s["budget_s"]) for s in summary["steps"]]
     assert plan == [("install", 60), ("system", 30), ("find_opencl_driver", 40), ("devices", 60),
                     ("gpu_present", 20), ("determinism", 60), ("fit_face", 120), ("fit_face_warm", 60),
-                    ("bench_raster", 200), ("make_clip", 45), ("track_face", 120), ("make_photos", 20),
+                    ("fit_face_host", 60), ("bench_raster", 200), ("make_clip", 45), ("track_face", 120), ("make_photos", 20),
                     ("batch_fit", 120), ("device_tests", 120), ("kernel_tests", 300)]
     assert all(s["status"] == "planned" for s in summary["steps"])
     assert "== kernel_tests (at most 300 s): kernel_tests" in proc.stdout
