@@ -58,16 +58,20 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "examples" / "data"
 
 CONTOUR = "softras_cl.fitting.recipes.contour|softras_cl.fitting.contour"    # where it is now | was at 17d4c6f
+DEVICE_MODEL = "softras_cl.fitting.device.model"                # the device objective (absent before it)
+DEVICE_OBJECTIVE = "softras_cl.fitting.device.face_objective"
 # phase -> "module[|older module]:qualname" of the functions timed into it (missing ones are skipped and listed)
 PHASES = {
     "model: shape, albedo, landmarks, pose": [
         "softras_cl.fitting.models.face_model:FaceModel.shape", "softras_cl.fitting.models.face_model:FaceModel.albedo",
         "softras_cl.fitting.models.face_model:FaceModel.landmarks", "softras_cl.fitting.recipes.face:FaceScene.geometry",
-        "softras_cl.scene.rotation:rodrigues"],
+        "softras_cl.scene.rotation:rodrigues", DEVICE_MODEL + ":DeviceFaceModel.geometry",
+        DEVICE_MODEL + ":DeviceFaceModel.albedo", DEVICE_MODEL + ":DeviceBasis.apply"],
     "model vjp": [
         "softras_cl.fitting.models.face_model:FaceModel.shape_vjp", "softras_cl.fitting.models.face_model:FaceModel.albedo_vjp",
         "softras_cl.fitting.models.face_model:FaceModel.landmarks_vjp",
-        "softras_cl.fitting.recipes.face:FaceScene.geometry_vjp", "softras_cl.scene.rotation:rodrigues_vjp"],
+        "softras_cl.fitting.recipes.face:FaceScene.geometry_vjp", "softras_cl.scene.rotation:rodrigues_vjp",
+        DEVICE_MODEL + ":DeviceFaceModel.geometry_vjp", DEVICE_MODEL + ":DeviceBasis.vjp"],
     "camera projection": [
         "softras_cl.scene.camera:Camera.project", "softras_cl.scene.camera:Camera.project_pixels",
         "softras_cl.scene.camera:Camera.with_params", "softras_cl.fitting.recipes.face:FaceScene.camera"],
@@ -80,7 +84,8 @@ PHASES = {
         CONTOUR + ":ContourLandmarks.points_3d_vjp"],
     "landmark loss": ["softras_cl.fitting.losses:landmarks_2d"],
     "photo loss (Geman-McClure)": ["softras_cl.fitting.losses:GemanMcClure.__call__", "softras_cl.fitting.losses:image_l2",
-                                   "softras_cl.fitting.losses:image_geman_mcclure"],
+                                   "softras_cl.fitting.losses:image_geman_mcclure",
+                                   "softras_cl.fitting.device.photo:DevicePhotoLoss.__call__"],
     "priors, weighted sum": ["softras_cl.fitting.losses:gaussian_prior", "softras_cl.fitting.losses:sh_white",
                              "softras_cl.fitting.losses:weighted_sum", "softras_cl.fitting.recipes.face:FaceObjective.focal_prior"],
     "stage start (region, robust scale)": ["softras_cl.fitting.recipes.face:FaceObjective.start_stage"],
@@ -112,8 +117,9 @@ PHASES = {
                                            "softras_cl.raster.rasterizer:SoftRasterizer._run_backward"],
     "renderer glue": ["softras_cl.scene.renderer:Renderer.forward", "softras_cl.scene.renderer:Renderer.backward",
                       "softras_cl.scene.renderer:Renderer._colors", "softras_cl.scene.renderer:Renderer._collect",
-                      "softras_cl.fitting.recipes.face:FaceScene.render"],
-    "kernel launches": ["softras_cl.cl.program:launch"],
+                      "softras_cl.fitting.recipes.face:FaceScene.render",
+                      "softras_cl.scene.device_render:forward_device", "softras_cl.scene.device_render:backward_device"],
+    "kernel launches": ["softras_cl.cl.program:launch", "softras_cl.scene.device_kernels:SceneKernels.__call__"],
     "solver: nlopt, unpack/pack, history": ["softras_cl.fitting.solver:fit", "softras_cl.fitting.solver:_StageObjective.__call__",
                                             "softras_cl.fitting.solver:_StageObjective.evaluate"],
     "solver: checkpoints": ["softras_cl.fitting.solver:_Fit.write_checkpoint"],
@@ -122,7 +128,10 @@ PHASES = {
     "objective, unattributed": ["softras_cl.fitting.recipes.face:FaceObjective.__call__",
                                 "softras_cl.fitting.recipes.face:FaceObjective.photo_term",
                                 "softras_cl.fitting.recipes.face:FaceObjective.landmark_term",
-                                "softras_cl.fitting.recipes.face:FaceObjective.landmark_points"],
+                                "softras_cl.fitting.recipes.face:FaceObjective.landmark_points",
+                                DEVICE_OBJECTIVE + ":DeviceFaceObjective.__call__",
+                                DEVICE_OBJECTIVE + ":DeviceFaceObjective.photo_term",
+                                DEVICE_OBJECTIVE + ":DeviceFaceObjective._world_cotangent"],
 }
 CHECK_MODULES = ("softras_cl.checks", "softras_cl.raster.inputs")
 WAITS, ENQUEUES = "OpenCL waits (kernels, copies)", "transfer enqueues"
