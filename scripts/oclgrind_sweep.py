@@ -271,6 +271,52 @@ def run_render(batch: int, shading: str, light: str | None, texture: str = "vert
     _finite("render gradients", g)
 
 
+def sphere_face_model():
+    """A FaceModel on an icosphere (162 vertices, 320 faces; a random 68 faces carry the
+    landmarks), with small random bases: the device face objective's kernels at a size Oclgrind
+    simulates in seconds."""
+    from softras_cl.fitting.models.face_model import FaceModel
+
+    rng = np.random.default_rng(6)
+    v, f = icosphere(2, radius=0.09)
+    n = len(v)
+    lmk = rng.choice(len(f), 68, replace=False)
+    bary = rng.dirichlet(np.ones(3), 68)
+    return FaceModel(v, rng.normal(0, 0.002, (4, n, 3)), np.ones(4), rng.normal(0, 0.002, (3, n, 3)), np.ones(3),
+                     np.full((n, 3), 0.5), rng.normal(0, 0.05, (2, n, 3)), np.ones(2), f, lmk, bary)
+
+
+def run_face_objective() -> None:
+    """The device face objective's landmark stage (model bases, pose, front faces, the sliding
+    jaw's contour candidates and argmin, the landmark term, the vjps) at a turned pose, and its
+    photometric term's kernel (robust and plain) on random images. Its renders take the
+    rasteriser's device-resident path, whose pyopencl scan kernels Oclgrind reports
+    (docs/oclgrind.md), so the render is left to the render variants above."""
+    from softras_cl.fitting.device.face_objective import DeviceFaceObjective
+    from softras_cl.fitting.device.kernels import FIT_KERNELS
+    from softras_cl.fitting.device.photo import DevicePhotoLoss
+    from softras_cl.fitting.recipes import face
+    from softras_cl.fitting.recipes.contour import jaw_candidates
+    from softras_cl.fitting.solver import Stage
+    from softras_cl.scene.device_kernels import SceneKernels
+    import pyopencl.array as cla
+
+    model, rng = sphere_face_model(), np.random.default_rng(7)
+    values = dict(id=rng.normal(size=4), exp=rng.normal(size=3), albedo=rng.normal(size=2),
+                  sh=np.zeros((3, 9)), rotation=np.radians([5.0, 60.0, 0.0]), translation=np.array([0.0, 0.0, -0.6]),
+                  focal=np.array([30.0]))
+    objective = DeviceFaceObjective(face.FaceScene(model, (H, W)), np.zeros((H, W, 3)), rng.uniform(0, 10, (68, 2)),
+                                    focal0=30.0, contour=jaw_candidates(model))
+    loss, grads, _ = objective(values, Stage("landmarks", ("id",), dict(landmarks=1.0, id_prior=1.0)))
+    _finite("face objective", [np.array(loss), *grads.values()])
+    queue = objective.device_model.queue
+    kernels = SceneKernels(queue.context, queue, extra=FIT_KERNELS)
+    for scale in (None, 0.1):
+        photo = DevicePhotoLoss(kernels, rng.random((H, W, 3)), rng.random((H, W)) < 0.5, scale)
+        total, grad = photo(cla.to_device(queue, rng.random((1, H, W, 3))))
+        _finite("photo term", [total.get(), grad.get()])
+
+
 def gpu_layout_variants() -> list[tuple[str, callable]]:
     """The GPU layout's kernels (one pixel per work-item, tiles staged in local memory): the
     build-time flags in 18 combinations, then lighting, outputs, regions of interest, a tile with
@@ -333,6 +379,7 @@ def variants() -> list[tuple[str, callable]]:
         out.append((f"raster float32 16 lanes {label} B={batch}",
                     lambda b=batch, kw=kw: run_raster(b, both, dtype="float32", lanes=16, **kw)))
     out += gpu_layout_variants()
+    out.append(("device face objective: landmark stage, photometric term", run_face_objective))
     # the gradient sums as a device without cl_khr_fp64 builds them (float accumulation)
     for label, batch, kw in [("sh per-pixel", 2, dict(lighting="sh")), ("face texture", 1, dict(texture="face"))]:
         out.append((f"raster float32 float gradient sums {label} B={batch}",

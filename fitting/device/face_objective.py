@@ -3,16 +3,17 @@
 DeviceFaceObjective is fitting.recipes.face.FaceObjective (the numpy reference, which it
 subclasses: the same stages, terms, weights and stage set-up) with these on the device, in
 buffers that live across evaluations: the model's shape and albedo bases (fitting.device.model),
-the pose, the render and its backward (Renderer's device-resident path: projection, normals, SH
-shading, rasteriser), the photometric term over the face region and its sum (fitting.device.photo),
-and the vjps back to the coefficients and the pose. Per evaluation the coefficients, rotation and
-translation go up; the loss, its gradient's blocks and the world vertices come down.
+the pose, the landmark term with the sliding jaw contour (fitting.device.landmarks), the render
+and its backward (Renderer's device-resident path: projection, normals, SH shading, rasteriser),
+the photometric term over the face region and its sum (fitting.device.photo), and the vjps back
+to the coefficients and the pose. Per evaluation the coefficients, rotation, translation and
+camera go up; the terms' values and the gradient's blocks come down (the renderer's backward
+reads its camera and light sums, then one transfer takes the rest).
 
-Still on the host: the landmark and dense terms with the sliding contour, which read the world
-vertices (V, 3) (their gradient goes back up as one (V, 3) array), the priors (on the parameter
-vector itself), and each photometric stage's set-up (one numpy render: the face region and the
-robust scale). In float64 the loss and gradient equal the numpy objective's to about 1e-12
-relative (tests/fitting/device).
+Still on the host: the priors (on the parameter vector itself), the dense landmark term when a
+stage weighs it (the world vertices come down for it, its gradient goes back up), and each
+photometric stage's set-up (one numpy render: the face region and the robust scale). In float64
+the loss and gradient equal the numpy objective's to about 1e-12 relative (tests/fitting/device).
 """
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ import numpy as np
 import pyopencl.array as cla
 
 from softras_cl.fitting import losses
+from softras_cl.fitting.device.landmarks import DeviceLandmarks
 from softras_cl.fitting.device.model import DeviceFaceModel
 from softras_cl.fitting.device.photo import DevicePhotoLoss
 from softras_cl.fitting.recipes.face import FaceObjective
@@ -40,37 +42,47 @@ class DeviceFaceObjective(FaceObjective):
         self.device_model = device_model
         self.device_faces = device_model.device_faces(self.scene.faces)
         self._photo_loss: DevicePhotoLoss | None = None
+        self._device_landmarks: DeviceLandmarks | None = None
 
     def _level_options(self) -> dict:
         return dict(device_model=self.device_model)
 
     def __call__(self, values: dict, stage: Stage):
-        w = stage.weights
-        geometry = self.device_model.geometry(values)
-        terms = self.point_terms(values, geometry.world_host, w)
-        g_photo = None
+        w, model = stage.weights, self.device_model
+        geometry = model.geometry(values)
+        g_world, reads, terms = model.zeros(), {}, {}
+        # the world cotangent collects each term's weighted gradient in weighted_sum's order
+        if w.get("landmarks"):
+            reads["landmarks"] = self.device_landmarks(geometry.world, self.scene.camera(values["focal"][0]), g_world,
+                                                       float(w["landmarks"]))
+        if w.get("dense"):                      # on the host: the world vertices come down
+            value, g = self.dense_term(values, geometry.world.get())
+            model.add(g_world, g.pop("world"), float(w["dense"]))
+            terms["dense"] = (value, g)
         if w.get("photo"):
             value, g = self.photo(values, geometry.world, stage)
-            g_photo = g.pop("world")
+            model.add(g_world, g.pop("world"), float(w["photo"]))
+            reads["albedo"] = g.pop("albedo")
             terms["photo"] = (value, g)
-        loss, grads, weighted = losses.weighted_sum(terms | self.prior_terms(values, w), w)
-        g_world = self._world_cotangent(grads.pop("world", None), g_photo, float(w.get("photo", 0.0)))
-        if g_world is not None:
-            for name, g in self.device_model.geometry_vjp(geometry, g_world).items():
-                grads[name] = grads.get(name, 0.0) + g
+        grads, read = model.geometry_vjp(geometry, g_world, reads)
+        if "albedo" in read:
+            terms["photo"][1]["albedo"] = read["albedo"]
+        if "landmarks" in read:
+            value, g_focal = read["landmarks"]
+            terms = {"landmarks": (value, dict(focal=np.array([g_focal])))} | terms
+        loss, host_grads, weighted = losses.weighted_sum(terms | self.prior_terms(values, w), w)
+        host_grads.pop("world", None)
+        for name, g in host_grads.items():
+            grads[name] = grads[name] + g if name in grads else g
         return loss, grads, weighted
 
-    def _world_cotangent(self, host, photo, photo_weight: float):
-        """dL/d(world) on the device: the weighted host terms' (V, 3) numpy sum, then plus
-        photo_weight times the photometric term's device gradient, the order of weighted_sum."""
-        if photo is None:
-            return None if host is None else cla.to_device(self.device_model.queue, np.ascontiguousarray(host))
-        if host is None:
-            out = cla.zeros(self.device_model.queue, photo.shape, np.float64)
-        else:
-            out = cla.to_device(self.device_model.queue, np.ascontiguousarray(host, np.float64))
-        self.device_model.add(out, photo, photo_weight)
-        return out
+    @property
+    def device_landmarks(self) -> DeviceLandmarks:
+        """The landmark term on the device (made at its first use)."""
+        if self._device_landmarks is None:
+            self._device_landmarks = DeviceLandmarks(self.device_model.queue, self.scene.model, self.target,
+                                                     self.landmark_weights, self.contour, self.scene.image_size)
+        return self._device_landmarks
 
     def start_stage(self, values: dict, stage: Stage) -> None:
         super().start_stage(values, stage)
@@ -78,12 +90,13 @@ class DeviceFaceObjective(FaceObjective):
 
     def photo_term(self, values: dict, world: cla.Array, sigma: float, gamma: float) -> tuple[float, dict]:
         """FaceObjective.photo_term on device world vertices (V, 3) float64: the same sum over the
-        face region; gradients "world" (V, 3) on the device, albedo, sh and focal numpy."""
+        face region; gradients "world" (V, 3) and albedo (K_alb,) on the device, sh and focal numpy."""
         albedo = self.device_model.albedo(values["albedo"])
         out = self.scene.render(values, sigma, gamma, grads=("vertices", "albedo", "light", "focal"),
                                 albedo=albedo, world=world, roi=self.mask, faces=self.device_faces)
         count = self._photo_loss.total
-        value, g_rgb = self._photo_loss(out.rgb, grad_scale=count)
-        g_img = self.scene.renderer.backward(out, grad_rgb=g_rgb)
+        total, g_rgb = self._photo_loss(out.rgb, grad_scale=count)
+        g_img = self.scene.renderer.backward(out, grad_rgb=g_rgb)       # (it waits for the queue)
+        value = float(total.get()[0, 0]) / count
         return value * count, dict(world=g_img["vertices"], albedo=self.device_model.albedo_vjp(g_img["albedo"]),
                                    sh=g_img["light"]["coefficients"], focal=np.array([g_img["focal"].sum()]))

@@ -31,22 +31,22 @@ class DevicePhotoLoss:
         self.robust = scale is not None
         self.scale = float(scale) if self.robust else 1.0
         # the mean runs over the region's pixels (robust) or its pixels and channels (plain)
-        self.total = float(self.n if self.robust else 3 * self.n)
+        self.total = float(max(self.n, 1) * (1 if self.robust else 3))       # (an empty region sums to 0)
         self.pixel = cla.to_device(queue, keep.astype(np.int64))
         self.weights = cla.to_device(queue, np.ones(max(self.n, 1)))
         self.target = cla.to_device(queue, np.ascontiguousarray(target.reshape(-1, 3)[keep]))
-        self.grad = cla.zeros(queue, self.shape, np.float64)     # only the region's entries change
+        self.grad = kernels.zeros(self.shape)     # only the region's entries change
         self.rho = kernels.empty(max(self.n, 1))
 
-    def __call__(self, rgb: cla.Array, grad_scale: float = 1.0) -> tuple[float, cla.Array]:
-        """rgb (1, H, W, 3) float64 device -> (value, dL/d(rgb) * grad_scale as a (1, H, W, 3)
-        device array; it is this loss's buffer, overwritten by the next call)."""
+    def __call__(self, rgb: cla.Array, grad_scale: float = 1.0) -> tuple[cla.Array, cla.Array]:
+        """rgb (1, H, W, 3) float64 device -> (the sum of the region's weighted kernel values,
+        (1, 1) on the device: the value is it over ``total``; dL/d(rgb) * grad_scale as a
+        (1, H, W, 3) device array, this loss's buffer, overwritten by the next call)."""
         if self.n == 0:
-            return 0.0, self.grad
+            return self.kernels.zeros((1, 1)), self.grad
         if rgb.dtype != np.float64 or not rgb.flags.c_contiguous:       # a float32 raster's image
             rgb = rgb.astype(np.float64)
         self.kernels("photo_loss", self.n, self.rho, self.grad, rgb, self.target, self.pixel, self.weights,
                      np.float64(self.scale), np.float64(self.total), np.float64(grad_scale),
                      np.int32(self.robust))
-        total = self.kernels.sum_products(self.rho.reshape(1, self.n, 1)).get()
-        return float(total[0, 0] / self.total), self.grad
+        return self.kernels.sum_products(self.rho.reshape(1, self.n, 1)), self.grad

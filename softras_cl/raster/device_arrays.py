@@ -119,3 +119,26 @@ class DeviceArrays:
             arguments=f"__global const {ctype(value.dtype)} *x"))
         value = self.contiguous(value, value.dtype)
         return [kernel(value[b].reshape(-1)) for b in range(value.shape[0])]
+
+
+def read_together(arrays: list) -> list[np.ndarray]:
+    """Device arrays of one dtype on one queue, downloaded in one transfer (one wait for the
+    queue: on a GPU each wait is a round trip): numpy copies, in order, of their shapes."""
+    if len(arrays) == 1:
+        return [arrays[0].get()]
+    queue, dtype = arrays[0].queue, arrays[0].dtype
+    together = cla.empty(queue, sum(a.size for a in arrays), dtype)
+    at = 0
+    for a in arrays:
+        if a.dtype != dtype:
+            raise TypeError(f"read_together: arrays of one dtype, got {dtype} and {a.dtype}")
+        a = a if a.flags.forc else a.copy()
+        if a.size:
+            cl.enqueue_copy(queue, together.base_data, a.base_data, byte_count=a.nbytes,
+                            dst_offset=together.offset + at * dtype.itemsize, src_offset=a.offset)
+        at += a.size
+    flat, out, at = together.get(), [], 0
+    for a in arrays:
+        out.append(flat[at:at + a.size].reshape(a.shape))
+        at += a.size
+    return out

@@ -16,6 +16,7 @@ import pyopencl as cl
 import pyopencl.array as cla
 
 from softras_cl.cl.generated import shared_kernel
+from softras_cl.raster.device_arrays import read_together
 from softras_cl.raster.settings import FLOAT32_LIMIT
 
 
@@ -84,5 +85,6 @@ def _flat(value: cla.Array) -> cla.Array:
 
 
 def any_bad(counts: list) -> bool:
-    """Whether any of the device scalars counted something (one read each)."""
-    return any(int(c.get()) for c in counts)
+    """Whether any of the device scalars (int64) counted something: one read for all of them
+    (each read waits for the queue; on a GPU every wait costs a round trip)."""
+    return any(bool(c.any()) for c in read_together(counts))

@@ -333,12 +333,13 @@ KERNELS = {
 
 
 class SceneKernels:
-    """The kernels above, and a caller's own (extra: name -> (arguments, body), the same form),
-    for one OpenCL context, each built on first use."""
+    """The kernels above, and a caller's own (extra: name -> (arguments, body), the same form,
+    with OpenCL C helpers they call in preamble), for one OpenCL context, each built on first use."""
 
-    def __init__(self, ctx: cl.Context, queue: cl.CommandQueue, extra: dict | None = None):
+    def __init__(self, ctx: cl.Context, queue: cl.CommandQueue, extra: dict | None = None, preamble: str = ""):
         self.ctx, self.queue = ctx, queue
         self.table = KERNELS | (extra or {})
+        self.preamble = preamble
         self.record: list | None = None     # a list: every launch's (name, event) is appended (bench)
 
     def __call__(self, name: str, n: int, *args) -> None:
@@ -350,14 +351,20 @@ class SceneKernels:
         arguments, body = self.table[name]
         defines = (f"#define CAMERA_PARAMS {CAMERA_PARAMS}\n#define CAMERA_PRODUCTS {CAMERA_PRODUCTS}\n"
                    f"#define SUM_CHUNK {SUM_CHUNK}\n")
-        kernel = shared_kernel(self.ctx, ("scene", name, arguments, body), lambda: ElementwiseKernel(
-            self.ctx, arguments, body, f"scene_{name}", preamble=PREAMBLE + defines))
+        preamble = PREAMBLE + defines + self.preamble
+        kernel = shared_kernel(self.ctx, ("scene", name, arguments, body, preamble), lambda: ElementwiseKernel(
+            self.ctx, arguments, body, f"scene_{name}", preamble=preamble))
         event = kernel(*args, range=slice(n), queue=self.queue)
         if self.record is not None:
             self.record.append((f"scene_{name}", event))
 
     def empty(self, shape, dtype=np.float64) -> cla.Array:
         return cla.empty(self.queue, shape, dtype)
+
+    def zeros(self, shape, dtype=np.float64) -> cla.Array:
+        """Zeros written by a fill kernel (pyopencl's cla.zeros enqueues a buffer fill, which
+        Oclgrind does not count as initialising the memory)."""
+        return self.empty(shape, dtype).fill(0)
 
     def sum_products(self, products: cla.Array) -> cla.Array:
         """(G, N, K) float64 -> (G, K) float64 device sums over N in a fixed order (chunks of

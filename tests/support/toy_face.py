@@ -37,3 +37,16 @@ def toy_face_model(n: int = 24, k: int = 4, seed: int = 0) -> FaceModel:
                      _smooth_basis(rng, u, v, k), np.full(k, 0.1),
                      np.tile([0.45, 0.3, 0.22], (n * n, 1)), _smooth_basis(rng, u, v, k), np.full(k, 3.0),
                      faces, lmk_faces, bary, name="toy face")
+
+
+def spread_landmarks(size: int) -> np.ndarray:
+    """68 points whose face outline (jaw 0-16, brows 17-26) covers the whole image and whose
+    eyes (36-47) and inner lips (60-67) outline small boxes."""
+    pts = np.full((68, 2), size / 2.0)
+    pts[0:17] = np.column_stack([np.linspace(-1, size, 17), np.full(17, size)])
+    pts[17:27] = np.column_stack([np.linspace(-1, size, 10), np.full(10, -1.0)])
+    box = np.array([[0, 0], [1, 0], [4, 0], [4, 3], [1, 3], [0, 3], [0, 2], [0, 1]])
+    pts[36:42] = box[:6] + [8, 10]
+    pts[42:48] = box[:6] + [26, 10]
+    pts[60:68] = box + [16, 28]
+    return pts

@@ -13,7 +13,7 @@ from softras_cl.bench.face import aligned_rmse, synthetic_face
 from softras_cl.fitting.solver import Stage
 from softras_cl.scene.shading import sh_ambient
 from support.gradients import central_differences
-from support.toy_face import toy_face_model
+from support.toy_face import spread_landmarks, toy_face_model
 
 ALL_TERMS = dict(landmarks=0.3, photo=1.0, id_prior=1.0, exp_prior=1.0, albedo_prior=1.0, sh_white=2.0)
 
@@ -39,7 +39,7 @@ def test_objective_gradient_matches_central_differences(toy, weights, robust_sca
     rng = np.random.default_rng(1)
     scene = face.FaceScene(toy, (40, 40))
     values = toy_values(toy, rng)
-    landmarks = _spread_landmarks(40) + rng.normal(0, 1, (68, 2))     # the face region: most of the face
+    landmarks = spread_landmarks(40) + rng.normal(0, 1, (68, 2))     # the face region: most of the face
     objective = face.FaceObjective(scene, rng.random((40, 40, 3)) * 0.5, landmarks,
                                    focal0=80.0, robust_scale=robust_scale)
     stage = Stage("photo-1", ("id",), weights, sigma=1e-3, gamma=1e-2)
@@ -62,7 +62,7 @@ def test_face_region_is_fixed_within_a_stage_and_renewed_per_stage(toy):
     rng = np.random.default_rng(2)
     scene = face.FaceScene(toy, (40, 40))
     values = toy_values(toy, rng)
-    objective = face.FaceObjective(scene, np.zeros((40, 40, 3)), _spread_landmarks(40))
+    objective = face.FaceObjective(scene, np.zeros((40, 40, 3)), spread_landmarks(40))
     stage = Stage("photo-1", ("id",), dict(photo=1.0), sigma=1e-4, gamma=1e-3)
     objective(values, stage)
     first = objective.mask.copy()
@@ -74,24 +74,11 @@ def test_face_region_is_fixed_within_a_stage_and_renewed_per_stage(toy):
     assert not np.array_equal(objective.mask, first)
 
 
-def _spread_landmarks(size: int) -> np.ndarray:
-    """68 points whose face outline (jaw 0-16, brows 17-26) covers the whole image and whose
-    eyes (36-47) and inner lips (60-67) outline small boxes."""
-    pts = np.full((68, 2), size / 2.0)
-    pts[0:17] = np.column_stack([np.linspace(-1, size, 17), np.full(17, size)])
-    pts[17:27] = np.column_stack([np.linspace(-1, size, 10), np.full(10, -1.0)])
-    box = np.array([[0, 0], [1, 0], [4, 0], [4, 3], [1, 3], [0, 3], [0, 2], [0, 1]])
-    pts[36:42] = box[:6] + [8, 10]
-    pts[42:48] = box[:6] + [26, 10]
-    pts[60:68] = box + [16, 28]
-    return pts
-
-
 def test_face_region_is_the_render_inside_the_landmark_outline_less_eyes_and_mouth(toy):
     rng = np.random.default_rng(2)
     scene = face.FaceScene(toy, (40, 40))
     values = toy_values(toy, rng)
-    landmarks = _spread_landmarks(40)
+    landmarks = spread_landmarks(40)
     rendered = scene.render(values, 1e-4, 1e-3).alpha[0] > 0.5
     full = face.FaceObjective(scene, np.zeros((40, 40, 3)), landmarks, mask_erosion=0)
     region = full.face_region(values, 1e-4, 1e-3)
@@ -297,7 +284,7 @@ def test_coarse_stage_gradient_matches_central_differences_and_sums_like_full_re
     scene = face.FaceScene(toy, (64, 64))
     values = toy_values(toy, rng)
     image = rng.random((64, 64, 3)) * 0.5
-    objective = face.FaceObjective(scene, image, _spread_landmarks(64), mask_erosion=0, robust_scale=robust_scale,
+    objective = face.FaceObjective(scene, image, spread_landmarks(64), mask_erosion=0, robust_scale=robust_scale,
                                    coarse_mesh=coarse_mesh)
     stage = Stage("photo-1", ("id",), dict(photo=1.0), sigma=1e-3, gamma=1e-2)
     level = objective.photo_level(stage.sigma)
@@ -352,7 +339,7 @@ def test_robust_scale_is_a_multiple_of_the_median_error_fixed_within_a_stage(toy
     scene = face.FaceScene(toy, (40, 40))
     values = toy_values(toy, rng)
     image = rng.random((40, 40, 3)) * 0.5
-    objective = face.FaceObjective(scene, image, _spread_landmarks(40), robust_scale=1.5)
+    objective = face.FaceObjective(scene, image, spread_landmarks(40), robust_scale=1.5)
     stage = Stage("photo-1", ("id",), dict(photo=1.0), sigma=1e-4, gamma=1e-3)
     objective(values, stage)
     error = np.linalg.norm(scene.render(values, 1e-4, 1e-3).rgb[0] - image, axis=-1)[objective.mask]
@@ -360,10 +347,10 @@ def test_robust_scale_is_a_multiple_of_the_median_error_fixed_within_a_stage(toy
     objective(dict(values, albedo=values["albedo"] + 1.0), stage)
     assert objective.photo_scale == pytest.approx(1.5 * np.median(error), rel=1e-12)
     rendered = scene.render(values, 1e-4, 1e-3).rgb[0]
-    exact = face.FaceObjective(scene, rendered, _spread_landmarks(40), robust_scale=1.5)
+    exact = face.FaceObjective(scene, rendered, spread_landmarks(40), robust_scale=1.5)
     exact(values, Stage("photo-2", ("id",), dict(photo=1.0), sigma=1e-4, gamma=1e-3))
     assert exact.photo_scale == face.MIN_ROBUST_SCALE           # a perfect fit: the floor
-    squares = face.FaceObjective(scene, image, _spread_landmarks(40), robust_scale=None)
+    squares = face.FaceObjective(scene, image, spread_landmarks(40), robust_scale=None)
     squares(values, stage)
     assert squares.photo_scale is None
 
@@ -385,7 +372,7 @@ def test_robust_photo_term_ignores_an_occluder_that_biases_squares(toy):
     start = dict(truth, sh=truth["sh"] * 1.1)
     errors = {}
     for robust_scale in (None, 2.0):
-        objective = face.FaceObjective(scene, photo, _spread_landmarks(40), robust_scale=robust_scale)
+        objective = face.FaceObjective(scene, photo, spread_landmarks(40), robust_scale=robust_scale)
         assert 0.1 < band[objective.face_region(start, 1e-4, 1e-3)].mean() < 0.3
         params = face.face_params(toy, truth["focal"][0], truth["rotation"], truth["translation"], start["sh"])
         params.set({name: truth[name] for name in ("id", "exp", "albedo")})
@@ -436,7 +423,7 @@ def test_stages_draw_with_one_rasteriser_per_scene_at_their_depth_range(toy):
     rng = np.random.default_rng(5)
     scene = face.FaceScene(toy, (64, 64))
     values = toy_values(toy, rng)
-    objective = face.FaceObjective(scene, rng.random((64, 64, 3)) * 0.5, _spread_landmarks(64))
+    objective = face.FaceObjective(scene, rng.random((64, 64, 3)) * 0.5, spread_landmarks(64))
     stages = [Stage("photo-1", ("id",), dict(photo=1.0), sigma=1e-3, gamma=1e-2),
               Stage("photo-2", ("id",), dict(photo=1.0), sigma=3e-5, gamma=1e-3),
               Stage("photo-3", ("id",), dict(photo=1.0), sigma=1e-5, gamma=3e-3)]
@@ -561,7 +548,7 @@ def test_dense_term_is_the_sum_of_squared_pixel_distances_of_the_used_points(dem
     values = _turned_face(demo, yaw_deg=10.0)["truth"]
     exact = _dense_targets(demo, values, 128)
     objective = face.FaceObjective(face.FaceScene(demo, (128, 128)), np.zeros((128, 128, 3)),
-                                   _spread_landmarks(128), dense=exact + [2.0, 0.0])
+                                   spread_landmarks(128), dense=exact + [2.0, 0.0])
     value, _ = objective.dense_term(values, objective.scene.geometry(values)[0])
     assert value == pytest.approx(4.0 * demo.dense_use.sum(), rel=1e-9)
 
