@@ -9,13 +9,15 @@
 # list the machine's GPU driver files; find the GPU's OpenCL library and register it as an ICD;
 # `softras-cl devices`; determinism (the same forward+backward three times, hashed); the
 # README's face fit end to end, cold (empty kernel cache) then warm (both with the device
-# objective a GPU gets), then warm with the numpy objective; the raster bench at 1024^2
+# objective a GPU gets), then warm with the numpy objective, then profiled phase by phase
+# (profile_face_device.json); the raster bench at 1024^2
 # with each kernel layout, numpy and device-resident in/out; the product's jobs: track-face on a
 # 90-frame 640x480 talking head and a fit-face batch of 32 photos (fast budget); the kernel tests
 # against the float64 reference (tests/raster's device-resident path first, then the rest of
 # tests/raster and the renderer's). Writes into $OUT: gpu_check.json (the summary:
 # scripts/gpu_check_report.py), junit.xml and junit_device.xml, bench_raster.json (the bench's
-# raster.json) and gpu_check_files.tar.gz (every log and report). Exit code 0 when the summary
+# raster.json), profile_face_device.json (scripts/profile_face_fit.py table reads it) and
+# gpu_check_files.tar.gz (every log and report). Exit code 0 when the summary
 # says "ok".
 #
 # Variables (all optional but OUT):
@@ -53,11 +55,11 @@ START=$SECONDS
 # Options of the steps, as words (the step functions run in a new bash, which gets no arrays).
 if [ "$QUICK" = 1 ]; then
     BENCH_ARGS="--sizes 128 --faces 320,1280 --repeats 1" DETERMINISM_ARGS="--faces 1280 --size 128"
-    FIT_ARGS="--budget fast" CLIP_ARGS="--frames 12 --width 320 --height 240" TRACK_ARGS="--size 128"
+    FIT_ARGS="--budget fast" PROFILE_ARGS="--budget fast" CLIP_ARGS="--frames 12 --width 320 --height 240" TRACK_ARGS="--size 128"
     PHOTOS=4
 else   # the published sizes (280 / 3.3k / 39k faces) lie between these icosphere counts
     BENCH_ARGS="--sizes 1024 --faces 320,1280,5120,20480,81920 --repeats 5" DETERMINISM_ARGS=""
-    FIT_ARGS="--budget default" CLIP_ARGS="--frames 90 --width 640 --height 480" TRACK_ARGS=""
+    FIT_ARGS="--budget default" PROFILE_ARGS="--budget default" CLIP_ARGS="--frames 90 --width 640 --height 480" TRACK_ARGS=""
     PHOTOS=32
 fi
 
@@ -197,6 +199,11 @@ fit_face() {   # $1: output folder under $SCRATCH; more fit-face options after i
         --landmarks "$REPO/examples/data/landmarks/astronaut.pts" --out "$SCRATCH/$out" --no-progress $FIT_ARGS "$@"
 }
 
+profile_fit() {   # where a device-objective evaluation's time goes (scripts/profile_face_fit.py's phases)
+    SOFTRAS_CL_CACHE_DIR="$FIT_CACHE" "$PY" "$REPO/scripts/profile_face_fit.py" run --mode timers $PROFILE_ARGS \
+        --fit-args="--objective device" --json "$SCRATCH/profile_face_device.json"
+}
+
 make_clip() {   # the talking head as a folder of PNG frames, with its landmarks
     SOFTRAS_CL_CACHE_DIR="$FIT_CACHE" "$PY" "$REPO/scripts/gpu_check_jobs.py" clip "$SCRATCH/clip" $CLIP_ARGS
 }
@@ -215,10 +222,10 @@ batch_fit() {   # one fit-face call on the folder: a local Dask cluster, one wor
         --out "$SCRATCH/batch" --no-progress
 }
 
-export REPO PY WHEELS SITE SCRATCH LAYOUTS BENCH_ARGS DETERMINISM_ARGS FIT_ARGS FIT_CACHE CLIP_ARGS TRACK_ARGS \
+export REPO PY WHEELS SITE SCRATCH LAYOUTS BENCH_ARGS DETERMINISM_ARGS FIT_ARGS PROFILE_ARGS FIT_CACHE CLIP_ARGS TRACK_ARGS \
     PHOTOS DEVICE_TESTS
 export -f install_packages system_inventory find_opencl_driver list_devices loader_diagnosis gpu_present \
-    device_tests kernel_tests determinism bench_raster fit_face make_clip track_face make_photos batch_fit
+    device_tests kernel_tests determinism bench_raster fit_face profile_fit make_clip track_face make_photos batch_fit
 
 run_steps() {
     step install 60 install_packages || return
@@ -245,6 +252,7 @@ run_steps() {
     step fit_face 120 fit_face fit               # an empty kernel cache: the builds included
     step fit_face_warm 60 fit_face fit_warm      # the kernels now come from the binary cache
     step fit_face_host 60 fit_face fit_host --objective host   # the numpy objective, to compare
+    step profile_fit 60 profile_fit
     step bench_raster 200 bench_raster
     step make_clip 45 make_clip && step track_face 120 track_face
     step make_photos 20 make_photos && step batch_fit 120 batch_fit
@@ -260,6 +268,7 @@ timeout 30 "$PY" "$REPO/scripts/gpu_check_report.py" summary "$SCRATCH" "$OUT/gp
 summary_rc=$?
 cp "$SCRATCH/junit.xml" "$SCRATCH/junit_device.xml" "$OUT/" 2> /dev/null
 cp "$SCRATCH/bench/raster.json" "$OUT/bench_raster.json" 2> /dev/null
+cp "$SCRATCH/profile_face_device.json" "$OUT/" 2> /dev/null
 tar -czf "$OUT/gpu_check_files.tar.gz" -C "$SCRATCH" --exclude=site --exclude=bin \
     --exclude=program_cache --exclude=fit_program_cache --exclude=clip/frames --exclude=photos \
     --exclude='batch/*/*' --exclude='*.mp4' --exclude='*.npz' --exclude='*.ply' --exclude='*.obj' --exclude='*.mtl' .

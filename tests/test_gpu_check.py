@@ -422,7 +422,7 @@ def test_dry_run_plans_every_step_in_order_within_the_deadline(tmp_path):
     plan = [(s["name"], s["budget_s"]) for s in summary["steps"]]
     assert plan == [("install", 60), ("system", 30), ("find_opencl_driver", 40), ("devices", 60),
                     ("gpu_present", 20), ("determinism", 60), ("fit_face", 120), ("fit_face_warm", 60),
-                    ("fit_face_host", 60), ("bench_raster", 200), ("make_clip", 45), ("track_face", 120), ("make_photos", 20),
+                    ("fit_face_host", 60), ("profile_fit", 60), ("bench_raster", 200), ("make_clip", 45), ("track_face", 120), ("make_photos", 20),
                     ("batch_fit", 120), ("device_tests", 120), ("kernel_tests", 300)]
     assert all(s["status"] == "planned" for s in summary["steps"])
     assert "== kernel_tests (at most 300 s): kernel_tests" in proc.stdout
