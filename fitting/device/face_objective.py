@@ -93,7 +93,8 @@ class DeviceFaceObjective(FaceObjective):
         face region; gradients "world" (V, 3) and albedo (K_alb,) on the device, sh and focal numpy."""
         albedo = self.device_model.albedo(values["albedo"])
         out = self.scene.render(values, sigma, gamma, grads=("vertices", "albedo", "light", "focal"),
-                                albedo=albedo, world=world, roi=self.mask, faces=self.device_faces)
+                                albedo=albedo, world=world, roi=self.mask, faces=self.device_faces,
+                                check_values=False)      # its own kernels' arrays, from checked values
         count = self._photo_loss.total
         total, g_rgb = self._photo_loss(out.rgb, grad_scale=count)
         g_img = self.scene.renderer.backward(out, grad_rgb=g_rgb)       # (it waits for the queue)

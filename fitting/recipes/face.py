@@ -276,19 +276,21 @@ class FaceScene:
                     rotation=rodrigues_vjp(ctx.rot_ctx, g_world.T @ ctx.shape)["omega"])
 
     def render(self, values: dict, sigma: float, gamma: float, grads=(), albedo=None,
-               light=None, world=None, roi=None, faces=None):
+               light=None, world=None, roi=None, faces=None, check_values: bool = True):
         """Render the face; albedo (V, 3) / light: the model's if already computed, or others
         (for the report); world: the world vertices if already computed; roi: None or an (H, W)
         bool mask, the only pixels needed (Renderer.forward: other screen tiles are not
         rasterised); faces: this scene's faces as a device copy (with device-resident world and
-        albedo: Renderer.forward's device path), None for self.faces."""
+        albedo: Renderer.forward's device path), None for self.faces; check_values:
+        Renderer.forward's (False: a device caller's own arrays)."""
         world = self.geometry(values)[0] if world is None else world
         albedo = self.model.albedo(values["albedo"])[0] if albedo is None else albedo
         light = SHLight(values["sh"]) if light is None else light
         faces = self.faces if faces is None else faces
         return self.renderer.forward(world, faces, self.camera(values["focal"][0]),
                                      albedo=albedo, light=light, grads=grads, roi=roi, sigma=sigma,
-                                     gamma=gamma, near=self.settings.near, far=self.settings.far)
+                                     gamma=gamma, near=self.settings.near, far=self.settings.far,
+                                     check_values=check_values)
 
 
 def half_resolution(image: np.ndarray):

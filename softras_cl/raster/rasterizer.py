@@ -22,7 +22,7 @@ from softras_cl.cl.layout import (CORNER_COLORS, FACE_STRIDE, GPU_BWD_GROUP, GPU
                                   LIGHT_PARAMS, TILE_H, vertex_attr_width)
 from softras_cl.cl.program import build_kernel, launch
 from softras_cl.raster.binning import Bins, RoiTiles, bin_tiles, face_setup, face_tiles, tile_grid
-from softras_cl.raster.device_arrays import DeviceArrays
+from softras_cl.raster.device_arrays import DeviceArrays, read_together
 from softras_cl.raster.device_bins import DeviceBinning, DeviceBins
 from softras_cl.raster.device_inputs import (ValueChecks, any_bad, check_context, is_device_array, on_host,
                                              standin)
@@ -121,6 +121,7 @@ class RasterContext:
     state: PixelState
     device_faces: cla.Array | None = None
     numpy_io: bool = False      # a device forward of numpy inputs: backward downloads the gradients
+    check_values: bool = True   # backward checks its device cotangents' values (forward's check_values)
 
     def nbytes(self) -> int:
         """Bytes kept: bin arrays (host or device) and device buffers, each buffer counted once."""
@@ -239,7 +240,7 @@ class SoftRasterizer:
     # ---- public API ------------------------------------------------------------------------
     def forward(self, vertices, faces, colors=None, face_textures=None, texture_image=None,
                 uvs=None, normals=None, light=None, grads=(), roi=None, sigma=None, gamma=None,
-                near=None, far=None) -> RasterOutput:
+                near=None, far=None, check_values: bool = True) -> RasterOutput:
         """Render. Shapes in docs/api.md; images come back as (B, H, W[, 3]) arrays.
 
         sigma, gamma, near, far: this call's values of those settings (None: the rasteriser's
@@ -258,6 +259,10 @@ class SoftRasterizer:
         Device-resident inputs: when any array argument is a pyopencl.array.Array (in this
         rasteriser's context: `queue`), every input is checked, set up and binned on the device
         and the images come back as pyopencl arrays (docs/api.md, "Device-resident calls").
+        check_values=False skips the device checks of their values (NaN/Inf, face indices) here
+        and of the cotangents' in backward, for a caller whose arrays come from its own kernels
+        on values it checked (a fit's objective: one reduction and one wait less per argument);
+        their shapes and dtypes are checked all the same. Numpy inputs are always checked.
         """
         t = time.perf_counter()
         s = self.call_settings(sigma=sigma, gamma=gamma, near=near, far=far)
@@ -267,7 +272,7 @@ class SoftRasterizer:
         inputs = dict(vertices=vertices, faces=faces, colors=colors, face_textures=face_textures,
                       texture_image=texture_image, uvs=uvs, normals=normals, light=light)
         if any(is_device_array(v) for v in inputs.values()):
-            return self._forward_device(s, inputs, grads, roi, t)
+            return self._forward_device(s, inputs, grads, roi, t, check_values)
         if self.numpy_via_device:
             return self._forward_numpy_via_device(s, inputs, grads, roi, t)
         return self._forward_host(s, inputs, grads, roi, t)
@@ -324,11 +329,13 @@ class SoftRasterizer:
             self._device_binning = DeviceBinning(self.ctx, self.queue, self.grid)
         return self._device_binning
 
-    def _check_device_inputs(self, s: RasterSettings, inputs: dict) -> tuple[MeshInputs, dict]:
+    def _check_device_inputs(self, s: RasterSettings, inputs: dict, check_values: bool = True
+                             ) -> tuple[MeshInputs, dict]:
         """(MeshInputs of stand-ins for the shapes, {name: pyopencl array or None}) of forward's
         arguments, some of them pyopencl arrays: their context, then what they are (on the host,
-        from their shapes and dtypes), then their values (one device reduction each). Numpy
-        arguments among them are uploaded. Anything wrong raises the numpy path's error."""
+        from their shapes and dtypes), then (check_values) their values (one device reduction
+        each). Numpy arguments among them are uploaded. Anything wrong raises the numpy path's
+        error."""
         for name, value in inputs.items():
             check_context(name, value, self.ctx)
         try:
@@ -340,6 +347,8 @@ class SoftRasterizer:
                for n, v in inputs.items()}
         if dev["light"] is not None:
             dev["light"] = dev["light"].reshape(-1)
+        if not check_values:
+            return mesh, dev
         counts = [self.value_checks.count_bad_floats(v, s.dtype == "float32")
                   for n, v in dev.items() if v is not None and n != "faces"]
         if dev["faces"].size:
@@ -358,9 +367,10 @@ class SoftRasterizer:
             out.saved.numpy_io = True
         return RasterOutput(*(None if a is None else a.get() for a in (out.rgb, out.alpha, out.depth)), out.saved)
 
-    def _forward_device(self, s: RasterSettings, inputs: dict, grads: tuple, roi, t: float) -> RasterOutput:
+    def _forward_device(self, s: RasterSettings, inputs: dict, grads: tuple, roi, t: float,
+                        check_values: bool = True) -> RasterOutput:
         """forward() of device-resident inputs: images as pyopencl arrays (the numpy path's bits)."""
-        mesh, dev = self._check_device_inputs(s, inputs)
+        mesh, dev = self._check_device_inputs(s, inputs, check_values)
         self._check_resources(s, mesh, grads)
         if mesh.n_faces == 0:       # nothing to set up or bin: the host path's background images
             out = self._forward_host(s, {n: on_host(v) for n, v in inputs.items()}, grads, on_host(roi), t)
@@ -380,7 +390,8 @@ class SoftRasterizer:
         t = self._stage("upload", t, finish=True)
         images = self._run_forward(s, mesh, buffers, state)
         outs = self._images_to_arrays(images, batch, state is not None)
-        saved = RasterContext(self, s, mesh, grads, bins, buffers, images, state, dev["faces"]) if grads else None
+        saved = (RasterContext(self, s, mesh, grads, bins, buffers, images, state, dev["faces"],
+                               check_values=check_values) if grads else None)
         if saved is not None:
             self.pool.give_when_dead(saved, saved.device_buffers())
         else:
@@ -459,9 +470,11 @@ class SoftRasterizer:
             if value is not None and not is_device_array(value):
                 value = cla.to_device(self.queue, np.ascontiguousarray(value))
             checked[name] = value
-        counts = {n: self.value_checks.count_bad_floats(v, False) for n, v in checked.items() if v is not None}
-        for name, count in counts.items():
-            if any_bad([count]):
+        counts = {n: self.value_checks.count_bad_floats(v, False) for n, v in checked.items()
+                  if v is not None and saved.check_values}
+        bad = read_together(list(counts.values())) if counts else []
+        for name, count in zip(counts, bad):
+            if count.any():
                 check_cotangent(name, on_host(checked[name]), _cot_shape(name, batch, s), True)
         return {n: None if v is None else self.device_arrays.contiguous(v, self.real) for n, v in checked.items()}
 

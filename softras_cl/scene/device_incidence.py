@@ -8,7 +8,9 @@ then corners.
 
 The list is built on the host from one download of the faces and kept with a device copy of
 them; a later call with a face array of the same shape is matched to it by one device
-comparison (a count of differing entries), so a face array changed in place is seen.
+comparison (a count of differing entries), so a face array changed in place is seen, unless the
+caller vouches that its arrays do not change (`unchanged`: the same array object is then matched
+by identity, without a comparison or a wait).
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ from softras_cl.checks import index_array
 KEPT = 4        # incidence lists kept per renderer (a fit uses one)
 
 
-@dataclass
+@dataclass(eq=False)        # compared by identity (its fields are device arrays)
 class DeviceIncidence:
     """The incidence of (F, 3) faces over V vertices, as device arrays.
 
@@ -34,6 +36,7 @@ class DeviceIncidence:
     start: cla.Array
     entries: cla.Array
     n_vertices: int
+    source: cla.Array | None = None     # the device array it was built from
 
     @property
     def n_faces(self) -> int:
@@ -59,9 +62,13 @@ class IncidenceCache:
         self.queue, self.kernels = queue, kernels
         self._kept: list[DeviceIncidence] = []
 
-    def get(self, faces: cla.Array, n_vertices: int) -> DeviceIncidence:
-        """The DeviceIncidence of device faces (F, 3) (any integer dtype) over n_vertices."""
+    def get(self, faces: cla.Array, n_vertices: int, unchanged: bool = False) -> DeviceIncidence:
+        """The DeviceIncidence of device faces (F, 3) (any integer dtype) over n_vertices;
+        unchanged: the caller's face arrays are never changed in place (the array a list was
+        built from is taken as it is)."""
         for inc in self._kept:
+            if unchanged and inc.source is faces and inc.n_vertices == n_vertices:
+                return inc
             if inc.n_vertices == n_vertices and inc.faces.shape == faces.shape:
                 flat = faces if faces.flags.c_contiguous else faces.copy()
                 if int(self.kernels.count("differ", flat.reshape(-1), inc.faces.reshape(-1)).get()) == 0:
@@ -69,6 +76,7 @@ class IncidenceCache:
                     self._kept.insert(0, inc)
                     return inc
         inc = build_incidence(self.queue, faces.get(), n_vertices)
+        inc.source = faces
         self._kept.insert(0, inc)
         del self._kept[KEPT:]
         return inc

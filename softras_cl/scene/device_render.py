@@ -152,11 +152,11 @@ def project(tools: DeviceTools, cameras: list, verts: cla.Array) -> DeviceState:
     return DeviceState(verts, params, cam, screen, batch=batch, n_vertices=n_vertices)
 
 
-def value_counts(tools: DeviceTools, state: DeviceState, albedo) -> list:
+def value_counts(tools: DeviceTools, state: DeviceState, albedo, check_values: bool = True) -> list:
     """Device counts of bad values: camera points non-finite or behind a perspective camera, and
-    albedo NaN/Inf."""
+    (check_values) albedo NaN/Inf."""
     counts = [tools.kernels.count("behind", state.cam, state.params, np.int64(state.n_vertices))]
-    if albedo is not None:
+    if albedo is not None and check_values:
         counts.append(tools.checks.count_bad_floats(albedo, False))
     return counts
 
@@ -276,9 +276,9 @@ def camera_grads(cameras: list, sums: np.ndarray, focal_only: bool) -> list:
     return out
 
 
-def forward_device(renderer, args: dict, cameras, light, grads: tuple, roi, run: dict):
+def forward_device(renderer, args: dict, cameras, light, grads: tuple, roi, run: dict, check_values: bool = True):
     """Renderer.forward of device-resident inputs (args: the ARRAY_ARGS by name): a RenderOutput
-    of pyopencl images whose context holds a DeviceState."""
+    of pyopencl images whose context holds a DeviceState. check_values: Renderer.forward's."""
     from softras_cl.scene.camera import Camera
 
     tools = renderer.device_tools
@@ -290,16 +290,16 @@ def forward_device(renderer, args: dict, cameras, light, grads: tuple, roi, run:
     verts = tools.arrays.contiguous(dev["vertices"], np.float64)
     albedo = None if dev["albedo"] is None else tools.arrays.contiguous(dev["albedo"], np.float64)
     state = project(tools, cams, verts)
-    if any_bad(value_counts(tools, state, albedo)):
+    if any_bad(value_counts(tools, state, albedo, check_values)):
         raise_numpy_error(renderer, args, cameras, light)
     if renderer.shading != "none":
         if albedo is None:
             raise ValueError(f"albedo is required with shading={renderer.shading!r}")
-        state.incidence = tools.incidence.get(dev["faces"], state.n_vertices)
+        state.incidence = tools.incidence.get(dev["faces"], state.n_vertices, unchanged=not check_values)
     color_args = _color_args(renderer, tools, state, dev, albedo, light)
     raster = renderer._rasterizer(cams[0].projection, color_args, light)
     out = raster.forward(state.screen, dev["faces"], grads=_raster_grads(grads, renderer.shading), roi=roi,
-                         **color_args, **run)
+                         check_values=check_values, **color_args, **run)
     saved = RenderContext(raster, out, cams, (), None, light, grads, batched, single_camera,
                           None if args.get("albedo") is None else tuple(args["albedo"].shape), renderer, state)
     return RenderOutput(out.rgb, out.alpha, out.depth, saved)

@@ -78,7 +78,7 @@ class Renderer:
 
     def forward(self, vertices, faces, cameras, albedo=None, light=None, face_textures=None,
                 texture_image=None, uvs=None, grads=(), roi=None, sigma=None, gamma=None,
-                near=None, far=None) -> RenderOutput:
+                near=None, far=None, check_values: bool = True) -> RenderOutput:
         """Render B views.
 
         vertices (V, 3) or (B, V, 3) world; faces (F, 3) int; cameras: a Camera or a list of B;
@@ -95,14 +95,17 @@ class Renderer:
         pyopencl.array.Array on this renderer's queue, the projection, normals, shading and
         rasterisation run on the device and the images come back as pyopencl arrays
         (softras_cl.scene.device_render; docs/api.md, "Device-resident calls"). Lights: Lambert
-        and SH (a PhongLight needs numpy inputs); needs cl_khr_fp64.
+        and SH (a PhongLight needs numpy inputs); needs cl_khr_fp64. check_values=False (device
+        inputs only): SoftRasterizer.forward's, and the faces are taken as unchanged in place
+        since an earlier call with the same array object; vertices behind a perspective camera
+        are refused all the same.
         """
         grads = _check_grad_groups(grads, self.shading)
         args = dict(vertices=vertices, faces=faces, albedo=albedo, face_textures=face_textures,
                     texture_image=texture_image, uvs=uvs)
         if device_render.uses_device(args):
             run = dict(zip(RUN_FIELDS, (sigma, gamma, near, far)))
-            return device_render.forward_device(self, args, cameras, light, grads, roi, run)
+            return device_render.forward_device(self, args, cameras, light, grads, roi, run, check_values)
         single_camera = isinstance(cameras, Camera)
         cameras, verts, batched = _views(cameras, vertices, self.settings.image_size)
         faces = np.asarray(faces)

@@ -208,6 +208,46 @@ def test_the_incidence_follows_faces_changed_in_place():
     np.testing.assert_allclose(out.rgb.get(), expected.rgb, rtol=0, atol=1e-12)
 
 
+def test_unchecked_values_skip_the_value_checks_but_not_the_camera_check():
+    """check_values=False (a fit's objective passing its own arrays): an infinite albedo is not
+    looked for (it reaches the image), nor a NaN cotangent in backward; vertices behind the
+    camera or not finite are refused all the same, the gradients are those of a checked call,
+    and a face array object seen before is taken as unchanged (its incidence lists reused
+    without comparing contents)."""
+    v, f, albedo = sphere_scene()
+    cams = two_cameras((H, W))
+    renderer = Renderer(settings(), shading="vertex")
+    dev = on_device(renderer.queue, dict(v=v, f=f, a=np.where(albedo > 0.85, np.inf, albedo), albedo=albedo))
+    with pytest.raises(ValueError, match="albedo"):
+        renderer.forward(dev["v"], dev["f"], cams, albedo=dev["a"])
+    assert np.isinf(renderer.forward(dev["v"], dev["f"], cams, albedo=dev["a"], check_values=False).rgb.get()).any()
+    for case in ("behind the camera", "NaN vertex"):
+        bad, _, _ = BAD[case](v, f, albedo)
+        with pytest.raises(ValueError, match="behind the camera|finite"):
+            renderer.forward(cla.to_device(renderer.queue, bad), dev["f"], cams, albedo=dev["albedo"],
+                             check_values=False)
+    checked = renderer.forward(v, f, cams, albedo=albedo, grads=GROUPS)
+    out = renderer.forward(dev["v"], dev["f"], cams, albedo=dev["albedo"], grads=GROUPS, check_values=False)
+    np.testing.assert_allclose(out.rgb.get(), checked.rgb, rtol=0, atol=1e-12)
+    g_rgb = np.random.default_rng(2).normal(size=checked.rgb.shape)
+    got = download(renderer.backward(out, grad_rgb=cla.to_device(renderer.queue, g_rgb)))
+    want = renderer.backward(checked, grad_rgb=g_rgb)
+    for name in ("vertices", "albedo"):
+        np.testing.assert_allclose(got[name], want[name], rtol=0, atol=1e-12 * np.abs(want[name]).max())
+    bad_cotangent = cla.to_device(renderer.queue, np.where(g_rgb > 2.0, np.nan, g_rgb))
+    unchecked = renderer.forward(dev["v"], dev["f"], cams, albedo=dev["albedo"], grads=("vertices",),
+                                 check_values=False)
+    assert np.isnan(renderer.backward(unchecked, grad_rgb=bad_cotangent)["vertices"].get()).any()
+    checked_device = renderer.forward(dev["v"], dev["f"], cams, albedo=dev["albedo"], grads=("vertices",))
+    with pytest.raises(ValueError, match="grad_rgb"):
+        renderer.backward(checked_device, grad_rgb=bad_cotangent)
+    flipped = cla.to_device(renderer.queue, np.ascontiguousarray(f[:, ::-1]))     # new contents: a new list
+    renderer.forward(dev["v"], flipped, cams, albedo=dev["albedo"], check_values=False)
+    flipped.set(f)                                       # changed in place: a checked call sees it
+    assert renderer.device_tools.incidence.get(flipped, len(v), unchanged=True).faces.get().tolist() == f[:, ::-1].tolist()
+    assert renderer.device_tools.incidence.get(flipped, len(v)).faces.get().tolist() == f.tolist()
+
+
 # ---- bad input: the numpy path's errors ------------------------------------------------------
 def _error(renderer, v, f, cams, albedo, light=None):
     with pytest.raises((ValueError, TypeError)) as info:
