@@ -293,3 +293,117 @@ def test_forward_and_vjp_bits_do_not_depend_on_the_blas_thread_count():
         return subprocess.run([sys.executable, "-c", _THREADS_SCRIPT], env=env, check=True,
                               capture_output=True, text=True).stdout
     assert run(1) == run(4)
+
+
+def _subset_cases(model, rng):
+    """Vertex sets to pose: one vertex, a few in any order with repeats, a random half, all."""
+    n = model.n_vertices
+    return [np.array([n - 1]), np.array([7, 2, 7, 30 % n]), rng.choice(n, n // 2, replace=False),
+            np.arange(n)]
+
+
+def _compare_subset_with_whole_body(model, params, ids, rng):
+    """A subset's pose and vjp against the whole body's, bit for bit (the vjp of cotangents that
+    are zero off the subset)."""
+    whole, whole_ctx = model.forward(**params)
+    subset = model.subset(ids)
+    part, part_ctx = model.forward(**params, subset=subset)
+    assert np.array_equal(subset.ids, np.unique(ids)) and np.array_equal(part.vertex_ids, subset.ids)
+    assert np.array_equal(part.vertices, whole.vertices[subset.ids])
+    assert np.array_equal(part.joints, whole.joints)
+    gv, gj = rng.normal(size=part.vertices.shape), rng.normal(size=whole.joints.shape)
+    spread = np.zeros(whole.vertices.shape)
+    spread[subset.ids] = gv
+    got, want = model.forward_vjp(part_ctx, gv, gj), model.forward_vjp(whole_ctx, spread, gj)
+    for name in want:
+        assert np.array_equal(got[name], want[name]), name
+    only_joints = model.forward_vjp(part_ctx, grad_joints=gj)
+    for name, value in model.forward_vjp(whole_ctx, grad_joints=gj).items():
+        assert np.array_equal(only_joints[name], value), name
+
+
+@pytest.mark.parametrize("sparse", [True, False])
+@pytest.mark.parametrize("posedirs", [True, False])
+def test_subset_poses_and_differentiates_as_the_whole_body_bit_for_bit(sparse, posedirs):
+    model = random_model(sparse=sparse, posedirs=posedirs)
+    rng = np.random.default_rng(12)
+    for seed in range(3):
+        params = random_params(seed=20 + seed, scale=[0.0, 0.3, 1.5][seed])
+        for ids in _subset_cases(model, rng):
+            _compare_subset_with_whole_body(model, params, ids, rng)
+
+
+def test_subset_of_the_demo_body_bit_for_bit(demo_body_model):
+    """The vertices a photo fit poses (keypoint landmarks; the coarse mesh's) at random shapes
+    and poses: the demo body's wide tree and 16 betas."""
+    from softras_cl.fitting.keypoints.pose33 import keypoint_layout
+    from softras_cl.fitting.models.mesh_lod import coarse_faces
+
+    model = demo_body_model
+    rng = np.random.default_rng(13)
+    landmarks = keypoint_layout(model).vertices
+    landmarks = landmarks[landmarks >= 0]
+    drawn = np.union1d(landmarks, coarse_faces(model.v_template, model.faces, 3.0))
+    for ids in (landmarks, drawn):
+        for _ in range(3):
+            params = {"betas": rng.normal(size=model.n_betas), "body_pose": rng.normal(0, 0.4, (model.n_joints - 1, 3)),
+                      "global_rotation": rng.normal(size=3), "translation": rng.normal(size=3)}
+            _compare_subset_with_whole_body(model, params, ids, rng)
+
+
+def test_subset_vjp_matches_central_differences():
+    model = random_model(seed=2)
+    params = random_params(seed=3)
+    subset = model.subset([3, 11, 25, 39])
+    rng = np.random.default_rng(14)
+    gv, gj = rng.normal(size=(4, 3)), rng.normal(size=(J, 3))
+
+    def loss(p):
+        s, _ = model.forward(**p, subset=subset)
+        return np.sum(s.vertices * gv) + np.sum(s.joints * gj)
+
+    grads = model.forward_vjp(model.forward(**params, subset=subset)[1], gv, gj)
+    eps = 1e-6
+    for name, value in params.items():
+        numeric = np.zeros_like(value)
+        for i in np.ndindex(value.shape):
+            plus, minus = {**params, name: value.copy()}, {**params, name: value.copy()}
+            plus[name][i] += eps
+            minus[name][i] -= eps
+            numeric[i] = (loss(plus) - loss(minus)) / (2 * eps)
+        np.testing.assert_allclose(grads[name], numeric, rtol=1e-6, atol=1e-7, err_msg=name)
+
+
+def test_subset_errors():
+    model = random_model()
+    with pytest.raises(ValueError, match=r"ids must index vertices in \[0, 40\)"):
+        model.subset([0, 40])
+    _, ctx = model.forward(**random_params(), subset=model.subset([1, 2]))
+    with pytest.raises(ValueError, match=r"grad_vertices must have shape \(2, 3\)"):
+        model.forward_vjp(ctx, np.zeros((V, 3)))
+
+
+@pytest.mark.parametrize("posedirs", [True, False])
+def test_reach_bounds_every_vertex_along_any_direction(posedirs):
+    """min_j (joint_j . d - reach_j) <= v . d for every posed vertex v and direction d."""
+    model = random_model(seed=5, posedirs=posedirs)
+    rng = np.random.default_rng(15)
+    for seed in range(20):
+        params = random_params(seed=30 + seed, scale=1.5)
+        params["betas"] *= 3.0
+        state, ctx = model.forward(**params)
+        reach = model.reach(params["betas"], ctx.rot_local)
+        directions = rng.normal(size=(50, 3))
+        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+        lowest = (state.joints @ directions.T - reach[:, None]).min(axis=0)
+        assert np.all(lowest <= (state.vertices @ directions.T).min(axis=0))
+    assert np.all(np.isfinite(reach)) and np.all(reach > 0)
+
+
+def test_reach_is_infinite_for_weights_that_are_not_convex():
+    model = random_model(posedirs=False)
+    weights = model.weights.copy()
+    weights[0, :2] += [0.5, -0.5]
+    bent = BodyModel(model.v_template, model.shapedirs, model.J_regressor, PARENTS, weights, model.faces)
+    _, ctx = bent.forward(**random_params())
+    assert np.all(np.isinf(bent.reach(np.zeros(B), ctx.rot_local)))
