@@ -28,7 +28,7 @@ A model without a joint (or without a ``head`` joint for the face points) leaves
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -112,6 +112,19 @@ class KeypointLayout:
         out[is_joint] = joints[self.joints[is_joint]]
         out[~is_joint] = vertices[self.vertices[~is_joint]]
         return out
+
+    def on_rows(self, vertex_ids: np.ndarray) -> KeypointLayout:
+        """This layout for a body posed on some of its vertices: each surface landmark
+        renumbered as its row in ``vertex_ids`` (S,) sorted int64 (BodyPose.vertex_ids);
+        ValueError when one is not among them."""
+        surface = self.vertices >= 0
+        rows = np.searchsorted(vertex_ids, self.vertices[surface])
+        if not np.array_equal(np.asarray(vertex_ids)[np.minimum(rows, len(vertex_ids) - 1)], self.vertices[surface]):
+            raise ValueError("vertex_ids must hold the layout's surface landmarks "
+                             f"{self.vertices[surface].tolist()}")
+        vertices = self.vertices.copy()
+        vertices[surface] = rows
+        return replace(self, vertices=vertices)
 
     def points_vjp(self, grad: np.ndarray, n_joints: int, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
         """(d/d joints (J, 3), d/d vertices (V, 3)) of a gradient (K, 3) wrt :meth:`points`."""

@@ -53,7 +53,7 @@ from softras_cl.scene.renderer import SHARP, Renderer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.fitting import losses
 from softras_cl.fitting.metrics import psnr
-from softras_cl.fitting.models.body_model import BodyContext, BodyPose
+from softras_cl.fitting.models.body_model import BodyContext, BodyPose, VertexSubset
 from softras_cl.fitting.models.mesh_lod import coarse_faces
 from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.recipes.body_settings import BUDGETS, DEFAULT_POSE_SIGMA, POSE_SIGMA, BodyFitConfig
@@ -281,24 +281,38 @@ class BodyScene:
         nearest = min(float((state.vertices @ axis).min()), float((state.joints @ axis).min())) + offset
         return nearest < MIN_DEPTH
 
-    def pose(self, values: dict) -> tuple[BodyPose, BodyContext]:
+    def clear_of_camera(self, joints: np.ndarray, reach: np.ndarray) -> bool:
+        """True when no vertex of a posed body can be too close (:meth:`too_close`): every one
+        lies beyond min_j (depth of joint j - reach_j) (joints (J, 3) posed, reach (J,) from
+        BodyModel.reach), which is at least MIN_DEPTH with room for rounding. False: it may
+        be; ask too_close with every vertex."""
+        axis, offset = self.camera.rotation_matrix()[2], float(self.camera.translation[2])
+        depth = joints @ axis + offset
+        bound = float((depth - reach).min())
+        return bound >= MIN_DEPTH + 1e-9 * (1.0 + float(np.abs(depth).max() + reach.max()))
+
+    def pose(self, values: dict, subset: VertexSubset | None = None) -> tuple[BodyPose, BodyContext]:
         """The body posed by the blocks ``values`` (betas, body_pose, global_rotation,
-        translation): (BodyPose, BodyContext for model.forward_vjp)."""
+        translation): (BodyPose, BodyContext for model.forward_vjp); with a ``subset``
+        (model.subset) only its vertices are posed."""
         return self.model.forward(values["betas"], values["body_pose"], values["global_rotation"],
-                                  values["translation"])
+                                  values["translation"], subset)
 
     def render(self, vertices, sigma: float, gamma: float, grads=(), colors=None, faces=None, **changes):
         """RenderOutput of posed vertices (V, 3) with part colours (or ``colours`` (V, 3)), the
-        model's faces (or a subset ``faces`` (F', 3)); ``changes``: other RasterSettings fields
-        (e.g. color_agg="hard"), drawn by a renderer of their own (made once; its outputs go
-        back through it, not through ``renderer``)."""
-        renderer = self._variant(changes) if changes else self.renderer
+        model's faces (or ``faces`` (F', 3) indexing ``vertices``); ``changes``: other
+        RasterSettings fields (e.g. color_agg="hard", or outputs=("alpha",): no colours drawn),
+        drawn by a renderer of their own (:meth:`renderer_for`)."""
+        renderer = self.renderer_for(changes)
+        albedo = (self.colors if colors is None else colors) if "rgb" in renderer.settings.outputs else None
         return renderer.forward(vertices, self.model.faces if faces is None else faces, self.camera,
-                                albedo=self.colors if colors is None else colors, grads=grads,
-                                sigma=sigma, gamma=gamma)
+                                albedo=albedo, grads=grads, sigma=sigma, gamma=gamma)
 
-    def _variant(self, changes: dict) -> Renderer:
-        """The renderer of these settings with ``changes``, made at its first use."""
+    def renderer_for(self, changes: dict) -> Renderer:
+        """The renderer of these settings with ``changes`` (made at its first use; ``renderer``
+        without changes): the one whose outputs go back through its backward."""
+        if not changes:
+            return self.renderer
         key = tuple(sorted(changes.items()))
         if key not in self._variants:
             self._variants[key] = Renderer(self.settings.replace(**changes), shading="none")
@@ -324,6 +338,16 @@ def reprojection(camera: Camera, points, target, weights, robust_px: float | Non
     return value * factor, camera.project_pixels_vjp(ctx, g["points"] * factor, camera=False)["vertices"]
 
 
+@dataclass(frozen=True)
+class _Posed:
+    """The vertices one kind of evaluation poses (BodyObjective.posed): subset (VertexSubset,
+    or None: all), faces (F', 3) int32 the image terms draw, indexing the posed vertices, and
+    colors (S, 3) float64 theirs."""
+    subset: VertexSubset | None
+    faces: np.ndarray
+    colors: np.ndarray
+
+
 class BodyObjective:
     """``(values, stage) -> (loss, grads, terms)`` for fitting.solver.fit.
 
@@ -333,6 +357,11 @@ class BodyObjective:
     model's vjp take them to the blocks. ``observer(values, stage)``, if given, is called at
     every evaluation (e.g. to record intermediate renders). faces (F', 3) int32: the triangles
     the image terms draw (default the model's; fit_body passes BodyFitConfig.coarse_mesh's).
+
+    Only the vertices an evaluation reads are posed (:meth:`posed`): those of the drawn faces
+    when it renders, and those the extra terms read (:meth:`extra_vertices`); a silhouette
+    target renders alpha alone. Both give the same values and gradients as posing and drawing
+    everything; a body that may reach the camera is posed whole to tell (:meth:`too_close`).
     """
 
     def __init__(self, scene: BodyScene, target: BodyTarget, robust_px: float | None = None,
@@ -341,18 +370,22 @@ class BodyObjective:
         self.faces = faces          # the image terms' face list (None: the model's)
         self.sigmas = pose_sigmas(scene.model)
         self.hinges = hinge_frames(scene.model)
+        self.render_changes = {} if target.rgb is not None else {"outputs": ("alpha",)}
+        self._posed: dict[bool, _Posed] = {}
 
     def __call__(self, values: dict, stage: Stage):
         if self.observer is not None:
             self.observer(values, stage)
         w = stage.weights
-        state, body_ctx = self.scene.pose(values)
-        if self.scene.too_close(state):
+        renders = bool(w.get("image") or w.get("silhouette"))
+        posed = self.posed(renders)
+        state, body_ctx = self.scene.pose(values, posed.subset)
+        if self.too_close(values, state, body_ctx):
             return TOO_CLOSE_LOSS, {}, {"too_close": TOO_CLOSE_LOSS}
         terms, out = self.prior_terms(values, w), None
-        if w.get("image") or w.get("silhouette"):
+        if renders:
             out = self.scene.render(state.vertices, stage.sigma, stage.gamma, grads=("vertices",),
-                                    faces=self.faces)
+                                    faces=posed.faces, colors=posed.colors, **self.render_changes)
             terms.update(self.image_terms(out))
         if w.get("joints"):
             terms["joints"] = self.joint_term(state.joints)
@@ -361,7 +394,7 @@ class BodyObjective:
         g_vertices = g.pop("vertices", None)
         if out is not None:
             g_rgb, g_alpha = g.pop("rgb", None), g.pop("alpha", None)
-            g_render = self.scene.renderer.backward(
+            g_render = self.scene.renderer_for(self.render_changes).backward(
                 out, grad_rgb=None if g_rgb is None else g_rgb[None],
                 grad_alpha=None if g_alpha is None else g_alpha[None])["vertices"]
             g_vertices = g_render if g_vertices is None else g_vertices + g_render
@@ -370,13 +403,43 @@ class BodyObjective:
             grads[name] = grads[name] + value
         return total, grads, weighted
 
+    def posed(self, renders: bool) -> _Posed:
+        """The vertices an evaluation that renders (or not) poses: the extra terms' and, when
+        it renders, the drawn faces' (all vertices: no subset). Made at the first use."""
+        if renders not in self._posed:
+            model = self.scene.model
+            faces = model.faces if self.faces is None else np.asarray(self.faces, np.int32)
+            ids = np.union1d(self.extra_vertices(), faces) if renders else np.unique(self.extra_vertices())
+            if len(ids) == model.n_vertices:
+                self._posed[renders] = _Posed(None, faces, self.scene.colors)
+            else:
+                subset = model.subset(ids)
+                self._posed[renders] = _Posed(subset, np.searchsorted(subset.ids, faces).astype(np.int32),
+                                              self.scene.colors[subset.ids])
+        return self._posed[renders]
+
+    def extra_vertices(self) -> np.ndarray:
+        """(N,) int64 model vertices the extra terms (:meth:`extra_terms`) read: none here."""
+        return np.empty(0, np.int64)
+
+    def too_close(self, values: dict, state: BodyPose, body_ctx: BodyContext) -> bool:
+        """BodyScene.too_close of the body posed by ``values``; for a ``state`` of some of its
+        vertices, its joints and the model's reach (BodyScene.clear_of_camera) answer, or when
+        they cannot, the whole body posed again."""
+        if state.vertex_ids is None:
+            return self.scene.too_close(state)
+        if self.scene.clear_of_camera(state.joints, self.scene.model.reach(values["betas"], body_ctx.rot_local)):
+            return False
+        return self.scene.too_close(self.scene.pose(values)[0])
+
     def image_terms(self, out) -> dict:
         """``image`` (colour targets) and ``silhouette`` terms with gradients wrt rgb (H, W, 3)
         and alpha (H, W) of the render ``out``."""
-        rgb, alpha = out.rgb[0], out.alpha[0]
+        alpha = out.alpha[0]
         value, g = losses.silhouette_iou(alpha, self.target.alpha, mask=self.target.care)
         terms = {"silhouette": (value * alpha.size, {"alpha": g["pred"] * alpha.size})}
         if self.target.rgb is not None:
+            rgb = out.rgb[0]
             comp = self.scene.composite(out)
             value, g = losses.image_l2(comp, self.target.rgb)
             g_comp = g["pred"] * comp.size
@@ -394,7 +457,9 @@ class BodyObjective:
 
     def extra_terms(self, state: BodyPose, w: dict) -> dict:
         """More terms of the posed body ``state`` asked for by ``w``, with gradients wrt
-        "joints" (J, 3) or "vertices" (V, 3): none here (recipes built on this one add theirs)."""
+        "joints" (J, 3) or "vertices" (the shape of ``state.vertices``: the rows of
+        ``state.vertex_ids``, which hold :meth:`extra_vertices`): none here (recipes built on
+        this one add theirs)."""
         return {}
 
     def prior_terms(self, values: dict, w: dict) -> dict:

@@ -216,6 +216,22 @@ class BodyPhotoObjective(BodyObjective):
         self.layout, self.keypoints, self.weights, self.keypoint_px = layout, keypoints, weights, robust_px
         self.hips = np.isin(layout.names, ("left_hip", "right_hip"))
         self.depth = None if depth is None or self.hips.sum() != 2 else depth - depth[self.hips].mean()
+        self._layouts: dict[int, tuple[np.ndarray, KeypointLayout]] = {}   # id(vertex_ids) -> layout on them
+
+    def extra_vertices(self) -> np.ndarray:
+        """(N,) int64 the layout's surface landmarks (the vertices the keypoint terms read)."""
+        return self.layout.vertices[self.layout.vertices >= 0]
+
+    def layout_on(self, state) -> KeypointLayout:
+        """The layout with its vertices as rows of ``state.vertices`` (KeypointLayout.on_rows of
+        a subset's ``vertex_ids``, made once per subset)."""
+        if state.vertex_ids is None:
+            return self.layout
+        ids, layout = self._layouts.get(id(state.vertex_ids), (None, None))
+        if ids is not state.vertex_ids:
+            layout = self.layout.on_rows(state.vertex_ids)
+            self._layouts[id(state.vertex_ids)] = (state.vertex_ids, layout)
+        return layout
 
     def extra_terms(self, state, w: dict) -> dict:
         terms = {}
@@ -233,7 +249,8 @@ class BodyPhotoObjective(BodyObjective):
         same offset across the view would move in the image); gradients wrt "joints" and
         "vertices". The detector's depth is rough (on the bench's photos it correlates with the
         truth at a median 0.77, its scale off by up to 2x), hence its small weight."""
-        points = self.layout.points(state.joints, state.vertices)
+        layout = self.layout_on(state)
+        points = layout.points(state.joints, state.vertices)
         axis = self.scene.camera.rotation_matrix()[2]
         px_per_m = float(self.scene.camera.focal[1]) / self.scene.config.distance
         depth = points @ axis
@@ -244,15 +261,16 @@ class BodyPhotoObjective(BodyObjective):
         factor = len(relative) * self.keypoint_px ** 2
         g_relative = g["points"][:, 0] * factor
         g_depth = (g_relative - self.hips * g_relative.sum() / 2) * px_per_m
-        g_joints, g_vertices = self.layout.points_vjp(g_depth[:, None] * axis, len(state.joints), len(state.vertices))
+        g_joints, g_vertices = layout.points_vjp(g_depth[:, None] * axis, len(state.joints), len(state.vertices))
         return value * factor, {"joints": g_joints, "vertices": g_vertices}
 
     def keypoint_term(self, state, weights: np.ndarray) -> tuple[float, dict]:
         """Robust reprojection of the layout's model points of the posed body ``state`` against
         the keypoints, with ``weights`` (K,); gradients wrt "joints" and "vertices"."""
-        points = self.layout.points(state.joints, state.vertices)
+        layout = self.layout_on(state)
+        points = layout.points(state.joints, state.vertices)
         value, grad = reprojection(self.scene.camera, points, self.keypoints, weights, self.keypoint_px)
-        g_joints, g_vertices = self.layout.points_vjp(grad, len(state.joints), len(state.vertices))
+        g_joints, g_vertices = layout.points_vjp(grad, len(state.joints), len(state.vertices))
         return value, {"joints": g_joints, "vertices": g_vertices}
 
 

@@ -214,3 +214,26 @@ def test_scene_draws_every_sigma_with_one_rasteriser_and_other_settings_with_the
     assert set(np.unique(hard[0].alpha)) <= {0.0, 1.0}
     assert len(scene.renderer._rasterizers) == 1 and len(scene._variants) == 1
     assert scene.renderer.settings.color_agg == "softmax"
+
+
+@pytest.mark.parametrize("coarse", [None, 3.0], ids=["all faces", "coarse mesh"])
+def test_posing_only_the_drawn_vertices_gives_the_whole_body_bit_for_bit(model, coarse):
+    """A colour target (rgb drawn) with the coarse mesh's vertices posed alone, a joint stage
+    with none, against posing every vertex."""
+    rng = np.random.default_rng(4)
+    size = 32
+    image, joints = synthetic_target(model, body.rest_values(model), size)
+    scene = body.BodyScene(model, (size, size), body.BodyFitConfig(size=size))
+    target = body.prepare_target(image, size, joints=joints, n_joints=model.n_joints)
+    faces = None if coarse is None else coarse_faces(model.v_template, model.faces, coarse)
+    fast, whole = body.BodyObjective(scene, target, 3.0, faces=faces), body.BodyObjective(scene, target, 3.0, faces=faces)
+    drawn = model.faces if faces is None else faces
+    whole.posed = lambda renders: body._Posed(None, drawn, scene.colors)
+    assert fast.render_changes == {} and fast.posed(False).subset.ids.size == 0
+    assert (fast.posed(True).subset is None) == (coarse is None)
+    values = random_values(model, rng)
+    for stage in (Stage("image", ("betas",), ALL_TERMS, sigma=1e-4, gamma=1e-2),
+                  Stage("joints", ("betas",), dict(joints=0.25, pose_prior=1.0, limits=100.0))):
+        got, want = fast(values, stage), whole(values, stage)
+        assert got[0] == want[0] and got[2] == want[2]
+        assert all(np.array_equal(got[1][k], want[1][k]) for k in want[1])

@@ -51,7 +51,7 @@ def test_weights_drop_unseen_and_outside_keypoints(demo_body_model):
         pytest.approx(0.4 * layout.weights[layout.names.index("left_hand")])
 
 
-def _objective(model, size=(40, 32)):
+def _objective(model, size=(40, 32), faces=None):
     rng = np.random.default_rng(3)
     layout = keypoint_layout(model)
     config = body.BodyFitConfig(size=40, dtype="float64")
@@ -61,7 +61,7 @@ def _objective(model, size=(40, 32)):
     keypoints = rng.uniform(5, 30, (len(layout.names), 2))
     weights = rng.uniform(0.2, 1.0, len(layout.names))
     depth = rng.normal(0.0, 0.3, len(layout.names))
-    return BodyPhotoObjective(scene, target, layout, keypoints, weights, robust_px=4.0, depth=depth)
+    return BodyPhotoObjective(scene, target, layout, keypoints, weights, robust_px=4.0, faces=faces, depth=depth)
 
 
 @pytest.mark.parametrize("term", ["keypoints", "torso", "depth"])
@@ -357,3 +357,61 @@ def test_a_mask_that_misses_the_legs_is_not_trusted_around_them(demo_body_model)
     hidden = fit_body_photo((120, 80), hidden_legs, demo_body_model, config, "fast", progress=False)
     assert any(name.startswith("silhouette") for name in hidden.result.outcomes) and not hidden.mask_misses
     assert hidden.target.care is None
+
+
+def _whole_body(objective):
+    """``objective`` posing every vertex and drawing colours too at every evaluation: the
+    reference its subsets and alpha-only renders must match."""
+    faces = objective.scene.model.faces if objective.faces is None else np.asarray(objective.faces, np.int32)
+    objective.posed = lambda renders: body._Posed(None, faces, objective.scene.colors)
+    objective.render_changes = {}
+    return objective
+
+
+def _assert_same_evaluation(got, want):
+    assert got[0] == want[0] and got[2] == want[2]
+    assert set(got[1]) == set(want[1]) and all(np.array_equal(got[1][k], want[1][k]) for k in want[1])
+
+
+@pytest.mark.parametrize("coarse", [None, 3.0], ids=["all faces", "coarse mesh"])
+def test_posing_only_the_vertices_read_gives_the_whole_body_bit_for_bit(demo_body_model, coarse):
+    """Every stage of a photo fit (keypoint stages pose the landmarks alone, silhouette stages
+    the drawn faces' vertices and render alpha alone), at random shapes and poses, and with the
+    body so near the camera that its joints and reach cannot tell (posed whole to decide) or
+    through it (refused)."""
+    from softras_cl.fitting.models.mesh_lod import coarse_faces
+
+    model = demo_body_model
+    faces = None if coarse is None else coarse_faces(model.v_template, model.faces, coarse)
+    fast, whole = _objective(model, faces=faces), _whole_body(_objective(model, faces=faces))
+    assert fast.render_changes == {"outputs": ("alpha",)}
+    rng = np.random.default_rng(5)
+    scene, stages = fast.scene, photo_stages("default")
+    axis, offset = scene.camera.rotation_matrix()[2], float(scene.camera.translation[2])
+    for place in ("there", "moved", "near", "through"):
+        values = body.rest_values(model)
+        values.update(betas=rng.normal(0, 1, model.n_betas), body_pose=rng.normal(0, 0.3, values["body_pose"].shape),
+                      global_rotation=rng.normal(0, 0.3, 3), translation=np.array([0.05, -0.1, 0.0]))
+        nearest = float((scene.pose(values)[0].vertices @ axis).min()) + offset      # metres to the camera
+        values["translation"][2] += {"there": 0.0, "moved": 0.1, "near": nearest - 0.05, "through": nearest + 0.1}[place]
+        for stage in stages:
+            _assert_same_evaluation(fast(values, stage), whole(values, stage))
+        state, ctx = scene.pose(values, fast.posed(False).subset)
+        clear = scene.clear_of_camera(state.joints, model.reach(values["betas"], ctx.rot_local))
+        assert clear == (place in ("there", "moved"))
+        assert (fast(values, stages[0])[2] == {"too_close": body.TOO_CLOSE_LOSS}) == (place == "through")
+
+
+def test_the_layout_on_a_subset_reads_the_same_points(demo_body_model):
+    layout = keypoint_layout(demo_body_model)
+    landmarks = layout.vertices[layout.vertices >= 0]
+    ids = np.union1d(landmarks, [0, 100, 5000])
+    state, _ = body.BodyScene(demo_body_model, (40, 32)).pose(body.rest_values(demo_body_model))
+    on_rows = layout.on_rows(ids)
+    assert np.array_equal(on_rows.points(state.joints, state.vertices[ids]), layout.points(state.joints, state.vertices))
+    grad = np.random.default_rng(0).normal(size=(len(layout.names), 3))
+    g_joints, g_rows = on_rows.points_vjp(grad, demo_body_model.n_joints, len(ids))
+    want_joints, want_vertices = layout.points_vjp(grad, demo_body_model.n_joints, demo_body_model.n_vertices)
+    assert np.array_equal(g_joints, want_joints) and np.array_equal(g_rows, want_vertices[ids])
+    with pytest.raises(ValueError, match="surface landmarks"):
+        layout.on_rows(np.setdiff1d(ids, landmarks[:1]))
