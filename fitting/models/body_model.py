@@ -24,6 +24,7 @@ transform of joint j (``tg_j`` its posed position), a vertex moves by
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -31,7 +32,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from softras_cl.checks import check_shape, index_array, real_array
-from softras_cl.scene.rotation import RodriguesContext, hat, rodrigues_rows
+from softras_cl.scene.rotation import hat
 
 if TYPE_CHECKING:
     import scipy.sparse
@@ -80,17 +81,20 @@ class BodyContext:
     """What ``BodyModel.forward_vjp`` needs from ``forward`` (arrays float64).
 
     rest_joints (J, 3) of the shaped body; v_posed (S, 3) shaped + pose blendshapes, before
-    skinning (S: the posed vertices, V without a subset); rot_ctx: J RodriguesContexts, one per
-    row of the pose (row 0 the global rotation); rot_local (J, 3, 3) their rotation matrices;
-    rot_global (J, 3, 3) world rotations; blend_rot (S, 3, 3) skinning-weighted world
-    rotations; part: the VertexSubset posed (the model's own of all vertices without one).
+    skinning (S: the posed vertices, V without a subset); pose (J, 3) the axis-angles (row 0
+    the global rotation) and coeffs (4, J) their Rodrigues coefficients (_rodrigues_rows);
+    rot_local (J, 3, 3) their rotation matrices; rot_global (J, 3, 3) world rotations and
+    joints (J, 3) posed joints, before the translation; blend_rot (S, 3, 3) skinning-weighted
+    world rotations; part: the VertexSubset posed (the model's own of all vertices without one).
     """
 
     rest_joints: np.ndarray
     v_posed: np.ndarray
-    rot_ctx: tuple[RodriguesContext, ...]
+    pose: np.ndarray
+    coeffs: np.ndarray
     rot_local: np.ndarray
     rot_global: np.ndarray
+    joints: np.ndarray
     blend_rot: np.ndarray
     part: VertexSubset
 
@@ -105,14 +109,25 @@ def _ints(name: str, value, shape: tuple) -> np.ndarray:
     return check_shape(name, np.asarray(value, dtype=np.int64), shape)
 
 
-def _tree_levels(parents: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Joints 1..J-1 grouped by depth in the tree (the root's children first), each group in
-    descending joint order: a level's joints depend only on shallower ones, and walking the
-    levels deepest first adds each parent's cotangents in the order of a loop from J-1 down."""
-    depth = np.zeros(len(parents), dtype=np.int64)
-    for j in range(1, len(parents)):
-        depth[j] = depth[parents[j]] + 1
-    return tuple(np.flatnonzero(depth == d)[::-1] for d in range(1, int(depth.max()) + 1))
+def _jumps(parents: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """Pointer jumping over the tree: (joints, their 2^k-th ancestors) for k = 0, 1, ... while
+    some joint has one. Composing each joint's transform with its ancestor's, step after step,
+    leaves every joint with the product of the transforms from the root down to it."""
+    ancestor, steps = parents.copy(), []
+    while (ancestor >= 0).any():
+        joints = np.flatnonzero(ancestor >= 0)
+        steps.append((joints, ancestor[joints]))
+        ancestor = ancestor.copy()
+        ancestor[joints] = ancestor[ancestor[joints]]
+    return tuple(steps)
+
+
+def _subtrees(parents: np.ndarray) -> np.ndarray:
+    """(J, J) float64: [j, d] = 1 when joint d is j or below it in the tree."""
+    below = np.eye(len(parents))
+    for d in range(len(parents) - 1, 0, -1):     # children before parents: d's row is complete
+        below[parents[d]] += below[d]
+    return below
 
 
 def _sparse_rows(dense: np.ndarray) -> scipy.sparse.csr_matrix:
@@ -179,7 +194,8 @@ class BodyModel:
         # (B, 3V) copy: einsum over it is a fixed-order loop (no BLAS), 5x faster than
         # shapedirs @ betas
         self._shape_basis = np.ascontiguousarray(self.shapedirs.reshape(-1, self.n_betas).T)
-        self._levels = _tree_levels(self.parents)
+        self._jumps, self._subtree = _jumps(self.parents), _subtrees(self.parents)
+        self._parent_of = np.eye(n_joints)[self.parents[1:]].T     # (J, J-1): [p, j-1] = 1 for p = parents[j]
         self._everything = VertexSubset(
             np.arange(n_verts), np.arange(n_verts), self.v_template, self._shape_basis, None, self.J_regressor,
             self.J_regressor.T.tocsr(), _sparse_rows(self.weights), _sparse_rows(self.weights.T), self.posedirs)
@@ -284,7 +300,7 @@ class BodyModel:
         pose = np.vstack([_floats("global_rotation", global_rotation, (3,)),
                           self._body_pose(body_pose)])
         trans = _floats("translation", translation, (3,))
-        rot_local, rot_ctx = rodrigues_rows(pose)
+        rot_local, coeffs = _rodrigues_rows(pose)
         v_posed = v_shaped if part.rows is None else v_shaped[part.rows]
         if part.posedirs is not None:
             v_posed = v_posed + part.posedirs @ (rot_local[1:] - np.eye(3)).ravel()
@@ -294,8 +310,8 @@ class BodyModel:
         vertices = np.einsum("vab,vb->va", blend_rot, v_posed) + part.skin @ offsets
         return (BodyPose(vertices=vertices + trans, joints=joints + trans,
                          vertex_ids=None if subset is None else subset.ids),
-                BodyContext(rest_joints=rest, v_posed=v_posed, rot_ctx=rot_ctx, rot_local=rot_local,
-                            rot_global=rot_global, blend_rot=blend_rot, part=part))
+                BodyContext(rest_joints=rest, v_posed=v_posed, pose=pose, coeffs=coeffs, rot_local=rot_local,
+                            rot_global=rot_global, joints=joints, blend_rot=blend_rot, part=part))
 
     def _body_pose(self, body_pose) -> np.ndarray:
         """body_pose as (J-1, 3) float64 (a flat (3 (J-1),) vector is accepted)."""
@@ -305,15 +321,18 @@ class BodyModel:
         return _floats("body_pose", a, (self.n_joints - 1, 3))
 
     def _chain(self, rot_local: np.ndarray, rest: np.ndarray):
-        """World rotations (J, 3, 3) and posed joint positions (J, 3) down the tree."""
-        rot_global = np.empty_like(rot_local)
-        joints = np.empty_like(rest)
-        rot_global[0], joints[0] = rot_local[0], rest[0]
-        for js in self._levels:     # stacked 3x3 products: the same bits as one at a time
-            ps = self.parents[js]
-            rot_global[js] = rot_global[ps] @ rot_local[js]
-            joints[js] = (rot_global[ps] @ (rest[js] - rest[ps])[:, :, None])[:, :, 0] + joints[ps]
-        return rot_global, joints
+        """World rotations (J, 3, 3) and posed joint positions (J, 3) down the tree: joint j's
+        world transform is its parent's composed with (R_j, rest_j - rest_parent) (the root's:
+        (R_0, rest_0)), as 4x4 matrices multiplied by pointer jumping (_jumps: log2 of the
+        tree's depth steps of stacked products)."""
+        m = np.zeros((len(rest), 4, 4))
+        m[:, :3, :3] = rot_local
+        m[:, :3, 3] = rest
+        m[1:, :3, 3] -= rest[self.parents[1:]]
+        m[:, 3, 3] = 1.0
+        for joints, ancestors in self._jumps:
+            m[joints] = m[ancestors] @ m[joints]
+        return np.ascontiguousarray(m[:, :3, :3]), np.ascontiguousarray(m[:, :3, 3])
 
     def forward_vjp(self, ctx: BodyContext, grad_vertices=None, grad_joints=None) -> dict:
         """Vector-Jacobian product of ``forward``.
@@ -344,35 +363,31 @@ class BodyModel:
             g_shaped = g_vposed + g_shaped
         else:
             g_shaped[part.rows] += g_vposed
-            whole = np.zeros((self.n_vertices, 3))
-            whole[part.shaped] = g_shaped
-            g_shaped = whole
-        g_pose = _rodrigues_vjp_rows(ctx.rot_ctx, g_local)
-        # over all V vertices, zeros too: einsum's partial sums then match a whole-body vjp's, bit for bit
-        return {"betas": np.einsum("bi,i->b", self._shape_basis, g_shaped.ravel()),
+        g_pose = _rodrigues_vjp_rows(ctx.pose, ctx.coeffs, g_local)
+        return {"betas": np.einsum("bi,i->b", part.basis, g_shaped.ravel()),
                 "body_pose": g_pose[1:], "global_rotation": g_pose[0],
                 "translation": gv.sum(axis=0) + gj.sum(axis=0)}
 
     def _chain_vjp(self, ctx: BodyContext, g_rot: np.ndarray, g_pos: np.ndarray,
                    g_rest: np.ndarray):
         """Back through ``_chain``: cotangents of world rotations (J, 3, 3) and posed joints
-        (J, 3) -> (cotangent of the local rotations (J, 3, 3), of the rest joints (J, 3))."""
-        g_rot, g_pos, g_rest = g_rot.copy(), g_pos.copy(), g_rest.copy()
-        g_local = np.empty_like(g_rot)
-        rest, rg, rl = ctx.rest_joints, ctx.rot_global, ctx.rot_local
-        for js in reversed(self._levels):   # ufunc.at adds in index order, as a loop would
-            ps = self.parents[js]
-            rg_t = rg[ps].transpose(0, 2, 1)
-            g_local[js] = rg_t @ g_rot[js]
-            np.add.at(g_rot, ps, g_rot[js] @ rl[js].transpose(0, 2, 1)
-                      + g_pos[js][:, :, None] * (rest[js] - rest[ps])[:, None, :])
-            np.add.at(g_pos, ps, g_pos[js])
-            step = (rg_t @ g_pos[js][:, :, None])[:, :, 0]
-            g_rest[js] += step
-            np.subtract.at(g_rest, ps, step)
-        g_local[0] = g_rot[0]
-        g_rest[0] += g_pos[0]
-        return g_local, g_rest
+        (J, 3) -> (cotangent of the local rotations (J, 3, 3), of the rest joints (J, 3),
+        ``g_rest`` (J, 3) added).
+
+        With world transforms M_j = M_parent A_j, the cotangent of A_j is M_parent^T S_j
+        M_j^-T, S_j summing G_d M_d^T over j's subtree (G_d: [g_rot_d, g_pos_d] of M_d): one
+        product with the subtree matrix. In 3x3 blocks, with positions p relative to the root
+        (any origin cancels; the root's keeps the sums small): g_local_j = Rg_parent^T
+        (S_j - s_j p_j^T) Rg_j and the bone's g_parent^T s_j, where S_j sums
+        g_rot_d Rg_d^T + g_pos_d p_d^T and s_j sums g_pos_d."""
+        rg, p = ctx.rot_global, ctx.joints - ctx.joints[0]
+        own = g_rot @ rg.transpose(0, 2, 1) + g_pos[:, :, None] * p[:, None, :]
+        sums = np.einsum("jd,dk->jk", self._subtree, np.concatenate([own.reshape(-1, 9), g_pos], axis=1))
+        big, small = sums[:, :9].reshape(-1, 3, 3), sums[:, 9:]
+        up = np.concatenate([np.eye(3)[None], rg[self.parents[1:]]]).transpose(0, 2, 1)   # Rg_parent^T, I at the root
+        g_local = up @ (big - small[:, :, None] * p[:, None, :]) @ rg
+        g_bone = (up @ small[:, :, None])[:, :, 0]
+        return g_local, g_rest + g_bone - self._parent_of @ g_bone[1:]
 
     def save(self, path) -> None:
         """Write the project's .npz (``format`` = 'softras-cl-body-1', one key per field;
@@ -390,6 +405,45 @@ class BodyModel:
 
 
 _HAT_BASIS = np.stack([hat(np.eye(3)[i]) for i in range(3)])     # hat(e_i), (3, 3, 3)
+_SMALL_ANGLE = 0.1      # below this |omega| the Rodrigues coefficients use their Taylor series
+# Taylor coefficients (in t^2, highest power first) of A, B, C and D (_rodrigues_rows), as
+# softras_cl.scene.rotation's
+_TAYLOR = np.array([[(-1) ** k / math.factorial(2 * k + 1) for k in range(6)],
+                    [(-1) ** k / math.factorial(2 * k + 2) for k in range(6)],
+                    [(-1) ** (k + 1) * 2 * (k + 1) / math.factorial(2 * k + 3) for k in range(6)],
+                    [(-1) ** (k + 1) * 2 * (k + 1) / math.factorial(2 * k + 4) for k in range(6)]])[:, ::-1]
+
+
+def _hats(w: np.ndarray) -> np.ndarray:
+    """(N, 3) -> (N, 3, 3) cross-product matrices hat(w_n) (exact: sums of w's entries and zeros)."""
+    return (w @ _HAT_BASIS.reshape(3, 9)).reshape(-1, 3, 3)
+
+
+def _skew(m: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) -> (N, 3): <m_n, hat(e_i)> = (m21 - m12, m02 - m20, m10 - m01)."""
+    flat = m.reshape(-1, 9)
+    return flat[:, [7, 2, 3]] - flat[:, [5, 6, 1]]
+
+
+def _rodrigues_rows(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-angles pose (N, 3) float64 -> (R (N, 3, 3) = I + A K + B K^2 with K = hat(omega),
+    coefficients (4, N): A = sin t / t, B = (1 - cos t) / t^2, C = A'(t) / t, D = B'(t) / t of
+    t = |omega|, Taylor series below _SMALL_ANGLE). softras_cl.scene.rotation's maps, batched
+    in numpy (equal to them within a few 1e-16, tested)."""
+    t2 = np.einsum("na,na->n", pose, pose)
+    small = t2 < _SMALL_ANGLE ** 2
+    series = _TAYLOR[:, 0:1] * np.ones_like(t2)
+    for row in _TAYLOR.T[1:]:
+        series = series * t2 + row[:, None]
+    t = np.where(small, 1.0, np.sqrt(t2))           # the closed forms, where they are used
+    t2 = np.where(small, 1.0, t2)
+    sin, cos = np.sin(t), np.cos(t)
+    one_minus_cos = 2.0 * np.sin(0.5 * t) ** 2
+    closed = np.stack([sin / t, one_minus_cos / t2, (t * cos - sin) / (t2 * t), (t * sin - 2.0 * one_minus_cos) / (t2 * t2)])
+    coeffs = np.where(small, series, closed)
+    a, b = coeffs[0][:, None, None], coeffs[1][:, None, None]
+    k = _hats(pose)
+    return np.eye(3) + a * k + b * (k @ k), coeffs
 
 
 def _transposed_rows_times(m: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -403,17 +457,16 @@ def _transposed_rows_times(m: np.ndarray, x: np.ndarray) -> np.ndarray:
     return out
 
 
-def _rodrigues_vjp_rows(ctxs, grads: np.ndarray) -> np.ndarray:
-    """``rodrigues_vjp`` of J rotations at once: RodriguesContexts (J,) and dL/dR (J, 3, 3) ->
-    dL/domega (J, 3). The same products and sums as J calls of rodrigues_vjp (bit-identical,
-    tested), ten times faster for the 24 joints of a body."""
-    w = np.stack([c.omega for c in ctxs])
-    k = np.stack([c.k for c in ctxs])
-    n = len(w)
-    a, b, c, d = np.array([ctx.coeffs for ctx in ctxs]).T
-    dot = lambda m: (grads * m).reshape(n, 9).sum(axis=1)      # np.sum(g * m) per joint
-    radial = c * dot(k) + d * dot(k @ k)
-    out = np.empty((n, 3))
-    for i, e in enumerate(_HAT_BASIS):
-        out[:, i] = w[:, i] * radial + a * dot(e) + b * dot(e @ k + k @ e)
-    return out
+def _rodrigues_vjp_rows(pose: np.ndarray, coeffs: np.ndarray, grads: np.ndarray) -> np.ndarray:
+    """Back through ``_rodrigues_rows``: axis-angles pose (N, 3), their coefficients (4, N) and
+    dL/dR (N, 3, 3) -> dL/domega (N, 3) float64 (softras_cl.scene.rotation.rodrigues_vjp's
+    dR/dw_i = w_i (C K + D K^2) + A E_i + B (E_i K + K E_i), E_i = hat(e_i), in closed form:
+    <G, E_i> = skew_i(G), <G, E_i K + K E_i> = -skew_i(G K + K G), <G, K> = w . skew(G),
+    <G, K^2> = w^T G w - |w|^2 tr G)."""
+    a, b, c, d = coeffs
+    k = _hats(pose)
+    skew = _skew(grads)
+    along_k = np.einsum("na,na->n", pose, skew)
+    along_k2 = np.einsum("na,nab,nb->n", pose, grads, pose) - np.einsum("na,na->n", pose, pose) * np.trace(grads, axis1=1, axis2=2)
+    radial = c * along_k + d * along_k2
+    return (pose * radial[:, None] + a[:, None] * skew - b[:, None] * _skew(grads @ k + k @ grads))

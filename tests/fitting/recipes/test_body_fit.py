@@ -217,9 +217,10 @@ def test_scene_draws_every_sigma_with_one_rasteriser_and_other_settings_with_the
 
 
 @pytest.mark.parametrize("coarse", [None, 3.0], ids=["all faces", "coarse mesh"])
-def test_posing_only_the_drawn_vertices_gives_the_whole_body_bit_for_bit(model, coarse):
+def test_posing_only_the_drawn_vertices_gives_the_whole_body(model, coarse):
     """A colour target (rgb drawn) with the coarse mesh's vertices posed alone, a joint stage
-    with none, against posing every vertex."""
+    with none, against posing every vertex: the same loss and terms bit for bit, the same
+    gradients (the betas' within 1e-14 of their largest)."""
     rng = np.random.default_rng(4)
     size = 32
     image, joints = synthetic_target(model, body.rest_values(model), size)
@@ -235,5 +236,6 @@ def test_posing_only_the_drawn_vertices_gives_the_whole_body_bit_for_bit(model, 
     for stage in (Stage("image", ("betas",), ALL_TERMS, sigma=1e-4, gamma=1e-2),
                   Stage("joints", ("betas",), dict(joints=0.25, pose_prior=1.0, limits=100.0))):
         got, want = fast(values, stage), whole(values, stage)
-        assert got[0] == want[0] and got[2] == want[2]
-        assert all(np.array_equal(got[1][k], want[1][k]) for k in want[1])
+        assert got[0] == want[0] and got[2] == want[2] and set(got[1]) == set(want[1])
+        for name, value in want[1].items():      # the betas' sums are shorter (BodyModel.subset)
+            np.testing.assert_allclose(got[1][name], value, rtol=0, atol=1e-14 * np.abs(value).max() if name == "betas" else 0)
