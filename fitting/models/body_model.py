@@ -283,23 +283,26 @@ class BodyModel:
         return rest, shape, pose
 
     def forward(self, betas, body_pose, global_rotation, translation,
-                subset: VertexSubset | None = None) -> tuple[BodyPose, BodyContext]:
+                subset: VertexSubset | None = None, check: bool = True) -> tuple[BodyPose, BodyContext]:
         """Pose the body.
 
         betas (B,); body_pose (J-1, 3) (or flat (3 (J-1),)) axis-angle per non-root joint
         relative to its parent; global_rotation (3,) axis-angle of the root about its rest
         position; translation (3,); subset: a VertexSubset of this model (``subset``) to pose
-        only its S vertices (None: all V). Returns (BodyPose (vertices (V or S, 3), joints
-        (J, 3), vertex_ids), BodyContext for forward_vjp). A subset's vertices and the joints
-        are those of the whole body, bit for bit.
+        only its S vertices (None: all V); check: False when the caller vouches that the
+        inputs are finite float64 arrays of these shapes (a fit's own values, every
+        evaluation), which are then not checked again. Returns (BodyPose (vertices (V or S, 3),
+        joints (J, 3), vertex_ids), BodyContext for forward_vjp). A subset's vertices and the
+        joints are those of the whole body, bit for bit.
         """
         part = self._everything if subset is None else subset
-        betas = _floats("betas", betas, (self.n_betas,))
+        if check:
+            betas, trans = _floats("betas", betas, (self.n_betas,)), _floats("translation", translation, (3,))
+            pose = np.vstack([_floats("global_rotation", global_rotation, (3,)), self._body_pose(body_pose)])
+        else:
+            trans, pose = translation, np.vstack([global_rotation, body_pose])
         v_shaped = part.template + np.einsum("bi,b->i", part.basis, betas).reshape(-1, 3)
         rest = part.regressor @ v_shaped
-        pose = np.vstack([_floats("global_rotation", global_rotation, (3,)),
-                          self._body_pose(body_pose)])
-        trans = _floats("translation", translation, (3,))
         rot_local, coeffs = _rodrigues_rows(pose)
         v_posed = v_shaped if part.rows is None else v_shaped[part.rows]
         if part.posedirs is not None:
@@ -334,18 +337,18 @@ class BodyModel:
             m[joints] = m[ancestors] @ m[joints]
         return np.ascontiguousarray(m[:, :3, :3]), np.ascontiguousarray(m[:, :3, 3])
 
-    def forward_vjp(self, ctx: BodyContext, grad_vertices=None, grad_joints=None) -> dict:
+    def forward_vjp(self, ctx: BodyContext, grad_vertices=None, grad_joints=None, check: bool = True) -> dict:
         """Vector-Jacobian product of ``forward``.
 
         grad_vertices (V, 3) = dL/dvertices ((S, 3) after a forward with a subset: those of
         its vertices; the others' are zero), grad_joints (J, 3) = dL/djoints (either may be
-        None: zero). Returns dict betas (B,), body_pose (J-1, 3), global_rotation (3,),
-        translation (3,), all float64.
+        None: zero); check: as forward's, for these two. Returns dict betas (B,), body_pose
+        (J-1, 3), global_rotation (3,), translation (3,), all float64.
         """
         part = ctx.part
-        gv = np.zeros(ctx.v_posed.shape) if grad_vertices is None else _floats(
+        gv = np.zeros(ctx.v_posed.shape) if grad_vertices is None else grad_vertices if not check else _floats(
             "grad_vertices", grad_vertices, ctx.v_posed.shape)
-        gj = np.zeros((self.n_joints, 3)) if grad_joints is None else _floats(
+        gj = np.zeros((self.n_joints, 3)) if grad_joints is None else grad_joints if not check else _floats(
             "grad_joints", grad_joints, (self.n_joints, 3))
         # Skinning: v = blend_rot v_posed + W (tg - Rg J).
         g_vposed = _transposed_rows_times(ctx.blend_rot, gv)

@@ -447,3 +447,18 @@ def test_reach_is_infinite_for_weights_that_are_not_convex():
     bent = BodyModel(model.v_template, model.shapedirs, model.J_regressor, PARENTS, weights, model.faces)
     _, ctx = bent.forward(**random_params())
     assert np.all(np.isinf(bent.reach(np.zeros(B), ctx.rot_local)))
+
+
+def test_unchecked_forward_and_vjp_equal_the_checked_ones_bit_for_bit():
+    """check=False (a fit's own float64 values) skips the argument checks, nothing else."""
+    model = random_model()
+    params = random_params(seed=9)
+    subset = model.subset([0, 5, 9])
+    rng = np.random.default_rng(16)
+    for part in (None, subset):
+        checked, ctx = model.forward(**params, subset=part)
+        unchecked, unchecked_ctx = model.forward(**params, subset=part, check=False)
+        assert np.array_equal(checked.vertices, unchecked.vertices) and np.array_equal(checked.joints, unchecked.joints)
+        gv, gj = rng.normal(size=checked.vertices.shape), rng.normal(size=(J, 3))
+        want, got = model.forward_vjp(ctx, gv, gj), model.forward_vjp(unchecked_ctx, gv, gj, check=False)
+        assert set(got) == set(want) and all(np.array_equal(got[k], want[k]) for k in want)

@@ -239,3 +239,22 @@ def test_posing_only_the_drawn_vertices_gives_the_whole_body(model, coarse):
         assert got[0] == want[0] and got[2] == want[2] and set(got[1]) == set(want[1])
         for name, value in want[1].items():      # the betas' sums are shorter (BodyModel.subset)
             np.testing.assert_allclose(got[1][name], value, rtol=0, atol=1e-14 * np.abs(value).max() if name == "betas" else 0)
+
+
+@pytest.mark.parametrize("robust", [None, 3.0])
+def test_unchecked_landmark_loss_and_priors_equal_the_losses_module_bit_for_bit(model, robust):
+    from softras_cl.fitting import losses
+
+    rng = np.random.default_rng(8)
+    points, target = rng.normal(0, 20, (19, 2)), rng.normal(0, 20, (19, 2))
+    weights = rng.uniform(0, 1, 19)
+    weights[3] = 0.0
+    value, grad = body.landmark_loss(points - target, weights, robust)
+    want_value, want = losses.landmarks_2d(points, target, weights, robust)
+    assert value == want_value and np.array_equal(grad, want["points"])
+    assert body.landmark_loss(np.zeros((0, 2)), np.zeros(0), robust)[0] == 0.0
+    pose, sigmas = rng.normal(0, 0.3, (model.n_joints - 1, 3)), body.pose_sigmas(model)
+    for block, sigma in ((pose, sigmas), (rng.normal(size=model.n_betas), 1.0), (rng.normal(size=3), body.TRANSLATION_SIGMA)):
+        value, grad = body.gaussian_prior(block, sigma)
+        want_value, want = losses.gaussian_prior(block, sigma)
+        assert value == want_value and np.array_equal(grad, want["coeffs"])
