@@ -56,16 +56,14 @@ class VertexSubset:
     """What ``BodyModel.forward`` needs to pose S of the V vertices (``BodyModel.subset``;
     compared and hashed by identity).
 
-    ids (S,) int64 sorted model vertices posed; shaped (U,) int64 the vertices whose rest shape
-    is needed (ids and those the joint regressor reads, sorted); template (U, 3) and basis
-    (B, 3U) float64 their rest shape; rows (S,) int64: the row of each id among the shaped
-    vertices (None when they are the ids themselves);
+    ids (S,) int64 sorted model vertices posed; template (U, 3) and basis (B, 3U) float64: the
+    rest shape of the U "shaped" vertices (ids and those the joint regressor reads, sorted);
+    rows (S,) int64: the row of each id among them (None when they are the ids themselves);
     regressor (J, U) and regressor_t (U, J), skin (S, J) and skin_t (J, S): CSR float64
     (J_regressor's and the weights' entries); posedirs (S, 3, P) float64 or None.
     """
 
     ids: np.ndarray
-    shaped: np.ndarray
     template: np.ndarray
     basis: np.ndarray
     rows: np.ndarray | None
@@ -197,7 +195,7 @@ class BodyModel:
         self._jumps, self._subtree = _jumps(self.parents), _subtrees(self.parents)
         self._parent_of = np.eye(n_joints)[self.parents[1:]].T     # (J, J-1): [p, j-1] = 1 for p = parents[j]
         self._everything = VertexSubset(
-            np.arange(n_verts), np.arange(n_verts), self.v_template, self._shape_basis, None, self.J_regressor,
+            np.arange(n_verts), self.v_template, self._shape_basis, None, self.J_regressor,
             self.J_regressor.T.tocsr(), _sparse_rows(self.weights), _sparse_rows(self.weights.T), self.posedirs)
         self._radii = None          # reach's per-joint constants, made at its first call
 
@@ -244,7 +242,7 @@ class BodyModel:
         shaped = np.union1d(ids, self.J_regressor.indices)
         weights = self.weights[ids]
         return VertexSubset(
-            ids, shaped, self.v_template[shaped], np.ascontiguousarray(
+            ids, self.v_template[shaped], np.ascontiguousarray(
                 self._shape_basis.reshape(self.n_betas, -1, 3)[:, shaped].reshape(self.n_betas, -1)),
             np.searchsorted(shaped, ids), self.J_regressor[:, shaped].tocsr(),
             self.J_regressor[:, shaped].T.tocsr(), _sparse_rows(weights), _sparse_rows(weights.T),
