@@ -292,7 +292,6 @@ def run_face_objective() -> None:
     photometric term's kernel (robust and plain) on random images. Its renders take the
     rasteriser's device-resident path, whose pyopencl scan kernels Oclgrind reports
     (docs/oclgrind.md), so the render is left to the render variants above."""
-    from softras_cl.fitting.device.face_objective import DeviceFaceObjective
     from softras_cl.fitting.device.kernels import FIT_KERNELS
     from softras_cl.fitting.device.photo import DevicePhotoLoss
     from softras_cl.fitting.recipes import face
@@ -305,7 +304,7 @@ def run_face_objective() -> None:
     values = dict(id=rng.normal(size=4), exp=rng.normal(size=3), albedo=rng.normal(size=2),
                   sh=np.zeros((3, 9)), rotation=np.radians([5.0, 60.0, 0.0]), translation=np.array([0.0, 0.0, -0.6]),
                   focal=np.array([30.0]))
-    objective = DeviceFaceObjective(face.FaceScene(model, (H, W)), np.zeros((H, W, 3)), rng.uniform(0, 10, (68, 2)),
+    objective = face.DeviceFaceObjective(face.FaceScene(model, (H, W)), np.zeros((H, W, 3)), rng.uniform(0, 10, (68, 2)),
                                     focal0=30.0, contour=jaw_candidates(model))
     loss, grads, _ = objective(values, Stage("landmarks", ("id",), dict(landmarks=1.0, id_prior=1.0)))
     _finite("face objective", [np.array(loss), *grads.values()])

@@ -82,7 +82,8 @@ PHASES = {
         CONTOUR + ":ContourLandmarks.choose", CONTOUR + ":front_facing",
         CONTOUR + ":contour_edges", CONTOUR + ":ContourLandmarks.points_3d",
         CONTOUR + ":ContourLandmarks.points_3d_vjp"],
-    "landmark loss": ["softras_cl.fitting.losses:landmarks_2d"],
+    "landmark loss": ["softras_cl.fitting.losses:landmarks_2d",
+                      "softras_cl.fitting.device.landmarks:DeviceLandmarks.__call__"],
     "photo loss (Geman-McClure)": ["softras_cl.fitting.losses:GemanMcClure.__call__", "softras_cl.fitting.losses:image_l2",
                                    "softras_cl.fitting.losses:image_geman_mcclure",
                                    "softras_cl.fitting.device.photo:DevicePhotoLoss.__call__"],
@@ -129,9 +130,8 @@ PHASES = {
                                 "softras_cl.fitting.recipes.face:FaceObjective.photo_term",
                                 "softras_cl.fitting.recipes.face:FaceObjective.landmark_term",
                                 "softras_cl.fitting.recipes.face:FaceObjective.landmark_points",
-                                DEVICE_OBJECTIVE + ":DeviceFaceObjective.__call__",
-                                DEVICE_OBJECTIVE + ":DeviceFaceObjective.photo_term",
-                                DEVICE_OBJECTIVE + ":DeviceFaceObjective._world_cotangent"],
+                                DEVICE_OBJECTIVE + ":DeviceFaceEvaluation.__call__",
+                                DEVICE_OBJECTIVE + ":DeviceFaceEvaluation.photo_term"],
 }
 CHECK_MODULES = ("softras_cl.checks", "softras_cl.raster.inputs")
 WAITS, ENQUEUES = "OpenCL waits (kernels, copies)", "transfer enqueues"
@@ -397,15 +397,13 @@ def run(args) -> dict:
         finally:
             clock.stage = "(after the stages)"
     solver._Fit.run_stage = run_stage
-    from softras_cl.fitting.device.face_objective import DeviceFaceObjective
-
     def counted(call_fn):
         def objective_call(self, values, stage):
             if clock.active:
                 stage_evals[stage.name] += 1
             return call_fn(self, values, stage)
         return objective_call
-    for objective_class in (face.FaceObjective, DeviceFaceObjective):   # (timers: around the phase's own wrapper)
+    for objective_class in (face.FaceObjective, face.DeviceFaceObjective):   # (timers: around the phase's own wrapper)
         objective_class.__call__ = counted(inspect.getattr_static(objective_class, "__call__"))
     # the span wraps everything else: patched last, outermost
     _patch(solver, "fit", fit_span)

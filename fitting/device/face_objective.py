@@ -1,7 +1,8 @@
 """The face fit's objective with its heavy work on the OpenCL device.
 
-DeviceFaceObjective is fitting.recipes.face.FaceObjective (the numpy reference, which it
-subclasses: the same stages, terms, weights and stage set-up) with these on the device, in
+DeviceFaceEvaluation is mixed into fitting.recipes.face.FaceObjective (the numpy reference) as
+fitting.recipes.face.DeviceFaceObjective: the same stages, terms, weights and stage set-up, with
+these on the device, in
 buffers that live across evaluations: the model's shape and albedo bases (fitting.device.model),
 the pose, the landmark term with the sliding jaw contour (fitting.device.landmarks), the render
 and its backward (Renderer's device-resident path: projection, normals, SH shading, rasteriser),
@@ -24,15 +25,15 @@ from softras_cl.fitting import losses
 from softras_cl.fitting.device.landmarks import DeviceLandmarks
 from softras_cl.fitting.device.model import DeviceFaceModel
 from softras_cl.fitting.device.photo import DevicePhotoLoss
-from softras_cl.fitting.recipes.face import FaceObjective
 from softras_cl.fitting.solver import Stage
 
 
-class DeviceFaceObjective(FaceObjective):
+class DeviceFaceEvaluation:
     """FaceObjective's ``(values, stage) -> (loss, grads, terms)`` evaluated on the device of
-    the scene's renderer (it needs cl_khr_fp64). Arguments as FaceObjective's; device_model: the
-    DeviceFaceModel to share (a half-resolution copy shares its parent's), None to upload the
-    scene's model."""
+    the scene's renderer (it needs cl_khr_fp64): a mixin, first base of a FaceObjective
+    subclass (fitting.recipes.face.DeviceFaceObjective), whose methods it overrides and calls.
+    Arguments as FaceObjective's; device_model: the DeviceFaceModel to share (a half-resolution
+    copy shares its parent's), None to upload the scene's model."""
 
     def __init__(self, *args, device_model: DeviceFaceModel | None = None, **kwargs):
         super().__init__(*args, **kwargs)

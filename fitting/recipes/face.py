@@ -70,6 +70,7 @@ from softras_cl.scene.renderer import SHARP, Renderer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.shading import SH_A, SHLight, sh_ambient, sh_basis, vertex_normals
 from softras_cl.fitting import losses
+from softras_cl.fitting.device.face_objective import DeviceFaceEvaluation
 from softras_cl.fitting.keypoints import face_mesh, ibug68
 from softras_cl.fitting.keypoints.plausibility import check_distinct_landmarks, check_landmark_layout
 from softras_cl.fitting.metrics import psnr
@@ -675,6 +676,12 @@ class FaceObjective:
                                    focal=np.array([g_img["focal"].sum()]))
 
 
+class DeviceFaceObjective(DeviceFaceEvaluation, FaceObjective):
+    """FaceObjective evaluated on the OpenCL device of its scene's renderer, in buffers that
+    live across evaluations (fitting.device.face_objective); the numpy FaceObjective stays the
+    reference it is tested against. Extra argument: device_model (see DeviceFaceEvaluation)."""
+
+
 # ---------------------------------------------------------------------------------------------
 # the fit
 # ---------------------------------------------------------------------------------------------
@@ -785,8 +792,8 @@ def prepare_fit(photo, landmarks, model, config: FaceFitConfig,
 
 def objective_class(where: str, scene: FaceScene) -> type:
     """The objective class of FaceFitConfig.objective ``where`` for a scene: FaceObjective (the
-    numpy reference, "host") or fitting.device's DeviceFaceObjective ("device"; "auto" picks it
-    on a GPU with float64). InputError for "device" on a device without float64."""
+    numpy reference, "host") or DeviceFaceObjective ("device"; "auto" picks it on a GPU with
+    float64). InputError for "device" on a device without float64."""
     from softras_cl.cl.device import has_fp64, kernel_layout
 
     device = scene.renderer.device
@@ -797,8 +804,6 @@ def objective_class(where: str, scene: FaceScene) -> type:
     if not has_fp64(device):
         raise InputError(f"objective 'device' needs float64 (cl_khr_fp64), which {device.name.strip()!r} lacks: "
                          "use objective 'host'")
-    from softras_cl.fitting.device.face_objective import DeviceFaceObjective
-
     return DeviceFaceObjective
 
 

@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 from softras_cl.fitting import losses
-from softras_cl.fitting.device.face_objective import DeviceFaceObjective
 from softras_cl.fitting.device.model import DeviceFaceModel
 from softras_cl.fitting.device.photo import DevicePhotoLoss
 from softras_cl.fitting.recipes import face
@@ -59,7 +58,7 @@ def objectives(model, size: int, values, **options):
     photo = scene.render(values, 1e-4, 1e-3).rgb[0] + rng.normal(0, 0.05, (size, size, 3))
     host = face.FaceObjective(scene, photo, target, focal0=140.0, **options)
     device_scene = face.FaceScene(model, (size, size), depth_range=face.depth_range(values["translation"]))
-    return host, DeviceFaceObjective(device_scene, photo, target, focal0=140.0, **options)
+    return host, face.DeviceFaceObjective(device_scene, photo, target, focal0=140.0, **options)
 
 
 def assert_same(host_result, device_result):
@@ -125,7 +124,7 @@ def test_device_objective_gradient_matches_central_differences():
                   albedo=rng.normal(size=model.n_albedo) * 0.5, sh=sh_ambient(0.8) + rng.normal(0, 0.1, (3, 9)),
                   rotation=np.radians([10.0, -20.0, 5.0]), translation=np.array([0.01, -0.005, -0.6]),
                   focal=np.array([90.0]))
-    objective = DeviceFaceObjective(face.FaceScene(model, (40, 40)), rng.random((40, 40, 3)) * 0.5,
+    objective = face.DeviceFaceObjective(face.FaceScene(model, (40, 40)), rng.random((40, 40, 3)) * 0.5,
                                     spread_landmarks(40) + rng.normal(0, 1, (68, 2)), focal0=80.0, robust_scale=1.0,
                                     contour=jaw_candidates(model))
     stage = Stage("photo-1", ("id",), dict(PHOTO, focal_prior=0.5), sigma=1e-3, gamma=1e-2)
