@@ -118,12 +118,11 @@ class KeypointLayout:
         renumbered as its row in ``vertex_ids`` (S,) sorted int64 (BodyPose.vertex_ids);
         ValueError when one is not among them."""
         surface = self.vertices >= 0
-        rows = np.searchsorted(vertex_ids, self.vertices[surface])
-        if not np.array_equal(np.asarray(vertex_ids)[np.minimum(rows, len(vertex_ids) - 1)], self.vertices[surface]):
+        if not np.isin(self.vertices[surface], vertex_ids).all():
             raise ValueError("vertex_ids must hold the layout's surface landmarks "
                              f"{self.vertices[surface].tolist()}")
         vertices = self.vertices.copy()
-        vertices[surface] = rows
+        vertices[surface] = np.searchsorted(vertex_ids, self.vertices[surface])
         return replace(self, vertices=vertices)
 
     def points_vjp(self, grad: np.ndarray, n_joints: int, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:

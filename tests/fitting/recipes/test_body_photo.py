@@ -418,3 +418,5 @@ def test_the_layout_on_a_subset_reads_the_same_points(demo_body_model):
     assert np.array_equal(g_joints, want_joints) and np.array_equal(g_rows, want_vertices[ids])
     with pytest.raises(ValueError, match="surface landmarks"):
         layout.on_rows(np.setdiff1d(ids, landmarks[:1]))
+    with pytest.raises(ValueError, match="surface landmarks"):
+        layout.on_rows(np.zeros(0, np.int64))
