@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from softras_cl.checks import check_shape, index_array, real_array
+from softras_cl.fitting.models.mesh_lod import coarse_faces
 from softras_cl.scene.rotation import hat
 
 if TYPE_CHECKING:
@@ -198,6 +199,8 @@ class BodyModel:
             np.arange(n_verts), self.v_template, self._shape_basis, None, self.J_regressor,
             self.J_regressor.T.tocsr(), _sparse_rows(self.weights), _sparse_rows(self.weights.T), self.posedirs)
         self._radii = None          # reach's per-joint constants, made at its first call
+        self._subsets: dict[bytes, VertexSubset] = {}     # subset's, by their ids
+        self._coarse: dict[float, np.ndarray] = {}         # coarse_faces', by cube size
 
     def _parts(self, labels, names):
         """Validated (part_labels (V,) int64, part_names list) or (None, None)."""
@@ -237,8 +240,24 @@ class BodyModel:
     def subset(self, ids) -> VertexSubset:
         """A VertexSubset for ``forward(..., subset=)``: the vertices ``ids`` (S,) int (any order,
         repeats dropped; its ``ids`` sorted). Made once per set of vertices (it copies their rows
-        of the shape basis and the weights), used for every pose."""
+        of the shape basis and the weights) and kept: every fit asks for the same ones."""
         ids = np.unique(index_array("ids", ids, self.n_vertices))
+        key = ids.tobytes()
+        if key not in self._subsets:
+            self._subsets[key] = self._subset(ids)
+        return self._subsets[key]
+
+    def coarse_faces(self, cube: float) -> np.ndarray:
+        """(F', 3) int32 read-only: mesh_lod.coarse_faces of the template with cubes of ``cube``
+        median edge lengths (BodyFitConfig.coarse_mesh), made once per size and kept."""
+        if cube not in self._coarse:
+            faces = coarse_faces(self.v_template, self.faces, cube)
+            faces.setflags(write=False)
+            self._coarse[cube] = faces
+        return self._coarse[cube]
+
+    def _subset(self, ids: np.ndarray) -> VertexSubset:
+        """subset's VertexSubset of the sorted unique ``ids`` (S,) int64."""
         shaped = np.union1d(ids, self.J_regressor.indices)
         weights = self.weights[ids]
         return VertexSubset(

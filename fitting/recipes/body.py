@@ -54,7 +54,6 @@ from softras_cl.raster.settings import RasterSettings
 from softras_cl.fitting import losses
 from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.models.body_model import BodyContext, BodyPose, VertexSubset
-from softras_cl.fitting.models.mesh_lod import coarse_faces
 from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.recipes.body_settings import BUDGETS, DEFAULT_POSE_SIGMA, POSE_SIGMA, BodyFitConfig
 from softras_cl.fitting.solver import FitResult, Stage, fit
@@ -616,8 +615,7 @@ def fit_body(target, model, config: BodyFitConfig = BodyFitConfig(), joints=None
         init = rest_values(model)
         init["translation"] = initial_translation(scene, init, data.alpha)
     params = body_params(model, {k: np.asarray(v, np.float64) for k, v in init.items()})
-    faces = None if config.coarse_mesh is None else coarse_faces(model.v_template, model.faces,
-                                                                  config.coarse_mesh)
+    faces = None if config.coarse_mesh is None else model.coarse_faces(config.coarse_mesh)
     objective = BodyObjective(scene, data, config.robust_px, observer, faces)
     result = fit(params, objective, default_stages(config, data), out_dir=out_dir, progress=progress,
                  resume=resume)

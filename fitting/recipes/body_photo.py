@@ -38,7 +38,6 @@ import numpy as np
 
 from softras_cl.errors import InputError, ResultError
 from softras_cl.scene.camera import Camera
-from softras_cl.fitting.models.mesh_lod import coarse_faces
 from softras_cl.fitting.recipes.body import (BodyFit, BodyFitConfig, BodyObjective, BodyScene, body_params,
                                              initial_translation, landmark_loss, prepare_target, reprojection,
                                              rest_values)
@@ -454,7 +453,7 @@ def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFit
     keypoints, seen, fov_source = setup.keypoints, setup.seen, setup.fov_source
     scene = BodyScene(model, data.alpha.shape, config)
     robust = config.robust_px if config.robust_px is not None else ROBUST_FRACTION * max(data.alpha.shape)
-    faces = None if config.coarse_mesh is None else coarse_faces(model.v_template, model.faces, config.coarse_mesh)
+    faces = None if config.coarse_mesh is None else model.coarse_faces(config.coarse_mesh)
     depth = None if detection.depth is None else detection.depth[layout.detector].mean(1)
     missed = mask_misses(layout, detection.keypoints, seen, detection.mask)
     if objective == "full" and len(missed) >= MASK_MISSES:

@@ -462,3 +462,13 @@ def test_unchecked_forward_and_vjp_equal_the_checked_ones_bit_for_bit():
         gv, gj = rng.normal(size=checked.vertices.shape), rng.normal(size=(J, 3))
         want, got = model.forward_vjp(ctx, gv, gj), model.forward_vjp(unchecked_ctx, gv, gj, check=False)
         assert set(got) == set(want) and all(np.array_equal(got[k], want[k]) for k in want)
+
+
+def test_subsets_and_coarse_faces_are_made_once_per_model():
+    from softras_cl.fitting.models.mesh_lod import coarse_faces
+
+    model = random_model()
+    assert model.subset([3, 1, 3]) is model.subset(np.array([1, 3])) is not model.subset([1, 2])
+    faces = model.coarse_faces(2.0)
+    assert model.coarse_faces(2.0) is faces and not faces.flags.writeable
+    np.testing.assert_array_equal(faces, coarse_faces(model.v_template, model.faces, 2.0))
