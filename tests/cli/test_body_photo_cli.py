@@ -26,7 +26,9 @@ def test_fit_body_on_a_photo_writes_every_output(tmp_path, capsys, examples_data
     detection = doc["detection"]
     assert len(detection["keypoints"]) == 33 and detection["score"] > 0.5 and detection["people"] == 1
     assert doc["fov_source"].startswith("--fov") and sum(w > 0 for w in doc["keypoints"]["weights"]) >= 8
-    assert doc["metrics"]["silhouette_iou"] > 0.7 and np.isfinite(doc["metrics"]["keypoint_error_px_full"])
+    # a fast 64 px fit: the start translation moved by k x 1e-15 m (k = 0..7) spreads its IoU over
+    # 0.686-0.790 (docs/notes/body_photo_speed.md); a broken fit lands far below
+    assert doc["metrics"]["silhouette_iou"] > 0.6 and np.isfinite(doc["metrics"]["keypoint_error_px_full"])
     said = capsys.readouterr().out
     assert "person in" in said and "torso visibility" in said and "keypoint error" in said
     record = json.loads((out / "run.json").read_text())
