@@ -185,3 +185,39 @@ def test_device_photo_loss_equals_the_numpy_losses(scale):
     np.testing.assert_allclose(grad.get()[0], 3.0 * g["pred"], rtol=1e-13, atol=1e-300)
     empty = DevicePhotoLoss(kernels, target, np.zeros((20, 30), bool), scale)
     assert empty(cla.to_device(queue, pred[None]))[0].get()[0, 0] == 0.0
+
+
+def test_the_joint_objective_of_device_views_equals_that_of_numpy_views(demo):
+    """`--same-person` on the device: the joint objective (fitting.recipes.face_views) over two
+    device objectives equals it over their numpy twins, shared blocks summed over the views."""
+    from softras_cl.fitting.recipes import face_views
+
+    rng = np.random.default_rng(14)
+    values = [random_values(demo, rng, yaw_deg=yaw) for yaw in (-20.0, 35.0)]
+    pairs = [objectives(demo, 64, v, contour=jaw_candidates(demo)) for v in values]
+    joint = dict(id=values[0]["id"], albedo=values[0]["albedo"])
+    for k, v in enumerate(values):
+        joint.update({f"{name}.{k}": v[name] for name in ("exp", "sh", "rotation", "translation", "focal")})
+    stage = Stage("photo-1", ("id",), PHOTO, sigma=1e-5, gamma=1e-3)
+    host = face_views.FaceViewsObjective([h for h, _ in pairs])
+    device = face_views.FaceViewsObjective([d for _, d in pairs])
+    assert_same(host(joint, stage), device(joint, stage))
+
+
+def test_a_fit_runs_on_the_objective_its_config_names(demo):
+    """FaceFitConfig.objective: "device" fits with DeviceFaceObjective (a short schedule, to
+    its end, finite), "host" with the numpy one; "auto" takes the numpy one on a CPU device."""
+    from softras_cl.bench.face import synthetic_face
+
+    sample = synthetic_face(demo, np.random.default_rng(15), 96)
+    short = dict(size=96, landmark_iters=5, photo_stages=((1e-4, 3e-3, 4), (1e-5, 1e-3, 4)))
+    for where, expected in (("device", face.DeviceFaceObjective), ("host", face.FaceObjective)):
+        fit = face.fit_face(sample["photo"], sample["landmarks"], demo, face.FaceFitConfig(objective=where, **short),
+                            progress=False)
+        assert type(fit.objective) is expected
+        assert all(np.isfinite(v).all() for v in fit.values.values()) and fit.metrics()["psnr_face_db"] > 10
+    scene = face.FaceScene(demo, (8, 8))
+    cpu = scene.renderer.device.type & 2      # cl.device_type.CPU
+    assert face.objective_class("auto", scene) is (face.FaceObjective if cpu else face.DeviceFaceObjective)
+    with pytest.raises(face.InputError, match="objective must be one of"):
+        face.FaceFitConfig(objective="gpu")
