@@ -10,7 +10,8 @@ host/perturbed are the fit's own sensitivity, not the device objective's.
     .venv/bin/python scripts/pair_face_objectives.py --faces 8 --json out/pair.json
 
 Prints a table of the arms' means (shape error ratio, landmark error, face PSNR, seconds) and the
-mean absolute paired differences; --json writes the rows and the CPU (results of one run only).
+mean absolute paired differences; --json writes the rows with their provenance (versions,
+device, CPU, command line).
 """
 from __future__ import annotations
 
@@ -37,7 +38,7 @@ def fit_arms(model, sample: dict, config) -> dict:
 def main(argv=None) -> None:
     from softras_cl.bench.face import budget_config, draw_faces
     from softras_cl.fitting.models.face_loaders import load_demo_face_model
-    from softras_cl.provenance import cpu_model
+    from softras_cl.provenance import provenance
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--faces", type=int, default=8, help="synthetic faces (default 8)")
@@ -63,7 +64,8 @@ def main(argv=None) -> None:
             f"{statistics.mean(abs(r[ARMS[0]][k] - r[other][k]) for r in rows):18.4f}" for k in keys))
     if args.json:
         with open(args.json, "w") as f:
-            json.dump(dict(cpu=cpu_model(), faces=args.faces, seed=args.seed, budget=args.budget, rows=rows), f, indent=1)
+            json.dump(dict(faces=args.faces, seed=args.seed, budget=args.budget, arms=ARMS, rows=rows,
+                           provenance=provenance(dict(options=vars(args)))), f, indent=1)
 
 
 if __name__ == "__main__":
