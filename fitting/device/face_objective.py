@@ -72,7 +72,6 @@ class DeviceFaceEvaluation:
             value, g_focal = read["landmarks"]
             terms = {"landmarks": (value, dict(focal=np.array([g_focal])))} | terms
         loss, host_grads, weighted = losses.weighted_sum(terms | self.prior_terms(values, w), w)
-        host_grads.pop("world", None)
         for name, g in host_grads.items():
             grads[name] = grads[name] + g if name in grads else g
         return loss, grads, weighted
