@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from softras_cl.errors import InputError
+from softras_cl.io import video
 from softras_cl.io.video import VideoReadError, VideoWriter, open_video, upright
 
 pytestmark = pytest.mark.video
@@ -210,4 +211,36 @@ def test_folder_frames_of_another_size_are_refused_before_any_frame(tmp_path):
     exif[0x0112] = 6                               # shown turned a quarter: 48x64
     Image.fromarray(images[1]).save(tmp_path / "turned/0001.jpg", exif=exif)
     with pytest.raises(InputError, match=r"0001\.jpg is 48x64"):
+        open_video(tmp_path / "turned", fps=10)
+
+
+def _move_chunk_to_the_end(path, kind: bytes) -> None:
+    """Rewrite a PNG file with its chunk ``kind`` just before IEND (after the image data)."""
+    data = path.read_bytes()
+    at, chunks = 8, []
+    while at < len(data):
+        length = int.from_bytes(data[at:at + 4], "big")
+        chunks.append(data[at:at + 12 + length])
+        at += 12 + length
+    moved = [c for c in chunks if c[4:8] == kind]
+    rest = [c for c in chunks if c[4:8] != kind]
+    path.write_bytes(data[:8] + b"".join(rest[:-1] + moved + rest[-1:]))
+
+
+@pytest.mark.parametrize("where", ["before the image data", "after the image data"])
+def test_a_png_frame_turned_by_its_exif_counts_upright(tmp_path, where):
+    """PNG frames: the EXIF orientation is read from an eXIf chunk wherever it stands (the
+    headers are scanned; Pillow would decode the image to find one after the data), and a
+    PNG without one is sized from its header alone."""
+    from PIL import Image
+
+    images = [marked_frame(k) for k in range(3)]
+    _save_frames(tmp_path / "turned", images, [f"{k:04d}.png" for k in range(3)])
+    exif = Image.Exif()
+    exif[0x0112] = 6
+    Image.fromarray(images[1]).save(tmp_path / "turned/0001.png", exif=exif)
+    if where == "after the image data":
+        _move_chunk_to_the_end(tmp_path / "turned/0001.png", b"eXIf")
+    assert video._png_has_exif(tmp_path / "turned/0001.png") and not video._png_has_exif(tmp_path / "turned/0000.png")
+    with pytest.raises(InputError, match=r"0001\.png is 48x64"):
         open_video(tmp_path / "turned", fps=10)
