@@ -778,12 +778,11 @@ def prepare_fit(photo, landmarks, model, config: FaceFitConfig,
     rotation, translation = initial_pose(mean_landmarks, target, focal, principal)
     scene = FaceScene(model, image.shape[:2], config.dtype, depth_range=depth_range(translation),
                       principal=principal)
-    objective = objective_class(config.objective, scene)(scene, image, target, config.mask_erosion, focal0=focal,
-                              forehead=config.forehead, coarse_sigma=config.coarse_sigma,
-                              robust_scale=config.robust_scale, coarse_mesh=config.coarse_mesh,
-                              contour=jaw_candidates(model) if config.contour_landmarks == "sliding" else None,
-                              dense=crop.to_work(dense) if config.dense_weight else None,
-                              point_weights=point_weights)
+    objective = objective_class(config.objective, scene)(
+        scene, image, target, config.mask_erosion, focal0=focal, forehead=config.forehead,
+        coarse_sigma=config.coarse_sigma, robust_scale=config.robust_scale, coarse_mesh=config.coarse_mesh,
+        contour=jaw_candidates(model) if config.contour_landmarks == "sliding" else None,
+        dense=crop.to_work(dense) if config.dense_weight else None, point_weights=point_weights)
     values = dict(zero, rotation=rotation, translation=translation, focal=np.array([focal]))
     sh = initial_light(scene, values, image)
     return objective, crop, face_params(model, focal, rotation, translation, sh)

@@ -127,7 +127,8 @@ class FaceFitConfig:
     objective: where the objective runs. "host": numpy around the rasteriser's kernels (the
         reference); "device": the model, render, photometric term and their vjps in OpenCL
         buffers (fitting.device; needs a device with float64); "auto": "device" on a GPU with
-        float64, else "host" (on a CPU the device is the host's own cores: measured no faster).
+        float64, else "host" (on a CPU the device is the host's own cores: measured slower,
+        docs/speed.md).
     """
     size: int = 256
     focal: float | None = None

@@ -470,8 +470,8 @@ class SoftRasterizer:
             if value is not None and not is_device_array(value):
                 value = cla.to_device(self.queue, np.ascontiguousarray(value))
             checked[name] = value
-        counts = {n: self.value_checks.count_bad_floats(v, False) for n, v in checked.items()
-                  if v is not None and saved.check_values}
+        counts = ({n: self.value_checks.count_bad_floats(v, False) for n, v in checked.items() if v is not None}
+                  if saved.check_values else {})
         bad = read_together(list(counts.values())) if counts else []
         for name, count in zip(counts, bad):
             if count.any():
