@@ -29,7 +29,12 @@ the eyes wrongly and score lower. So, per face, a square crop around the detecto
 quarter turn under which the short-range detector scores the crop highest (upright_roll), unless
 it scores less than TURN_MARGIN above the eye line's own turn (a face without hair may score as
 high upside down: 0.878 against 0.872 on a frame of bench landmarks, whose mesh was then upside
-down, NME 1.4). A face whose best score there is below MIN_UPRIGHT_SCORE is dropped (unless its Face Mesh
+down, NME 1.4) or less than MIN_TURN_SCORE: a face turned 45-75 degrees away often scores
+nothing along its (right) eye line, and 0.6-0.8 on a crop a quarter or half turn round, where
+the detector sees a face that is not there and Face Mesh draws one upside down or on its side
+(bench face's faces, and bench landmarks' frames: NME 0.8-1.9); a face that is turned in the
+photo scores 0.90-0.94 on its upright crop (the astronaut turned 90-270 degrees, the two-face
+picture upside down). A face whose best score there is below MIN_UPRIGHT_SCORE is dropped (unless its Face Mesh
 crop scores higher, below): frontal
 faces score 0.9-0.95 on their upright crop, the cameraman's face turned away
 (skimage.data.camera) 0.86, faces turned 30-60 degrees in bench landmarks' frames 0.54-0.74, the
@@ -81,6 +86,7 @@ MIN_UPRIGHT_SCORE = 0.70                # the same on the face's upright crop (u
 MIN_RESCORED = 0.5                      # below MIN_UPRIGHT_SCORE, from here: meshed and scored again (mesh_score)
 RETRY_MARGIN = 3.0                      # crop side / box side of Face Mesh's second try
 TURN_MARGIN = 0.05                      # how much better another quarter turn must score (upright_roll)
+MIN_TURN_SCORE = 0.85                   # and how high, at least (upright_roll)
 MIN_TILE = 256                          # side of the short-range pyramid's smallest tiles, px
 FULL_RANGE_TILE = 384                   # side of the full-range pyramid's smallest tiles, px (None: no pyramid)
 TILE_STEP = 0.75                        # tile stride / tile side: overlap a quarter
@@ -268,7 +274,7 @@ def upright_roll(image: np.ndarray, center, side: float, roll: float) -> tuple[f
     place the eyes wrongly, and score it lower than upright."""
     scores = [_crop_score(image, center, side, roll + turn * math.pi / 2) for turn in range(4)]
     best = int(np.argmax(scores))
-    if scores[best] - scores[0] <= TURN_MARGIN:
+    if scores[best] - scores[0] <= TURN_MARGIN or scores[best] < MIN_TURN_SCORE:
         best = 0
     return roll + best * math.pi / 2, float(scores[best])
 

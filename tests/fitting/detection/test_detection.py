@@ -278,9 +278,13 @@ def test_tilted_photo_is_meshed_upright(degrees):
 @pytest.mark.detect
 def test_false_faces_of_the_tiles_are_dropped(monkeypatch):
     """The two-face picture turned upside down: a tile brings up a third, false face (it scores
-    0.71 there, 0.61 on its upright crop); MIN_UPRIGHT_SCORE drops it."""
+    0.71 there, 0.51 on the crop along the detector's eye line, where Face Mesh finds no face,
+    and 0.61 on the crop turned a quarter more); MIN_TURN_SCORE keeps it on the first, and
+    MIN_UPRIGHT_SCORE drops it on the second."""
     picture, heads = two_faces()
     picture, _ = turned(picture, heads[0], 2)
+    assert len(det.find_faces(picture)) == 2
+    monkeypatch.setattr(mp, "MIN_TURN_SCORE", 0.0)
     assert len(det.find_faces(picture)) == 2
     monkeypatch.setattr(mp, "MIN_UPRIGHT_SCORE", 0.0)
     assert len(det.find_faces(picture)) == 3
@@ -396,7 +400,11 @@ class _ScoresByTurn:
 
 @pytest.mark.parametrize("scores, turn", [((0.872, 0.654, 0.878, 0.74), 0),    # a near tie keeps the eye line's turn
                                           ((0.60, 0.65, 0.90, 0.70), 2),       # a clear winner turns the crop
-                                          ((0.70, 0.76, 0.50, 0.40), 1)])
+                                          ((0.70, 0.88, 0.50, 0.40), 1),
+                                          # a face turned 50 degrees: no face found along the eye line, a
+                                          # face hallucinated upside down (measured on bench face's faces)
+                                          ((0.0, 0.58, 0.74, 0.65), 0),
+                                          ((0.70, 0.76, 0.50, 0.40), 0)])
 def test_upright_roll_takes_another_quarter_turn_only_when_clearly_better(monkeypatch, scores, turn):
     detector = _ScoresByTurn(scores)
     monkeypatch.setattr(mp, "_detector", lambda model: detector)
