@@ -388,10 +388,13 @@ def face_params(model, focal: float, rotation, translation, sh) -> ParamSet:
     ])
 
 
-def default_stages(config: FaceFitConfig, fit_focal: bool) -> list[Stage]:
+def default_stages(config: FaceFitConfig, fit_focal: bool, detected: bool = False) -> list[Stage]:
     """The landmark stage, then one photometric stage per photo_stages entry (sigma, gamma,
-    evaluations[, stall_rel])."""
+    evaluations[, stall_rel]); detected: the landmarks are a detector's on Face Mesh's points
+    (their weight in the photometric stages is config.detected_landmark_weight_photo)."""
     w = config.weights
+    photo_landmarks = w["landmarks"] * (config.detected_landmark_weight_photo if detected
+                                        else config.landmark_weight_photo)
     priors = dict(id_prior=w["id_prior"], exp_prior=w["exp_prior"])
     pose = ("rotation", "translation") + (("focal",) if fit_focal else ())
     focal_prior = dict(focal_prior=w["focal_prior"]) if fit_focal else {}
@@ -399,7 +402,7 @@ def default_stages(config: FaceFitConfig, fit_focal: bool) -> list[Stage]:
                     dict(_landmark_weights(config, w["landmarks"]), **priors, **focal_prior),
                     max_iters=config.landmark_iters)]
     for k, (sigma, gamma, iters, *stall_rel) in enumerate(config.photo_stages):
-        weights = dict(_landmark_weights(config, w["landmarks"] * config.landmark_weight_photo), photo=w["photo"],
+        weights = dict(_landmark_weights(config, photo_landmarks), photo=w["photo"],
                        albedo_prior=w["albedo_prior"], sh_white=w["sh_white"], **priors, **focal_prior)
         stages.append(Stage(f"photo-{k + 1}", ("id", "exp", "albedo", "sh") + pose,
                             weights, sigma=sigma, gamma=gamma, max_iters=iters,
@@ -751,7 +754,7 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
     objective, crop, params = prepare_fit(photo, landmarks, model, config, dense, point_weights)
     check_landmark_layout(landmarks)      # after prepare_fit's input checks (shape, area, size)
-    stages = default_stages(config, fit_focal=config.focal is None)
+    stages = default_stages(config, fit_focal=config.focal is None, detected=face_mesh_landmarks)
     result = fit(params, objective, stages, out_dir=out_dir, progress=progress, resume=resume)
     if objective.mask is None:      # no photometric stage ran here (e.g. resuming a finished fit)
         objective.set_depth_range(result.values["translation"])

@@ -13,7 +13,7 @@ import numpy as np
 from softras_cl.checks import number
 from softras_cl.errors import InputError
 
-__all__ = ["FaceFitConfig", "input_check", "joint_config", "LANDMARK_WEIGHT_PHOTO", "DETECTED_LANDMARK_SIGMA_MM", "BUDGETS", "COARSE_MESH", "COARSE_SIGMA", "LANDMARK_MAPS", "CONTOUR_LANDMARKS",
+__all__ = ["FaceFitConfig", "input_check", "joint_config", "LANDMARK_WEIGHT_PHOTO", "DETECTED_LANDMARK_WEIGHT_PHOTO", "DETECTED_LANDMARK_SIGMA_MM", "BUDGETS", "COARSE_MESH", "COARSE_SIGMA", "LANDMARK_MAPS", "CONTOUR_LANDMARKS",
            "MIN_SIZE", "MIN_LANDMARK_SPREAD", "ROBUST_SCALE", "MIN_ROBUST_SCALE"]
 
 # Smallest working image (pixels a side). Measured on astronaut with the fast budget: the face
@@ -62,6 +62,13 @@ DETECTED_LANDMARK_SIGMA_MM = np.array([
     1.9, 2.2, 1.9, 2.0, 1.6, 1.6, 2.0, 1.9, 2.2, 1.9, 1.6, 1.6,                          # eyes 36-47
     2.2, 3.0, 3.3, 3.6, 3.3, 3.0, 2.2, 3.2, 3.8, 4.0, 3.8, 3.2,                          # outer lips 48-59
     2.4, 3.3, 3.4, 3.3, 2.4, 5.7, 4.6, 5.7])                                             # inner lips 60-67
+
+# FaceFitConfig.detected_landmark_weight_photo: a detector's landmarks weigh this much in the photometric
+# stages relative to the landmark stage (a landmark file's weigh landmark_weight_photo, 5). A detector's
+# points carry its biases (on bench face's faces 4-9 px at 45-75 degrees of yaw, the jaw and brows most),
+# which at 5 the photometric stages could not undo; lighter, the photo decides the shape (docs/face_fitting.md,
+# "How much a detector's landmarks count in the photometric stages").
+DETECTED_LANDMARK_WEIGHT_PHOTO = 0.2
 
 # FaceFitConfig.objective: where the objective of a fit runs
 OBJECTIVES = ("auto", "host", "device")
@@ -118,6 +125,10 @@ class FaceFitConfig:
         ``face_mesh_landmarks``, tied to them by landmark_map) by their measured noise, 1 / sigma^2 of
         DETECTED_LANDMARK_SIGMA_MM scaled to the same total weight (face.detected_landmark_weights);
         False, and always for landmarks from a file: the jaw line half, the other points 1.
+    landmark_weight_photo / detected_landmark_weight_photo: the landmark term's weight in the
+        photometric stages, relative to its weight in the landmark stage, for landmarks from a
+        file and for landmarks a detector found on Face Mesh's points (fit_face's
+        ``face_mesh_landmarks``; DETECTED_LANDMARK_WEIGHT_PHOTO).
     dense_weight: weight of each dense landmark (MediaPipe Face Mesh's 468 points, those the
         model's dense_use marks) relative to one of the 68 landmarks, in every stage that has
         the landmarks; 0: no dense term. Needs a model with dense points (FaceModel.has_dense)
@@ -142,6 +153,7 @@ class FaceFitConfig:
         landmarks=1.0 / 4.0, photo=100.0, id_prior=1.0, exp_prior=1.0,
         albedo_prior=1.0, sh_white=1000.0, focal_prior=1.0))
     landmark_weight_photo: float = 5.0    # landmark weight in the photometric stages, relative
+    detected_landmark_weight_photo: float = DETECTED_LANDMARK_WEIGHT_PHOTO    # the same for a detector's
     robust_scale: float | None = ROBUST_SCALE
     mask_erosion: int = 2
     forehead: float = 0.15
@@ -207,8 +219,9 @@ def _check_face_config(c: FaceFitConfig) -> None:
     for name, w in c.weights.items():
         if input_check(lambda: number(f"weights[{name!r}]", w)) < 0:
             raise InputError(f"weights[{name!r}] must be >= 0, got {w!r}")
-    if input_check(lambda: number("landmark_weight_photo", c.landmark_weight_photo)) < 0:
-        raise InputError(f"landmark_weight_photo must be >= 0, got {c.landmark_weight_photo!r}")
+    for name in ("landmark_weight_photo", "detected_landmark_weight_photo"):
+        if input_check(lambda: number(name, getattr(c, name))) < 0:
+            raise InputError(f"{name} must be >= 0, got {getattr(c, name)!r}")
     _int_at_least("mask_erosion", c.mask_erosion, 0)
     _int_at_least("stall_window", c.stall_window, 0, " (evaluations; 0: no convergence stop)")
     if c.coarse_sigma is not None:
@@ -246,6 +259,7 @@ LANDMARK_WEIGHT_PHOTO = 1.0
 
 def joint_config(config: FaceFitConfig) -> FaceFitConfig:
     """The config of a joint fit of several photos (fitting.recipes.face_views): ``config``
-    with the joint fit's landmark weight in the photometric stages
-    (LANDMARK_WEIGHT_PHOTO); everything else as given."""
-    return dataclasses.replace(config, landmark_weight_photo=LANDMARK_WEIGHT_PHOTO)
+    with the joint fit's landmark weight in the photometric stages (LANDMARK_WEIGHT_PHOTO, for
+    a file's landmarks and a detector's alike); everything else as given."""
+    return dataclasses.replace(config, landmark_weight_photo=LANDMARK_WEIGHT_PHOTO,
+                               detected_landmark_weight_photo=LANDMARK_WEIGHT_PHOTO)

@@ -181,6 +181,44 @@ def test_budgets_and_photo_weight_are_validated_and_applied():
     default = face.FaceFitConfig()
     assert default.weights["photo"] == 100.0 and default.robust_scale == face.ROBUST_SCALE == 2.0
     assert default.landmark_weight_photo == 5.0
+    assert default.detected_landmark_weight_photo == face_settings.DETECTED_LANDMARK_WEIGHT_PHOTO == 0.2
+    with pytest.raises(ValueError, match="detected_landmark_weight_photo must be >= 0"):
+        face.FaceFitConfig(detected_landmark_weight_photo=-1.0)
+
+
+def test_a_detectors_landmarks_weigh_their_own_weight_in_the_photometric_stages():
+    config = face.FaceFitConfig(dense_weight=0.1)
+    from_file = face.default_stages(config, fit_focal=True)
+    detected = face.default_stages(config, fit_focal=True, detected=True)
+    lm = config.weights["landmarks"]
+    assert from_file[0].weights == detected[0].weights and from_file[0].weights["landmarks"] == lm
+    for a, b in zip(from_file[1:], detected[1:]):
+        assert a.weights["landmarks"] == lm * config.landmark_weight_photo
+        assert b.weights["landmarks"] == lm * config.detected_landmark_weight_photo
+        assert b.weights["dense"] == b.weights["landmarks"] * config.dense_weight
+        assert {k: v for k, v in a.weights.items() if k not in ("landmarks", "dense")} == \
+            {k: v for k, v in b.weights.items() if k not in ("landmarks", "dense")}
+
+
+@pytest.mark.parametrize("on_face_mesh, weight", [(False, "landmark_weight_photo"),
+                                                   (True, "detected_landmark_weight_photo")])
+def test_fit_face_weighs_a_detectors_landmarks_as_detected(demo, monkeypatch, on_face_mesh, weight):
+    class Stop(Exception):
+        pass
+
+    seen = {}
+
+    def capture(params, objective, stages, **kwargs):
+        seen["stages"] = stages
+        raise Stop
+
+    monkeypatch.setattr(face, "fit", capture)
+    sample = synthetic_face(demo, np.random.default_rng(0), 128)
+    config = face.FaceFitConfig.from_budget("fast", size=128)
+    with pytest.raises(Stop):
+        face.fit_face(sample["photo"], sample["landmarks"], demo, config, progress=False,
+                      face_mesh_landmarks=on_face_mesh)
+    assert seen["stages"][1].weights["landmarks"] == config.weights["landmarks"] * getattr(config, weight)
 
 
 @pytest.fixture(scope="module")
