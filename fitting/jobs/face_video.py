@@ -107,11 +107,10 @@ def identity_from_video(source, model, config: TrackConfig, follower: FaceFollow
                           "--face-box X,Y,W,H around it")
     keyframes = choose_keyframes(found, model, shape, config.keyframes)
     images = {}
-    for frame in _UntilBroken(source.frames()):
-        if frame.index > keyframes[-1]:
+    for frame in _UntilBroken(source.frames(only=set(keyframes))):
+        images[frame.index] = to_linear(frame.image / 255.0)
+        if frame.index == keyframes[-1]:
             break
-        if frame.index in keyframes:
-            images[frame.index] = to_linear(frame.image / 255.0)
     return fit_identity([images[k] for k in keyframes], [found[k] for k in keyframes], keyframes, model, config,
                         progress=progress)
 

@@ -88,21 +88,24 @@ class VideoSource:
     def is_folder(self) -> bool:
         return bool(self.files)
 
-    def frames(self, start: int = 0) -> Iterator[Frame]:
+    def frames(self, start: int = 0, only=None) -> Iterator[Frame]:
         """The frames from index ``start`` on (the ones before are decoded and dropped for a
-        video: a stream is only read in order)."""
-        return self._folder_frames(start) if self.is_folder else self._video_frames(start)
+        video: a stream is only read in order); only: a set of frame indices, the others
+        skipped (a folder's files are not read, a video's frames not converted to RGB)."""
+        return self._folder_frames(start, only) if self.is_folder else self._video_frames(start, only)
 
-    def _folder_frames(self, start: int) -> Iterator[Frame]:
+    def _folder_frames(self, start: int, only) -> Iterator[Frame]:
         size = None
         for index in range(start, len(self.files)):
+            if only is not None and index not in only:
+                continue
             image = _read_frame(self.files[index])
             size = size or image.shape[:2]
             if image.shape[:2] != size:       # changed since the folder was opened
                 raise InputError(_other_size(self.files[index], image.shape[:2], self.files[start], size))
             yield Frame(index, index / self.fps, image)
 
-    def _video_frames(self, start: int) -> Iterator[Frame]:
+    def _video_frames(self, start: int, only) -> Iterator[Frame]:
         index, error, last = 0, None, None
         with _opened(self.path) as container:
             stream = container.streams.video[0]
@@ -110,7 +113,7 @@ class VideoSource:
             for decoded, error in _decoded(container, stream):
                 if decoded is not None:
                     last = _frame_time(decoded, index, self.fps, stream.time_base)
-                    if index >= start:
+                    if index >= start and (only is None or index in only):
                         yield Frame(index, last, upright(decoded.to_ndarray(format="rgb24"), decoded.rotation or tag))
                     index += 1
         at = "" if last is None else f"the last at {last:.2f} s; "

@@ -57,6 +57,9 @@ def test_frames_keep_variable_times(tmp_path):
     assert np.abs(frames[2].image[30, 40].astype(int) - (40 + 20 * 2)).max() <= 4   # lossy codec
     assert source.frame_count == 5
     assert [f.index for f in source.frames(start=3)] == [3, 4]
+    chosen = list(source.frames(only={1, 3}))
+    assert [f.index for f in chosen] == [1, 3] and [f.time for f in chosen] == [frames[1].time, frames[3].time]
+    assert np.array_equal(chosen[1].image, frames[3].image)
 
 
 def test_display_rotation_is_applied(tmp_path):
@@ -107,6 +110,8 @@ def test_folder_of_frames(tmp_path):
     frames = list(open_video(tmp_path, fps=25).frames())
     assert [f.time for f in frames] == [0.0, 0.04, 0.08]
     assert [int(f.image[30, 40, 0]) for f in frames] == [40, 60, 80]
+    chosen = list(open_video(tmp_path, fps=25).frames(start=1, only={0, 2}))
+    assert [(f.index, f.time, int(f.image[30, 40, 0])) for f in chosen] == [(2, 0.08, 80)]
     with pytest.raises(InputError, match="--fps must be"):
         open_video(tmp_path, fps=0)
     (tmp_path / "empty").mkdir()
