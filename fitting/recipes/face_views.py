@@ -204,7 +204,9 @@ def fit_face_views(photos, landmarks, model, config: FaceFitConfig | None = None
     same_camera: the photos (all of one size, portrait or landscape) share one focal length,
     fitted (config.focal must be None); face_mesh_landmarks: whether each photo's landmarks are
     Face Mesh's points, as fit_face's (None: none are): each view ties its landmarks as
-    config.landmark_map says for its own.
+    config.landmark_map says for its own; their weight in the photometric stages is
+    config.detected_landmark_weight_photo when every photo's are, else landmark_weight_photo
+    (joint_config gives both the joint fit's LANDMARK_WEIGHT_PHOTO).
     """
     config = joint_config(FaceFitConfig()) if config is None else config
     _check_views(photos, landmarks, config, same_camera)
@@ -215,7 +217,8 @@ def fit_face_views(photos, landmarks, model, config: FaceFitConfig | None = None
     on_mesh = [False] * len(photos) if face_mesh_landmarks is None else face_mesh_landmarks
     views = [prepare_view(p, lm, model, config, m) for p, lm, m in zip(photos, landmarks, on_mesh)]
     objective = FaceViewsObjective([v.objective for v in views], same_camera)
-    stages = joint_stages(default_stages(config, fit_focal=config.focal is None), len(views), objective.shared)
+    stages = joint_stages(default_stages(config, fit_focal=config.focal is None, detected=all(on_mesh)),
+                          len(views), objective.shared)
     result = fit(joint_params([v.params for v in views], objective.shared), objective, stages, out_dir=out_dir,
                  progress=progress, resume=resume)
     fits = []
