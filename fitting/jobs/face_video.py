@@ -90,7 +90,7 @@ def identity_from_video(source, model, config: TrackConfig, follower: FaceFollow
                         progress: bool = False) -> Identity:
     """The Identity of a video (softras_cl.io.video.VideoSource): the face followed through its
     first ``scan`` frames, the keyframes chosen among those with a face (:func:`choose_keyframes`),
-    decoded again and fitted jointly (:func:`fit_identity`). NoFaceError when no frame has a face."""
+    read again (only they: VideoSource.frames' ``only``) and fitted jointly (:func:`fit_identity`). NoFaceError when no frame has a face."""
     found, previous, shape = {}, None, None
     frames = _UntilBroken(source.frames())
     for frame in frames:
