@@ -33,7 +33,7 @@ down, NME 1.4) or less than MIN_TURN_SCORE: a face turned 45-75 degrees away oft
 nothing along its (right) eye line, and 0.6-0.8 on a crop a quarter or half turn round, where
 the detector sees a face that is not there and Face Mesh draws one upside down or on its side
 (bench face's faces, and bench landmarks' frames: NME 0.8-1.9); a face that is turned in the
-photo scores 0.90-0.94 on its upright crop (the astronaut turned 90-270 degrees, the two-face
+photo scores 0.90-0.94 on its upright crop (the astronaut turned 135-225 degrees, the two-face
 picture upside down). A face whose best score there is below MIN_UPRIGHT_SCORE is dropped (unless its Face Mesh
 crop scores higher, below): frontal
 faces score 0.9-0.95 on their upright crop, the cameraman's face turned away

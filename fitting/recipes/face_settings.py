@@ -65,7 +65,7 @@ DETECTED_LANDMARK_SIGMA_MM = np.array([
 
 # FaceFitConfig.detected_landmark_weight_photo: a detector's landmarks weigh this much in the photometric
 # stages relative to the landmark stage (a landmark file's weigh landmark_weight_photo, 5). A detector's
-# points carry its biases (on bench face's faces 4-9 px at 45-75 degrees of yaw, the jaw and brows most),
+# points carry its biases (on bench face's 256 px faces 4-9 px at 45-75 degrees of yaw, the jaw and lips most),
 # which at 5 the photometric stages could not undo; lighter, the photo decides the shape (docs/face_fitting.md,
 # "How much a detector's landmarks count in the photometric stages").
 DETECTED_LANDMARK_WEIGHT_PHOTO = 0.2
