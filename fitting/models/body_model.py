@@ -24,7 +24,6 @@ transform of joint j (``tg_j`` its posed position), a vertex moves by
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -33,7 +32,7 @@ import numpy as np
 
 from softras_cl.checks import check_shape, index_array, real_array
 from softras_cl.fitting.models.mesh_lod import coarse_faces
-from softras_cl.scene.rotation import hat
+from softras_cl.scene.rotation import rodrigues_rows, rodrigues_rows_vjp
 
 if TYPE_CHECKING:
     import scipy.sparse
@@ -81,7 +80,7 @@ class BodyContext:
 
     rest_joints (J, 3) of the shaped body; v_posed (S, 3) shaped + pose blendshapes, before
     skinning (S: the posed vertices, V without a subset); pose (J, 3) the axis-angles (row 0
-    the global rotation) and coeffs (4, J) their Rodrigues coefficients (_rodrigues_rows);
+    the global rotation) and coeffs (4, J) their Rodrigues coefficients (rotation.rodrigues_rows);
     rot_local (J, 3, 3) their rotation matrices; rot_global (J, 3, 3) world rotations and
     joints (J, 3) posed joints, before the translation; blend_rot (S, 3, 3) skinning-weighted
     world rotations; part: the VertexSubset posed (the model's own of all vertices without one).
@@ -320,7 +319,7 @@ class BodyModel:
             trans, pose = translation, np.vstack([global_rotation, body_pose])
         v_shaped = part.template + np.einsum("bi,b->i", part.basis, betas).reshape(-1, 3)
         rest = part.regressor @ v_shaped
-        rot_local, coeffs = _rodrigues_rows(pose)
+        rot_local, coeffs = rodrigues_rows(pose)
         v_posed = v_shaped if part.rows is None else v_shaped[part.rows]
         if part.posedirs is not None:
             v_posed = v_posed + part.posedirs @ (rot_local[1:] - np.eye(3)).ravel()
@@ -383,7 +382,7 @@ class BodyModel:
             g_shaped = g_vposed + g_shaped
         else:
             g_shaped[part.rows] += g_vposed
-        g_pose = _rodrigues_vjp_rows(ctx.pose, ctx.coeffs, g_local)
+        g_pose = rodrigues_rows_vjp(ctx.pose, ctx.coeffs, g_local)
         return {"betas": np.einsum("bi,i->b", part.basis, g_shaped.ravel()),
                 "body_pose": g_pose[1:], "global_rotation": g_pose[0],
                 "translation": gv.sum(axis=0) + gj.sum(axis=0)}
@@ -424,48 +423,6 @@ class BodyModel:
         np.savez_compressed(Path(path), **fields)
 
 
-_HAT_BASIS = np.stack([hat(np.eye(3)[i]) for i in range(3)])     # hat(e_i), (3, 3, 3)
-_SMALL_ANGLE = 0.1      # below this |omega| the Rodrigues coefficients use their Taylor series
-# Taylor coefficients (in t^2, highest power first) of A, B, C and D (_rodrigues_rows), as
-# softras_cl.scene.rotation's
-_TAYLOR = np.array([[(-1) ** k / math.factorial(2 * k + 1) for k in range(6)],
-                    [(-1) ** k / math.factorial(2 * k + 2) for k in range(6)],
-                    [(-1) ** (k + 1) * 2 * (k + 1) / math.factorial(2 * k + 3) for k in range(6)],
-                    [(-1) ** (k + 1) * 2 * (k + 1) / math.factorial(2 * k + 4) for k in range(6)]])[:, ::-1]
-
-
-def _hats(w: np.ndarray) -> np.ndarray:
-    """(N, 3) -> (N, 3, 3) cross-product matrices hat(w_n) (exact: sums of w's entries and zeros)."""
-    return (w @ _HAT_BASIS.reshape(3, 9)).reshape(-1, 3, 3)
-
-
-def _skew(m: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) -> (N, 3): <m_n, hat(e_i)> = (m21 - m12, m02 - m20, m10 - m01)."""
-    flat = m.reshape(-1, 9)
-    return flat[:, [7, 2, 3]] - flat[:, [5, 6, 1]]
-
-
-def _rodrigues_rows(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Axis-angles pose (N, 3) float64 -> (R (N, 3, 3) = I + A K + B K^2 with K = hat(omega),
-    coefficients (4, N): A = sin t / t, B = (1 - cos t) / t^2, C = A'(t) / t, D = B'(t) / t of
-    t = |omega|, Taylor series below _SMALL_ANGLE). softras_cl.scene.rotation's maps, batched
-    in numpy (equal to them within a few 1e-16, tested)."""
-    t2 = np.einsum("na,na->n", pose, pose)
-    small = t2 < _SMALL_ANGLE ** 2
-    series = _TAYLOR[:, 0:1] * np.ones_like(t2)
-    for row in _TAYLOR.T[1:]:
-        series = series * t2 + row[:, None]
-    t = np.where(small, 1.0, np.sqrt(t2))           # the closed forms, where they are used
-    t2 = np.where(small, 1.0, t2)
-    sin, cos = np.sin(t), np.cos(t)
-    one_minus_cos = 2.0 * np.sin(0.5 * t) ** 2
-    closed = np.stack([sin / t, one_minus_cos / t2, (t * cos - sin) / (t2 * t), (t * sin - 2.0 * one_minus_cos) / (t2 * t2)])
-    coeffs = np.where(small, series, closed)
-    a, b = coeffs[0][:, None, None], coeffs[1][:, None, None]
-    k = _hats(pose)
-    return np.eye(3) + a * k + b * (k @ k), coeffs
-
-
 def _transposed_rows_times(m: np.ndarray, x: np.ndarray) -> np.ndarray:
     """(V, 3, 3) matrices transposed times (V, 3) vectors, row by row: np.einsum("vba,vb->va",
     m, x) with einsum's sums (0 + first + second + third product, one row after the other:
@@ -475,18 +432,3 @@ def _transposed_rows_times(m: np.ndarray, x: np.ndarray) -> np.ndarray:
     for a in range(3):
         out[:, a] = ((0.0 + m[:, 0, a] * x0) + m[:, 1, a] * x1) + m[:, 2, a] * x2
     return out
-
-
-def _rodrigues_vjp_rows(pose: np.ndarray, coeffs: np.ndarray, grads: np.ndarray) -> np.ndarray:
-    """Back through ``_rodrigues_rows``: axis-angles pose (N, 3), their coefficients (4, N) and
-    dL/dR (N, 3, 3) -> dL/domega (N, 3) float64 (softras_cl.scene.rotation.rodrigues_vjp's
-    dR/dw_i = w_i (C K + D K^2) + A E_i + B (E_i K + K E_i), E_i = hat(e_i), in closed form:
-    <G, E_i> = skew_i(G), <G, E_i K + K E_i> = -skew_i(G K + K G), <G, K> = w . skew(G),
-    <G, K^2> = w^T G w - |w|^2 tr G)."""
-    a, b, c, d = coeffs
-    k = _hats(pose)
-    skew = _skew(grads)
-    along_k = np.einsum("na,na->n", pose, skew)
-    along_k2 = np.einsum("na,nab,nb->n", pose, grads, pose) - np.einsum("na,na->n", pose, pose) * np.trace(grads, axis1=1, axis2=2)
-    radial = c * along_k + d * along_k2
-    return (pose * radial[:, None] + a[:, None] * skew - b[:, None] * _skew(grads @ k + k @ grads))

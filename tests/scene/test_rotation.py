@@ -70,18 +70,36 @@ def test_rodrigues_series_meets_closed_form():
     np.testing.assert_allclose(_rodrigues_coeffs(0.0), [1, 0.5, -1 / 3, -1 / 12], rtol=1e-15)
 
 
-def test_rodrigues_rows_equals_rodrigues_row_by_row():
-    """Bit for bit, from zero through the Taylor-series range to large angles; errors name the
-    argument."""
+def _omegas(rng, n=200):
+    """Axis-angles from 1e-10 to 3 rad, zero, and either side of the series threshold."""
+    omegas = rng.normal(size=(n, 3)) * 10.0 ** rng.uniform(-10, 0.5, size=(n, 1))
+    omegas[0] = 0.0
+    omegas[1:3] = [[_SMALL_ANGLE * (1 - 1e-12), 0.0, 0.0], [0.0, _SMALL_ANGLE, 0.0]]
+    return omegas
+
+
+def test_batched_rodrigues_equals_one_call_per_joint():
+    """R within 4e-16 and A, B within 1e-15 of softras_cl.scene.rotation's; C and D within
+    1e-12: their closed forms cancel (by 1e3 near the series threshold) in both, a last-bit
+    difference of sin or cos between numpy and math grows by that much."""
     from softras_cl.scene.rotation import rodrigues, rodrigues_rows
 
-    rng = np.random.default_rng(3)
-    omegas = np.concatenate([np.zeros((1, 3))] + [rng.normal(size=(50, 3)) * s for s in (1e-9, 1e-3, 0.05, 1.0, 3.0)])
-    R, ctxs = rodrigues_rows(omegas)
-    for w, r, ctx in zip(omegas, R, ctxs):
-        one, one_ctx = rodrigues(w)
-        assert np.array_equal(r, one) and np.array_equal(ctx.k, one_ctx.k) and np.array_equal(ctx.omega, one_ctx.omega)
-        # the vjp's coefficients, made by the forward: those of |omega|
-        assert ctx.coeffs == one_ctx.coeffs == _rodrigues_coeffs(float(np.linalg.norm(w)))
-    with pytest.raises(ValueError, match="omegas"):
-        rodrigues_rows(np.zeros((4, 2)))
+    omegas = _omegas(np.random.default_rng(7))
+    rotations, coeffs = rodrigues_rows(omegas)
+    for w, r, c in zip(omegas, rotations, coeffs.T):
+        want, ctx = rodrigues(w)
+        np.testing.assert_allclose(r, want, rtol=0, atol=4e-16)
+        np.testing.assert_allclose(c[:2], ctx.coeffs[:2], rtol=1e-15, atol=0)
+        np.testing.assert_allclose(c[2:], ctx.coeffs[2:], rtol=1e-12, atol=0)
+
+
+def test_batched_rodrigues_vjp_equals_one_call_per_joint():
+    """Within 1e-15 of the largest cotangent entry of each row, over magnitudes 1e-4..1e4."""
+    from softras_cl.scene.rotation import rodrigues, rodrigues_rows, rodrigues_rows_vjp, rodrigues_vjp
+
+    rng = np.random.default_rng(7)
+    omegas = _omegas(rng)
+    grads = rng.normal(size=(len(omegas), 3, 3)) * 10.0 ** rng.uniform(-4, 4, size=(len(omegas), 1, 1))
+    got = rodrigues_rows_vjp(omegas, rodrigues_rows(omegas)[1], grads)
+    for w, g, row in zip(omegas, grads, got):
+        np.testing.assert_allclose(row, rodrigues_vjp(rodrigues(w)[1], g)["omega"], rtol=0, atol=1e-15 * np.abs(g).max())

@@ -191,45 +191,6 @@ def test_forward_argument_errors():
         model.forward_vjp(model.forward(**p)[1], np.zeros((V, 2)))
 
 
-def _omegas(rng, n=200):
-    """Axis-angles from 1e-10 to 3 rad, zero, and either side of the series threshold."""
-    from softras_cl.fitting.models.body_model import _SMALL_ANGLE
-
-    omegas = rng.normal(size=(n, 3)) * 10.0 ** rng.uniform(-10, 0.5, size=(n, 1))
-    omegas[0] = 0.0
-    omegas[1:3] = [[_SMALL_ANGLE * (1 - 1e-12), 0.0, 0.0], [0.0, _SMALL_ANGLE, 0.0]]
-    return omegas
-
-
-def test_batched_rodrigues_equals_one_call_per_joint():
-    """R within 4e-16 and A, B within 1e-15 of softras_cl.scene.rotation's; C and D within
-    1e-12: their closed forms cancel (by 1e3 near the series threshold) in both, a last-bit
-    difference of sin or cos between numpy and math grows by that much."""
-    from softras_cl.fitting.models.body_model import _rodrigues_rows
-    from softras_cl.scene.rotation import rodrigues
-
-    omegas = _omegas(np.random.default_rng(7))
-    rotations, coeffs = _rodrigues_rows(omegas)
-    for w, r, c in zip(omegas, rotations, coeffs.T):
-        want, ctx = rodrigues(w)
-        np.testing.assert_allclose(r, want, rtol=0, atol=4e-16)
-        np.testing.assert_allclose(c[:2], ctx.coeffs[:2], rtol=1e-15, atol=0)
-        np.testing.assert_allclose(c[2:], ctx.coeffs[2:], rtol=1e-12, atol=0)
-
-
-def test_batched_rodrigues_vjp_equals_one_call_per_joint():
-    """Within 1e-15 of the largest cotangent entry of each row, over magnitudes 1e-4..1e4."""
-    from softras_cl.fitting.models.body_model import _rodrigues_rows, _rodrigues_vjp_rows
-    from softras_cl.scene.rotation import rodrigues, rodrigues_vjp
-
-    rng = np.random.default_rng(7)
-    omegas = _omegas(rng)
-    grads = rng.normal(size=(len(omegas), 3, 3)) * 10.0 ** rng.uniform(-4, 4, size=(len(omegas), 1, 1))
-    got = _rodrigues_vjp_rows(omegas, _rodrigues_rows(omegas)[1], grads)
-    for w, g, row in zip(omegas, grads, got):
-        np.testing.assert_allclose(row, rodrigues_vjp(rodrigues(w)[1], g)["omega"], rtol=0, atol=1e-15 * np.abs(g).max())
-
-
 def test_transposed_rows_times_equals_einsum_bit_for_bit():
     """The skinning vjp's per-vertex R^T g against the np.einsum it replaces, over magnitudes
     from 1e-8 to 1e8 with exact and negative zeros (einsum adds to a zeroed output: +0)."""
