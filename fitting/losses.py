@@ -34,7 +34,7 @@ from softras_cl.checks import index_array, nonnegative, positive, real_array
 __all__ = [
     "MeshTopology", "mesh_topology",
     "image_l2", "image_l1", "image_geman_mcclure", "GemanMcClure", "silhouette_iou", "silhouette_l2", "landmarks_2d",
-    "gaussian_prior", "sh_white", "laplacian_coordinates", "laplacian", "flatten", "edge_length",
+    "landmarks_2d_unchecked", "gaussian_prior", "gaussian_prior_unchecked", "sh_white", "laplacian_coordinates", "laplacian", "flatten", "edge_length",
     "weighted_sum",
 ]
 
@@ -281,25 +281,32 @@ def landmarks_2d(points, target, weights=None, robust_sigma=None) -> tuple[float
         elif w.shape != (n,):
             raise ValueError(f"weights: expected a scalar or shape ({n},), got {w.shape}")
         nonnegative("weights", w)
-    if n == 0:
-        return 0.0, {"points": np.zeros_like(p)}
-    d = p - t
-    r2 = np.einsum("ij,ij->i", d, d)
-    if robust_sigma is None:
-        rho = r2
-        drho = np.ones(n)
-    else:
+    if robust_sigma is not None:
         s = real_array("robust_sigma", robust_sigma)
         if s.ndim != 0:
             raise ValueError(f"robust_sigma: expected a scalar, got shape {s.shape}")
         positive("robust_sigma", s)
-        s2 = float(s) ** 2
-        den = r2 + s2
-        rho = r2 / den
-        drho = s2 / (den * den)
-    value = float((w * rho).sum() / n)
-    grad = (2.0 / n) * (w * drho)[:, None] * d
+        robust_sigma = float(s)
+    value, grad = landmarks_2d_unchecked(p - t, w, robust_sigma)
     return value, {"points": grad}
+
+
+def landmarks_2d_unchecked(residuals: np.ndarray, weights: np.ndarray,
+                           robust_sigma: float | None = None) -> tuple[float, np.ndarray]:
+    """:func:`landmarks_2d`'s value and gradient wrt the points, from the residuals (N, D)
+    float64 (points - target), weights (N,) float64 >= 0 and robust_sigma (a float > 0 or
+    None), none of them checked: for a fit's own arrays, every evaluation."""
+    n = len(residuals)
+    if n == 0:
+        return 0.0, np.zeros_like(residuals)
+    r2 = np.einsum("ij,ij->i", residuals, residuals)
+    if robust_sigma is None:
+        rho, drho = r2, np.ones(n)
+    else:
+        s2 = robust_sigma ** 2
+        den = r2 + s2
+        rho, drho = r2 / den, s2 / (den * den)
+    return float((weights * rho).sum() / n), (2.0 / n) * (weights * drho)[:, None] * residuals
 
 
 def gaussian_prior(coeffs, sigma, mean=0.0) -> tuple[float, dict]:
@@ -320,8 +327,15 @@ def gaussian_prior(coeffs, sigma, mean=0.0) -> tuple[float, dict]:
         except ValueError:
             raise ValueError(f"{name}: shape {a.shape} does not broadcast to coeffs shape "
                              f"{c.shape}") from None
-    z = (c - mu) / s
-    return float((z * z).sum()), {"coeffs": np.broadcast_to(2.0 * z / s, c.shape).copy()}
+    value, grad = gaussian_prior_unchecked(c, s, mu)
+    return value, {"coeffs": np.broadcast_to(grad, c.shape).copy()}
+
+
+def gaussian_prior_unchecked(coeffs: np.ndarray, sigma, mean=0.0) -> tuple[float, np.ndarray]:
+    """:func:`gaussian_prior`'s value and gradient (broadcast shape of the three) of float64
+    arrays (or floats) not checked: for a fit's own blocks, every evaluation."""
+    z = (coeffs - mean) / sigma
+    return float((z * z).sum()), 2.0 * z / sigma
 
 
 # ---------------------------------------------------------------------------------------------

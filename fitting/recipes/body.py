@@ -60,7 +60,7 @@ from softras_cl.fitting.solver import FitResult, Stage, fit
 
 __all__ = ["HINGE_LIMITS", "BodyTarget", "BodyScene",
            "BodyObjective", "BodyFit", "part_colors", "hinge_frames", "joint_limits",
-           "pose_sigmas", "prepare_target", "landmark_loss", "gaussian_prior", "reprojection", "body_params",
+           "pose_sigmas", "prepare_target", "reprojection", "body_params",
            "rest_values", "default_stages", "fit_body", "initial_translation"]
 
 TRANSLATION_SIGMA = 0.3          # metres
@@ -328,39 +328,13 @@ class BodyScene:
 # objective
 # ---------------------------------------------------------------------------------------------
 
-def landmark_loss(residuals: np.ndarray, weights: np.ndarray, robust_px: float | None) -> tuple[float, np.ndarray]:
-    """losses.landmarks_2d's value and gradient (the same arithmetic, bit for bit) from the
-    residuals (N, D) float64 (points - targets) with weights (N,) float64 >= 0 and the
-    Geman-McClure scale ``robust_px`` (None: squared distances), without its argument checks:
-    for the objective's own arrays, every evaluation. Returns (value, d value / d residuals)."""
-    n = len(residuals)
-    if n == 0:
-        return 0.0, np.zeros_like(residuals)
-    r2 = np.einsum("ij,ij->i", residuals, residuals)
-    if robust_px is None:
-        value, slope = float((weights * r2).sum() / n), weights
-    else:
-        s2 = float(robust_px) ** 2
-        den = r2 + s2
-        value, slope = float((weights * (r2 / den)).sum() / n), weights * (s2 / (den * den))
-    return value, (2.0 / n) * slope[:, None] * residuals
-
-
-def gaussian_prior(coeffs: np.ndarray, sigma) -> tuple[float, np.ndarray]:
-    """losses.gaussian_prior with mean 0 (the same arithmetic, bit for bit) of a block (any
-    shape, float64) and its sigma (a float or a broadcastable float64 array > 0), without the
-    argument checks: (value, gradient of the block's shape)."""
-    z = coeffs / sigma
-    return float((z * z).sum()), 2.0 * z / sigma
-
-
 def reprojection(camera: Camera, points, target, weights, robust_px: float | None) -> tuple[float, np.ndarray]:
     """``sum_i w_i |proj(points_i) - target_i|^2`` in px^2 (Geman-McClure ``s^2 rho`` with
     ``robust_px = s``): points (N, 3) float64 world, target (N, 2) float64 pixels, weights (N,)
-    float64 >= 0 (the objective's own: checked by the camera, not by :func:`landmark_loss`).
+    float64 >= 0 (the objective's own: checked by the camera, not by losses.landmarks_2d_unchecked).
     Returns (value, d value / d points (N, 3))."""
     uv, ctx = camera.project_pixels(points)
-    value, g = landmark_loss(uv - target, weights, robust_px)
+    value, g = losses.landmarks_2d_unchecked(uv - target, weights, robust_px)
     factor = len(uv) * (1.0 if robust_px is None else robust_px ** 2)
     return value * factor, camera.project_pixels_vjp(ctx, g * factor, camera=False)["vertices"]
 
@@ -490,14 +464,14 @@ class BodyObjective:
         return {}
 
     def prior_terms(self, values: dict, w: dict) -> dict:
-        """The pose, shape and translation priors (:func:`gaussian_prior`) and the joint limits
+        """The pose, shape and translation priors (losses.gaussian_prior_unchecked) and the joint limits
         asked for by ``w``, of the solver's float64 blocks ``values``."""
         terms = {}
         specs = (("pose_prior", "body_pose", self.sigmas), ("shape_prior", "betas", 1.0),
                  ("translation_prior", "translation", TRANSLATION_SIGMA))
         for name, block, sigma in specs:
             if w.get(name):
-                value, g = gaussian_prior(values[block], sigma)
+                value, g = losses.gaussian_prior_unchecked(values[block], sigma)
                 terms[name] = (value, {block: g})
         if w.get("limits"):
             value, g = joint_limits(values["body_pose"], *self.hinges)

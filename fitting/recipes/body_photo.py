@@ -38,9 +38,9 @@ import numpy as np
 
 from softras_cl.errors import InputError, ResultError
 from softras_cl.scene.camera import Camera
+from softras_cl.fitting import losses
 from softras_cl.fitting.recipes.body import (BodyFit, BodyFitConfig, BodyObjective, BodyScene, body_params,
-                                             initial_translation, landmark_loss, prepare_target, reprojection,
-                                             rest_values)
+                                             initial_translation, prepare_target, reprojection, rest_values)
 from softras_cl.fitting.keypoints.pose33 import KeypointLayout, keypoint_layout
 from softras_cl.fitting.recipes.body_settings import OBJECTIVES, PHOTO_BUDGETS, PHOTO_WEIGHTS
 from softras_cl.fitting.solver import Stage, fit
@@ -254,7 +254,7 @@ class BodyPhotoObjective(BodyObjective):
         px_per_m = float(self.scene.camera.focal[1]) / self.scene.config.distance
         depth = points @ axis
         relative = (depth - depth[self.hips].mean()) * px_per_m
-        value, g = landmark_loss((relative - self.depth * px_per_m)[:, None], self.weights, self.keypoint_px)
+        value, g = losses.landmarks_2d_unchecked((relative - self.depth * px_per_m)[:, None], self.weights, self.keypoint_px)
         factor = len(relative) * self.keypoint_px ** 2
         g_relative = g[:, 0] * factor
         g_depth = (g_relative - self.hips * g_relative.sum() / 2) * px_per_m

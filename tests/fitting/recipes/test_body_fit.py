@@ -242,19 +242,21 @@ def test_posing_only_the_drawn_vertices_gives_the_whole_body(model, coarse):
 
 
 @pytest.mark.parametrize("robust", [None, 3.0])
-def test_unchecked_landmark_loss_and_priors_equal_the_losses_module_bit_for_bit(model, robust):
+def test_unchecked_landmark_loss_and_priors_equal_the_checked_ones_bit_for_bit(model, robust):
+    """The body objective's terms (losses' unchecked forms, on its own arrays) against the
+    checked functions, on the body's pose sigmas and a zero weight."""
     from softras_cl.fitting import losses
 
     rng = np.random.default_rng(8)
     points, target = rng.normal(0, 20, (19, 2)), rng.normal(0, 20, (19, 2))
     weights = rng.uniform(0, 1, 19)
     weights[3] = 0.0
-    value, grad = body.landmark_loss(points - target, weights, robust)
+    value, grad = losses.landmarks_2d_unchecked(points - target, weights, robust)
     want_value, want = losses.landmarks_2d(points, target, weights, robust)
     assert value == want_value and np.array_equal(grad, want["points"])
-    assert body.landmark_loss(np.zeros((0, 2)), np.zeros(0), robust)[0] == 0.0
+    assert losses.landmarks_2d_unchecked(np.zeros((0, 2)), np.zeros(0), robust)[0] == 0.0
     pose, sigmas = rng.normal(0, 0.3, (model.n_joints - 1, 3)), body.pose_sigmas(model)
     for block, sigma in ((pose, sigmas), (rng.normal(size=model.n_betas), 1.0), (rng.normal(size=3), body.TRANSLATION_SIGMA)):
-        value, grad = body.gaussian_prior(block, sigma)
+        value, grad = losses.gaussian_prior_unchecked(block, sigma)
         want_value, want = losses.gaussian_prior(block, sigma)
         assert value == want_value and np.array_equal(grad, want["coeffs"])
