@@ -31,6 +31,8 @@ import numpy as np
 
 from softras_cl.checks import index_array, nonnegative, positive, real_array
 
+IOU_EPS = 1e-6      # silhouette_iou's guard, in summed pixel values
+
 __all__ = [
     "MeshTopology", "mesh_topology",
     "image_l2", "image_l1", "image_geman_mcclure", "GemanMcClure", "silhouette_iou", "silhouette_l2", "landmarks_2d",
@@ -204,7 +206,7 @@ def _channel_sum(rows: np.ndarray) -> np.ndarray:
     return total
 
 
-def silhouette_iou(pred, target, eps: float = 1e-6, mask=None) -> tuple[float, dict]:
+def silhouette_iou(pred, target, eps: float = IOU_EPS, mask=None) -> tuple[float, dict]:
     """Soft IoU loss of the paper (sec. 4.1): ``1 - sum(p t) / sum(p + t - p t)``.
 
     ``pred``, ``target``: silhouettes (alpha in [0, 1]) of the same shape, e.g. (H, W); the sums

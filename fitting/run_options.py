@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterator
 
 from softras_cl.errors import InputError
+from softras_cl.fitting.device.where import PLACES
 from softras_cl.fitting.detection.faces import ORDER
 from softras_cl.fitting.recipes import body_settings, face_settings
 from softras_cl.fitting.recipes.body_settings import BodyFitConfig
@@ -206,7 +207,7 @@ def _face_options() -> tuple[Option, ...]:
         Option("objective", str, "auto", "where the fit's objective runs: 'host' (numpy around the OpenCL "
                "rasteriser), 'device' (the model, render, photometric term and gradients in OpenCL buffers; "
                "needs float64) or 'auto' (the default: device on a GPU, host on a CPU; docs/speed.md)",
-               field="objective", choices=face_settings.OBJECTIVES, recorded=False),
+               field="objective", choices=PLACES, recorded=False),
     )
 
 
@@ -244,6 +245,10 @@ def _body_options() -> tuple[Option, ...]:
         Option("robust_joints", float, None, "Geman-McClure scale in pixels (of the working image) for the "
                "joint term (default: plain squares; for a photo's keypoints 10%% of the working image's "
                "longer side)", field="robust_px", metavar="PX"),
+        Option("objective", str, "auto", "where the image stages' objective runs: 'host' (numpy around the "
+               "OpenCL rasteriser), 'device' (posing, render, silhouette and image terms and gradients in "
+               "OpenCL buffers; needs float64) or 'auto' (the default: device on a GPU, host on a CPU; "
+               "docs/speed.md)", field="objective", choices=PLACES, recorded=False),
     )
 
 

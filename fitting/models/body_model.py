@@ -82,8 +82,10 @@ class BodyContext:
     skinning (S: the posed vertices, V without a subset); pose (J, 3) the axis-angles (row 0
     the global rotation) and coeffs (4, J) their Rodrigues coefficients (rotation.rodrigues_rows);
     rot_local (J, 3, 3) their rotation matrices; rot_global (J, 3, 3) world rotations and
-    joints (J, 3) posed joints, before the translation; blend_rot (S, 3, 3) skinning-weighted
-    world rotations; part: the VertexSubset posed (the model's own of all vertices without one).
+    joints (J, 3) posed joints, before the translation; offsets (J, 3) ``joints - rot_global
+    rest_joints``: joint j moves a rest point x to ``rot_global_j x + offsets_j``; blend_rot
+    (S, 3, 3) skinning-weighted world rotations; part: the VertexSubset posed (the model's own
+    of all vertices without one).
     """
 
     rest_joints: np.ndarray
@@ -93,8 +95,34 @@ class BodyContext:
     rot_local: np.ndarray
     rot_global: np.ndarray
     joints: np.ndarray
+    offsets: np.ndarray
     blend_rot: np.ndarray
     part: VertexSubset
+
+
+@dataclass(frozen=True)
+class SkinCotangents:
+    """Sums over vertices posed apart from ``BodyModel.forward`` (on an OpenCL device, by the
+    same joint transforms: fitting.device.body_model) of their cotangents g_v (dL/dvertex),
+    for ``forward_vjp(skin=...)`` to add to its own (float64).
+
+    rotations (J, 3, 3) ``sum_v w_vj g_v v_posed_v^T``; offsets (J, 3) ``sum_v w_vj g_v``;
+    betas (B,) and pose_features (9 (J - 1),) the cotangents of the betas and of
+    :func:`pose_features` through those vertices' own blendshapes (pose_features None for a
+    model without posedirs); translation (3,) ``sum_v g_v``.
+    """
+
+    rotations: np.ndarray
+    offsets: np.ndarray
+    betas: np.ndarray
+    pose_features: np.ndarray | None
+    translation: np.ndarray
+
+
+def pose_features(rot_local: np.ndarray) -> np.ndarray:
+    """(9 (J - 1),) float64 what the pose blendshapes are driven by: ``R_j - I`` of the local
+    rotations rot_local (J, 3, 3) of the non-root joints, each flattened row-major."""
+    return (rot_local[1:] - np.eye(3)).ravel()
 
 
 def _floats(name: str, value, shape: tuple) -> np.ndarray:
@@ -322,7 +350,7 @@ class BodyModel:
         rot_local, coeffs = rodrigues_rows(pose)
         v_posed = v_shaped if part.rows is None else v_shaped[part.rows]
         if part.posedirs is not None:
-            v_posed = v_posed + part.posedirs @ (rot_local[1:] - np.eye(3)).ravel()
+            v_posed = v_posed + part.posedirs @ pose_features(rot_local)
         rot_global, joints = self._chain(rot_local, rest)
         offsets = joints - np.einsum("jab,jb->ja", rot_global, rest)
         blend_rot = (part.skin @ rot_global.reshape(-1, 9)).reshape(-1, 3, 3)
@@ -330,7 +358,7 @@ class BodyModel:
         return (BodyPose(vertices=vertices + trans, joints=joints + trans,
                          vertex_ids=None if subset is None else subset.ids),
                 BodyContext(rest_joints=rest, v_posed=v_posed, pose=pose, coeffs=coeffs, rot_local=rot_local,
-                            rot_global=rot_global, joints=joints, blend_rot=blend_rot, part=part))
+                            rot_global=rot_global, joints=joints, offsets=offsets, blend_rot=blend_rot, part=part))
 
     def _body_pose(self, body_pose) -> np.ndarray:
         """body_pose as (J-1, 3) float64 (a flat (3 (J-1),) vector is accepted)."""
@@ -353,13 +381,16 @@ class BodyModel:
             m[joints] = m[ancestors] @ m[joints]
         return np.ascontiguousarray(m[:, :3, :3]), np.ascontiguousarray(m[:, :3, 3])
 
-    def forward_vjp(self, ctx: BodyContext, grad_vertices=None, grad_joints=None, check: bool = True) -> dict:
+    def forward_vjp(self, ctx: BodyContext, grad_vertices=None, grad_joints=None, check: bool = True,
+                    skin: SkinCotangents | None = None) -> dict:
         """Vector-Jacobian product of ``forward``.
 
         grad_vertices (V, 3) = dL/dvertices ((S, 3) after a forward with a subset: those of
         its vertices; the others' are zero), grad_joints (J, 3) = dL/djoints (either may be
-        None: zero); check: as forward's, for these two. Returns dict betas (B,), body_pose
-        (J-1, 3), global_rotation (3,), translation (3,), all float64.
+        None: zero); check: as forward's, for these two; skin: the cotangent sums of more
+        vertices posed elsewhere by this forward's joint transforms (SkinCotangents), added.
+        Returns dict betas (B,), body_pose (J-1, 3), global_rotation (3,), translation (3,),
+        all float64.
         """
         part = ctx.part
         gv = np.zeros(ctx.v_posed.shape) if grad_vertices is None else grad_vertices if not check else _floats(
@@ -371,11 +402,15 @@ class BodyModel:
         outer = (gv[:, :, None] * ctx.v_posed[:, None, :]).reshape(-1, 9)    # (S, 9) g v^T row-major
         g_rot = (part.skin_t @ outer).reshape(-1, 3, 3)
         g_off = part.skin_t @ gv
+        if skin is not None:
+            g_rot, g_off = g_rot + skin.rotations, g_off + skin.offsets
         g_rot -= g_off[:, :, None] * ctx.rest_joints[:, None, :]
         g_rest = -np.einsum("jab,ja->jb", ctx.rot_global, g_off)
         g_local, g_rest = self._chain_vjp(ctx, g_rot, g_off + gj, g_rest)
         if part.posedirs is not None:
             g_feat = np.einsum("vcp,vc->p", part.posedirs, g_vposed)
+            if skin is not None:
+                g_feat = g_feat + skin.pose_features
             g_local[1:] += g_feat.reshape(-1, 3, 3)
         g_shaped = part.regressor_t @ g_rest
         if part.rows is None:
@@ -383,9 +418,13 @@ class BodyModel:
         else:
             g_shaped[part.rows] += g_vposed
         g_pose = rodrigues_rows_vjp(ctx.pose, ctx.coeffs, g_local)
-        return {"betas": np.einsum("bi,i->b", part.basis, g_shaped.ravel()),
-                "body_pose": g_pose[1:], "global_rotation": g_pose[0],
-                "translation": gv.sum(axis=0) + gj.sum(axis=0)}
+        grads = {"betas": np.einsum("bi,i->b", part.basis, g_shaped.ravel()),
+                 "body_pose": g_pose[1:], "global_rotation": g_pose[0],
+                 "translation": gv.sum(axis=0) + gj.sum(axis=0)}
+        if skin is not None:
+            grads["betas"] = grads["betas"] + skin.betas
+            grads["translation"] = grads["translation"] + skin.translation
+        return grads
 
     def _chain_vjp(self, ctx: BodyContext, g_rot: np.ndarray, g_pos: np.ndarray,
                    g_rest: np.ndarray):

@@ -52,14 +52,16 @@ from softras_cl.scene.camera import Camera
 from softras_cl.scene.renderer import SHARP, Renderer
 from softras_cl.raster.settings import RasterSettings
 from softras_cl.fitting import losses
+from softras_cl.fitting.device.body_objective import DeviceBodyEvaluation
+from softras_cl.fitting.device.where import on_device
 from softras_cl.fitting.metrics import psnr
-from softras_cl.fitting.models.body_model import BodyContext, BodyPose, VertexSubset
+from softras_cl.fitting.models.body_model import BodyContext, BodyPose, SkinCotangents, VertexSubset
 from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.recipes.body_settings import BUDGETS, DEFAULT_POSE_SIGMA, POSE_SIGMA, BodyFitConfig
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
 __all__ = ["HINGE_LIMITS", "BodyTarget", "BodyScene",
-           "BodyObjective", "BodyFit", "part_colors", "hinge_frames", "joint_limits",
+           "BodyObjective", "DeviceBodyObjective", "objective_class", "BodyFit", "part_colors", "hinge_frames", "joint_limits",
            "pose_sigmas", "prepare_target", "reprojection", "body_params",
            "rest_values", "default_stages", "fit_body", "initial_translation"]
 
@@ -379,30 +381,49 @@ class BodyObjective:
             self.observer(values, stage)
         w = stage.weights
         renders = bool(w.get("image") or w.get("silhouette"))
-        posed = self.posed(renders)
-        state, body_ctx = self.scene.pose(values, posed.subset, check=False)     # the solver's float64 blocks
+        state, body_ctx = self.scene.pose(values, self.host_posed(renders).subset, check=False)   # the solver's float64 blocks
         if self.too_close(values, state, body_ctx):
             return TOO_CLOSE_LOSS, {}, {"too_close": TOO_CLOSE_LOSS}
-        terms, out = self.prior_terms(values, w), None
+        terms, drawing = self.prior_terms(values, w), None
         if renders:
-            out = self.scene.render(state.vertices, stage.sigma, stage.gamma, grads=("vertices",),
-                                    faces=posed.faces, colors=posed.colors, **self.render_changes)
-            terms.update(self.image_terms(out))
+            image_terms, drawing = self.draw(values, stage, state, body_ctx)
+            terms.update(image_terms)
         if w.get("joints"):
             terms["joints"] = self.joint_term(state.joints)
         terms.update(self.extra_terms(state, w))
         total, g, weighted = losses.weighted_sum(terms, w)
-        g_vertices = g.pop("vertices", None)
-        if out is not None:
-            g_rgb, g_alpha = g.pop("rgb", None), g.pop("alpha", None)
-            g_render = self.scene.renderer_for(self.render_changes).backward(
-                out, grad_rgb=None if g_rgb is None else g_rgb[None],
-                grad_alpha=None if g_alpha is None else g_alpha[None])["vertices"]
-            g_vertices = g_render if g_vertices is None else g_vertices + g_render
-        grads = self.scene.model.forward_vjp(body_ctx, g_vertices, g.pop("joints", None), check=False)
+        g_vertices, skin = g.pop("vertices", None), None
+        if drawing is not None:
+            g_vertices, skin = self.drawing_vjp(drawing, g, g_vertices)
+        grads = self.scene.model.forward_vjp(body_ctx, g_vertices, g.pop("joints", None), check=False, skin=skin)
         for name, value in g.items():
             grads[name] = grads[name] + value
         return total, grads, weighted
+
+    def host_posed(self, renders: bool) -> _Posed:
+        """The vertices the host poses in an evaluation that renders (or not): :meth:`posed`'s
+        (an objective that poses the drawn vertices elsewhere poses fewer)."""
+        return self.posed(renders)
+
+    def draw(self, values: dict, stage: Stage, state: BodyPose, body_ctx: BodyContext) -> tuple[dict, object]:
+        """The image terms of the posed body ``state`` (the drawn faces' vertices among them) at
+        the stage's sigma and gamma, with gradients wrt the render's "rgb" and "alpha", and
+        what :meth:`drawing_vjp` takes back (here the RenderOutput)."""
+        posed = self.posed(True)
+        out = self.scene.render(state.vertices, stage.sigma, stage.gamma, grads=("vertices",),
+                                faces=posed.faces, colors=posed.colors, **self.render_changes)
+        return self.image_terms(out), out
+
+    def drawing_vjp(self, drawing, g: dict, g_vertices) -> tuple[np.ndarray, SkinCotangents | None]:
+        """The weighted sum's cotangents of the render's images (popped from ``g``) back to the
+        posed vertices, added to ``g_vertices`` (None: zero); drawing: :meth:`draw`'s second
+        value. Returns (cotangent of state.vertices, SkinCotangents of vertices posed elsewhere:
+        None here)."""
+        g_rgb, g_alpha = g.pop("rgb", None), g.pop("alpha", None)
+        g_render = self.scene.renderer_for(self.render_changes).backward(
+            drawing, grad_rgb=None if g_rgb is None else g_rgb[None],
+            grad_alpha=None if g_alpha is None else g_alpha[None])["vertices"]
+        return (g_render if g_vertices is None else g_vertices + g_render), None
 
     def posed(self, renders: bool) -> _Posed:
         """The vertices an evaluation that renders (or not) poses: the extra terms' and, when
@@ -477,6 +498,18 @@ class BodyObjective:
             value, g = joint_limits(values["body_pose"], *self.hinges)
             terms["limits"] = (value, {"body_pose": g["coeffs"]})
         return terms
+
+
+class DeviceBodyObjective(DeviceBodyEvaluation, BodyObjective):
+    """BodyObjective with its image stages on the OpenCL device of its scene's renderer
+    (fitting.device.body_objective); the numpy BodyObjective stays the reference it is tested
+    against."""
+
+
+def objective_class(where: str, scene: BodyScene) -> type:
+    """BodyObjective or DeviceBodyObjective for BodyFitConfig.objective ``where`` on the scene's
+    device (fitting.device.where.on_device). InputError for "device" on a device without float64."""
+    return DeviceBodyObjective if on_device(where, scene.renderer.device) else BodyObjective
 
 
 # ---------------------------------------------------------------------------------------------
@@ -590,7 +623,7 @@ def fit_body(target, model, config: BodyFitConfig = BodyFitConfig(), joints=None
         init["translation"] = initial_translation(scene, init, data.alpha)
     params = body_params(model, {k: np.asarray(v, np.float64) for k, v in init.items()})
     faces = None if config.coarse_mesh is None else model.coarse_faces(config.coarse_mesh)
-    objective = BodyObjective(scene, data, config.robust_px, observer, faces)
+    objective = objective_class(config.objective, scene)(scene, data, config.robust_px, observer, faces)
     result = fit(params, objective, default_stages(config, data), out_dir=out_dir, progress=progress,
                  resume=resume)
     return BodyFit(result.values, scene, data, result)

@@ -39,6 +39,8 @@ import numpy as np
 from softras_cl.errors import InputError, ResultError
 from softras_cl.scene.camera import Camera
 from softras_cl.fitting import losses
+from softras_cl.fitting.device.body_objective import DeviceBodyEvaluation
+from softras_cl.fitting.device.where import on_device
 from softras_cl.fitting.recipes.body import (BodyFit, BodyFitConfig, BodyObjective, BodyScene, body_params,
                                              initial_translation, prepare_target, reprojection, rest_values)
 from softras_cl.fitting.keypoints.pose33 import KeypointLayout, keypoint_layout
@@ -46,7 +48,7 @@ from softras_cl.fitting.recipes.body_settings import OBJECTIVES, PHOTO_BUDGETS, 
 from softras_cl.fitting.solver import Stage, fit
 
 __all__ = ["MIN_VISIBILITY", "BODY_PARTS", "parts_in_view", "in_view_line", "check_enough_in_view",
-           "fit_objective", "BodyPhotoObjective",
+           "fit_objective", "BodyPhotoObjective", "DeviceBodyPhotoObjective", "photo_objective_class",
            "BodyPhotoFit", "keypoint_weights", "camera_distance", "photo_stages", "photo_params",
            "mask_misses", "PhotoSetup", "photo_setup", "check_in_view", "fit_body_photo"]
 
@@ -271,6 +273,17 @@ class BodyPhotoObjective(BodyObjective):
         return value, {"joints": g_joints, "vertices": g_vertices}
 
 
+class DeviceBodyPhotoObjective(DeviceBodyEvaluation, BodyPhotoObjective):
+    """BodyPhotoObjective with its silhouette stages on the OpenCL device of its scene's renderer
+    (fitting.device.body_objective); the numpy BodyPhotoObjective stays the reference."""
+
+
+def photo_objective_class(where: str, scene: BodyScene) -> type:
+    """BodyPhotoObjective or DeviceBodyPhotoObjective for BodyFitConfig.objective ``where``
+    (fitting.device.where.on_device)."""
+    return DeviceBodyPhotoObjective if on_device(where, scene.renderer.device) else BodyPhotoObjective
+
+
 def photo_stages(budget: str, objective: str = "full", weights: dict | None = None) -> list[Stage]:
     """The stages (module docstring) of ``budget`` (PHOTO_BUDGETS) for ``objective`` (OBJECTIVES):
     "mask" has no torso or pose stage, "keypoints" no silhouette stages."""
@@ -461,7 +474,8 @@ def fit_body_photo(photo_size, detection, model, config: BodyFitConfig = BodyFit
         if progress:
             print(f"the person mask misses {', '.join(missed)}: the silhouette leaves out the pixels outside "
                   f"the mask around those limbs ({(data.care == 0).mean():.0%} of the image)")
-    objective_fn = BodyPhotoObjective(scene, data, layout, keypoints, seen, robust, faces, depth)
+    objective_fn = photo_objective_class(config.objective, scene)(scene, data, layout, keypoints, seen, robust,
+                                                                  faces, depth)
     stages = photo_stages(budget, objective, weights)
     if stages[0].name == "torso" and seen[layout.torso].any():
         init = _oriented_start(model, scene, objective_fn, data.alpha, stages[0])

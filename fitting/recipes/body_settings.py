@@ -11,6 +11,7 @@ import numpy as np
 
 from softras_cl.checks import number
 from softras_cl.errors import InputError
+from softras_cl.fitting.device.where import PLACES
 
 __all__ = ["BodyFitConfig", "BUDGETS", "PHOTO_BUDGETS", "PHOTO_WEIGHTS", "OBJECTIVES", "POSE_SIGMA", "DEFAULT_POSE_SIGMA", "COARSE_MESH", "MIN_SIZE"]
 
@@ -66,6 +67,10 @@ class BodyFitConfig:
         edge lengths of its template (fitting.models.mesh_lod.coarse_faces; None: the model's
         own faces). The fitted body, its joints and every picture and metric use the full mesh.
     dtype: rasteriser precision; float64 keeps line searches clean.
+    objective: where the objective runs (fitting.device.where.PLACES). "host": numpy around
+        the rasteriser's kernels (the reference); "device": the image stages' posing, render,
+        silhouette and image terms and their vjps in OpenCL buffers (fitting.device; needs a
+        device with float64); "auto": "device" on a GPU with float64, else "host".
     """
     size: int = 96
     distance: float = 3.7
@@ -80,6 +85,7 @@ class BodyFitConfig:
     robust_px: float | None = None
     coarse_mesh: float | None = COARSE_MESH
     dtype: str = "float64"
+    objective: str = "auto"
 
     def __post_init__(self):
         _check_body_config(self)
@@ -128,6 +134,8 @@ def _check_body_config(c: BodyFitConfig) -> None:
         _number("coarse_mesh", c.coarse_mesh, positive=True)
     if c.dtype not in ("float32", "float64"):
         raise InputError(f"dtype must be 'float32' or 'float64', got {c.dtype!r}")
+    if c.objective not in PLACES:
+        raise InputError(f"objective must be one of {', '.join(map(repr, PLACES))}, got {c.objective!r}")
 
 
 # The body fit of a photo (fitting.recipes.body_photo): its schedules and term weights.

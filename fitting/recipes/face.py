@@ -71,6 +71,7 @@ from softras_cl.raster.settings import RasterSettings
 from softras_cl.scene.shading import SH_A, SHLight, sh_ambient, sh_basis, vertex_normals
 from softras_cl.fitting import losses
 from softras_cl.fitting.device.face_objective import DeviceFaceEvaluation
+from softras_cl.fitting.device.where import on_device
 from softras_cl.fitting.keypoints import face_mesh, ibug68
 from softras_cl.fitting.keypoints.plausibility import check_distinct_landmarks, check_landmark_layout
 from softras_cl.fitting.metrics import psnr
@@ -795,18 +796,8 @@ def prepare_fit(photo, landmarks, model, config: FaceFitConfig,
 def objective_class(where: str, scene: FaceScene) -> type:
     """The objective class of FaceFitConfig.objective ``where`` for a scene: FaceObjective (the
     numpy reference, "host") or DeviceFaceObjective ("device"; "auto" picks it on a GPU with
-    float64). InputError for "device" on a device without float64."""
-    from softras_cl.cl.device import has_fp64, kernel_layout
-
-    device = scene.renderer.device
-    if where == "auto":
-        where = "device" if kernel_layout(device, "auto") == "gpu" and has_fp64(device) else "host"
-    if where == "host":
-        return FaceObjective
-    if not has_fp64(device):
-        raise InputError(f"objective 'device' needs float64 (cl_khr_fp64), which {device.name.strip()!r} lacks: "
-                         "use objective 'host'")
-    return DeviceFaceObjective
+    float64: fitting.device.where.on_device). InputError for "device" on a device without float64."""
+    return DeviceFaceObjective if on_device(where, scene.renderer.device) else FaceObjective
 
 
 def landmark_model(model, landmark_map: str, face_mesh_landmarks: bool = False):

@@ -12,6 +12,7 @@ import numpy as np
 
 from softras_cl.checks import number
 from softras_cl.errors import InputError
+from softras_cl.fitting.device.where import PLACES
 
 __all__ = ["FaceFitConfig", "input_check", "joint_config", "LANDMARK_WEIGHT_PHOTO", "DETECTED_LANDMARK_WEIGHT_PHOTO", "DETECTED_LANDMARK_SIGMA_MM", "BUDGETS", "COARSE_MESH", "COARSE_SIGMA", "LANDMARK_MAPS", "CONTOUR_LANDMARKS",
            "MIN_SIZE", "MIN_LANDMARK_SPREAD", "ROBUST_SCALE", "MIN_ROBUST_SCALE"]
@@ -69,9 +70,6 @@ DETECTED_LANDMARK_SIGMA_MM = np.array([
 # which at 5 the photometric stages could not undo; lighter, the photo decides the shape (docs/face_fitting.md,
 # "How much a detector's landmarks count in the photometric stages").
 DETECTED_LANDMARK_WEIGHT_PHOTO = 0.2
-
-# FaceFitConfig.objective: where the objective of a fit runs
-OBJECTIVES = ("auto", "host", "device")
 
 # Schedules: (sigma, gamma, evaluations) per photometric stage, and the landmark stage's budget.
 BUDGETS = {
@@ -247,8 +245,8 @@ def _check_face_config(c: FaceFitConfig) -> None:
         raise InputError(f"dense_weight must be >= 0 (0: no dense landmark term), got {c.dense_weight!r}")
     if c.dtype not in ("float32", "float64"):
         raise InputError(f"dtype must be 'float32' or 'float64', got {c.dtype!r}")
-    if c.objective not in OBJECTIVES:
-        raise InputError(f"objective must be one of {', '.join(map(repr, OBJECTIVES))}, got {c.objective!r}")
+    if c.objective not in PLACES:
+        raise InputError(f"objective must be one of {', '.join(map(repr, PLACES))}, got {c.objective!r}")
 
 
 # FaceFitConfig.landmark_weight_photo of the joint fit. The single fit's 5 (10 before) keeps one

@@ -173,6 +173,7 @@ def test_a_small_synthetic_fit_recovers_a_known_pose(model):
     (dict(coarse_mesh=0.0), "coarse_mesh must be > 0, got 0.0"),
     (dict(size=4), "size must be an integer >= 16"),
     (dict(background=(0.0, 1.0)), "background must be 3 numbers"),
+    (dict(objective="gpu"), "objective must be one of 'auto', 'host', 'device', got 'gpu'"),
 ])
 def test_body_config_names_a_bad_field(changes, says):
     from softras_cl.errors import InputError
