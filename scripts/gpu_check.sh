@@ -10,7 +10,8 @@
 # `softras-cl devices`; determinism (the same forward+backward three times, hashed); the
 # README's face fit end to end, cold (empty kernel cache) then warm (both with the device
 # objective a GPU gets), then warm with the numpy objective, then profiled phase by phase
-# (profile_face_device.json); the raster bench at 1024^2
+# (profile_face_device.json); bench body's fits on the device objective and on the numpy one;
+# the raster bench at 1024^2
 # with each kernel layout, numpy and device-resident in/out; the product's jobs: track-face on a
 # 90-frame 640x480 talking head and a fit-face batch of 32 photos (fast budget); the kernel tests
 # against the float64 reference (tests/raster's device-resident path first, then the rest of
@@ -56,11 +57,11 @@ START=$SECONDS
 if [ "$QUICK" = 1 ]; then
     BENCH_ARGS="--sizes 128 --faces 320,1280 --repeats 1" DETERMINISM_ARGS="--faces 1280 --size 128"
     FIT_ARGS="--budget fast" PROFILE_ARGS="--budget fast" CLIP_ARGS="--frames 12 --width 320 --height 240" TRACK_ARGS="--size 128"
-    PHOTOS=4
+    PHOTOS=4 BODY_POSES=1
 else   # the published sizes (280 / 3.3k / 39k faces) lie between these icosphere counts
     BENCH_ARGS="--sizes 1024 --faces 320,1280,5120,20480,81920 --repeats 5" DETERMINISM_ARGS=""
     FIT_ARGS="--budget default" PROFILE_ARGS="--budget default" CLIP_ARGS="--frames 90 --width 640 --height 480" TRACK_ARGS=""
-    PHOTOS=32
+    PHOTOS=32 BODY_POSES=6
 fi
 
 rm -rf "$SCRATCH" || exit 1
@@ -199,6 +200,14 @@ fit_face() {   # $1: output folder under $SCRATCH; more fit-face options after i
         --landmarks "$REPO/examples/data/landmarks/astronaut.pts" --out "$SCRATCH/$out" --no-progress $FIT_ARGS "$@"
 }
 
+bench_body() {   # bench body's target images on the device objective, then on the numpy one
+    local where
+    for where in device host; do
+        softras-cl bench body --poses "$BODY_POSES" --budgets default --objective "$where" \
+            --out "$SCRATCH/bench_body_$where" --json > /dev/null || return
+    done
+}
+
 profile_fit() {   # where a device-objective evaluation's time goes (scripts/profile_face_fit.py's phases)
     SOFTRAS_CL_CACHE_DIR="$FIT_CACHE" "$PY" "$REPO/scripts/profile_face_fit.py" run --mode timers $PROFILE_ARGS \
         --fit-args="--objective device" --json "$SCRATCH/profile_face_device.json"
@@ -223,9 +232,10 @@ batch_fit() {   # one fit-face call on the folder: a local Dask cluster, one wor
 }
 
 export REPO PY WHEELS SITE SCRATCH LAYOUTS BENCH_ARGS DETERMINISM_ARGS FIT_ARGS PROFILE_ARGS FIT_CACHE CLIP_ARGS TRACK_ARGS \
-    PHOTOS DEVICE_TESTS
+    PHOTOS BODY_POSES DEVICE_TESTS
 export -f install_packages system_inventory find_opencl_driver list_devices loader_diagnosis gpu_present \
-    device_tests kernel_tests determinism bench_raster fit_face profile_fit make_clip track_face make_photos batch_fit
+    device_tests kernel_tests determinism bench_raster fit_face profile_fit bench_body make_clip track_face make_photos \
+    batch_fit
 
 run_steps() {
     step install 60 install_packages || return
@@ -253,6 +263,7 @@ run_steps() {
     step fit_face_warm 60 fit_face fit_warm      # the kernels now come from the binary cache
     step fit_face_host 60 fit_face fit_host --objective host   # the numpy objective, to compare
     step profile_fit 60 profile_fit
+    step bench_body 60 bench_body
     step bench_raster 200 bench_raster
     step make_clip 45 make_clip && step track_face 120 track_face
     step make_photos 20 make_photos && step batch_fit 120 batch_fit

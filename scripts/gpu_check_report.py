@@ -23,7 +23,9 @@ bench/raster.json (`softras-cl bench raster`, one row per face count, size, layo
 numpy arrays or device-resident pyopencl arrays), fit/complete.json and fit_warm/complete.json
 (`softras-cl fit-face`, run twice: the first with an empty kernel cache, the second finding its
 kernels there; "seconds": the fit without start-up; both with the objective a GPU gets, the
-device one) and fit_host/complete.json (the warm fit again with the numpy objective), clip/clip.json and track/complete.json
+device one) and fit_host/complete.json (the warm fit again with the numpy objective),
+bench_body_device/body.json and bench_body_host/body.json (`softras-cl bench body` on each
+objective), clip/clip.json and track/complete.json
 (scripts/gpu_check_jobs.py's talking-head clip and `softras-cl track-face` on it;
 track_run.json: what stood in for MediaPipe and PyAV), photos/*.png and batch/results.jsonl
 (`softras-cl fit-face PHOTOS --budget fast`, one line per photo).
@@ -279,6 +281,19 @@ def targets(rows: list[dict], fit_s: float | None) -> dict:
         fit_s=dict(target=TARGET_FIT_S, measured=fit_s, met=None if fit_s is None else fit_s < TARGET_FIT_S))
 
 
+def body_summary(scratch: Path) -> dict | None:
+    """bench body on each objective (bench_body_{device,host}/body.json): poses, median seconds
+    per fit and mean joint error (mm) of the default budget. None when the step did not run."""
+    out = {}
+    for where in ("device", "host"):
+        doc = read_json(scratch / f"bench_body_{where}" / "body.json")
+        if doc is not None:
+            s = doc["summary"]["default"]
+            out[where] = dict(poses=len(doc["poses"]["default"]), median_seconds=s["median_seconds"],
+                              mpjpe_mm=s["mpjpe_mm"])
+    return out or None
+
+
 def overall_status(steps: list[dict], tests: dict | None, determinism: dict | None) -> str:
     """"planned" for a dry run (no step ran), "no_gpu" when the GPU check stopped the run, "ok"
     when every step succeeded, no test failed and the reruns were identical, else "failed"."""
@@ -311,7 +326,8 @@ def summary(scratch: Path, quick: bool) -> dict:
                 fit=dict(seconds=fit_s, fit_seconds=fit_report.get("seconds"), warm_seconds=warm_s,
                          warm_fit_seconds=warm_report.get("seconds"), host_seconds=step_seconds(steps, "fit_face_host"),
                          host_fit_seconds=host_report.get("seconds"), budget="fast" if quick else "default"),
-                track=track_summary(scratch, steps), batch=batch_summary(scratch, steps, os.cpu_count()),
+                body=body_summary(scratch), track=track_summary(scratch, steps),
+                batch=batch_summary(scratch, steps, os.cpu_count()),
                 determinism=determinism, targets=targets(rows, warm_s if warm_s is not None else fit_s))
 
 
@@ -322,6 +338,7 @@ def digest(result: dict) -> str:
     scene = {f"{r['layout']}/{r['io']}": r["fwdbwd_ms"] for r in result["bench"]
              if (r["faces"], r["size"]) == BENCH_SCENE and r["fwdbwd_ms"] is not None}
     track, batch = result.get("track") or {}, result.get("batch") or {}
+    body = result.get("body") or {}
     lines = [f"status: {result['status']}",
              f"device: {device.get('name')} ({device.get('type')}; {device.get('version')}; "
              f"driver {device.get('driver_version')})",
@@ -333,6 +350,9 @@ def digest(result: dict) -> str:
              f" (fitting alone: {_num(result['fit']['fit_seconds'])}, {_num(result['fit']['warm_fit_seconds'])});"
              f" numpy objective: {result['fit'].get('host_seconds')} (fitting alone: "
              f"{_num(result['fit'].get('host_fit_seconds'))})",
+             "bench body median s per fit: " + (", ".join(
+                 f"{where} {_num(b['median_seconds'])} ({b['mpjpe_mm']:.1f} mm)" for where, b in body.items())
+                 or "not run"),
              f"track-face: {track.get('frames')} frames, {_num(track.get('end_to_end_fps'))} frames/s end to end, "
              f"{_num(track.get('frame_fit_fps'))} frames/s per-frame stage",
              f"fit-face batch: {batch.get('ok')} of {batch.get('photos')} photos in {batch.get('seconds')} s, "

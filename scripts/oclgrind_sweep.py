@@ -316,6 +316,54 @@ def run_face_objective() -> None:
         _finite("photo term", [total.get(), grad.get()])
 
 
+def sphere_body_model():
+    """A BodyModel on an icosphere (162 vertices) with a chain of three joints, each vertex
+    skinned by two of them, random shape and pose blendshapes: the device body objective's
+    kernels at a size Oclgrind simulates in seconds."""
+    from softras_cl.fitting.models.body_model import BodyModel
+
+    rng = np.random.default_rng(8)
+    v, f = icosphere(2, radius=0.5)
+    n, joints = len(v), 3
+    weights = np.zeros((n, joints))
+    pairs = rng.integers(0, joints - 1, n)
+    share = rng.uniform(0.2, 0.8, n)
+    weights[np.arange(n), pairs], weights[np.arange(n), pairs + 1] = share, 1.0 - share
+    regressor = np.zeros((joints, n))
+    regressor[np.arange(joints), rng.choice(n, joints, replace=False)] = 1.0
+    return BodyModel(v, rng.normal(0, 0.01, (n, 3, 4)), regressor, [-1, 0, 1], weights, f,
+                     posedirs=rng.normal(0, 0.01, (n, 3, 9 * (joints - 1))))
+
+
+def run_body_objective() -> None:
+    """The device body objective's own kernels: the drawn vertices posed (blendshapes, sparse
+    skinning) and the skinning's vjp, on a small body with pose blendshapes; the silhouette and
+    image terms with their cotangents on random images, with a care mask and without colours.
+    Its render is left to the Renderer variants above, as the face objective's is."""
+    import pyopencl.array as cla
+    from softras_cl.cl.device import get_context, select_device
+    from softras_cl.fitting.device.body_model import DeviceSkin
+    from softras_cl.fitting.device.body_objective import DeviceBodyImages
+    from softras_cl.fitting.recipes.body import BodyTarget
+
+    model, rng = sphere_body_model(), np.random.default_rng(9)
+    values = dict(betas=rng.normal(size=4), body_pose=rng.normal(0, 0.3, (2, 3)), global_rotation=rng.normal(0, 0.3, 3),
+                  translation=rng.normal(0, 0.1, 3))
+    ids = np.sort(rng.choice(model.n_vertices, 100, replace=False))
+    state, ctx = model.forward(*values.values(), subset=model.subset(ids[:0]))
+    skin = DeviceSkin(model, ids, get_context(select_device())[1])
+    vertices, v_posed, transforms = skin.forward(values, ctx)
+    sums = skin.vjp(cla.to_device(skin.kernels.queue, rng.normal(size=(len(ids), 3))), v_posed, transforms)
+    _finite("body skinning", [vertices.get(), *(a.get() for a in sums)])
+    for rgb, care in ((rng.random((H, W, 3)), rng.random((H, W))), (None, None)):
+        images = DeviceBodyImages(skin.kernels, BodyTarget(rgb, rng.random((H, W)), None, None, 1.0, (H, W), care),
+                                  (0.1, 0.2, 0.3))
+        out = argparse.Namespace(alpha=cla.to_device(skin.kernels.queue, rng.random((1, H, W))),
+                                 rgb=cla.to_device(skin.kernels.queue, rng.random((1, H, W, 3))))
+        totals, g_alpha, g_rgb = images(out, 3.0, 1.0)
+        _finite("body image terms", [totals.get(), g_alpha.get()] + ([] if g_rgb is None else [g_rgb.get()]))
+
+
 def gpu_layout_variants() -> list[tuple[str, callable]]:
     """The GPU layout's kernels (one pixel per work-item, tiles staged in local memory): the
     build-time flags in 18 combinations, then lighting, outputs, regions of interest, a tile with
@@ -379,6 +427,7 @@ def variants() -> list[tuple[str, callable]]:
                     lambda b=batch, kw=kw: run_raster(b, both, dtype="float32", lanes=16, **kw)))
     out += gpu_layout_variants()
     out.append(("device face objective: landmark stage, photometric term", run_face_objective))
+    out.append(("device body objective: skinning and its vjp, silhouette and image terms", run_body_objective))
     # the gradient sums as a device without cl_khr_fp64 builds them (float accumulation)
     for label, batch, kw in [("sh per-pixel", 2, dict(lighting="sh")), ("face texture", 1, dict(texture="face"))]:
         out.append((f"raster float32 float gradient sums {label} B={batch}",

@@ -175,6 +175,9 @@ def fake_run(scratch: Path, steps: str = STEPS, junit: str = JUNIT, identical: b
     touch(scratch / "fit/complete.json", json.dumps(dict(seconds=4.25)))
     touch(scratch / "fit_warm/complete.json", json.dumps(dict(seconds=1.25)))
     touch(scratch / "fit_host/complete.json", json.dumps(dict(seconds=2.0)))
+    for where, seconds, mm in (("device", 0.25, 30.5), ("host", 1.5, 30.25)):
+        touch(scratch / f"bench_body_{where}/body.json", json.dumps(dict(
+            summary=dict(default=dict(median_seconds=seconds, mpjpe_mm=mm)), poses=dict(default=[{}] * 6))))
     touch(scratch / "clip/clip.json", json.dumps(dict(frames=90, width=640, height=480, fps=30.0, seed=7)))
     touch(scratch / "track/complete.json", json.dumps(TRACK))
     touch(scratch / "track_run.json", json.dumps(dict(rc=0, stand_ins=dict(landmarks="given"))))
@@ -236,6 +239,8 @@ def test_summary_of_a_good_run(report, tmp_path):
     assert s["nvidia_smi"] == dict(name="NVIDIA H100 80GB HBM3", driver_version="580.159.04", memory_total="81559 MiB")
     assert s["fit"] == dict(seconds=4.75, fit_seconds=4.25, warm_seconds=1.75, warm_fit_seconds=1.25,
                             host_seconds=2.5, host_fit_seconds=2.0, budget="default")
+    assert s["body"] == dict(device=dict(poses=6, median_seconds=0.25, mpjpe_mm=30.5),
+                             host=dict(poses=6, median_seconds=1.5, mpjpe_mm=30.25))
     assert s["targets"]["bench_scene_fwdbwd_ms"] == dict(target=2.0, measured=0.6, layout="gpu", io="device",
                                                           kernel_ms=0.3, met=True)
     assert [(p["layout"], p["faces"], p["device_ms"]) for p in s["end_to_end"] if p["device_ms"]] == [
@@ -277,18 +282,20 @@ def test_overall_status(report, tmp_path, steps, junit, junit_device, identical,
 
 def test_digest_names_what_was_measured(report, tmp_path):
     lines = report.digest(report.summary(fake_run(tmp_path), quick=False)).splitlines()
-    assert lines[:8] == [
+    assert lines[:9] == [
         "status: failed",
         "device: NVIDIA H100 80GB HBM3 (GPU; OpenCL 3.0 CUDA; driver 580.159.04)",
         "tests: 8 passed, 3 failed, 3 skipped of 14 run",
         "bench scene fwd+bwd ms: cpu/numpy 3.000, gpu/device 0.600, gpu/numpy 1.500",
         "face fit s: 4.75, again with its kernels built: 1.75 (fitting alone: 4.25, 1.25); "
         "numpy objective: 2.5 (fitting alone: 2)",
+        "bench body median s per fit: device 0.25 (30.5 mm), host 1.5 (30.2 mm)",
         "track-face: 90 frames, 10 frames/s end to end, 60 frames/s per-frame stage",
         "fit-face batch: 3 of 4 photos in 16.0 s, 0.188 photos/s",
         "reruns identical: True"]
     stopped = report.digest(report.summary(touch(tmp_path / "s/steps.tsv", "").parent, quick=True))
     assert "tests: no report" in stopped and "bench scene fwd+bwd ms: not run" in stopped
+    assert "bench body median s per fit: not run" in stopped
     assert "track-face: None frames" in stopped and "fit-face batch: None of None photos" in stopped
 
 
@@ -296,7 +303,7 @@ def test_summary_of_a_run_that_stopped_at_once(report, tmp_path):
     touch(tmp_path / "steps.tsv", "install\tfailed\t1\t2\t60\n")
     s = report.summary(tmp_path, quick=True)
     assert s["status"] == "failed" and s["device"] is None and s["tests"] is None and s["bench"] == []
-    assert s["end_to_end"] == [] and s["track"] is None and s["batch"] is None
+    assert s["end_to_end"] == [] and s["track"] is None and s["batch"] is None and s["body"] is None
     assert s["targets"]["fit_s"] == dict(target=2.0, measured=None, met=None)
 
 
@@ -422,7 +429,7 @@ def test_dry_run_plans_every_step_in_order_within_the_deadline(tmp_path):
     plan = [(s["name"], s["budget_s"]) for s in summary["steps"]]
     assert plan == [("install", 60), ("system", 30), ("find_opencl_driver", 40), ("devices", 60),
                     ("gpu_present", 20), ("determinism", 60), ("fit_face", 120), ("fit_face_warm", 60),
-                    ("fit_face_host", 60), ("profile_fit", 60), ("bench_raster", 200), ("make_clip", 45), ("track_face", 120), ("make_photos", 20),
+                    ("fit_face_host", 60), ("profile_fit", 60), ("bench_body", 60), ("bench_raster", 200), ("make_clip", 45), ("track_face", 120), ("make_photos", 20),
                     ("batch_fit", 120), ("device_tests", 120), ("kernel_tests", 300)]
     assert all(s["status"] == "planned" for s in summary["steps"])
     assert "== kernel_tests (at most 300 s): kernel_tests" in proc.stdout

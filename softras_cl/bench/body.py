@@ -28,6 +28,7 @@ from softras_cl.bench.tools import (add_bench_parser, add_budgets_option, add_mo
                                     add_samples_options, check_samples, load_model, print_report)
 from softras_cl.io.outputs import OutputFolder, write_figure, write_json
 from softras_cl.provenance import provenance
+from softras_cl.fitting.device.where import PLACES
 
 DEFAULT_BUDGETS = ("fast", "default")
 
@@ -90,12 +91,12 @@ def summarise(rows: list[dict]) -> dict:
                 median_cpu_seconds=float(statistics.median(r["cpu_seconds"] for r in rows)))
 
 
-def run_budget(model, samples: list[dict], budget: str, size: int, progress: bool) -> list[dict]:
+def run_budget(model, samples: list[dict], budget: str, size: int, progress: bool, objective: str = "auto") -> list[dict]:
     from tqdm import tqdm
 
     from softras_cl.fitting.recipes.body import BodyFitConfig, fit_body
 
-    config = BodyFitConfig.from_budget(budget, size=size)
+    config = BodyFitConfig.from_budget(budget, size=size, objective=objective)
     rows = []
     for sample in tqdm(samples, desc=f"bench body [{budget}]", disable=not progress):
         start, cpu = time.perf_counter(), time.process_time()
@@ -191,10 +192,10 @@ def run(args: argparse.Namespace) -> int:
         rng = np.random.default_rng(args.seed)
         samples = [synthetic_body(model, rng, args.size, args.joints) for _ in range(args.poses)]
         load_start = os.getloadavg()
-        per_budget = {b: run_budget(model, samples, b, args.size, not args.json) for b in budgets}
+        per_budget = {b: run_budget(model, samples, b, args.size, not args.json, args.objective) for b in budgets}
         summary = {b: summarise(rows) for b, rows in per_budget.items()}
         rest = rest_baseline(model, samples, args.size)
-        doc = dict(size=args.size, seed=args.seed, joints=args.joints,
+        doc = dict(size=args.size, seed=args.seed, joints=args.joints, objective=args.objective,
                    camera="one frontal camera, 3.7 m, 30 deg fov, aimed at 0.9 m height",
                    rest_pose=rest, summary=summary,
                    load_average=dict(start=load_start, end=os.getloadavg()),
@@ -215,6 +216,9 @@ def register(which) -> None:
     add_budgets_option(p, DEFAULT_BUDGETS)
     p.add_argument("--joints", action="store_true", help="also give the fit noisy 2D joints (1 px)")
     p.add_argument("--seed", type=int, default=0, help="random seed of the targets (default 0)")
+    p.add_argument("--objective", choices=PLACES, default="auto",
+                   help="where the fits' image stages run, as fit-body --objective: 'host' (numpy), 'device' "
+                        "(OpenCL buffers; needs float64), 'auto' (the default: device on a GPU, host on a CPU)")
     add_model_option(p, "body")
     p.add_argument("--quick", action="store_true",
                    help="tiny run for tests: 1 pose at 32 px, fast budget")

@@ -85,8 +85,10 @@ def test_interrupted_fit_keeps_and_writes_the_best_result(tmp_path, target, caps
 
 @pytest.mark.slow
 def test_bench_body_quick(tmp_path, capsys):
-    assert main(["bench", "body", "--quick", "--json", "--out", str(tmp_path)]) == 0
+    """On the device objective, which a GPU would take by default."""
+    assert main(["bench", "body", "--quick", "--objective", "device", "--json", "--out", str(tmp_path)]) == 0
     doc = json.loads((tmp_path / "body.json").read_text())
+    assert doc["objective"] == "device"
     row = doc["summary"]["fast"]
     assert row["poses"] == 1 and np.isfinite(row["mpjpe_mm"]) and 0.0 < row["silhouette_iou"] <= 1.0
     assert (tmp_path / "body.png").exists() and (tmp_path / "body_strip.png").exists()
