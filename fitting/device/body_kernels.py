@@ -1,7 +1,7 @@
 """Element-wise float64 kernels of the device body objective (pyopencl ElementwiseKernel, run
-through softras_cl.scene.device_kernels.SceneKernels with this table in its extra): linear blend
-skinning and its vjp over a sparse weight matrix, and the silhouette and image terms of the body
-fit with their cotangents.
+through softras_cl.scene.device_kernels.SceneKernels with this table in its extra and
+BODY_PREAMBLE): linear blend skinning and its vjp over a sparse weight matrix, and the silhouette
+and image terms of the body fit with their cotangents.
 
 A sparse matrix is CSR: row r's entries are k = row_start[r] .. row_start[r + 1] - 1, with
 column col[k] and value weight[k], columns ascending (scipy's CSR of the model's weights). Each
@@ -10,6 +10,21 @@ SceneKernels.sum_products), so reruns give the same bits.
 """
 from __future__ import annotations
 
+# b[c] = sum_k weight[k] transforms[12 col[k] + c] for c < n over row i's entries: the first n of
+# the blended 12 (rotation row-major, then offset)
+BODY_PREAMBLE = """
+void blend_transforms(double *b, const int n, const long i, __global const int *row_start,
+                      __global const int *col, __global const double *weight, __global const double *transforms) {
+    for (int c = 0; c < n; ++c)
+        b[c] = 0.0;
+    for (int k = row_start[i]; k < row_start[i + 1]; ++k) {
+        __global const double *m = transforms + 12 * col[k];
+        for (int c = 0; c < n; ++c)
+            b[c] += weight[k] * m[c];
+    }
+}
+"""
+
 BODY_KERNELS = {
     # vertices (S, 3) = sum_k weight[k] (R_j v + o_j) + t, j = col[k] over vertex i's row, v its
     # v_posed (S, 3) row; transforms: (J, 12) rows R_j row-major (9) and o_j (3), then t (3)
@@ -17,13 +32,7 @@ BODY_KERNELS = {
              "const int *col, const double *weight, const long n_joints",
              """
              double b[12];
-             for (int c = 0; c < 12; ++c)
-                 b[c] = 0.0;
-             for (int k = row_start[i]; k < row_start[i + 1]; ++k) {
-                 __global const double *m = transforms + 12 * col[k];
-                 for (int c = 0; c < 12; ++c)
-                     b[c] += weight[k] * m[c];
-             }
+             blend_transforms(b, 12, i, row_start, col, weight, transforms);
              const double x = v_posed[3 * i], y = v_posed[3 * i + 1], z = v_posed[3 * i + 2];
              __global const double *t = transforms + 12 * n_joints;
              for (int r = 0; r < 3; ++r)
@@ -35,13 +44,7 @@ BODY_KERNELS = {
                  "const double *transforms, const int *row_start, const int *col, const double *weight",
                  """
                  double b[9];
-                 for (int c = 0; c < 9; ++c)
-                     b[c] = 0.0;
-                 for (int k = row_start[i]; k < row_start[i + 1]; ++k) {
-                     __global const double *m = transforms + 12 * col[k];
-                     for (int c = 0; c < 9; ++c)
-                         b[c] += weight[k] * m[c];
-                 }
+                 blend_transforms(b, 9, i, row_start, col, weight, transforms);
                  const double g0 = g[3 * i], g1 = g[3 * i + 1], g2 = g[3 * i + 2];
                  const double gv[3] = {g0, g1, g2};
                  for (int c = 0; c < 3; ++c)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pyopencl.array as cla
 
-from softras_cl.fitting.device.body_kernels import BODY_KERNELS
+from softras_cl.fitting.device.body_kernels import BODY_KERNELS, BODY_PREAMBLE
 from softras_cl.fitting.device.kernels import FIT_KERNELS
 from softras_cl.fitting.device.model import DeviceBasis
 from softras_cl.fitting.models.body_model import BodyContext, SkinCotangents, pose_features
@@ -47,7 +47,7 @@ class DeviceSkin:
         self.model = model
         ids = np.arange(model.n_vertices) if ids is None else np.asarray(ids, np.int64)
         self.n_vertices, self.n_joints, self.n_betas = len(ids), model.n_joints, model.n_betas
-        self.kernels = SceneKernels(queue.context, queue, extra=FIT_KERNELS | BODY_KERNELS)
+        self.kernels = SceneKernels(queue.context, queue, extra=FIT_KERNELS | BODY_KERNELS, preamble=BODY_PREAMBLE)
         rows = [np.moveaxis(model.shapedirs[ids], 2, 0).reshape(model.n_betas, -1)]
         if model.posedirs is not None:
             rows.append(np.moveaxis(model.posedirs[ids], 2, 0).reshape(model.posedirs.shape[2], -1))
