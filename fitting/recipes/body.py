@@ -60,8 +60,8 @@ from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.recipes.body_settings import BUDGETS, DEFAULT_POSE_SIGMA, POSE_SIGMA, BodyFitConfig
 from softras_cl.fitting.solver import FitResult, Stage, fit
 
-__all__ = ["HINGE_LIMITS", "BodyTarget", "BodyScene",
-           "BodyObjective", "DeviceBodyObjective", "objective_class", "BodyFit", "part_colors", "hinge_frames", "joint_limits",
+__all__ = ["HINGE_LIMITS", "BodyTarget", "BodyScene", "BodyObjective", "DeviceBodyObjective", "objective_class",
+           "BodyFit", "part_colors", "hinge_frames", "joint_limits",
            "pose_sigmas", "prepare_target", "reprojection", "body_params",
            "rest_values", "default_stages", "fit_body", "initial_translation"]
 
@@ -381,7 +381,8 @@ class BodyObjective:
             self.observer(values, stage)
         w = stage.weights
         renders = bool(w.get("image") or w.get("silhouette"))
-        state, body_ctx = self.scene.pose(values, self.host_posed(renders).subset, check=False)   # the solver's float64 blocks
+        # the solver's float64 blocks: no checks
+        state, body_ctx = self.scene.pose(values, self.host_posed(renders).subset, check=False)
         if self.too_close(values, state, body_ctx):
             return TOO_CLOSE_LOSS, {}, {"too_close": TOO_CLOSE_LOSS}
         terms, drawing = self.prior_terms(values, w), None

@@ -91,7 +91,8 @@ def summarise(rows: list[dict]) -> dict:
                 median_cpu_seconds=float(statistics.median(r["cpu_seconds"] for r in rows)))
 
 
-def run_budget(model, samples: list[dict], budget: str, size: int, progress: bool, objective: str = "auto") -> list[dict]:
+def run_budget(model, samples: list[dict], budget: str, size: int, progress: bool,
+               objective: str = "auto") -> list[dict]:
     from tqdm import tqdm
 
     from softras_cl.fitting.recipes.body import BodyFitConfig, fit_body
