@@ -33,7 +33,8 @@ FACE_SAMPLES = dict(model=FILE, model_landmarks=FILE, budget="fast", size="128",
                     coarse_mesh="0.5", focal="900", landmark_map="model", dense_landmarks="1.5", n_id="5", n_exp="6",
                     n_albedo="7", objective="host")
 BODY_SAMPLES = dict(model=FILE, silhouette=None, input="photo", background="0.5,0.5,0.5", budget="thorough", size="64",
-                    distance="4.5", height="1.1", fov="40", coarse_mesh="0", robust_joints="3")
+                    distance="4.5", height="1.1", fov="40", coarse_mesh="0", robust_joints="3",
+                    objective="host")
 TRACK_SAMPLES = dict(model=FILE, fps="25", face="1", face_box="1,2,30,40", chunk="50", scan="60", keyframes="6",
                      identity_passes="1", budget="default", size="128", frame_iters="12", rotation_speed="0.1",
                      translation_speed="0.01", exp_speed="0.5", momentum="0.5", light_speed="0.3", smooth_lag="5",
