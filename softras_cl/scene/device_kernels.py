@@ -235,10 +235,12 @@ KERNELS = {
                                           + albedo[3 * (base + faces[3 * f + 2]) + j]) / 3.0;
                     """),
     # Lambert: colours and irradiance (N, 3), cos (N,) of normals n and albedo (n_items rows,
-    # shared by the batch or not); light: unit direction (3), ambient (3), directional (3)
+    # shared by the batch or not); lights: unit direction (3), ambient (3), directional (3), one
+    # light for all (per_view 0) or one per view of per_view items
     "lambert": ("double *colors, double *irr, double *cosines, const double *n, const double *albedo, "
-                "const double *light, const long n_items, const int shared_albedo",
+                "const double *lights, const long n_items, const int shared_albedo, const long per_view",
                 _ALBEDO_ROW + """
+                __global const double *light = lights + (per_view ? 9 * (i / per_view) : 0);
                 const double cs = n[3 * i] * light[0] + n[3 * i + 1] * light[1] + n[3 * i + 2] * light[2];
                 cosines[i] = cs;
                 for (int j = 0; j < 3; ++j) {
@@ -250,9 +252,10 @@ KERNELS = {
     # Lambert's vjp: normals and albedo gradients (N, 3), and the 9 product columns summed for
     # ambient (grad_irr), directional (grad_irr * max(0, cos)) and the light vector (grad_cos * n)
     "lambert_vjp": ("double *g_n, double *g_albedo, double *products, const double *g, const double *n, "
-                    "const double *albedo, const double *irr, const double *cosines, const double *light, "
-                    "const long n_items, const int shared_albedo",
+                    "const double *albedo, const double *irr, const double *cosines, const double *lights, "
+                    "const long n_items, const int shared_albedo, const long per_view",
                     _ALBEDO_ROW + """
+                    __global const double *light = lights + (per_view ? 9 * (i / per_view) : 0);
                     const double cs = cosines[i];
                     double gi[3];
                     for (int j = 0; j < 3; ++j) {
@@ -268,10 +271,12 @@ KERNELS = {
                         q[6 + j] = gcos * n[3 * i + j];
                     }
                     """),
-    # SH: colours and irradiance (N, 3); m (27) = coefficients * A_l, channel-major
-    "sh": ("double *colors, double *irr, const double *n, const double *albedo, const double *m, "
-           "const long n_items, const int shared_albedo",
+    # SH: colours and irradiance (N, 3); lights (27 per light) = coefficients * A_l,
+    # channel-major, one light for all (per_view 0) or one per view of per_view items
+    "sh": ("double *colors, double *irr, const double *n, const double *albedo, const double *lights, "
+           "const long n_items, const int shared_albedo, const long per_view",
            _ALBEDO_ROW + _SH_BASIS + """
+           __global const double *m = lights + (per_view ? 27 * (i / per_view) : 0);
            for (int c = 0; c < 3; ++c) {
                double e = basis[0] * m[9 * c];
                for (int k = 1; k < 9; ++k)
@@ -282,9 +287,10 @@ KERNELS = {
            """),
     # SH's vjp: normals and albedo gradients (N, 3), and the 27 product columns grad_irr_c * Y_k
     "sh_vjp": ("double *g_n, double *g_albedo, double *products, const double *g, const double *n, "
-               "const double *albedo, const double *irr, const double *m, const long n_items, "
-               "const int shared_albedo",
+               "const double *albedo, const double *irr, const double *lights, const long n_items, "
+               "const int shared_albedo, const long per_view",
                _ALBEDO_ROW + _SH_BASIS + f"""
+               __global const double *m = lights + (per_view ? 27 * (i / per_view) : 0);
                double gi[3], gb[9];
                for (int c = 0; c < 3; ++c) {{
                    gi[c] = g[3 * i + c] * albedo[3 * arow + c];

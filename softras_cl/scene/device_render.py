@@ -128,7 +128,8 @@ def check_metadata(renderer, args: dict, cameras, light) -> None:
             ok = False       # the numpy path's shading refuses an albedo batch of 1 for B > 1 views
     except (ValueError, TypeError):
         ok = False
-    if isinstance(light, shading.PhongLight) and renderer.shading in ("vertex", "face"):
+    kind = type(light[0]) if isinstance(light, (list, tuple)) and light else type(light)
+    if issubclass(kind, shading.PhongLight) and renderer.shading in ("vertex", "face"):
         raise ValueError("light: the device-resident Renderer shades with LambertLight and SHLight; a "
                          "PhongLight needs numpy inputs (its view directions are not on the device yet)")
     if not ok:
@@ -179,49 +180,67 @@ def face_normals_device(tools: DeviceTools, state: DeviceState, per_vertex: bool
     return Normals(unit, length, e1, e2, per_vertex)
 
 
+def _per_view(light) -> tuple[list, bool]:
+    """(the lights: one, or one per view of a ViewLights; whether they are per view)."""
+    if isinstance(light, shading.ViewLights):
+        return light.lights, True
+    return [light], False
+
+
 def shade_device(tools: DeviceTools, state: DeviceState, light, albedo: cla.Array, n_items: int) -> cla.Array:
-    """Colours (B*N, 3) of the state's normals lit by a LambertLight or SHLight; albedo
-    (n_items, 3) shared by the batch or (B*N, 3). Saves irradiance (and cosines) in the state."""
+    """Colours (B*N, 3) of the state's normals lit by a LambertLight or SHLight (or a ViewLights
+    of them: one per view); albedo (n_items, 3) shared by the batch or (B*N, 3). Saves
+    irradiance (and cosines) in the state."""
     k, n = tools.kernels, state.normals.unit.shape[0]
     colors, irr = k.empty((n, 3)), k.empty((n, 3))
     shared = np.int32(albedo.shape[0] != n)
-    if isinstance(light, shading.SHLight):
-        state.light_vec = cla.to_device(tools.queue, (light.coefficients * shading.SH_A).ravel())
-        k("sh", n, colors, irr, state.normals.unit, albedo, state.light_vec, np.int64(n_items), shared)
-    elif type(light) is shading.LambertLight:
-        unit, length = shading._normalize(light.direction)
-        state.light_vec = cla.to_device(tools.queue, np.concatenate([unit, light.ambient, light.directional]))
-        state.light_len = length
+    lights, per_view = _per_view(light)
+    stride = np.int64(n // state.batch if per_view else 0)
+    kind = type(lights[0])
+    if issubclass(kind, shading.SHLight):
+        state.light_vec = cla.to_device(tools.queue, np.concatenate([(l.coefficients * shading.SH_A).ravel()
+                                                                     for l in lights]))
+        k("sh", n, colors, irr, state.normals.unit, albedo, state.light_vec, np.int64(n_items), shared, stride)
+    elif kind is shading.LambertLight:
+        units, lengths = zip(*(shading._normalize(l.direction) for l in lights))
+        state.light_vec = cla.to_device(tools.queue, np.concatenate(
+            [np.concatenate([u, l.ambient, l.directional]) for u, l in zip(units, lights)]))
+        state.light_len = np.array(lengths)
         state.cosines = k.empty(n)
         k("lambert", n, colors, irr, state.cosines, state.normals.unit, albedo, state.light_vec,
-          np.int64(n_items), shared)
+          np.int64(n_items), shared, stride)
     else:
-        raise ValueError(f"light must be a LambertLight or SHLight on the device path, got {type(light).__name__}")
+        raise ValueError(f"light must be a LambertLight or SHLight on the device path, got {kind.__name__}")
     state.albedo, state.irradiance = albedo, irr
     return colors
 
 
 def shade_vjp_device(tools: DeviceTools, state: DeviceState, light, g_colors: cla.Array) -> tuple:
-    """(normals gradient (B*N, 3), albedo gradient (B*N, 3), {light parameter: numpy gradient})
-    of the shading, for the colour cotangent g_colors (B*N, 3) float64."""
+    """(normals gradient (B*N, 3), albedo gradient (B*N, 3), {light parameter: numpy gradient,
+    stacked over the views (B, ...) for a ViewLights}) of the shading, for the colour cotangent
+    g_colors (B*N, 3) float64."""
     k, n = tools.kernels, g_colors.shape[0]
     g_n, g_albedo = k.empty((n, 3)), k.empty((n, 3))
     n_items = state.albedo.shape[0] if state.albedo.shape[0] != n else n
     shared = np.int32(state.albedo.shape[0] != n)
     unit = state.normals.unit
-    if isinstance(light, shading.SHLight):
-        products = k.empty((1, n, 27))
+    lights, per_view = _per_view(light)
+    stride, groups = (np.int64(n // state.batch), state.batch) if per_view else (np.int64(0), 1)
+    if issubclass(type(lights[0]), shading.SHLight):
+        products = k.empty((groups, n // groups, 27))
         k("sh_vjp", n, g_n, g_albedo, products, g_colors, unit, state.albedo, state.irradiance,
-          state.light_vec, np.int64(n_items), shared)
-        sums = k.sum_products(products).get().reshape(3, 9)
-        return g_n, g_albedo, dict(coefficients=sums * shading.SH_A)
-    products = k.empty((1, n, 9))
+          state.light_vec, np.int64(n_items), shared, stride)
+        sums = k.sum_products(products).get().reshape(groups, 3, 9) * shading.SH_A
+        return g_n, g_albedo, dict(coefficients=sums if per_view else sums[0])
+    products = k.empty((groups, n // groups, 9))
     k("lambert_vjp", n, g_n, g_albedo, products, g_colors, unit, state.albedo, state.irradiance,
-      state.cosines, state.light_vec, np.int64(n_items), shared)
-    sums = k.sum_products(products).get()[0]
-    light_unit = state.light_vec.get()[:3]
-    direction = shading._normalize_vjp(light_unit, state.light_len, sums[6:9])
-    return g_n, g_albedo, dict(ambient=sums[0:3], directional=sums[3:6], direction=direction)
+      state.cosines, state.light_vec, np.int64(n_items), shared, stride)
+    sums = k.sum_products(products).get()
+    units = state.light_vec.get().reshape(groups, 9)[:, :3]
+    direction = np.stack([shading._normalize_vjp(u, length, g[6:9])
+                          for u, length, g in zip(units, np.atleast_1d(state.light_len), sums)])
+    grads = dict(ambient=sums[:, 0:3], directional=sums[:, 3:6], direction=direction)
+    return g_n, g_albedo, grads if per_view else {name: g[0] for name, g in grads.items()}
 
 
 def normals_vjp_device(tools: DeviceTools, state: DeviceState, g_normals: cla.Array) -> cla.Array:
@@ -286,6 +305,7 @@ def forward_device(renderer, args: dict, cameras, light, grads: tuple, roi, run:
     light = light if light is not None else shading.LambertLight()
     check_metadata(renderer, args, cameras, light)
     cams, _, batched = _views(cameras, _shape_only(args["vertices"]), renderer.settings.image_size)
+    light = shading.view_lights(light, len(cams))
     dev = to_device_args(tools, args)
     verts = tools.arrays.contiguous(dev["vertices"], np.float64)
     albedo = None if dev["albedo"] is None else tools.arrays.contiguous(dev["albedo"], np.float64)

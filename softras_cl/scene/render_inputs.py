@@ -55,6 +55,9 @@ def _light_vector(light) -> np.ndarray:
     if type(light) is shading.LambertLight:
         direction = light.direction / np.linalg.norm(light.direction)
         return np.concatenate([light.ambient, light.directional, direction, np.zeros(18)])
+    if isinstance(light, shading.ViewLights):
+        raise ValueError("light: shading='pixel' lights every view with one light (the rasteriser's own); "
+                         "a list of one light per view needs shading 'vertex' or 'face'")
     raise ValueError(f"light: shading='pixel' supports LambertLight and SHLight, got {type(light).__name__}")
 
 

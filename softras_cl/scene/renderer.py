@@ -83,7 +83,9 @@ class Renderer:
 
         vertices (V, 3) or (B, V, 3) world; faces (F, 3) int; cameras: a Camera or a list of B;
         albedo (V, 3) or (B, V, 3) linear RGB (vertex/face shading, or unlit vertex colours);
-        light: shading.LambertLight / PhongLight / SHLight (default: the paper's Lambert);
+        light: shading.LambertLight / PhongLight / SHLight (default: the paper's Lambert), or a
+        list of B of one type, one per view (shading "vertex" or "face"; the light gradients then
+        stack the views' along a first axis);
         face_textures / texture_image + uvs: unlit textures (shading="none");
         grads: subset of GRAD_GROUPS that backward() will return;
         roi: None or an (H, W) / (B, H, W) bool mask: only the screen tiles holding its pixels
@@ -112,7 +114,7 @@ class Renderer:
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
             raise ValueError(f"faces must be a non-empty (F, 3) array: the mesh has no faces (got shape {faces.shape})")
         _check_albedo(albedo, verts.shape)
-        light = light if light is not None else shading.LambertLight()
+        light = shading.view_lights(light if light is not None else shading.LambertLight(), len(cameras))
         screen, cam_ctx = zip(*(cam.project(v) for cam, v in zip(cameras, verts)))
         screen = np.concatenate(screen, 0)
         color_args, shade_ctx = self._colors(verts, faces, cameras, albedo, light, face_textures,

@@ -518,6 +518,65 @@ class SHLight:
                     coefficients=np.einsum("bnc,bni->ci", grad_irr, ctx.basis) * SH_A)
 
 
+@dataclass
+class ViewLights:
+    """One light per view of a batch: lights[b] shades view b (a list of B LambertLight,
+    PhongLight or SHLight of one type). What Renderer.forward makes of a list of lights.
+
+    shade / shade_vjp take (B, N, 3) arrays as the lights' own do, each view by its own light;
+    params() and the parameter gradients stack the views' along a first axis (B, ...).
+    """
+    lights: list
+
+    def __post_init__(self):
+        self.lights = list(self.lights)
+        if not self.lights:
+            raise ValueError("light: a list of lights needs one light per view, got an empty list")
+        kind = type(self.lights[0])
+        if kind not in (LambertLight, PhongLight, SHLight) or any(type(light) is not kind for light in self.lights):
+            raise ValueError("light: a list of lights must hold LambertLight, PhongLight or SHLight, all of one "
+                             f"type, got {sorted({type(light).__name__ for light in self.lights})}")
+        self.uses_view_dirs = getattr(self.lights[0], "uses_view_dirs", True)
+
+    @property
+    def kind(self) -> type:
+        """The lights' one type."""
+        return type(self.lights[0])
+
+    def params(self) -> dict:
+        """{parameter: (B, ...) the views' values stacked}."""
+        per_view = [light.params() for light in self.lights]
+        return {name: np.stack([p[name] for p in per_view]) for name in per_view[0]}
+
+    def shade(self, normals, albedo, view_dirs=None):
+        """normals, albedo (B, N, 3) (and view_dirs (B, N, 3) when the lights use them) ->
+        colours (B, N, 3) float64, and the views' contexts (a list)."""
+        if len(normals) != len(self.lights):
+            raise ValueError(f"light: {len(self.lights)} lights for {len(normals)} views; give one light per view")
+        out = [light.shade(normals[b:b + 1], albedo[b:b + 1], None if view_dirs is None else view_dirs[b:b + 1])
+               for b, light in enumerate(self.lights)]
+        return np.concatenate([colors for colors, _ in out]), [ctx for _, ctx in out]
+
+    def shade_vjp(self, ctx: list, grad_colors) -> dict:
+        """grad_colours (B, N, 3) -> dict normals, albedo (and view_dirs) (B, N, 3), and each
+        light parameter's gradient stacked over the views (B, ...)."""
+        grads = [light.shade_vjp(c, grad_colors[b:b + 1]) for b, (light, c) in enumerate(zip(self.lights, ctx))]
+        per_view = ("normals", "albedo", "view_dirs")
+        return {name: (np.concatenate if name in per_view else np.stack)([g[name] for g in grads])
+                for name in grads[0]}
+
+
+def view_lights(light, batch: int):
+    """``light`` as Renderer.forward takes it: a light, or a list/tuple of one per view (checked
+    against the batch B) -> the light, or its ViewLights."""
+    if not isinstance(light, (list, tuple)):
+        return light
+    lights = ViewLights(light)
+    if len(lights.lights) != batch:
+        raise ValueError(f"light: {len(lights.lights)} lights for {batch} views; give one light per view")
+    return lights
+
+
 # ----------------------------------------------------------------------------- scene helpers
 
 def _camera_center(camera_center, batch: int):

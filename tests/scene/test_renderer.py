@@ -243,3 +243,44 @@ def test_per_pixel_shading_rejects_phong():
     v, f, albedo = sphere_scene()
     with pytest.raises(ValueError, match="light"):
         Renderer(settings(), shading="pixel").forward(v, f, cameras()[0], albedo=albedo, light=LIGHTS["phong"])
+
+
+@pytest.mark.parametrize("shading", ["vertex", "face"])
+def test_one_light_per_view_renders_each_view_as_its_light_alone(shading):
+    """A list of B lights: each view's image and gradients are those of rendering it alone under
+    its light, bit for bit; the light gradients stack the views' (B, ...); a Phong list too."""
+    from softras_cl.scene.shading import PhongLight, SHLight
+
+    v, f, albedo = sphere_scene()
+    rng = np.random.default_rng(4)
+    cams = cameras()
+    renderer = Renderer(settings(), shading=shading)
+    for lights in ([SHLight(LIGHTS["sh"].coefficients + rng.normal(scale=0.1, size=(3, 9))) for _ in cams],
+                   [PhongLight(ambient=0.2 + 0.1 * b, directional=0.6, direction=(0.5, 0.8 - b, 0.7), specular=0.3,
+                               shininess=5.0) for b in range(len(cams))]):
+        out = renderer.forward(v, f, cams, albedo=albedo, light=lights, grads=("vertices", "light", "albedo", "camera"))
+        cot = _cot(len(cams))
+        g = renderer.backward(out, grad_rgb=cot["rgb"], grad_alpha=cot["alpha"])
+        for b, (cam, light) in enumerate(zip(cams, lights)):
+            alone = renderer.forward(v, f, [cam], albedo=albedo, light=light, grads=("vertices", "light", "albedo",
+                                                                                     "camera"))
+            g_alone = renderer.backward(alone, grad_rgb=cot["rgb"][b:b + 1], grad_alpha=cot["alpha"][b:b + 1])
+            assert np.array_equal(out.rgb[b], alone.rgb[0])
+            for name, value in g_alone["light"].items():
+                assert np.array_equal(g["light"][name][b], value), name
+            assert g["camera"][b].keys() == g_alone["camera"][0].keys()
+            for name, value in g_alone["camera"][0].items():
+                assert np.array_equal(g["camera"][b][name], value), name
+
+
+@pytest.mark.parametrize("lights, says", [
+    ([], "a list of lights needs one light per view, got an empty list"),
+    ([LambertLight()], "1 lights for 2 views; give one light per view"),
+    ([LambertLight(), LIGHTS["sh"]], "must hold LambertLight, PhongLight or SHLight, all of one type"),
+    ([LIGHTS["sh"], LIGHTS["sh"]], "shading='pixel' lights every view with one light"),
+])
+def test_a_list_of_lights_is_checked(lights, says):
+    v, f, albedo = sphere_scene()
+    shading = "pixel" if "pixel" in says else "vertex"
+    with pytest.raises(ValueError, match=re.escape(says)):
+        Renderer(settings(), shading=shading).forward(v, f, cameras(), albedo=albedo, light=lights)

@@ -287,3 +287,19 @@ def test_other_context_and_phong_light_are_refused():
     with pytest.raises(ValueError, match="PhongLight needs numpy inputs"):
         renderer.forward(cla.to_device(renderer.queue, v), f, two_cameras((H, W)), albedo=albedo,
                          light=LIGHTS["phong"])
+
+
+@pytest.mark.parametrize("shading", ["vertex", "face"])
+@pytest.mark.parametrize("light", ["lambert", "sh"])
+def test_one_light_per_view_matches_numpy(shading, light):
+    """A list of lights, one per view: the device path's images and gradients (the light's
+    stacked over the views) against the numpy path's."""
+    v, f, albedo = sphere_scene()
+    rng = np.random.default_rng(9)
+    if light == "sh":
+        lights = [sh.SHLight(LIGHTS["sh"].coefficients + rng.normal(scale=0.1, size=(3, 9))) for _ in range(2)]
+    else:
+        lights = [sh.LambertLight(ambient=rng.uniform(0.1, 0.4, 3), directional=rng.uniform(0.4, 0.8, 3),
+                                  direction=rng.normal(size=3)) for _ in range(2)]
+    host, _ = assert_parity(settings(), shading, v, f, two_cameras((H, W)), albedo, lights)
+    assert all(g.shape[0] == 2 for g in host[1]["light"].values())
