@@ -364,6 +364,34 @@ def run_body_objective() -> None:
         _finite("body image terms", [totals.get(), g_alpha.get()] + ([] if g_rgb is None else [g_rgb.get()]))
 
 
+def run_device_shading() -> None:
+    """The device-resident Renderer's shading kernels and their vjps (Lambert and SH, one light
+    for all views and one per view, albedo shared and per view) on random unit normals of two
+    views: its normals and render are left out with the rest of that path (pyopencl's scan)."""
+    import pyopencl.array as cla
+    from softras_cl.cl.device import get_context, select_device
+    from softras_cl.scene import shading
+    from softras_cl.scene.device_kernels import SceneKernels
+    from softras_cl.scene.device_render import DeviceState, Normals, shade_device, shade_vjp_device
+
+    queue, rng = get_context(select_device())[1], np.random.default_rng(10)
+    tools = argparse.Namespace(kernels=SceneKernels(queue.context, queue), queue=queue)
+    batch, n = 2, 30
+    unit = rng.normal(size=(batch * n, 3))
+    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    normals = Normals(cla.to_device(queue, unit), cla.to_device(queue, np.ones(batch * n)), None, None, True)
+    sh = [shading.SHLight(shading.sh_ambient(0.8) + rng.normal(0, 0.1, (3, 9))) for _ in range(batch)]
+    lambert = [shading.LambertLight(direction=rng.normal(size=3)) for _ in range(batch)]
+    for light in (sh[0], shading.ViewLights(sh), lambert[0], shading.ViewLights(lambert)):
+        for rows in (n, batch * n):
+            state = DeviceState(None, None, None, None, normals=normals, batch=batch, n_vertices=n)
+            albedo = cla.to_device(queue, rng.uniform(0.2, 0.9, (rows, 3)))
+            colors = shade_device(tools, state, light, albedo, n)
+            g_colors = cla.to_device(queue, rng.normal(size=(batch * n, 3)))
+            g_n, g_albedo, g_light = shade_vjp_device(tools, state, light, g_colors)
+            _finite("device shading", [colors.get(), g_n.get(), g_albedo.get(), *g_light.values()])
+
+
 def gpu_layout_variants() -> list[tuple[str, callable]]:
     """The GPU layout's kernels (one pixel per work-item, tiles staged in local memory): the
     build-time flags in 18 combinations, then lighting, outputs, regions of interest, a tile with
@@ -428,6 +456,7 @@ def variants() -> list[tuple[str, callable]]:
     out += gpu_layout_variants()
     out.append(("device face objective: landmark stage, photometric term", run_face_objective))
     out.append(("device body objective: skinning and its vjp, silhouette and image terms", run_body_objective))
+    out.append(("device renderer shading: Lambert and SH, one light and one per view", run_device_shading))
     # the gradient sums as a device without cl_khr_fp64 builds them (float accumulation)
     for label, batch, kw in [("sh per-pixel", 2, dict(lighting="sh")), ("face texture", 1, dict(texture="face"))]:
         out.append((f"raster float32 float gradient sums {label} B={batch}",

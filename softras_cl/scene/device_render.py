@@ -61,7 +61,8 @@ class DeviceState:
     (None when unlit); albedo: the float64 albedo shaded (vertex: (V, 3) shared or (B, V, 3);
     face: (B*F, 3)); irradiance (B*N, 3) and cosines (B*N,) (Lambert) of the shading; light_vec:
     the light's device vector (Lambert: unit direction, ambient, directional; SH: coefficients *
-    A_l) and light_len the direction's length (Lambert); batch B, n_vertices V.
+    A_l; one such row per view for a ViewLights) and light_len the direction's length (Lambert,
+    one per light); batch B, n_vertices V.
     """
     verts: cla.Array
     params: cla.Array
