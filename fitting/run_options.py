@@ -274,7 +274,8 @@ def _track_options() -> tuple[Option, ...]:
                f"{d.keyframes})", field="keyframes"),
         Option("identity_passes", int, d.identity_passes, "joint fits of the identity: each after the first "
                "on the landmarks corrected by the detector offsets the one before found (default "
-               f"{d.identity_passes}; 1: one fit on the landmarks as detected)", field="identity_passes", metavar="N"),
+               f"{d.identity_passes}; 1: one fit on the landmarks as detected, in about half the time, for a "
+               "worse identity; docs/face_tracking.md shows what each costs)", field="identity_passes", metavar="N"),
         Option("budget", str, d.identity_budget, f"schedule of the identity fit on the keyframes (default: "
                f"{d.identity_budget}; see fit-face --budget)", choices=tuple(sorted(face_settings.BUDGETS))),
         Option("size", int, d.size, f"working size in pixels of the identity fit (default {d.size})", field="size"),
