@@ -34,10 +34,9 @@ class DeviceBodyImages:
         self.n_pixels = target.alpha.size
         self.has_rgb = target.rgb is not None
         care = np.ones(self.n_pixels) if target.care is None else target.care
-        upload = (lambda a: cla.to_device(queue, np.ascontiguousarray(a, np.float64).reshape(-1)))
-        self.alpha, self.care = upload(target.alpha), upload(care)
-        self.rgb = upload(target.rgb if self.has_rgb else np.zeros(1))
-        self.background = upload(background)
+        self.alpha, self.care = _flat(queue, target.alpha), _flat(queue, care)
+        self.rgb = _flat(queue, target.rgb if self.has_rgb else np.zeros(1))
+        self.background = _flat(queue, background)
 
     def __call__(self, out, w_silhouette: float, w_image: float) -> tuple[cla.Array, cla.Array, cla.Array | None]:
         """The render ``out`` (a device RenderOutput, alpha (1, H, W), rgb (1, H, W, 3) for a
@@ -64,6 +63,11 @@ class DeviceBodyImages:
         if self.has_rgb:
             terms["image"] = (squares, {})
         return terms
+
+
+def _flat(queue, values) -> cla.Array:
+    """A flat float64 device copy of values (any shape)."""
+    return cla.to_device(queue, np.ascontiguousarray(values, np.float64).reshape(-1))
 
 
 def _float64(image: cla.Array) -> cla.Array:

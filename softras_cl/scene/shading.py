@@ -538,11 +538,6 @@ class ViewLights:
                              f"type, got {sorted({type(light).__name__ for light in self.lights})}")
         self.uses_view_dirs = getattr(self.lights[0], "uses_view_dirs", True)
 
-    @property
-    def kind(self) -> type:
-        """The lights' one type."""
-        return type(self.lights[0])
-
     def params(self) -> dict:
         """{parameter: (B, ...) the views' values stacked}."""
         per_view = [light.params() for light in self.lights]
