@@ -2,8 +2,9 @@
 BodyPhotoObjective it replaces, in float64: loss, every gradient block and every term within
 1e-10 relative at random parameters, for colour and silhouette targets (all faces and the
 coarse mesh, a care mask, a model with pose blendshapes) and the photo objective's terms;
-reruns bit-identical; its gradient against central differences; its parts (skinning, image
-terms) against their numpy counterparts, at the edges (an empty union).
+reruns bit-identical; a float32 raster within 1e-5; its gradient against central differences;
+its parts (skinning, image terms) against their numpy counterparts, at the edges (an empty
+union).
 
 1e-10 is the bound the device objective is held to; measured: at most 9.8e-14 relative to each
 array's largest magnitude on these scenes (sums run in other orders than numpy's).
@@ -275,3 +276,20 @@ def test_fits_run_on_the_objective_their_config_names(demo_body_model, monkeypat
     assert body_photo.photo_objective_class("host", scene) is body_photo.BodyPhotoObjective
     if scene.renderer.device.type & 2:        # cl.device_type.CPU
         assert body.objective_class("auto", scene) is body.BodyObjective
+
+
+def test_a_float32_raster_gives_the_numpy_objective_within_its_rounding(demo_body_model):
+    """BodyFitConfig(dtype="float32"): both objectives render in float32 (the scene's stages in
+    float64, rounded at the rasteriser's input), so they agree to the renderer's float32
+    tolerance (1e-5 relative; measured at most 3.4e-7 here), not to float64's."""
+    rng = np.random.default_rng(10)
+    target = target_of(demo_body_model, rng, "colour")
+    config = body.BodyFitConfig(size=SIZE, dtype="float32")
+    host, device = (cls(body.BodyScene(demo_body_model, (SIZE, SIZE), config), target, 3.0)
+                    for cls in (body.BodyObjective, body.DeviceBodyObjective))
+    stage = Stage("image-1", ("betas",), ALL_TERMS, sigma=1e-4, gamma=1e-2)
+    values = random_values(demo_body_model, rng)
+    (loss_h, grads_h, _), (loss_d, grads_d, _) = host(values, stage), device(values, stage)
+    assert loss_d == pytest.approx(loss_h, rel=1e-5)
+    for name, g in grads_h.items():
+        np.testing.assert_allclose(grads_d[name], g, rtol=0, atol=1e-5 * np.abs(g).max(), err_msg=name)
