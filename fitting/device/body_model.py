@@ -28,7 +28,6 @@ class DeviceSparse:
     def __init__(self, queue, matrix):
         m = matrix.tocsr()
         m.sort_indices()
-        self.n_rows = m.shape[0]
         self.row_start = cla.to_device(queue, m.indptr.astype(np.int32))
         self.col = cla.to_device(queue, m.indices.astype(np.int32) if m.nnz else np.zeros(1, np.int32))
         self.weight = cla.to_device(queue, m.data.astype(np.float64) if m.nnz else np.zeros(1))
