@@ -33,12 +33,13 @@ inline int floor_int(const double v)
  *   geom[g]: FACE_STRIDE reals, every one written (all zero when the face cannot be drawn)
  *   tiles[g]: (tx0, ty0, nx, ny), the first tile column and row and how many of each its
  *       footprint box covers (all four 0 when it covers no pixel or cannot be drawn)
- * vertices: (B*V, 3) double; faces: (B*F, 3) int, indices within the face's batch item.
+ * vertices: (B*V, 3) double; faces: (B*F, 3) int, indices within the face's batch item;
+ * depth_range: (B, 2) double, each view's near and far (face g is view g / faces_per_view's).
  * box_margin: NDC margin added to the boxes (inf: unbounded); grow_box: 1 to grow each triangle
  * by `grow` about its centroid first (the barycentric metric). half_w = W / 2, top = H / 2 - 0.5
  * and inv_ps = min(W, H) / 2 come from the host, computed there as binning does. */
-__kernel void face_setup(const int n_faces, const int width, const int height,
-                         const int double_sided, const double near, const double far,
+__kernel void face_setup(const int n_faces, const int faces_per_view, const int width, const int height,
+                         const int double_sided, __global const double *depth_range,
                          const int grow_box, const double grow, const double box_margin,
                          const double half_w, const double top, const double inv_ps,
                          __global const double *vertices, __global const int *faces,
@@ -52,6 +53,7 @@ __kernel void face_setup(const int n_faces, const int width, const int height,
     const double3 p2 = vload3(faces[3 * (size_t)g + 2], vertices);
     const double area = (p1.x - p0.x) * (p2.y - p0.y) - (p2.x - p0.x) * (p1.y - p0.y);
     const double zmin = fmin(fmin(p0.z, p1.z), p2.z), zmax = fmax(fmax(p0.z, p1.z), p2.z);
+    const double near = depth_range[2 * (g / faces_per_view)], far = depth_range[2 * (g / faces_per_view) + 1];
     const bool drawable = (fabs(area) >= MIN_AREA) & (zmin > 0.0) & (zmax >= near) & (zmin <= far)
                           & (double_sided | (area > 0.0));
     const double inv_area = 1.0 / area;

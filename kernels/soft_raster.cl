@@ -378,10 +378,10 @@ inline Params make_params(real inv_sigma, real x_cut, real inv_gamma, real near,
 #define GEOMETRY_ARGS \
     const int W, const int H, const int Wp, const int Hp, const int ntx, const int nty, \
     const real pix_scale, const real inv_sigma, const real x_cut, const real inv_gamma, \
-    const real eps, const real near, const real far, \
-    const int tex_res, const int tex_h, const int tex_w, \
+    const real eps, const int tex_res, const int tex_h, const int tex_w, \
     __global const real *geom, __global const real *attr, __global const real *tex_image, \
-    __global const real *light, __global const int *tile_start, __global const int *tile_faces
+    __global const real *light, __global const int *tile_start, __global const int *tile_faces, \
+    __global const real *depth_range   /* (B, 2): each view's near and far */
 
 /* ---- forward ------------------------------------------------------------------------------ */
 #ifndef SR_ROWS
@@ -542,7 +542,7 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
     const int cb = get_global_id(0), row0 = get_global_id(1) * SR_ROWS, batch = get_global_id(2);
     if (row0 >= H || cb >= ntx)    /* padding rows / work-items of the last group */
         return;
-    const Params p = make_params(inv_sigma, x_cut, inv_gamma, near, far);
+    const Params p = make_params(inv_sigma, x_cut, inv_gamma, depth_range[2 * batch], depth_range[2 * batch + 1]);
     const int tile = (batch * nty + row0 / TILE_H) * ntx + cb;
     const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
     const realv px = ((real)(cb * SR_VEC) - R(0.5) * W + LANE_OFFSETS) * pix_scale;
@@ -553,7 +553,7 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
     FwdSums sums[SR_ROWS];
     for (int i = 0; i < SR_ROWS; ++i) {
         py[i] = (R(0.5) * H - (row0 + i) - R(0.5)) * pix_scale;
-        fwd_init(&sums[i], eps, inv_gamma, far, bg);
+        fwd_init(&sums[i], eps, inv_gamma, p.far, bg);
     }
     const int rows = min(SR_ROWS, H - row0);
 
@@ -574,7 +574,7 @@ __kernel void soft_raster_fwd(GEOMETRY_ARGS,
                 continue;
             const Frag r = eval_frag(&f, px, py[i], &p);
             if (ANY(r.valid))
-                fwd_add(&sums[i], &r, face, &p, far, inv_gamma, attr, image, light, tex_res, tex_h, tex_w);
+                fwd_add(&sums[i], &r, face, &p, p.far, inv_gamma, attr, image, light, tex_res, tex_h, tex_w);
         }
     }
     for (int i = 0; i < rows; ++i)
@@ -617,14 +617,14 @@ void soft_raster_fwd_tile(GEOMETRY_ARGS,
     const int lid = get_local_id(1) * GPU_TILE_W + get_local_id(0);
     const int tile = (batch * nty + get_group_id(1)) * ntx + get_group_id(0);
     const bool in_image = row < H;   /* padding rows only help load the records */
-    const Params p = make_params(inv_sigma, x_cut, inv_gamma, near, far);
+    const Params p = make_params(inv_sigma, x_cut, inv_gamma, depth_range[2 * batch], depth_range[2 * batch + 1]);
     const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
     const real px = ((real)col - R(0.5) * W + LANE_OFFSETS) * pix_scale;
     const real py = (R(0.5) * H - row - R(0.5)) * pix_scale;
     const realv bg[3] = {bg_r, bg_g, bg_b};
     __global const real *image = tex_image + (size_t)batch * tex_h * tex_w * 3;
     FwdSums sums;
-    fwd_init(&sums, eps, inv_gamma, far, bg);
+    fwd_init(&sums, eps, inv_gamma, p.far, bg);
 
     const int first = tile_start[tile], end = tile_start[tile + 1];
     for (int base = first; base < end; base += GPU_CHUNK) {
@@ -638,7 +638,7 @@ void soft_raster_fwd_tile(GEOMETRY_ARGS,
             const Face f = load_face_local(records, j);
             const Frag r = eval_frag(&f, px, py, &p);
             if (ANY(r.valid))
-                fwd_add(&sums, &r, ids[j], &p, far, inv_gamma, attr, image, light, tex_res, tex_h, tex_w);
+                fwd_add(&sums, &r, ids[j], &p, p.far, inv_gamma, attr, image, light, tex_res, tex_h, tex_w);
         }
     }
     if (in_image)
@@ -1028,7 +1028,7 @@ __kernel void soft_raster_bwd(GEOMETRY_ARGS, BACKWARD_ARGS)
     const int cb = get_global_id(0), tile_row = get_global_id(1), batch = get_global_id(2);
     if (cb >= ntx)                /* work-items of the last group beyond the image */
         return;
-    const Params p = make_params(inv_sigma, x_cut, inv_gamma, near, far);
+    const Params p = make_params(inv_sigma, x_cut, inv_gamma, depth_range[2 * batch], depth_range[2 * batch + 1]);
     const int tile = (batch * nty + tile_row) * ntx + cb;
     const size_t npix = (size_t)get_global_size(2) * Hp * Wp;
     const realv px = ((real)(cb * SR_VEC) - R(0.5) * W + LANE_OFFSETS) * pix_scale;
@@ -1095,7 +1095,7 @@ void soft_raster_bwd_tile(GEOMETRY_ARGS, BACKWARD_ARGS)
     }
     barrier(CLK_LOCAL_MEM_FENCE);
 
-    const Params p = make_params(inv_sigma, x_cut, inv_gamma, near, far);
+    const Params p = make_params(inv_sigma, x_cut, inv_gamma, depth_range[2 * batch], depth_range[2 * batch + 1]);
     __global const real *image = tex_image + (size_t)batch * tex_h * tex_w * 3;
     __global long *item_tex_grad = tex_grad + (size_t)batch * tex_h * tex_w * 3;
     for (int k = tile_start[tile] + lid; k < tile_start[tile + 1]; k += GPU_BWD_GROUP) {

@@ -199,13 +199,16 @@ def without_int64_atomics():
 
 def run_raster(batch: int, grads: tuple, tex_res: int = 2, skip_cot: tuple = (),
                faces_per_item: bool = False, roi: str | None = None, lanes: int | None = None,
-               float_sums: bool = False, crowd: int = 0, int64_atomics: bool = True, **kw) -> None:
+               float_sums: bool = False, crowd: int = 0, int64_atomics: bool = True,
+               device_setup: bool = False, **kw) -> None:
     """One SoftRasterizer forward (and backward when grads); float_sums: the gradient reductions
     accumulate in the kernel dtype, as on a device without cl_khr_fp64; crowd: that many more
-    faces in one tile (raster_scene); int64_atomics False: the uv texel gradients' fallback."""
+    faces in one tile (raster_scene); int64_atomics False: the uv texel gradients' fallback;
+    device_setup: the faces set up by kernel face_setup (else, on so few faces, by the host)."""
     if not int64_atomics:
         with without_int64_atomics():
-            return run_raster(batch, grads, tex_res, skip_cot, faces_per_item, roi, lanes, float_sums, crowd, **kw)
+            return run_raster(batch, grads, tex_res, skip_cot, faces_per_item, roi, lanes, float_sums, crowd,
+                              device_setup=device_setup, **kw)
     s = raster_settings(**kw)
     vertices, faces, colors = raster_scene(batch, s.texture, tex_res, crowd=crowd)
     if "rgb" not in s.outputs:
@@ -220,6 +223,8 @@ def run_raster(batch: int, grads: tuple, tex_res: int = 2, skip_cot: tuple = (),
     if roi is not None:
         colors = dict(colors, roi=roi_mask(batch, roi == "per item"))
     raster = SoftRasterizer(s, lanes=lanes)
+    if device_setup:
+        raster.device_setup_faces = 0
     if float_sums:
         raster.sums = GradSums(raster.ctx, raster.queue, raster.pool, raster.real, raster.lanes, False)
     plain = raster.forward(vertices, faces, **colors)
@@ -419,6 +424,7 @@ def gpu_layout_variants() -> list[tuple[str, callable]]:
         ("crowded tile float64 face texture", 2, both, dict(crowd=150, dtype="float64", texture="face")),
         ("uv without int64 atomics", 2, both, dict(texture="uv", int64_atomics=False)),
         ("forward only", 2, (), dict()),
+        ("depth range per view", 3, both, dict(near=(NEAR, 2.1, 0.4), far=(FAR, 5.0, 3.0))),
     ]
     for label, batch, grads, kw in extra:
         out.append((f"gpu-layout raster {label} B={batch}",
@@ -489,6 +495,9 @@ def variants() -> list[tuple[str, callable]]:
             ("region of interest", 1, both, dict(roi="shared")),
             ("region of interest per item uv", 2, both, dict(roi="per item", texture="uv")),
             ("region of interest per item sh per-pixel", 2, both, dict(roi="per item", lighting="sh")),
+            ("depth range per view", 3, both, dict(near=(NEAR, 2.1, 0.4), far=(FAR, 5.0, 3.0))),
+            ("depth range per view, device face set-up", 3, both,
+             dict(near=(NEAR, 2.1, 0.4), far=(FAR, 5.0, 3.0), device_setup=True)),
         ]
         for label, batch, grads, kw in extra:
             out.append((f"raster {dtype} {label} B={batch}",

@@ -72,7 +72,8 @@ def face_setup(mesh: MeshInputs, s: RasterSettings) -> tuple[np.ndarray, np.ndar
     # one contiguous (B*F,) array per coordinate of each corner: x[k], y[k], z[k]
     x, y, z = np.moveaxis(mesh.triangles().reshape(-1, 3, 3), (2, 1), (0, 1)).copy()
     area = (x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0])
-    drawable = ((np.abs(area) >= MIN_AREA) & (z.min(0) > 0) & (z.max(0) >= s.near) & (z.min(0) <= s.far))
+    near, far = np.repeat(s.depth_ranges(mesh.batch), mesh.n_faces, axis=0).T     # each face's view's
+    drawable = ((np.abs(area) >= MIN_AREA) & (z.min(0) > 0) & (z.max(0) >= near) & (z.min(0) <= far))
     if not s.double_sided:
         drawable &= area > 0
     inv_area = 1.0 / np.where(drawable, area, 1.0)

@@ -35,19 +35,22 @@ class DeviceSetup:
         self.real = np.dtype(real)
         self._defines = dict(SR_DOUBLE=self.real == np.float64, SR_TILE_W=grid.tile_w)
         self._kernel: cl.Kernel | None = None
-        self._args_of: tuple | None = None      # (settings, their kernel arguments): the last ones
+        self._args_of: tuple | None = None      # ((settings, batch), their kernel arguments): the last ones
         self._scratch = ScratchArrays()
         self._faces_key: tuple | None = None
         self._faces_buf: cl.Buffer | None = None
 
-    def _settings_args(self, s: RasterSettings) -> list:
-        """The kernel's arguments after the face count for settings s (kept for the last settings)."""
-        if self._args_of is None or self._args_of[0] != s:
+    def _settings_args(self, s: RasterSettings, batch: int) -> list:
+        """The kernel's arguments after the face counts for settings s and a batch of views (kept
+        for the last ones): each view's depth range goes in a (batch, 2) float64 buffer."""
+        if self._args_of is None or self._args_of[0] != (s, batch):
             grow, factor, margin = box_growth(s)
             inv_ps, half_w, top = pixel_scale(s)
             i32, f64 = np.int32, np.float64
-            self._args_of = (s, [i32(s.width), i32(s.height), i32(s.double_sided), f64(s.near), f64(s.far),
-                                 i32(grow), f64(factor), f64(margin), f64(half_w), f64(top), f64(inv_ps)])
+            ranges = cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR,
+                               hostbuf=s.depth_ranges(batch))
+            self._args_of = ((s, batch), [i32(s.width), i32(s.height), i32(s.double_sided), ranges,
+                                          i32(grow), f64(factor), f64(margin), f64(half_w), f64(top), f64(inv_ps)])
         return self._args_of[1]
 
     def run(self, mesh: MeshInputs, settings: RasterSettings) -> tuple[cl.Buffer, np.ndarray]:
@@ -57,23 +60,26 @@ class DeviceSetup:
         n = mesh.batch * mesh.n_faces
         vertices = self.pool.take(mesh.vertices.nbytes)
         upload = cl.enqueue_copy(self.queue, vertices, np.ascontiguousarray(mesh.vertices), is_blocking=False)
-        geom, ranges_buf = self.run_device(vertices, self._faces(mesh.faces, mesh.n_vertices), n, settings)
+        geom, ranges_buf = self.run_device(vertices, self._faces(mesh.faces, mesh.n_vertices), mesh.batch,
+                                           mesh.n_faces, settings)
         ranges = self._scratch.get("ranges", (n, 4), np.int32)
         cl.enqueue_copy(self.queue, ranges, ranges_buf, is_blocking=True)
         upload.wait()
         self.pool.give([vertices, ranges_buf])     # an in-order queue: later users come after
         return geom, ranges
 
-    def run_device(self, vertices: cl.Buffer, rows: cl.Buffer, n: int, settings: RasterSettings) -> tuple:
-        """(records, ranges) of n >= 1 faces from device data: `vertices` (B*V, 3) float64 and
-        `rows` (n, 3) int32 (b * V + index): pooled buffers of the (n, FACE_STRIDE) `real`
-        records and of the (n, 4) int32 tile ranges, both left on the device."""
+    def run_device(self, vertices: cl.Buffer, rows: cl.Buffer, batch: int, n_faces: int,
+                   settings: RasterSettings) -> tuple:
+        """(records, ranges) of the n = batch * n_faces >= 1 faces from device data: `vertices`
+        (B*V, 3) float64 and `rows` (n, 3) int32 (b * V + index): pooled buffers of the (n,
+        FACE_STRIDE) `real` records and of the (n, 4) int32 tile ranges, both left on the device."""
+        n = batch * n_faces
         geom = self.pool.take(n * FACE_STRIDE * self.real.itemsize)
         ranges = self.pool.take(n * 16)
         if self._kernel is None:
             self._kernel = build_kernel(self.ctx, "face_setup.cl", "face_setup", self._defines)
-        launch(self._kernel, self.queue, (-(-n // GROUP[0]) * GROUP[0],), GROUP, np.int32(n),
-               *self._settings_args(settings), vertices, rows, geom, ranges)
+        launch(self._kernel, self.queue, (-(-n // GROUP[0]) * GROUP[0],), GROUP, np.int32(n), np.int32(n_faces),
+               *self._settings_args(settings, batch), vertices, rows, geom, ranges)
         return geom, ranges
 
     def _faces(self, faces: np.ndarray, n_vertices: int) -> cl.Buffer:

@@ -173,6 +173,7 @@ def check_inputs(s: RasterSettings, vertices, faces, colors=None, face_textures=
     verts, v_batched = _float_array("vertices", vertices, (None, 3), values=values)
     b, n_vertices = verts.shape[0], verts.shape[1]
     mesh = MeshInputs(verts, _check_faces(faces, n_vertices, b, values), vertices_batched=v_batched)
+    s.depth_ranges(mesh.batch)       # ValueError unless a per-view near or far has one value per view
     given = {k: v for k, v in dict(colors=colors, face_textures=face_textures,
                                     texture_image=texture_image, uvs=uvs).items() if v is not None}
     wanted = _COLOUR_ARGS[s.texture] if "rgb" in s.outputs else ()

@@ -31,7 +31,7 @@ from softras_cl.raster.inputs import MeshInputs, check_cotangent, check_inputs
 from softras_cl.raster.memory import check_forward_memory
 from softras_cl.raster.pool import BufferPool, ScratchArrays
 from softras_cl.raster.reduce import GradSums
-from softras_cl.raster.settings import RasterSettings, check_float32_gradients
+from softras_cl.raster.settings import RasterSettings, check_float32_gradients, depth_bound
 
 GRAD_NAMES = ("vertices", "colors")
 # run-time settings that forward() takes per call (None: the rasteriser's settings' value)
@@ -226,6 +226,7 @@ class SoftRasterizer:
         self.stage_ms: dict | None = None
         self._kernels: dict = {}
         self._run_settings: dict = {}      # RUN_FIELDS values -> the settings made with them
+        self._depth_ranges: dict = {}      # (near, far, batch) -> their device copy
 
     def _stage(self, name: str, start: float, finish: bool = False) -> float:
         """Add the time since `start` to stage_ms[name] (when profiling); returns the new start."""
@@ -403,10 +404,9 @@ class SoftRasterizer:
         """(pooled records buffer, pooled (B*F, 4) int32 tile-range buffer) of the device inputs:
         kernel face_setup on the device's float64 vertices; without cl_khr_fp64 the host's
         set-up of the downloaded vertices (binning.face_setup, face_tiles), uploaded."""
-        n = mesh.batch * mesh.n_faces
         if self.setup is not None:
             vertices = self.device_arrays.contiguous(dev["vertices"], np.float64)
-            return self.setup.run_device(vertices.data, rows.data, n, s)
+            return self.setup.run_device(vertices.data, rows.data, mesh.batch, mesh.n_faces, s)
         host = check_inputs(s, on_host(dev["vertices"]), on_host(dev["faces"]))
         geom, drawable = face_setup(host, s)
         ranges = face_tiles(geom, drawable, s, self.grid).astype(np.int32)
@@ -485,7 +485,8 @@ class SoftRasterizer:
         unknown = set(run) - set(RUN_FIELDS)
         if unknown:
             raise TypeError(f"call_settings takes only {RUN_FIELDS}, got {sorted(unknown)}")
-        key = tuple(run.get(name) for name in RUN_FIELDS)
+        key = tuple(depth_bound(name, run[name]) if name in ("near", "far") and run.get(name) is not None
+                    else run.get(name) for name in RUN_FIELDS)
         made = self._run_settings.get(key)
         if made is None:
             changes = {name: value for name, value in zip(RUN_FIELDS, key) if value is not None}
@@ -561,9 +562,23 @@ class SoftRasterizer:
         i32 = np.int32
         return [i32(s.width), i32(s.height), i32(g.wp), i32(g.hp), i32(g.ntx), i32(g.nty),
                 real(2.0 / min(s.width, s.height)), real(1.0 / s.sigma), real(x_cut),
-                real(1.0 / s.gamma), real(s.eps), real(s.near), real(s.far),
+                real(1.0 / s.gamma), real(s.eps),
                 i32(mesh.tex_res), i32(mesh.tex_shape[0]), i32(mesh.tex_shape[1]),
-                bufs.geom, bufs.attr, bufs.tex_image, bufs.light, bufs.tile_start, bufs.tile_faces]
+                bufs.geom, bufs.attr, bufs.tex_image, bufs.light, bufs.tile_start, bufs.tile_faces,
+                self._depth_range_buffer(s, mesh.batch)]
+
+    def _depth_range_buffer(self, s: RasterSettings, batch: int) -> cl.Buffer:
+        """A device copy of each view's (near, far), (batch, 2) in the kernels' dtype, kept for
+        the last RUN_SETTINGS_KEPT settings and batch sizes (a fit draws with a few)."""
+        key = (s.near, s.far, batch)
+        buf = self._depth_ranges.get(key)
+        if buf is None:
+            ranges = np.ascontiguousarray(s.depth_ranges(batch), self.real)
+            buf = cl.Buffer(self.ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=ranges)
+            if len(self._depth_ranges) >= RUN_SETTINGS_KEPT:
+                self._depth_ranges.clear()
+            self._depth_ranges[key] = buf
+        return buf
 
     def _run_forward(self, s: RasterSettings, mesh: MeshInputs, bufs: FaceBuffers,
                      state: PixelState | None) -> dict:

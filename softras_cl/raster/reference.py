@@ -47,10 +47,12 @@ def doubled_area(tri: np.ndarray) -> np.ndarray:
 
 
 def drawn_faces(tri: np.ndarray, settings) -> np.ndarray:
-    """(B, F) bool: faces not dropped entirely (zero area, z <= 0, all out of [near, far], back face)."""
+    """(B, F) bool: faces not dropped entirely (zero area, z <= 0, all out of their view's
+    [near, far], back face)."""
     area, z = doubled_area(tri), tri[..., 2]
+    near, far = settings.depth_ranges(len(tri)).T[..., None]       # (B, 1) each
     keep = (np.abs(area) >= AREA_EPS) & np.all(z > 0, axis=-1)
-    keep &= ~np.all(z < settings.near, axis=-1) & ~np.all(z > settings.far, axis=-1)
+    keep &= ~np.all(z < near[..., None], axis=-1) & ~np.all(z > far[..., None], axis=-1)
     if not settings.double_sided:
         keep &= area > 0
     return keep
@@ -171,7 +173,8 @@ def lit_face_colors(settings, a, faces, batch, colors, normals, light) -> np.nda
 def softmax_aggregate(log_d, zn, used, values, background_value, settings) -> np.ndarray:
     """Eq. 8-9: sum_j w_j values_j + w_b background_value, over faces where ``used``.
 
-    log_d, zn, used: (B, H, W, F); values: (B, H, W, F, C); background_value: (C,). Log-sum-exp
+    log_d, zn, used: (B, H, W, F); values: (B, H, W, F, C); background_value: (C,) or per view
+    (B, 1, 1, C). Log-sum-exp
     includes the background term t_b = eps / gamma. Returns (B, H, W, C).
     """
     t_b = settings.eps / settings.gamma
@@ -186,7 +189,8 @@ def softmax_aggregate(log_d, zn, used, values, background_value, settings) -> np
 def hard_aggregate(depth, inside, values, background_value) -> np.ndarray:
     """Z-buffer: value of the inside face with the smallest depth (ties: lowest index), else background.
 
-    depth, inside: (B, H, W, F); values: (B, H, W, F, C); background_value: (C,). Returns (B, H, W, C).
+    depth, inside: (B, H, W, F); values: (B, H, W, F, C); background_value: (C,) or per view (B, 1,
+    1, C). Returns (B, H, W, C).
     """
     key = np.concatenate([np.where(inside, depth, np.inf), np.full(depth.shape[:-1] + (1,), np.inf)], -1)
     nearest = np.argmin(key, axis=-1)[..., None]  # the extra column keeps argmin defined when F = 0
@@ -236,10 +240,11 @@ def soft_rasterize(vertices, faces, settings, colors=None, face_textures=None, t
     log_d, log_1md = log_sigmoid(x), log_sigmoid(-x)
 
     depth, a = interpolation_weights(b, tri[..., 2], settings.perspective_correct)
-    in_range = (depth >= settings.near) & (depth <= settings.far)
+    near, far = settings.depth_ranges(batch).T[:, :, None, None, None]   # (B, 1, 1, 1) each
+    in_range = (depth >= near) & (depth <= far)
     used = drawn[:, None, None, :] & in_range & ~(np.exp(log_d) < settings.dist_eps)
     inside = used & inside_tri  # the pairs the hard aggregations see
-    zn = (settings.far - depth) / (settings.far - settings.near)
+    zn = (far - depth) / (far - near)
 
     out = dict(rgb=None, alpha=None, depth=None)
     if "alpha" in settings.outputs:
@@ -253,7 +258,7 @@ def soft_rasterize(vertices, faces, settings, colors=None, face_textures=None, t
                       face_colors(settings, a, faces, batch, colors, face_textures, texture_image, uvs))
             fill = np.asarray(settings.background, np.float64)
         else:
-            values, fill = depth[..., None], np.array([float(settings.far)])
+            values, fill = depth[..., None], far
         if settings.color_agg == "softmax":
             image = softmax_aggregate(log_d, zn, used, values, fill, settings)
         else:

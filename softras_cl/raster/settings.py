@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields
 
+import numpy as np
+
 METRICS = ("euclidean", "barycentric")
 COLOR_AGGS = ("softmax", "hard")
 ALPHA_AGGS = ("occupancy", "sum", "hard")
@@ -51,8 +53,8 @@ class RasterSettings:
     gamma: float = _run("sharpness of the softmax aggregation (eq. 9)", default=1e-4)
     dist_eps: float = _run("cut-off: skip (pixel, face) pairs with D < dist_eps; 0 = exact", default=1e-4)
     eps: float = _run("background weight exp(eps / gamma) (eq. 9)", default=1e-3)
-    near: float = _run("near clipping depth (view z), > 0", default=1.0)
-    far: float = _run("far clipping depth (view z), > near", default=100.0)
+    near: float = _run("near clipping depth (view z), > 0; or one per view (a tuple of B)", default=1.0)
+    far: float = _run("far clipping depth (view z), > near; or one per view (a tuple of B)", default=100.0)
     background: tuple = _run("background RGB colour", default=(0.0, 0.0, 0.0))
     double_sided: bool = _run("draw faces of both orientations (else CCW only)", default=False)
     outputs: tuple = _build("which images to produce: subset of rgb, alpha, depth", default=("rgb", "alpha"))
@@ -86,6 +88,18 @@ class RasterSettings:
     def width(self) -> int:
         return int(self.image_size[1])
 
+    def depth_ranges(self, batch: int) -> np.ndarray:
+        """(batch, 2) float64: each view's (near, far); a single near or far is every view's.
+        ValueError when a per-view tuple does not hold one value per view of the batch."""
+        for name in ("near", "far"):
+            value = getattr(self, name)
+            if isinstance(value, tuple) and len(value) != batch:
+                raise ValueError(f"{name} holds {len(value)} values (one per view), but the batch has "
+                                 f"{batch} view{'s' * (batch != 1)}")
+        ranges = np.empty((batch, 2))
+        ranges[:, 0], ranges[:, 1] = self.near, self.far
+        return ranges
+
 
 def _positive_finite(name, value):
     if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
@@ -97,16 +111,44 @@ def _choice(name, value, allowed):
         raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
 
 
+def depth_bound(name: str, value):
+    """A depth bound (near or far) as given when a number, else as a tuple of floats (one per view)
+    from a 1-d sequence or array of numbers; ValueError naming it otherwise."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return value
+    try:
+        values = tuple(float(v) for v in np.asarray(value, np.float64).reshape(-1))
+    except (TypeError, ValueError):
+        values = ()
+    if np.ndim(value) != 1 or not values:
+        raise ValueError(f"{name} must be a number, or one number per view (a non-empty sequence), got {value!r}")
+    return values
+
+
+def _check_depth_range(s: RasterSettings) -> None:
+    """near > 0 and far > near, both finite, view by view (a tuple is one value per view)."""
+    near, far = depth_bound("near", s.near), depth_bound("far", s.far)
+    object.__setattr__(s, "near", near)
+    object.__setattr__(s, "far", far)
+    sizes = {len(v) for v in (near, far) if isinstance(v, tuple)}
+    if len(sizes) > 1:
+        raise ValueError(f"near and far must give one value per view each: {len(near)} near, {len(far)} far")
+    for k, (n, f) in enumerate(s.depth_ranges(sizes.pop() if sizes else 1).tolist()):
+        where = f"[{k}]" if isinstance(near, tuple) or isinstance(far, tuple) else ""
+        _positive_finite(f"near{where}", n)
+        if not (math.isfinite(f) and f > n):
+            raise ValueError(f"far{where} must be finite and > near{where} ({n}), got {f!r}")
+
+
 def _check_settings(s: RasterSettings) -> None:
     size = s.image_size
     if (not isinstance(size, (tuple, list)) or len(size) != 2
             or not all(isinstance(n, int) and n >= 1 for n in size)):
         raise ValueError(f"image_size must be (height, width), two ints >= 1, got {size!r}")
     object.__setattr__(s, "image_size", (int(size[0]), int(size[1])))
-    for name in ("sigma", "gamma", "near"):
+    for name in ("sigma", "gamma"):
         _positive_finite(name, getattr(s, name))
-    if not (isinstance(s.far, (int, float)) and math.isfinite(s.far) and s.far > s.near):
-        raise ValueError(f"far must be finite and > near ({s.near}), got {s.far!r}")
+    _check_depth_range(s)
     if not (isinstance(s.dist_eps, (int, float)) and 0 <= s.dist_eps < 0.5):
         raise ValueError(f"dist_eps must be in [0, 0.5), got {s.dist_eps!r}")
     if not (isinstance(s.eps, (int, float)) and math.isfinite(s.eps)):
@@ -145,7 +187,7 @@ def _check_float32(s: RasterSettings) -> None:
     """Run-time values a float32 kernel can take: magnitudes and the inverses of sigma and gamma
     within FLOAT32_LIMIT."""
     for name in ("near", "far", "eps"):
-        if abs(getattr(s, name)) > FLOAT32_LIMIT:
+        if np.max(np.abs(getattr(s, name))) > FLOAT32_LIMIT:
             raise ValueError(f"{name}={getattr(s, name)!r} is beyond what dtype='float32' kernels handle "
                              f"(|{name}| <= {FLOAT32_LIMIT:.3g} = 2^64); use dtype='float64'")
     if max(abs(c) for c in s.background) > FLOAT32_LIMIT:

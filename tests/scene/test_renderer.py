@@ -273,6 +273,25 @@ def test_one_light_per_view_renders_each_view_as_its_light_alone(shading):
                 assert np.array_equal(g["camera"][b][name], value), name
 
 
+def test_one_depth_range_per_view_renders_each_view_as_alone():
+    """near and far lists: each view's images and camera gradients are those of rendering it
+    alone with its own range, to the bit (the ranges clip the sphere differently)."""
+    v, f, albedo = sphere_scene()
+    cams, near, far = cameras(), [2.4, 1.8], [3.3, 2.7]
+    renderer, grads, cot = Renderer(settings()), ("vertices", "albedo", "camera"), _cot(2)
+    out = renderer.forward(v, f, cams, albedo=albedo, grads=grads, near=near, far=far)
+    g = renderer.backward(out, grad_rgb=cot["rgb"], grad_alpha=cot["alpha"], grad_depth=cot["depth"])
+    for b, cam in enumerate(cams):
+        alone = renderer.forward(v, f, [cam], albedo=albedo, grads=grads, near=near[b], far=far[b])
+        g_alone = renderer.backward(alone, **{f"grad_{n}": c[b:b + 1] for n, c in cot.items()})
+        for name in ("rgb", "alpha", "depth"):
+            assert np.array_equal(getattr(out, name)[b], getattr(alone, name)[0]), name
+        for name, value in g_alone["camera"][0].items():
+            assert np.array_equal(g["camera"][b][name], value), name
+    shared = renderer.forward(v, f, cams, albedo=albedo, near=near[0], far=far[0])
+    assert not np.array_equal(shared.depth[1], out.depth[1])
+
+
 @pytest.mark.parametrize("lights, says", [
     ([], "a list of lights needs one light per view, got an empty list"),
     ([LambertLight()], "1 lights for 2 views; give one light per view"),

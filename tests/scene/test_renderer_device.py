@@ -52,14 +52,16 @@ def download(value):
     return value
 
 
-def render(s, shading, device, vertices, faces, cams, albedo, light, grads=GROUPS, seed=1):
-    """(images, gradients) of one forward and backward, downloaded; the device path's results
-    checked to be pyopencl arrays (images, vertices, albedo) and numpy (camera, light)."""
+def render(s, shading, device, vertices, faces, cams, albedo, light, grads=GROUPS, seed=1, **run):
+    """(images, gradients) of one forward (with the call's ``run`` values: sigma, gamma, near,
+    far) and backward, downloaded; the device path's results checked to be pyopencl arrays
+    (images, vertices, albedo) and numpy (camera, light)."""
     renderer = Renderer(s, shading=shading)
     args = dict(vertices=vertices, faces=faces, albedo=albedo)
     if device:
         args = on_device(renderer.queue, args)
-    out = renderer.forward(args["vertices"], args["faces"], cams, albedo=args["albedo"], light=light, grads=grads)
+    out = renderer.forward(args["vertices"], args["faces"], cams, albedo=args["albedo"], light=light, grads=grads,
+                           **run)
     batch = out.rgb.shape[0]
     rng = np.random.default_rng(seed)
     cot = dict(grad_rgb=rng.normal(size=(batch, H, W, 3)), grad_alpha=rng.normal(size=(batch, H, W)),
@@ -96,9 +98,9 @@ def assert_close(expected, actual, rtol, what=""):
     assert np.abs(expected - actual).max() <= rtol * scale, (what, np.abs(expected - actual).max() / scale)
 
 
-def assert_parity(s, shading, vertices, faces, cams, albedo, light, grads=GROUPS):
-    host = render(s, shading, False, vertices, faces, cams, albedo, light, grads)
-    dev = render(s, shading, True, vertices, faces, cams, albedo, light, grads)
+def assert_parity(s, shading, vertices, faces, cams, albedo, light, grads=GROUPS, **run):
+    host = render(s, shading, False, vertices, faces, cams, albedo, light, grads, **run)
+    dev = render(s, shading, True, vertices, faces, cams, albedo, light, grads, **run)
     assert_close(host, dev, TOLERANCE[s.dtype])
     return host, dev
 
@@ -303,3 +305,12 @@ def test_one_light_per_view_matches_numpy(shading, light):
                                   direction=rng.normal(size=3)) for _ in range(2)]
     host, _ = assert_parity(settings(), shading, v, f, two_cameras((H, W)), albedo, lights)
     assert all(g.shape[0] == 2 for g in host[1]["light"].values())
+
+
+def test_one_depth_range_per_view_matches_numpy():
+    """near and far per view: the device path's images and gradients against the numpy path's."""
+    v, f, albedo = sphere_scene()
+    host, _ = assert_parity(settings(), "vertex", v, f, two_cameras((H, W)), albedo, LIGHTS["sh"],
+                            near=[2.4, 1.8], far=[3.3, 2.7])
+    shared, _ = render(settings(), "vertex", False, v, f, two_cameras((H, W)), albedo, LIGHTS["sh"], near=2.4, far=3.3)
+    assert not np.array_equal(shared["depth"][1], host[0]["depth"][1])
