@@ -90,6 +90,8 @@ __all__ = ["Crop", "FaceScene", "FaceFit", "landmark_weights", "detected_landmar
            "prepare_fit", "fit_face", "check_dense_inputs", "detected_dense", "psnr"]
 
 CAMERA_ROTATION = np.diag([1.0, -1.0, -1.0])   # world (y up, camera looks down -z) -> OpenCV
+HALF = 0.5                  # the half-resolution copy's pixels per working pixel (photo_level)
+PHOTO_GRADS = ("vertices", "albedo", "light", "focal")     # what the photometric term's render gives
 
 
 def landmark_weights() -> np.ndarray:
@@ -507,10 +509,18 @@ class FaceObjective:
                 objective.scene.set_depth_range(translation)
 
     def __call__(self, values: dict, stage: Stage):
-        world, geometry_ctx = self.scene.geometry(values)
+        geometry = self.scene.geometry(values)
+        photo = self.photo(values, geometry[0], stage) if stage.weights.get("photo") else None
+        return self.combine(values, stage, geometry, photo)
+
+    def combine(self, values: dict, stage: Stage, geometry: tuple, photo: tuple | None):
+        """``(loss, grads, terms)`` of the stage from the geometry (world vertices (V, 3) float64,
+        GeometryContext: FaceScene.geometry) and the photometric term, (value, grads) as
+        :meth:`photo` gives it, or None when the stage does not weigh it."""
+        world, geometry_ctx = geometry
         terms = self.point_terms(values, world, stage.weights)
-        if stage.weights.get("photo"):
-            terms["photo"] = self.photo(values, world, stage)
+        if photo is not None:
+            terms["photo"] = photo
         loss, grads, weighted = losses.weighted_sum(terms | self.prior_terms(values, stage.weights), stage.weights)
         g_world = grads.pop("world", None)
         if g_world is not None:                     # one pass through the model for all terms
@@ -546,17 +556,28 @@ class FaceObjective:
         """The photometric term of a stage, (value, grads) in working pixels, at the resolution
         :meth:`photo_level` picks (its stage set-up on the stage's first call); world: the world
         vertices (V, 3), as :meth:`photo_term` takes them."""
+        level, level_values = self.photo_start(values, stage)
+        return self.in_working_pixels(level, *level.photo_term(level_values, world, stage.sigma, stage.gamma))
+
+    def photo_start(self, values: dict, stage: Stage) -> tuple["FaceObjective", dict]:
+        """(the objective at the resolution :meth:`photo_level` picks for the stage, the values
+        in its pixels): its stage set up (depth range, face region, robust scale) at the
+        stage's first call."""
         level = self.photo_level(stage.sigma)
-        scale = 1.0 if level is self else 0.5
-        level_values = values if level is self else dict(values, focal=values["focal"] * scale)
+        level_values = values if level is self else dict(values, focal=values["focal"] * HALF)
         if level._mask_stage != stage.name:
             self.set_depth_range(values["translation"])
             level.start_stage(level_values, stage)
-        value, g = level.photo_term(level_values, world, stage.sigma, stage.gamma)
-        if level is not self:       # a half-size pixel stands for 4 working pixels
-            area = 1.0 / (scale * scale)
-            value, g = value * area, {k: v * area for k, v in g.items()}
-            g["focal"] = g["focal"] * scale
+        return level, level_values
+
+    def in_working_pixels(self, level: "FaceObjective", value: float, g: dict) -> tuple[float, dict]:
+        """A photometric term (value, grads) of :meth:`photo_start`'s ``level`` in this
+        objective's working pixels: a half-size pixel stands for 4 working pixels."""
+        if level is self:
+            return value, g
+        area = 1.0 / (HALF * HALF)
+        value, g = value * area, {k: v * area for k, v in g.items()}
+        g["focal"] = g["focal"] * HALF
         return value, g
 
     def landmark_points(self, values: dict, world: np.ndarray) -> tuple[np.ndarray, LandmarkContext]:
@@ -662,22 +683,30 @@ class FaceObjective:
         sh and focal."""
         albedo, albedo_ctx = self.scene.model.albedo(values["albedo"])
         # only the face region's tiles are rasterised: the loss and its gradient are the same
-        out = self.scene.render(values, sigma, gamma, grads=("vertices", "albedo", "light", "focal"),
-                                albedo=albedo, world=world, roi=self.mask)
+        out = self.scene.render(values, sigma, gamma, grads=PHOTO_GRADS, albedo=albedo, world=world, roi=self.mask)
+        value, g_rgb = self.photo_loss(out.rgb[0])
+        g_img = self.scene.renderer.backward(out, grad_rgb=g_rgb[None])
+        return value, self.photo_grads(albedo_ctx, g_img["vertices"], g_img["albedo"], g_img["light"]["coefficients"],
+                                       g_img["focal"])
+
+    def photo_loss(self, rgb: np.ndarray) -> tuple[float, np.ndarray]:
+        """(photo_term's value, its gradient wrt the render) of a render rgb (H, W, 3) float64."""
         pixels = max(int(self.mask.sum()), 1)
         if self._robust_loss is None:
-            value, g = losses.image_l2(out.rgb[0], self.image, self.mask)
+            value, g = losses.image_l2(rgb, self.image, self.mask)
             count = 3.0 * pixels
-            g_rgb = g["pred"][None] * count
-        else:
-            count = float(pixels)
-            value, g = self._robust_loss(out.rgb[0], grad_scale=count)
-            g_rgb = g["pred"][None]
-        g_img = self.scene.renderer.backward(out, grad_rgb=g_rgb)
-        return value * count, dict(world=g_img["vertices"],
-                                   albedo=self.scene.model.albedo_vjp(albedo_ctx, g_img["albedo"])["coeffs"],
-                                   sh=g_img["light"]["coefficients"],
-                                   focal=np.array([g_img["focal"].sum()]))
+            return value * count, g["pred"] * count
+        count = float(pixels)
+        value, g = self._robust_loss(rgb, grad_scale=count)
+        return value * count, g["pred"]
+
+    def photo_grads(self, albedo_ctx, g_world: np.ndarray, g_albedo: np.ndarray, g_sh: np.ndarray,
+                    g_focal: np.ndarray) -> dict:
+        """photo_term's gradients from the render's: world (V, 3), albedo through the model
+        (albedo_ctx: FaceModel.albedo's context; g_albedo (V, 3)), sh (3, 9) and focal ((2,)
+        [dL/dfx, dL/dfy] -> (1,))."""
+        return dict(world=g_world, albedo=self.scene.model.albedo_vjp(albedo_ctx, g_albedo)["coeffs"], sh=g_sh,
+                    focal=np.array([g_focal.sum()]))
 
 
 class DeviceFaceObjective(DeviceFaceEvaluation, FaceObjective):

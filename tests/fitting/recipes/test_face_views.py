@@ -110,6 +110,79 @@ def test_one_photo_objective_is_the_single_photo_objective(toy):
         np.testing.assert_array_equal(grads[face_views.view_block(b, 0)], g)
 
 
+def _twin_objectives(model, sizes, values, robust):
+    """Two lists of objectives made alike, one per size: photo k a random image with the model's
+    landmarks at its ``values`` (joint values) as its landmarks, so that its face region holds
+    the face (a stage's first photometric call changes an objective, so each way of evaluating
+    gets its own list)."""
+    made = []
+    for _ in range(2):
+        rng = np.random.default_rng(len(sizes))
+        objectives = []
+        for k, size in enumerate(sizes):
+            scene = face.FaceScene(model, (size, size))
+            view = {b: values[face_views.view_block(b, k)] for b in face_views.FaceViewsObjective.BLOCKS}
+            points = scene.camera(view["focal"][0]).project_pixels(model.landmarks(scene.geometry(view)[0])[0])[0]
+            objectives.append(face.FaceObjective(scene, rng.random((size, size, 3)) * 0.5, points, focal0=70.0 + size,
+                                                 robust_scale=face.ROBUST_SCALE if robust else None,
+                                                 mask_erosion=0))    # the toy's region is a few pixels wide
+        made.append(objectives)
+    return made
+
+
+@pytest.mark.parametrize("sizes, sigma, robust", [
+    ((36, 36, 36), 1e-3, True),           # one batch of three at the working size
+    ((36, 28, 36), 1e-3, False),          # two sizes: two renders, plain squares
+    ((72, 72), 1e-3, True),               # at or above COARSE_SIGMA: the half-size copies, coarse mesh
+    ((72, 72), 1e-5, True),               # below it: the working size
+])
+def test_photos_rendered_together_give_each_photos_own_term_to_the_bit(toy, sizes, sigma, robust):
+    """photo_terms (one render of the photos that can share it) against each photo's own
+    FaceObjective.photo, and the joint objective against its photos' objectives summed one by
+    one: equal to the bit, at two evaluations of a stage (its start, then within it)."""
+    rng = np.random.default_rng(11)
+    start = _joint_values(toy, rng, len(sizes))
+    for k, size in enumerate(sizes):
+        start[f"focal.{k}"] = start[f"focal.{k}"] * size / 36
+    together, alone = _twin_objectives(toy, sizes, start, robust)
+    for evaluation in range(2):
+        values = {name: v + evaluation * rng.normal(scale=0.01, size=v.shape) for name, v in start.items()}
+        views = [face_views.FaceViewsObjective(together).view_values(values, k) for k in range(len(sizes))]
+        stage = Stage("photo-1", ("id",), ALL_TERMS, sigma=sigma, gamma=1e-2)
+        worlds = [o.scene.geometry(v)[0] for o, v in zip(together, views)]
+        got = face_views.photo_terms(together, views, worlds, stage)
+        want = [o.photo(v, w, stage) for o, v, w in zip(alone, views, worlds)]
+        assert (together[0].photo_level(sigma) is together[0]) == (sigma < face.COARSE_SIGMA or sizes[0] < 64)
+        for (value, grads), (want_value, want_grads) in zip(got, want, strict=True):
+            assert value == want_value and value > 0, evaluation
+            assert grads.keys() == want_grads.keys()
+            for name, g in want_grads.items():
+                assert np.array_equal(grads[name], g), (name, evaluation)
+
+
+def test_joint_objective_is_its_photos_objectives_summed(toy):
+    """The joint loss, gradients and terms: each photo's objective (evaluated alone) summed in
+    photo order, to the bit."""
+    values = _joint_values(toy, np.random.default_rng(12), 2)
+    together, alone = _twin_objectives(toy, (36, 36), values, True)
+    stage = Stage("photo-1", ("id",), ALL_TERMS, sigma=1e-3, gamma=1e-2)
+    joint = face_views.FaceViewsObjective(together)
+    loss, grads, terms = joint(values, stage)
+    want_loss, want_grads, want_terms = 0.0, {}, {}
+    for k, objective in enumerate(alone):
+        value, g, t = objective(joint.view_values(values, k), joint.view_stage(stage, k))
+        want_loss += value
+        for name, grad in g.items():
+            key = face_views.view_block(name, k)
+            want_grads[key] = want_grads[key] + grad if key in want_grads else grad
+        for name, v in t.items():
+            want_terms[name] = want_terms.get(name, 0.0) + v
+    assert loss == want_loss and terms == want_terms
+    assert grads.keys() == want_grads.keys()
+    for name, g in want_grads.items():
+        assert np.array_equal(grads[name], g), name
+
+
 @pytest.fixture(scope="module")
 def demo():
     from softras_cl.fitting.models.face_loaders import load_demo_face_model
