@@ -23,7 +23,7 @@ import pyopencl.array as cla
 
 from softras_cl.fitting import losses
 from softras_cl.fitting.device.landmarks import DeviceLandmarks
-from softras_cl.fitting.device.model import DeviceFaceModel
+from softras_cl.fitting.device.model import DeviceFaceModel, DeviceGeometry
 from softras_cl.fitting.device.photo import DevicePhotoLoss
 from softras_cl.fitting.solver import Stage
 
@@ -49,8 +49,18 @@ class DeviceFaceEvaluation:
         return dict(device_model=self.device_model)
 
     def __call__(self, values: dict, stage: Stage):
+        geometry = self.geometry(values)
+        photo = self.photo(values, geometry.world, stage) if stage.weights.get("photo") else None
+        return self.combine(values, stage, geometry, photo)
+
+    def geometry(self, values: dict) -> DeviceGeometry:
+        """The placed shape of values on the device (DeviceFaceModel.geometry)."""
+        return self.device_model.geometry(values)
+
+    def combine(self, values: dict, stage: Stage, geometry: DeviceGeometry, photo: tuple | None):
+        """FaceObjective.combine on the device's geometry and photometric term (world and
+        albedo gradients on the device)."""
         w, model = stage.weights, self.device_model
-        geometry = model.geometry(values)
         g_world, reads, terms = model.zeros(), {}, {}
         # the world cotangent collects each term's weighted gradient in weighted_sum's order
         if w.get("landmarks"):
@@ -60,8 +70,8 @@ class DeviceFaceEvaluation:
             value, g = self.dense_term(values, geometry.world.get())
             model.add(g_world, g.pop("world"), float(w["dense"]))
             terms["dense"] = (value, g)
-        if w.get("photo"):
-            value, g = self.photo(values, geometry.world, stage)
+        if photo is not None:
+            value, g = photo
             model.add(g_world, g.pop("world"), float(w["photo"]))
             reads["albedo"] = g.pop("albedo")
             terms["photo"] = (value, g)
@@ -88,16 +98,26 @@ class DeviceFaceEvaluation:
         super().start_stage(values, stage)
         self._photo_loss = DevicePhotoLoss(self.device_model.kernels, self.image, self.mask, self.photo_scale)
 
-    def photo_term(self, values: dict, world: cla.Array, sigma: float, gamma: float) -> tuple[float, dict]:
-        """FaceObjective.photo_term on device world vertices (V, 3) float64: the same sum over the
-        face region; gradients "world" (V, 3) and albedo (K_alb,) on the device, sh and focal numpy."""
-        albedo = self.device_model.albedo(values["albedo"])
-        out = self.scene.render(values, sigma, gamma, grads=("vertices", "albedo", "light", "focal"),
-                                albedo=albedo, world=world, roi=self.mask, faces=self.device_faces,
-                                check_values=False)      # its own kernels' arrays, from checked values
+    # what fitting.recipes.face.photo_terms_together asks of each objective (FaceObjective's)
+    check_render_values = False       # the world vertices and albedo come from its own kernels
+
+    def drawn_faces(self) -> cla.Array:
+        return self.device_faces
+
+    def photo_albedo(self, values: dict) -> tuple:
+        """(the render's albedo (V, 3) on the device, no context)."""
+        return self.device_model.albedo(values["albedo"]), None
+
+    def photo_loss(self, rgb: cla.Array) -> tuple:
+        """(the region's sum (1, 1) on the device, dL/d(rgb) (1, H, W, 3) on the device) of a
+        device render rgb (1, H, W, 3): DevicePhotoLoss at this stage's region and scale."""
+        return self._photo_loss(rgb, grad_scale=self._photo_loss.total)
+
+    def photo_value(self, total: cla.Array) -> float:
         count = self._photo_loss.total
-        total, g_rgb = self._photo_loss(out.rgb, grad_scale=count)
-        g_img = self.scene.renderer.backward(out, grad_rgb=g_rgb)       # (it waits for the queue)
-        value = float(total.get()[0, 0]) / count
-        return value * count, dict(world=g_img["vertices"], albedo=self.device_model.albedo_vjp(g_img["albedo"]),
-                                   sh=g_img["light"]["coefficients"], focal=np.array([g_img["focal"].sum()]))
+        return float(total.get()[0, 0]) / count * count
+
+    def photo_grads(self, albedo_ctx, g_world: cla.Array, g_albedo: cla.Array, g_sh: np.ndarray,
+                    g_focal: np.ndarray) -> dict:
+        """The gradients world (V, 3) and albedo (K_alb,) on the device, sh and focal numpy."""
+        return dict(world=g_world, albedo=self.device_model.albedo_vjp(g_albedo), sh=g_sh, focal=np.array([g_focal.sum()]))

@@ -59,8 +59,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
+import pyopencl.array as cla
 
 from softras_cl.checks import check_finite
 from softras_cl.errors import InputError
@@ -211,6 +213,12 @@ class GeometryContext:
     rot_ctx: RodriguesContext
 
 
+class Geometry(NamedTuple):
+    """FaceScene.geometry's result: world (V, 3) float64 vertices and the context of its vjp."""
+    world: np.ndarray
+    ctx: GeometryContext
+
+
 class FaceScene:
     """The model, the fixed camera frame and a renderer for one working image size.
 
@@ -267,11 +275,11 @@ class FaceScene:
             self._camera = (focal, self._camera[1].with_params(fx=focal, fy=focal))
         return self._camera[1]
 
-    def geometry(self, values: dict) -> tuple[np.ndarray, GeometryContext]:
-        """-> (world vertices (V, 3) float64, GeometryContext for geometry_vjp)."""
+    def geometry(self, values: dict) -> Geometry:
+        """-> Geometry: world vertices (V, 3) float64 and the GeometryContext for geometry_vjp."""
         shape, shape_ctx = self.model.shape(values["id"], values["exp"])
         R, rot_ctx = rodrigues(values["rotation"])
-        return shape @ R.T + values["translation"], GeometryContext(shape, shape_ctx, R, rot_ctx)
+        return Geometry(shape @ R.T + values["translation"], GeometryContext(shape, shape_ctx, R, rot_ctx))
 
     def geometry_vjp(self, ctx: GeometryContext, g_world: np.ndarray) -> dict:
         """dL/d(world vertices) (V, 3) -> dict id, exp, rotation, translation (float64)."""
@@ -509,14 +517,19 @@ class FaceObjective:
                 objective.scene.set_depth_range(translation)
 
     def __call__(self, values: dict, stage: Stage):
-        geometry = self.scene.geometry(values)
-        photo = self.photo(values, geometry[0], stage) if stage.weights.get("photo") else None
+        geometry = self.geometry(values)
+        photo = self.photo(values, geometry.world, stage) if stage.weights.get("photo") else None
         return self.combine(values, stage, geometry, photo)
 
-    def combine(self, values: dict, stage: Stage, geometry: tuple, photo: tuple | None):
-        """``(loss, grads, terms)`` of the stage from the geometry (world vertices (V, 3) float64,
-        GeometryContext: FaceScene.geometry) and the photometric term, (value, grads) as
-        :meth:`photo` gives it, or None when the stage does not weigh it."""
+    def geometry(self, values: dict) -> Geometry:
+        """The placed shape of values (FaceScene.geometry): ``.world`` (V, 3) is what
+        :meth:`photo` and :meth:`combine` take."""
+        return self.scene.geometry(values)
+
+    def combine(self, values: dict, stage: Stage, geometry: Geometry, photo: tuple | None):
+        """``(loss, grads, terms)`` of the stage from the geometry (:meth:`geometry`) and the
+        photometric term, (value, grads) as :meth:`photo` gives it, or None when the stage does
+        not weigh it."""
         world, geometry_ctx = geometry
         terms = self.point_terms(values, world, stage.weights)
         if photo is not None:
@@ -681,32 +694,71 @@ class FaceObjective:
         channels), or of its Geman-McClure kernel at ``photo_scale`` (losses.GemanMcClure, set
         up by start_stage) when that is set; gradients wrt the world vertices ("world"), albedo,
         sh and focal."""
-        albedo, albedo_ctx = self.scene.model.albedo(values["albedo"])
-        # only the face region's tiles are rasterised: the loss and its gradient are the same
-        out = self.scene.render(values, sigma, gamma, grads=PHOTO_GRADS, albedo=albedo, world=world, roi=self.mask)
-        value, g_rgb = self.photo_loss(out.rgb[0])
-        g_img = self.scene.renderer.backward(out, grad_rgb=g_rgb[None])
-        return value, self.photo_grads(albedo_ctx, g_img["vertices"], g_img["albedo"], g_img["light"]["coefficients"],
-                                       g_img["focal"])
+        return photo_terms_together([self], [values], [world], sigma, gamma)[0]
 
-    def photo_loss(self, rgb: np.ndarray) -> tuple[float, np.ndarray]:
-        """(photo_term's value, its gradient wrt the render) of a render rgb (H, W, 3) float64."""
+    # what photo_terms_together asks of each objective (the device objective has its own)
+    check_render_values = True        # the renderer checks the world vertices and albedo
+
+    def drawn_faces(self):
+        """The faces the photometric render draws, as the renderer takes them."""
+        return self.scene.faces
+
+    def photo_albedo(self, values: dict) -> tuple:
+        """(the render's albedo (V, 3) float64, the context for :meth:`photo_grads`)."""
+        return self.scene.model.albedo(values["albedo"])
+
+    def photo_loss(self, rgb: np.ndarray) -> tuple:
+        """(photo_term's value, its gradient wrt the render (1, H, W, 3)) of a render rgb (1, H,
+        W, 3) float64; the value as :meth:`photo_value` reads it."""
         pixels = max(int(self.mask.sum()), 1)
         if self._robust_loss is None:
-            value, g = losses.image_l2(rgb, self.image, self.mask)
+            value, g = losses.image_l2(rgb[0], self.image, self.mask)
             count = 3.0 * pixels
-            return value * count, g["pred"] * count
+            return value * count, g["pred"][None] * count
         count = float(pixels)
-        value, g = self._robust_loss(rgb, grad_scale=count)
-        return value * count, g["pred"]
+        value, g = self._robust_loss(rgb[0], grad_scale=count)
+        return value * count, g["pred"][None]
 
-    def photo_grads(self, albedo_ctx, g_world: np.ndarray, g_albedo: np.ndarray, g_sh: np.ndarray,
-                    g_focal: np.ndarray) -> dict:
+    def photo_value(self, value) -> float:
+        """:meth:`photo_loss`'s value as a float."""
+        return value
+
+    def photo_grads(self, albedo_ctx, g_world, g_albedo, g_sh: np.ndarray, g_focal: np.ndarray) -> dict:
         """photo_term's gradients from the render's: world (V, 3), albedo through the model
-        (albedo_ctx: FaceModel.albedo's context; g_albedo (V, 3)), sh (3, 9) and focal ((2,)
+        (albedo_ctx: :meth:`photo_albedo`'s; g_albedo (V, 3)), sh (3, 9) and focal ((2,)
         [dL/dfx, dL/dfy] -> (1,))."""
         return dict(world=g_world, albedo=self.scene.model.albedo_vjp(albedo_ctx, g_albedo)["coeffs"], sh=g_sh,
                     focal=np.array([g_focal.sum()]))
+
+
+def photo_terms_together(levels: list[FaceObjective], values: list[dict], worlds: list, sigma: float,
+                         gamma: float) -> list[tuple]:
+    """Each objective's FaceObjective.photo_term (value, grads) from one render and one backward
+    of all of them (with the first one's renderer): objectives of one class whose scenes share
+    image size, drawn faces and renderer settings, their stages set up; each view drawn with its
+    own camera, SH light, depth range and face region (only the regions' tiles are rasterised:
+    the loss and its gradient are the same). values, worlds: per objective, its values and world
+    vertices (V, 3) (numpy, or device arrays for the device objective)."""
+    first = levels[0]
+    albedos = [level.photo_albedo(v) for level, v in zip(levels, values)]
+    out = first.scene.renderer.forward(
+        _stack(worlds), first.drawn_faces(), [level.scene.camera(v["focal"][0]) for level, v in zip(levels, values)],
+        albedo=_stack([albedo for albedo, _ in albedos]), light=[SHLight(v["sh"]) for v in values], grads=PHOTO_GRADS,
+        roi=np.stack([level.mask for level in levels]), sigma=sigma, gamma=gamma,
+        near=[level.scene.settings.near for level in levels], far=[level.scene.settings.far for level in levels],
+        check_values=first.check_render_values)
+    photo = [level.photo_loss(out.rgb[k:k + 1]) for k, level in enumerate(levels)]
+    g_img = first.scene.renderer.backward(out, grad_rgb=_stack([g_rgb[0] for _, g_rgb in photo]))
+    return [(level.photo_value(value), level.photo_grads(ctx, g_img["vertices"][k], g_img["albedo"][k],
+                                                         g_img["light"]["coefficients"][k], g_img["focal"][k]))
+            for k, (level, (value, _), (_, ctx)) in enumerate(zip(levels, photo, albedos))]
+
+
+def _stack(arrays: list):
+    """(B, ...) from B arrays of one shape (...), numpy or pyopencl (one of them: a view)."""
+    if len(arrays) == 1:
+        return arrays[0].reshape((1,) + arrays[0].shape)
+    return cla.stack(arrays) if isinstance(arrays[0], cla.Array) else np.stack(arrays)
 
 
 class DeviceFaceObjective(DeviceFaceEvaluation, FaceObjective):

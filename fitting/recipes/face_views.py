@@ -33,13 +33,11 @@ from softras_cl.errors import InputError
 from softras_cl.fitting.keypoints import ibug68
 from softras_cl.fitting.keypoints.plausibility import check_landmark_layout
 from softras_cl.fitting.params import Block, ParamSet
-from softras_cl.fitting.device.face_objective import DeviceFaceEvaluation
-from softras_cl.fitting.recipes.face import (PHOTO_GRADS, FaceFit, FaceFitConfig, FaceObjective, default_stages,
+from softras_cl.fitting.recipes.face import (FaceFit, FaceFitConfig, FaceObjective, default_stages, photo_terms_together,
                                              prepare_fit, tied_landmarks)
 from softras_cl.fitting.recipes.face_settings import joint_config
 from softras_cl.fitting.solver import FitResult, Stage, fit
 from softras_cl.scene.renderer import SHARP
-from softras_cl.scene.shading import SHLight
 
 __all__ = ["SHARED", "PRIORS_ONCE", "view_block", "focal_scales", "FaceViewsObjective", "photo_terms", "FaceViewsFit",
            "joint_params",
@@ -109,54 +107,36 @@ class FaceViewsObjective:
 
 
     def _evaluate_views(self, values: dict, stage: Stage) -> list[tuple]:
-        """Each photo's (loss, grads, terms) at its values. Numpy objectives render their
-        photometric terms together (:func:`photo_terms`); the device's one photo at a time."""
+        """Each photo's (loss, grads, terms) at its values, the photometric terms of the photos
+        that can share a render rendered together (:func:`photo_terms`)."""
         views = [self.view_values(values, k) for k in range(len(self.views))]
         stages = [self.view_stage(stage, k) for k in range(len(self.views))]
-        if any(isinstance(v, DeviceFaceEvaluation) for v in self.views):
-            return [objective(v, s) for objective, v, s in zip(self.views, views, stages)]
-        geometries = [objective.scene.geometry(v) for objective, v in zip(self.views, views)]
+        geometries = [objective.geometry(v) for objective, v in zip(self.views, views)]
         photos = ([None] * len(views) if not stage.weights.get("photo") else
-                  photo_terms(self.views, views, [world for world, _ in geometries], stage))
+                  photo_terms(self.views, views, [g.world for g in geometries], stage))
         return [objective.combine(*args) for objective, *args in zip(self.views, views, stages, geometries, photos)]
 
 
 def photo_terms(objectives: list[FaceObjective], values: list[dict], worlds: list, stage: Stage) -> list[tuple]:
-    """Each photo's FaceObjective.photo (value, grads), the photos whose renders can share one
-    call (the same size, faces and renderer settings at the stage's resolution) rendered as one
-    batch, each view with its own camera, light, depth range and face region: the same images
-    and gradients as one render per photo (tests/fitting/recipes/test_face_views.py).
+    """Each photo's FaceObjective.photo (value, grads): the photos whose renders can share one
+    call (objectives of one class on one queue, the same size, drawn faces and renderer settings
+    at the stage's resolution) rendered as one batch (face.photo_terms_together): the same
+    images and gradients as one render per photo (tests/fitting/recipes/test_face_views.py).
     objectives, values, worlds: per photo, its objective, values and world vertices (V, 3)."""
     starts = [objective.photo_start(v, stage) for objective, v in zip(objectives, values)]
     groups: dict = {}
     for k, (level, _) in enumerate(starts):
         s = level.scene.settings
-        key = (level.scene.image_size, s.dtype, s.alpha_agg, level.scene.faces.tobytes())
+        key = (type(level), level.scene.renderer.queue, level.scene.image_size, s.dtype, s.alpha_agg,
+               level.scene.faces.tobytes())
         groups.setdefault(key, []).append(k)
     terms = [None] * len(objectives)
     for members in groups.values():
-        batch = _batch_photo_terms([starts[k][0] for k in members], [starts[k][1] for k in members],
-                                   [worlds[k] for k in members], stage)
-        for k, (value, g) in zip(members, batch):
+        together = photo_terms_together([starts[k][0] for k in members], [starts[k][1] for k in members],
+                                        [worlds[k] for k in members], stage.sigma, stage.gamma)
+        for k, (value, g) in zip(members, together):
             terms[k] = objectives[k].in_working_pixels(starts[k][0], value, g)
     return terms
-
-
-def _batch_photo_terms(levels: list[FaceObjective], values: list[dict], worlds: list, stage: Stage) -> list[tuple]:
-    """FaceObjective.photo_term of each level (objectives whose scenes share size, faces and
-    settings) from one render and one backward of all of them, with the first one's renderer."""
-    scene = levels[0].scene
-    albedos = [scene.model.albedo(v["albedo"]) for v in values]
-    out = scene.renderer.forward(
-        np.stack(worlds), scene.faces, [level.scene.camera(v["focal"][0]) for level, v in zip(levels, values)],
-        albedo=np.stack([albedo for albedo, _ in albedos]), light=[SHLight(v["sh"]) for v in values],
-        grads=PHOTO_GRADS, roi=np.stack([level.mask for level in levels]), sigma=stage.sigma, gamma=stage.gamma,
-        near=[level.scene.settings.near for level in levels], far=[level.scene.settings.far for level in levels])
-    photo = [level.photo_loss(out.rgb[k]) for k, level in enumerate(levels)]
-    g_img = scene.renderer.backward(out, grad_rgb=np.stack([g_rgb for _, g_rgb in photo]))
-    return [(value, level.photo_grads(ctx, g_img["vertices"][k], g_img["albedo"][k], g_img["light"]["coefficients"][k],
-                                      g_img["focal"][k]))
-            for k, (level, (value, _), (_, ctx)) in enumerate(zip(levels, photo, albedos))]
 
 
 def _block(params: ParamSet, name: str, new_name: str) -> Block:

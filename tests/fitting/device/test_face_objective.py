@@ -204,6 +204,33 @@ def test_the_joint_objective_of_device_views_equals_that_of_numpy_views(demo):
     assert_same(host(joint, stage), device(joint, stage))
 
 
+@pytest.mark.parametrize("sigma", [1e-5, 3e-4])     # the working size; the half-size copies (coarse mesh)
+def test_device_photos_rendered_together_equal_each_device_photo_alone(demo, sigma):
+    """face_views.photo_terms on device objectives (the photos of one size drawn as one batch,
+    the third, smaller one alone) equals each device objective's own photometric term to the
+    bit, and the joint device objective the joint numpy one within 1e-10."""
+    from softras_cl.fitting.recipes import face_views
+
+    rng = np.random.default_rng(16)
+    values = [random_values(demo, rng, yaw_deg=yaw) for yaw in (-20.0, 35.0, 10.0)]
+    joint = dict(id=values[0]["id"], albedo=values[0]["albedo"])
+    for k, v in enumerate(values):
+        joint.update({f"{name}.{k}": v[name] for name in ("exp", "sh", "rotation", "translation", "focal")})
+    made = [[objectives(demo, size, v) for size, v in zip((64, 64, 48), values)] for _ in range(2)]
+    together, alone = ([d for _, d in pairs] for pairs in made)
+    host = face_views.FaceViewsObjective([h for h, _ in made[0]])
+    views = [host.view_values(joint, k) for k in range(len(values))]
+    stage = Stage("photo-1", ("id",), PHOTO, sigma=sigma, gamma=1e-3)
+    got = face_views.photo_terms(together, views, [o.geometry(v).world for o, v in zip(together, views)], stage)
+    want = [o.photo(v, o.geometry(v).world, stage) for o, v in zip(alone, views)]
+    for (value, grads), (want_value, want_grads) in zip(got, want, strict=True):
+        assert value == want_value and value > 0
+        for name, g in want_grads.items():
+            g, g_got = (a.get() if hasattr(a, "get") else a for a in (g, grads[name]))
+            assert np.array_equal(g_got, g), name
+    assert_same(host(joint, stage), face_views.FaceViewsObjective(together)(joint, stage))
+
+
 def test_a_fit_runs_on_the_objective_its_config_names(demo):
     """FaceFitConfig.objective: "device" fits with DeviceFaceObjective (a short schedule, to
     its end, finite), "host" with the numpy one; "auto" takes the numpy one on a CPU device."""
