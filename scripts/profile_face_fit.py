@@ -86,7 +86,9 @@ PHASES = {
                       "softras_cl.fitting.device.landmarks:DeviceLandmarks.__call__"],
     "photo loss (Geman-McClure)": ["softras_cl.fitting.losses:GemanMcClure.__call__", "softras_cl.fitting.losses:image_l2",
                                    "softras_cl.fitting.losses:image_geman_mcclure",
-                                   "softras_cl.fitting.device.photo:DevicePhotoLoss.__call__"],
+                                   "softras_cl.fitting.device.photo:DevicePhotoLoss.__call__",
+                                   "softras_cl.fitting.recipes.face:FaceObjective.photo_loss",
+                                   DEVICE_OBJECTIVE + ":DeviceFaceEvaluation.photo_loss"],
     "priors, weighted sum": ["softras_cl.fitting.losses:gaussian_prior", "softras_cl.fitting.losses:sh_white",
                              "softras_cl.fitting.losses:weighted_sum", "softras_cl.fitting.recipes.face:FaceObjective.focal_prior"],
     "stage start (region, robust scale)": ["softras_cl.fitting.recipes.face:FaceObjective.start_stage"],
@@ -127,11 +129,13 @@ PHASES = {
     "solver: history, loss plot (once, at the end)": ["softras_cl.fitting.solver:_Fit.write_history",
                                                      "softras_cl.fitting.solver:_Fit.write_plot"],
     "objective, unattributed": ["softras_cl.fitting.recipes.face:FaceObjective.__call__",
+                                "softras_cl.fitting.recipes.face:FaceObjective.combine",
                                 "softras_cl.fitting.recipes.face:FaceObjective.photo_term",
+                                "softras_cl.fitting.recipes.face:photo_terms_together",
                                 "softras_cl.fitting.recipes.face:FaceObjective.landmark_term",
                                 "softras_cl.fitting.recipes.face:FaceObjective.landmark_points",
                                 DEVICE_OBJECTIVE + ":DeviceFaceEvaluation.__call__",
-                                DEVICE_OBJECTIVE + ":DeviceFaceEvaluation.photo_term"],
+                                DEVICE_OBJECTIVE + ":DeviceFaceEvaluation.combine"],
 }
 CHECK_MODULES = ("softras_cl.checks", "softras_cl.raster.inputs")
 WAITS, ENQUEUES = "OpenCL waits (kernels, copies)", "transfer enqueues"
