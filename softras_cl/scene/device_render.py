@@ -306,6 +306,7 @@ def forward_device(renderer, args: dict, cameras, light, grads: tuple, roi, run:
     light = light if light is not None else shading.LambertLight()
     check_metadata(renderer, args, cameras, light)
     cams, _, batched = _views(cameras, _shape_only(args["vertices"]), renderer.settings.image_size)
+    renderer.check_run(run, len(cams))
     light = shading.view_lights(light, len(cams))
     dev = to_device_args(tools, args)
     verts = tools.arrays.contiguous(dev["vertices"], np.float64)

@@ -105,11 +105,12 @@ class Renderer:
         grads = _check_grad_groups(grads, self.shading)
         args = dict(vertices=vertices, faces=faces, albedo=albedo, face_textures=face_textures,
                     texture_image=texture_image, uvs=uvs)
+        run = dict(zip(RUN_FIELDS, (sigma, gamma, near, far)))
         if device_render.uses_device(args):
-            run = dict(zip(RUN_FIELDS, (sigma, gamma, near, far)))
             return device_render.forward_device(self, args, cameras, light, grads, roi, run, check_values)
         single_camera = isinstance(cameras, Camera)
         cameras, verts, batched = _views(cameras, vertices, self.settings.image_size)
+        self.check_run(run, len(cameras))
         faces = np.asarray(faces)
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
             raise ValueError(f"faces must be a non-empty (F, 3) array: the mesh has no faces (got shape {faces.shape})")
@@ -120,11 +121,17 @@ class Renderer:
         color_args, shade_ctx = self._colors(verts, faces, cameras, albedo, light, face_textures,
                                                texture_image, uvs)
         raster = self._rasterizer(cameras[0].projection, color_args, light)
-        run = dict(zip(RUN_FIELDS, (sigma, gamma, near, far)))
         out = raster.forward(screen, faces, grads=_raster_grads(grads, self.shading), roi=roi, **color_args, **run)
         saved = RenderContext(raster, out, cameras, cam_ctx, shade_ctx, light, grads, batched,
                               single_camera, np.shape(albedo) if albedo is not None else None, self)
         return RenderOutput(out.rgb, out.alpha, out.depth, saved)
+
+    def check_run(self, run: dict, views: int) -> None:
+        """ValueError naming the field unless this call's RUN_FIELDS values (None: the settings'
+        own) pass RasterSettings' checks with near and far holding one value per view, if a
+        sequence; run by forward before any kernel."""
+        changes = {name: value for name, value in run.items() if value is not None}
+        (self.settings.replace(**changes) if changes else self.settings).depth_ranges(views)
 
     def backward(self, output: RenderOutput, grad_rgb=None, grad_alpha=None, grad_depth=None) -> dict:
         """Gradients of a scalar loss given dL/d(rgb, alpha, depth) (each None or the output's

@@ -314,3 +314,20 @@ def test_one_depth_range_per_view_matches_numpy():
                             near=[2.4, 1.8], far=[3.3, 2.7])
     shared, _ = render(settings(), "vertex", False, v, f, two_cameras((H, W)), albedo, LIGHTS["sh"], near=2.4, far=3.3)
     assert not np.array_equal(shared["depth"][1], host[0]["depth"][1])
+
+
+@pytest.mark.parametrize("run, says", [
+    (dict(near=[2.4, 1.8, 1.0], far=3.3), r"near holds 3 values \(one per view\), but the batch has 2 views"),
+    (dict(near=[2.4, 1.8], far=[3.3, 1.5]), r"far\[1\] must be finite and > near\[1\]"),
+    (dict(sigma=-1.0), "sigma must be a finite number > 0"),
+])
+def test_bad_call_values_are_refused_before_any_device_kernel(monkeypatch, run, says):
+    """A call's sigma, gamma, near and far (near and far per view) are checked before the
+    device path projects anything."""
+    from softras_cl.scene import device_render
+
+    v, f, albedo = sphere_scene()
+    renderer = Renderer(settings(), shading="vertex")
+    monkeypatch.setattr(device_render, "project", lambda *a: pytest.fail("a kernel ran before the check"))
+    with pytest.raises(ValueError, match=says):
+        renderer.forward(cla.to_device(renderer.queue, v), f, two_cameras((H, W)), albedo=albedo, **run)
