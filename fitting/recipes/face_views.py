@@ -16,6 +16,10 @@ photo's objective only; the expression and light terms stay per photo). The grad
 gradients of it. With one photo the objective, the parameter layout and so the whole fit are
 those of :func:`~softras_cl.fitting.recipes.face.fit_face`.
 
+The photos' photometric terms are rendered together where their renders can share a call
+(:func:`photo_terms`: one rasteriser call with a camera, light, depth range and face region per
+view), with the same images and gradients as one render per photo.
+
 The stages are the single fit's (:func:`~softras_cl.fitting.recipes.face.default_stages`), each
 run jointly over all photos: a block free in the single fit's stage is free here in every photo.
 The weights too, but for one (:func:`joint_config`): the landmarks weigh in the photometric
@@ -40,8 +44,7 @@ from softras_cl.fitting.solver import FitResult, Stage, fit
 from softras_cl.scene.renderer import SHARP
 
 __all__ = ["SHARED", "PRIORS_ONCE", "view_block", "focal_scales", "FaceViewsObjective", "photo_terms", "FaceViewsFit",
-           "joint_params",
-           "joint_stages", "prepare_view", "fit_face_views"]
+           "joint_params", "joint_stages", "prepare_view", "fit_face_views"]
 
 SHARED = ("id", "albedo")                  # blocks common to every photo of the person
 PRIORS_ONCE = ("id_prior", "albedo_prior")  # their priors: counted in the first photo's objective only
@@ -104,7 +107,6 @@ class FaceViewsObjective:
             for name, v in t.items():
                 terms[name] = terms.get(name, 0.0) + v
         return loss, grads, terms
-
 
     def _evaluate_views(self, values: dict, stage: Stage) -> list[tuple]:
         """Each photo's (loss, grads, terms) at its values, the photometric terms of the photos
