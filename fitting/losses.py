@@ -36,7 +36,7 @@ IOU_EPS = 1e-6      # silhouette_iou's guard, in summed pixel values
 __all__ = [
     "MeshTopology", "mesh_topology",
     "image_l2", "image_l1", "image_geman_mcclure", "GemanMcClure", "silhouette_iou", "silhouette_l2", "landmarks_2d",
-    "landmarks_2d_unchecked", "gaussian_prior", "gaussian_prior_unchecked", "sh_white", "laplacian_coordinates", "laplacian", "flatten", "edge_length",
+    "landmarks_2d_unchecked", "landmarks_2d_robust", "gaussian_prior", "gaussian_prior_unchecked", "sh_white", "laplacian_coordinates", "laplacian", "flatten", "edge_length",
     "weighted_sum",
 ]
 
@@ -309,6 +309,25 @@ def landmarks_2d_unchecked(residuals: np.ndarray, weights: np.ndarray,
         den = r2 + s2
         rho, drho = r2 / den, s2 / (den * den)
     return float((weights * rho).sum() / n), (2.0 / n) * (weights * drho)[:, None] * residuals
+
+
+def landmarks_2d_robust(residuals: np.ndarray, weights: np.ndarray, scale: float) -> tuple[float, np.ndarray]:
+    """Landmark term robust to a detector's gross misses: each point's squared residual in its
+    own standard deviations, ``u2_i = weights_i * |residuals_i|^2`` (weights_i = 1 / sigma_i^2),
+    through Geman-McClure at ``scale`` c of them::
+
+        rho(u2) = c^2 u2 / (u2 + c^2)     (~u2, the plain term, well below c; at most c^2)
+        value   = (1/N) * sum_i rho(u2_i)
+
+    residuals (N, D) float64 (points - target), weights (N,) >= 0, scale c > 0; none checked
+    (a fit's own arrays, every evaluation). Returns (value, its gradient wrt the points (N, D))."""
+    n = len(residuals)
+    if n == 0:
+        return 0.0, np.zeros_like(residuals)
+    c2 = scale * scale
+    u2 = weights * np.einsum("ij,ij->i", residuals, residuals)
+    den = u2 + c2
+    return float((c2 * u2 / den).sum() / n), (2.0 / n) * (weights * (c2 * c2) / (den * den))[:, None] * residuals
 
 
 def gaussian_prior(coeffs, sigma, mean=0.0) -> tuple[float, dict]:

@@ -91,7 +91,8 @@ class DeviceFaceEvaluation:
         """The landmark term on the device (made at its first use)."""
         if self._device_landmarks is None:
             self._device_landmarks = DeviceLandmarks(self.device_model.queue, self.scene.model, self.target,
-                                                     self.landmark_weights, self.contour, self.scene.image_size)
+                                                     self.landmark_weights, self.contour, self.scene.image_size,
+                                                     self.landmark_robust)
         return self._device_landmarks
 
     def start_stage(self, values: dict, stage: Stage) -> None:

@@ -198,7 +198,7 @@ FIT_KERNELS = {
     # g_points (L, 3) dL/d(3D points): landmarks_2d, project_pixels_vjp and project_vjp's focal
     "landmark_loss": ("double *out, double *g_points, const double *points, const double *targets, "
                       "const double *weights, const double *params, const long n, const double side, "
-                      "const double width, const double height",
+                      "const double width, const double height, const double robust",
                       """
                       __global const double *p = params;
                       const double k = p[16];
@@ -208,8 +208,16 @@ FIT_KERNELS = {
                           camera_point(cam, points + 3 * l, p);
                           pixel_of(uv, points + 3 * l, p, side, width, height);
                           const double d0 = uv[0] - targets[2 * l], d1 = uv[1] - targets[2 * l + 1];
-                          value += weights[l] * (d0 * d0 + d1 * d1);
-                          const double g = (2.0 / n) * weights[l];
+                          const double r2 = d0 * d0 + d1 * d1;
+                          double g;
+                          if (robust > 0.0) {     /* losses.landmarks_2d_robust: Geman-McClure at c */
+                              const double c2 = robust * robust, u2 = weights[l] * r2, den = u2 + c2;
+                              value += c2 * u2 / den;
+                              g = (2.0 / n) * (weights[l] * (c2 * c2) / (den * den));
+                          } else {
+                              value += weights[l] * r2;
+                              g = (2.0 / n) * weights[l];
+                          }
                           const double gs0 = (g * d0) * n * side / 2.0, gs1 = -((g * d1) * n) * side / 2.0;
                           const double a = cam[0] / cam[2], bb = cam[1] / cam[2];
                           const double ga = (k * p[12]) * gs0, gb = (-k * p[13]) * gs1;

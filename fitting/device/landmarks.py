@@ -49,9 +49,10 @@ class DeviceLandmarks:
     """FaceObjective.landmark_term of one objective on the device.
 
     queue: the objective's queue; model: the (tied) FaceModel; targets (L, 2) working pixels;
-    weights (L,); contour: a ContourLandmarks or None; image_size (H, W)."""
+    weights (L,); contour: a ContourLandmarks or None; image_size (H, W); robust: the
+    objective's landmark_robust (None: squared distances)."""
 
-    def __init__(self, queue, model, targets, weights, contour, image_size):
+    def __init__(self, queue, model, targets, weights, contour, image_size, robust: float | None = None):
         self.kernels = SceneKernels(queue.context, queue, extra=FIT_KERNELS, preamble=LANDMARK_PREAMBLE)
         tables = contour_tables(contour, model.n_landmarks)
         self.n, self.n_faces = model.n_landmarks, len(tables["faces"])
@@ -63,6 +64,7 @@ class DeviceLandmarks:
         self.bary = self._upload(model.landmark_bary, np.float64)
         h, w = image_size
         self.sizes = (np.float64(min(h, w)), np.float64(w), np.float64(h))
+        self.robust = np.float64(0.0 if robust is None else robust)      # the kernel's 0: squared distances
 
     def _upload(self, value, dtype) -> cla.Array:
         """A device copy of value (an empty one as one element: OpenCL has no empty buffers)."""
@@ -90,7 +92,7 @@ class DeviceLandmarks:
           frac, c["edge_verts"], self.corners, self.bary, world)
         out, g_points = k.empty(2), k.empty((self.n, 3))
         k("landmark_loss", 1, out, g_points, points, self.targets, self.weights, params, np.int64(self.n),
-          *self.sizes)
+          *self.sizes, self.robust)
         k("landmark_scatter", 1, g_world, g_points, edge, t, c["edge_verts"], self.corners, self.bary,
           np.int64(self.n), np.float64(weight))
         return out

@@ -89,7 +89,7 @@ from softras_cl.fitting.solver import FitResult, Stage, fit
 
 __all__ = ["Crop", "FaceScene", "FaceFit", "landmark_weights", "detected_landmark_weights", "default_stages",
            "depth_range", "half_resolution", "initial_pose", "initial_light", "prepare_photo", "face_params", "FaceObjective",
-           "prepare_fit", "fit_face", "check_dense_inputs", "detected_dense", "psnr"]
+           "prepare_fit", "fit_face", "check_dense_inputs", "detected_dense", "landmark_robust", "psnr"]
 
 CAMERA_ROTATION = np.diag([1.0, -1.0, -1.0])   # world (y up, camera looks down -z) -> OpenCV
 HALF = 0.5                  # the half-resolution copy's pixels per working pixel (photo_level)
@@ -454,7 +454,10 @@ class FaceObjective:
     errors); contour: the landmarks that slide on the occluding contour (fitting.recipes.contour; None:
     every landmark is the model's fixed point); dense: the photo's dense points (468, 2) pixels
     for the "dense" term (None: none; the model must have dense points); point_weights: (68,) the
-    landmark term's weights (None: :func:`landmark_weights`). At the first evaluation of each photometric
+    landmark term's weights (None: :func:`landmark_weights`); landmark_robust: None (squared
+    distances), or the scale c, in each point's standard deviations (1 / sqrt(weight)), of a
+    Geman-McClure landmark term (losses.landmarks_2d_robust: points a detector put more than a
+    few deviations away count less). At the first evaluation of each photometric
     stage the depth range is fitted to the face and the face-region mask and the robust scale
     are taken from the render; all stay fixed within the stage (see the module docstring).
     """
@@ -462,12 +465,14 @@ class FaceObjective:
     def __init__(self, scene: FaceScene, image, landmarks, mask_erosion: int = 2, focal0: float = 1.0,
                  forehead: float = 0.15, coarse_sigma: float | None = COARSE_SIGMA,
                  robust_scale: float | None = ROBUST_SCALE, coarse_mesh: float | None = COARSE_MESH,
-                 contour: ContourLandmarks | None = None, dense=None, point_weights=None):
+                 contour: ContourLandmarks | None = None, dense=None, point_weights=None,
+                 landmark_robust: float | None = None):
         self.scene, self.image, self.target = scene, image, np.asarray(landmarks, np.float64)
         self.dense_target = None if dense is None else np.asarray(dense, np.float64)
         self.contour = contour
         self.focal0, self.forehead = float(focal0), float(forehead)
         self.landmark_weights = landmark_weights() if point_weights is None else np.asarray(point_weights, np.float64)
+        self.landmark_robust = None if landmark_robust is None else float(landmark_robust)
         self.mask_erosion = mask_erosion
         self.mask, self._mask_stage = None, None
         self.robust_scale, self.photo_scale = robust_scale, None
@@ -502,7 +507,8 @@ class FaceObjective:
                           focal0=self.focal0 * 0.5, forehead=self.forehead, coarse_sigma=None,
                           robust_scale=self.robust_scale, contour=self.contour,
                           dense=None if self.dense_target is None else to_half(self.dense_target),
-                          point_weights=self.landmark_weights, **self._level_options())
+                          point_weights=self.landmark_weights, landmark_robust=self.landmark_robust,
+                          **self._level_options())
 
     def _level_options(self) -> dict:
         """Keyword arguments a half-resolution copy of this objective is made with beyond
@@ -607,12 +613,18 @@ class FaceObjective:
         return points, LandmarkContext(camera, camera_ctx, model_ctx, choice)
 
     def landmark_term(self, values: dict, world: np.ndarray) -> tuple[float, dict]:
-        """Sum over the 68 points of weighted squared pixel distances; gradients wrt the world
-        vertices ("world") and focal (a sliding point's gradient goes to its chosen vertex)."""
+        """Sum over the 68 points of weighted squared pixel distances (through Geman-McClure with
+        landmark_robust); gradients wrt the world vertices ("world") and focal (a sliding
+        point's gradient goes to its chosen vertex)."""
         points, ctx = self.landmark_points(values, world)
-        value, g = losses.landmarks_2d(points, self.target, self.landmark_weights)
+        if self.landmark_robust is None:
+            value, g = losses.landmarks_2d(points, self.target, self.landmark_weights)
+            g_points = g["points"]
+        else:
+            value, g_points = losses.landmarks_2d_robust(points - self.target, self.landmark_weights,
+                                                         self.landmark_robust)
         n = len(points)
-        g_cam = ctx.camera.project_pixels_vjp(ctx.camera_ctx, g["points"] * n, camera="focal")
+        g_cam = ctx.camera.project_pixels_vjp(ctx.camera_ctx, g_points * n, camera="focal")
         g_points, g_world = g_cam["vertices"], 0.0
         if ctx.choice is not None:
             g_points, g_world = self.contour.points_3d_vjp(g_points, ctx.choice)
@@ -834,7 +846,8 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
     model, point_weights = tied_landmarks(model, config.landmark_map, face_mesh_landmarks,
                                           config.detected_landmark_weights)
     model = model.truncated(config.n_id, config.n_exp, config.n_albedo)
-    objective, crop, params = prepare_fit(photo, landmarks, model, config, dense, point_weights)
+    objective, crop, params = prepare_fit(photo, landmarks, model, config, dense, point_weights,
+                                          landmark_robust(config, face_mesh_landmarks))
     check_landmark_layout(landmarks)      # after prepare_fit's input checks (shape, area, size)
     stages = default_stages(config, fit_focal=config.focal is None, detected=face_mesh_landmarks)
     result = fit(params, objective, stages, out_dir=out_dir, progress=progress, resume=resume)
@@ -844,13 +857,14 @@ def fit_face(photo, landmarks, model, config: FaceFitConfig = FaceFitConfig(), o
     return FaceFit(result.values, objective.scene, objective.image, objective.target, crop, mask, result, objective)
 
 
-def prepare_fit(photo, landmarks, model, config: FaceFitConfig,
-                dense=None, point_weights=None) -> tuple[FaceObjective, Crop, ParamSet]:
+def prepare_fit(photo, landmarks, model, config: FaceFitConfig, dense=None, point_weights=None,
+                landmark_robust: float | None = None) -> tuple[FaceObjective, Crop, ParamSet]:
     """Where :func:`fit_face` starts: photo (H, W, 3) linear RGB and its landmarks (68, 2)
     pixels -> (the FaceObjective of the working image, the Crop from the photo, the ParamSet at
     the initial pose, focal and light). ``model`` is used as given (not truncated); dense: the
     photo's dense points (N, 2) pixels, used when config.dense_weight > 0; point_weights: the
-    landmark term's (68,) weights (None: :func:`landmark_weights`; see :func:`tied_landmarks`)."""
+    landmark term's (68,) weights (None: :func:`landmark_weights`; see :func:`tied_landmarks`);
+    landmark_robust: FaceObjective's (see :func:`landmark_robust`)."""
     image, target, crop = prepare_photo(photo, landmarks, config.size)
     h, w = np.shape(photo)[:2]
     principal = crop.to_work([[w / 2.0 - 0.5, h / 2.0 - 0.5]])[0]
@@ -867,11 +881,18 @@ def prepare_fit(photo, landmarks, model, config: FaceFitConfig,
         scene, image, target, config.mask_erosion, focal0=focal, forehead=config.forehead,
         coarse_sigma=config.coarse_sigma, robust_scale=config.robust_scale, coarse_mesh=config.coarse_mesh,
         contour=jaw_candidates(model) if config.contour_landmarks == "sliding" else None,
-        dense=crop.to_work(dense) if config.dense_weight else None, point_weights=point_weights)
+        dense=crop.to_work(dense) if config.dense_weight else None, point_weights=point_weights,
+        landmark_robust=landmark_robust)
     values = dict(zero, rotation=rotation, translation=translation, focal=np.array([focal]))
     sh = initial_light(scene, values, image)
     return objective, crop, face_params(model, focal, rotation, translation, sh)
 
+
+
+def landmark_robust(config: FaceFitConfig, face_mesh_landmarks: bool) -> float | None:
+    """The landmark term's Geman-McClure scale (FaceObjective's landmark_robust) for landmarks a
+    detector found (config.detected_landmark_robust), or None (squared distances) for a file's."""
+    return config.detected_landmark_robust if face_mesh_landmarks else None
 
 
 def objective_class(where: str, scene: FaceScene) -> type:

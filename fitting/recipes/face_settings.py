@@ -71,6 +71,12 @@ DETECTED_LANDMARK_SIGMA_MM = np.array([
 # "How much a detector's landmarks count in the photometric stages").
 DETECTED_LANDMARK_WEIGHT_PHOTO = 0.2
 
+# FaceFitConfig.detected_landmark_robust: a detector's landmarks through Geman-McClure at this many of
+# each point's standard deviations (losses.landmarks_2d_robust): a point the detector put far off (a
+# turned face's jaw on the cheek) counts less than its square. Chosen on bench face, detected landmarks,
+# seeds 9 and 10 (docs/face_fitting.md, "A robust landmark term for a detector's landmarks").
+DETECTED_LANDMARK_ROBUST = 2.0
+
 # Schedules: (sigma, gamma, evaluations) per photometric stage, and the landmark stage's budget.
 BUDGETS = {
     "fast": dict(landmark_iters=100, photo_stages=((1e-4, 3e-3, 40), (1e-5, 1e-3, 60))),
@@ -123,6 +129,10 @@ class FaceFitConfig:
         ``face_mesh_landmarks``, tied to them by landmark_map) by their measured noise, 1 / sigma^2 of
         DETECTED_LANDMARK_SIGMA_MM scaled to the same total weight (face.detected_landmark_weights);
         False, and always for landmarks from a file: the jaw line half, the other points 1.
+    detected_landmark_robust: for landmarks a detector found (fit_face's ``face_mesh_landmarks``),
+        the landmark term's Geman-McClure scale in each point's standard deviations
+        (DETECTED_LANDMARK_ROBUST; FaceObjective's landmark_robust); None: squared distances, as
+        always for landmarks from a file.
     landmark_weight_photo / detected_landmark_weight_photo: the landmark term's weight in the
         photometric stages, relative to its weight in the landmark stage, for landmarks from a
         file and for landmarks a detector found on Face Mesh's points (fit_face's
@@ -158,6 +168,7 @@ class FaceFitConfig:
     contour_landmarks: str = "sliding"
     landmark_map: str = "auto"
     detected_landmark_weights: bool = True
+    detected_landmark_robust: float | None = DETECTED_LANDMARK_ROBUST
     dense_weight: float = 0.0
     n_id: int | None = None
     n_exp: int | None = None
@@ -228,6 +239,8 @@ def _check_face_config(c: FaceFitConfig) -> None:
         input_check(lambda: number("coarse_mesh", c.coarse_mesh, positive=True))
     if c.robust_scale is not None:
         input_check(lambda: number("robust_scale", c.robust_scale, positive=True))
+    if c.detected_landmark_robust is not None:
+        input_check(lambda: number("detected_landmark_robust", c.detected_landmark_robust, positive=True))
     if input_check(lambda: number("forehead", c.forehead)) < 0:
         raise InputError(f"forehead must be >= 0, got {c.forehead!r}")
     for name in ("n_id", "n_exp", "n_albedo"):

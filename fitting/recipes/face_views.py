@@ -37,8 +37,8 @@ from softras_cl.errors import InputError
 from softras_cl.fitting.keypoints import ibug68
 from softras_cl.fitting.keypoints.plausibility import check_landmark_layout
 from softras_cl.fitting.params import Block, ParamSet
-from softras_cl.fitting.recipes.face import (FaceFit, FaceFitConfig, FaceObjective, default_stages, photo_terms_together,
-                                             prepare_fit, tied_landmarks)
+from softras_cl.fitting.recipes.face import (FaceFit, FaceFitConfig, FaceObjective, default_stages, landmark_robust,
+                                             photo_terms_together, prepare_fit, tied_landmarks)
 from softras_cl.fitting.recipes.face_settings import joint_config
 from softras_cl.fitting.solver import FitResult, Stage, fit
 from softras_cl.scene.renderer import SHARP
@@ -184,7 +184,8 @@ def prepare_view(photo, landmarks, model, config: FaceFitConfig, face_mesh_landm
     cannot be a face's (fitting.keypoints.plausibility.check_landmark_layout)."""
     tied, point_weights = tied_landmarks(model, config.landmark_map, face_mesh_landmarks,
                                          config.detected_landmark_weights)
-    view = View(*prepare_fit(photo, landmarks, tied, config, point_weights=point_weights))
+    view = View(*prepare_fit(photo, landmarks, tied, config, point_weights=point_weights,
+                             landmark_robust=landmark_robust(config, face_mesh_landmarks)))
     check_landmark_layout(landmarks)      # after prepare_fit's input checks (shape, area, size)
     return view
 

@@ -88,6 +88,31 @@ def test_landmark_grads(rng, robust_sigma, weighted):
                robust_sigma=robust_sigma)
 
 
+@pytest.mark.parametrize("scale", [0.5, 2.0, 30.0])
+def test_robust_landmark_grads(rng, scale):
+    pts, target, w = rng.normal(0, 2, (7, 2)), rng.normal(0, 2, (7, 2)), rng.uniform(0, 2, 7)
+
+    def loss(p):
+        value, g = losses.landmarks_2d_robust(p - target, w, scale)
+        return value, {"points": g}
+
+    check_grad(loss, pts, "points")
+
+
+def test_robust_landmark_values():
+    """Each point's squared residual in its deviations, u2 = w r^2: well below the scale c the
+    plain term, at u = c half of c^2, at most c^2 with no pull; no points: 0."""
+    residuals, w = np.array([[3e-4, 4e-4], [3.0, 4.0], [3e6, 4e6]]), np.array([4.0, 0.25, 1.0])
+    value, g = losses.landmarks_2d_robust(residuals[:1], w[:1], 2.0)
+    plain, g_plain = losses.landmarks_2d(residuals[:1], np.zeros((1, 2)), weights=w[:1])
+    assert value == pytest.approx(plain, rel=1e-6) and np.allclose(g, g_plain["points"], rtol=1e-6)
+    assert losses.landmarks_2d_robust(residuals[1:2], w[1:2], 2.5)[0] == pytest.approx(2.5 ** 2 / 2)
+    value, g = losses.landmarks_2d_robust(residuals[2:], w[2:], 2.0)
+    assert value == pytest.approx(4.0, rel=1e-11) and np.abs(g).max() < 1e-11
+    value, g = losses.landmarks_2d_robust(np.zeros((0, 2)), np.zeros(0), 2.0)
+    assert value == 0.0 and g.shape == (0, 2)
+
+
 @pytest.mark.parametrize("sigma_kind", ["scalar", "per-coefficient"])
 def test_gaussian_prior_grad(rng, sigma_kind):
     c = rng.normal(0, 1, (3, 4))

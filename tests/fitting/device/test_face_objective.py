@@ -97,6 +97,23 @@ def test_device_objective_equals_the_numpy_one(demo, weights, robust_scale, coar
         assert level.device_model is device.device_model            # one upload per fit
 
 
+@pytest.mark.parametrize("weights", [LANDMARKS, PHOTO], ids=["landmark stage", "photo stage"])
+def test_device_robust_landmark_term_equals_the_numpy_one(demo, weights):
+    """landmark_robust (Geman-McClure at 1 deviation: the landmarks' 1.5 px noise puts points on
+    both sides of it) on the device against the numpy objective, and its effect: a loss below
+    the squared distances'."""
+    rng = np.random.default_rng(17)
+    values = random_values(demo, rng, yaw_deg=30.0)
+    host, device = objectives(demo, 96, values, contour=jaw_candidates(demo), landmark_robust=1.0)
+    plain, _ = objectives(demo, 96, values, contour=jaw_candidates(demo))
+    stage = Stage("photo-1", ("id",), weights, sigma=1e-5, gamma=1e-3)
+    for _ in range(2):
+        assert_same(host(values, stage), device(values, stage))
+        values = dict(values, rotation=values["rotation"] + rng.normal(0, 0.01, 3))
+    robust_value = host.landmark_term(values, host.scene.geometry(values).world)[0]
+    assert 0 < robust_value < plain.landmark_term(values, plain.scene.geometry(values).world)[0]
+
+
 def test_device_objective_with_the_dense_term_equals_the_numpy_one(demo):
     rng = np.random.default_rng(12)
     values = random_values(demo, rng)

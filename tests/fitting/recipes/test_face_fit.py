@@ -221,6 +221,47 @@ def test_fit_face_weighs_a_detectors_landmarks_as_detected(demo, monkeypatch, on
     assert seen["stages"][1].weights["landmarks"] == config.weights["landmarks"] * getattr(config, weight)
 
 
+@pytest.mark.parametrize("on_face_mesh, robust", [(False, None), (True, face_settings.DETECTED_LANDMARK_ROBUST)])
+def test_fit_face_makes_a_detectors_landmark_term_robust(demo, monkeypatch, on_face_mesh, robust):
+    """A detector's landmarks go through Geman-McClure at detected_landmark_robust deviations
+    (the objective and its half-size copy), a file's through plain squares; None turns it off."""
+    class Stop(Exception):
+        pass
+
+    seen = []
+
+    def capture(params, objective, stages, **kwargs):
+        seen.append(objective)
+        raise Stop
+
+    monkeypatch.setattr(face, "fit", capture)
+    sample = synthetic_face(demo, np.random.default_rng(0), 128)
+    for config in (face.FaceFitConfig.from_budget("fast", size=128),
+                   face.FaceFitConfig.from_budget("fast", size=128, detected_landmark_robust=None)):
+        with pytest.raises(Stop):
+            face.fit_face(sample["photo"], sample["landmarks"], demo, config, progress=False,
+                          face_mesh_landmarks=on_face_mesh)
+    assert seen[0].landmark_robust == robust and seen[0].photo_level(1.0).landmark_robust == robust
+    assert seen[1].landmark_robust is None
+
+
+def test_robust_landmark_objective_gradient_matches_central_differences(toy):
+    """The landmark stage with landmark_robust at 1 deviation (the landmarks' 1 px noise puts
+    points on both sides of it), in float64."""
+    rng = np.random.default_rng(2)
+    scene = face.FaceScene(toy, (40, 40))
+    values = toy_values(toy, rng)
+    landmarks = spread_landmarks(40) + rng.normal(0, 1, (68, 2))
+    objective = face.FaceObjective(scene, rng.random((40, 40, 3)) * 0.5, landmarks, focal0=80.0,
+                                   landmark_robust=1.0)
+    stage = Stage("landmarks", ("id",), dict(landmarks=1.0, id_prior=2.0, exp_prior=0.5), sigma=1e-3, gamma=1e-2)
+    _, grads, _ = objective(values, stage)
+    for name, v in values.items():
+        fd = central_differences(objective, values, stage, name, step=1e-7)
+        g = grads.get(name, np.zeros_like(v))
+        np.testing.assert_allclose(g, fd, rtol=2e-5, atol=2e-5 * np.abs(fd).max() + 1e-9, err_msg=name)
+
+
 @pytest.fixture(scope="module")
 def demo():
     from softras_cl.fitting.models.face_loaders import load_demo_face_model
