@@ -21,7 +21,8 @@ from softras_cl.fitting.device.where import PLACES
 from softras_cl.fitting.detection.faces import ORDER
 from softras_cl.fitting.recipes import body_settings, face_settings
 from softras_cl.fitting.recipes.body_settings import BodyFitConfig
-from softras_cl.fitting.recipes.face_settings import COARSE_MESH, LANDMARK_MAPS, FaceFitConfig
+from softras_cl.fitting.recipes.face_settings import (COARSE_MESH, DETECTED_LANDMARK_ROBUST, LANDMARK_MAPS,
+                                                      FaceFitConfig)
 from softras_cl.fitting.recipes.track_settings import TrackConfig
 
 __all__ = ["Option", "FitOptions", "FACE", "BODY", "TRACK", "FITS", "yes_no", "FACE_HELP", "FACE_BOX_HELP"]
@@ -151,6 +152,11 @@ def _coarse_mesh(edges: float) -> float | None:
     return edges or None
 
 
+def _landmark_robust(deviations: float) -> float | None:
+    """--landmark-robust 0 means plain squares (the config's None)."""
+    return deviations or None
+
+
 # the help of --face and --face-box, wherever a command chooses among the detected faces
 FACE_HELP = (f"use face N (0 = the first; faces are numbered {ORDER}; the default is the largest; "
              "detect-landmarks lists them)")
@@ -196,6 +202,12 @@ def _face_options() -> tuple[Option, ...]:
                "model has it), 'auto' (the default: face-mesh for landmarks MediaPipe found, model for a "
                "landmark file or dlib; docs/face_fitting.md shows what it gains)",
                field="landmark_map", choices=LANDMARK_MAPS, record_default=False),
+        Option("landmark_robust", float, DETECTED_LANDMARK_ROBUST, "a detector's landmarks: a point more than "
+               "about C of its measured standard deviations off counts less than its square, so a gross miss "
+               f"(a turned face's jaw on the cheek) stops pulling the shape (Geman-McClure; default "
+               f"{DETECTED_LANDMARK_ROBUST:g}; 0: plain squares; a landmark file's points are always squared; "
+               "docs/face_fitting.md shows what it gains)",
+               field="detected_landmark_robust", to_config=_landmark_robust, metavar="C"),
         Option("dense_landmarks", float, 0.0, "add MediaPipe Face Mesh's 468 points as a landmark term, each "
                "point weighing WEIGHT times one of the 68 landmarks (default 0: off; needs landmarks "
                "detected by MediaPipe and a model with dense points, such as the demo model; not with "
