@@ -116,6 +116,7 @@ class DeviceFaceEvaluation:
 
     def photo_value(self, total: cla.Array) -> float:
         count = self._photo_loss.total
+        # the mean times the count, as the numpy term rounds it (not the sum as read)
         return float(total.get()[0, 0]) / count * count
 
     def photo_grads(self, albedo_ctx, g_world: cla.Array, g_albedo: cla.Array, g_sh: np.ndarray,
