@@ -6,7 +6,8 @@ on the whole image and on a pyramid of tiles; then Face Mesh, 478 points, on eac
 upright crop, and 68 of its points for the iBUG ones, fitting.keypoints.face_mesh), "dlib" (opt-in,
 non-commercial 68-point model), and the user's own files (files.py). Every face is a FaceCandidate (faces.py); faces are listed and numbered
 largest first; detect_face chooses one (the largest, --face N, --face-box X,Y,W,H) and says
-why, and refuses landmarks that do not form a face. docs/landmarks.md is the guide.
+why, and refuses landmarks that do not form a face; face_near follows a face from its last
+landmarks by the landmark stage alone (a video's next frame). docs/landmarks.md is the guide.
 
 Coordinates: landmarks (N, 2) float64 (x, y), 0-based pixel centres; boxes (x, y, w, h) on the
 pixel grid, where pixel (i, j) covers [i, i + 1) x [j, j + 1).
@@ -17,13 +18,15 @@ from softras_cl.fitting.detection.faces import (ORDER, DetectorUnavailableError,
 from softras_cl.fitting.detection.files import (PhotoLandmarks, format_pts, landmarks_beside,
                                                 resolve_landmarks)
 from softras_cl.fitting.detection.find import (BACKENDS, DEFAULT_BACKEND, Detection, available_backends,
-                                               default_backend, detect_face, find_faces, no_face_error)
+                                               default_backend, detect_face, face_near, find_faces,
+                                               no_face_error)
 from softras_cl.fitting.detection.overlay import draw_detection, draw_landmarks
 from softras_cl.fitting.detection.people import (PEOPLE_INSTALL_HINT, NoPersonError, PersonDetection,
                                                  detect_person, people_available)
 
 __all__ = ["ORDER", "BACKENDS", "DEFAULT_BACKEND", "FaceCandidate", "Detection", "PhotoLandmarks",
            "DetectorUnavailableError", "NoFaceError", "ImplausibleFaceError", "find_faces", "detect_face",
+           "face_near",
            "choose_face", "implausible_landmarks", "parse_face_box", "resolve_landmarks", "landmarks_beside",
            "available_backends", "default_backend", "no_face_error", "format_pts",
            "draw_landmarks", "draw_detection", "PEOPLE_INSTALL_HINT", "NoPersonError", "PersonDetection", "detect_person",

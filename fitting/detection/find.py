@@ -16,6 +16,7 @@ from softras_cl.errors import InputError
 from softras_cl.fitting.detection import dlib_backend, mediapipe_backend
 from softras_cl.fitting.detection.faces import (ORDER, DetectorUnavailableError, FaceCandidate, NoFaceError,
                                                 check_box_on_image, check_plausible, choose_face,
+                                                implausible_landmarks,
                                                 sort_candidates)
 
 BACKENDS = ("mediapipe", "dlib")
@@ -108,6 +109,26 @@ def find_faces(image, backend: str | None = None, **options) -> list[FaceCandida
         note = f", on a copy reduced to {small.shape[1]} x {small.shape[0]} px"
         found = [_scaled(c, factor, note) for c in found]
     return sort_candidates(found)
+
+
+#: backends whose landmark stage can follow a face from its last landmarks alone
+_NEAR = {"mediapipe": mediapipe_backend.mesh_near}
+
+
+def face_near(image, landmarks, backend: str | None = None) -> np.ndarray | None:
+    """(68, 2) landmarks of the face that had ``landmarks`` (68, 2) a moment ago (a video's last
+    frame), found in an (H, W, 3) uint8 RGB image by the backend's landmark stage alone, on a
+    crop around them (mediapipe: mediapipe_backend.mesh_near); None when the backend has no such
+    stage (dlib), finds no face there, or finds one whose landmarks do not form a face
+    (check_plausible's test). A follower then searches as for a new face."""
+    img = as_rgb8(image)
+    near = _NEAR.get(check_backend(backend))
+    if near is None:
+        return None
+    candidate = near(img, np.asarray(landmarks, np.float64))
+    if candidate is None or implausible_landmarks(candidate.landmarks) is not None:
+        return None
+    return candidate.landmarks
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from softras_cl.fitting.detection.faces import ImplausibleFaceError, NoFaceError
-from softras_cl.fitting.detection.find import detect_face
+from softras_cl.fitting.detection.find import detect_face, face_near
 from softras_cl.fitting.keypoints import ibug68
 
 __all__ = ["FaceFollower"]
@@ -16,9 +16,11 @@ class FaceFollower:
 
     The first frame with a face: detect_face on the whole frame, choosing by ``face`` (the N-th,
     largest first) or ``face_box`` (x, y, w, h), else the largest. Then, given the previous
-    frame's fitted landmarks (:meth:`find`'s ``previous``), only a square crop CROP_MARGIN times
-    their extent around them is searched, for the face overlapping their box; when it is not
-    there (or its landmarks do not form a face), the whole frame again, for the largest face.
+    frame's fitted landmarks (:meth:`find`'s ``previous``), the face is looked for around them:
+    first by the backend's landmark stage alone on a crop they place (find.face_near: Face Mesh
+    without MediaPipe's detector passes, as MediaPipe tracks a face in a video), then by the
+    detector on a square crop CROP_MARGIN times their extent, for the face overlapping their box;
+    when it is not there (or its landmarks do not form a face), the whole frame again, for the largest face.
     Landmarks that cannot be the same face one frame later (:meth:`agrees`: the eye line turned
     by more than MAX_TURN_DEG, or the eyes moved by more than MAX_SHIFT eye distances; a detector
     may return a face upside down, or a face-like patch beside the face) are not taken: the
@@ -71,7 +73,12 @@ class FaceFollower:
         return points
 
     def _near(self, image, previous: np.ndarray) -> np.ndarray | None:
-        """The face in the crop around the previous landmarks (None: not there)."""
+        """The face around the previous landmarks (None: not there): the landmark stage alone
+        on a crop placed by them (find.face_near) when it finds a face that agrees with them,
+        else the detector on a crop around them."""
+        points = face_near(image, previous, self.backend)
+        if points is not None and self.agrees(points, previous):
+            return points
         lo, hi = previous.min(0), previous.max(0)
         centre, half = (lo + hi) / 2, 0.5 * self.CROP_MARGIN * float(np.max(hi - lo))
         x0, y0 = np.maximum(np.floor(centre - half), 0).astype(int)

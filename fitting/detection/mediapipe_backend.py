@@ -328,6 +328,25 @@ def find(image: np.ndarray, tiles: bool = True) -> list[FaceCandidate]:
     return [meshed[i] for i in kept]
 
 
+def mesh_near(image: np.ndarray, landmarks: np.ndarray) -> FaceCandidate | None:
+    """The face at given (68, 2) landmarks a moment ago (the last video frame's), by Face Mesh
+    alone: on the crop CROP_MARGIN times the landmarks' extent around their centre, level along
+    their outer eye corners, as a detector's box and eyes would place it. Face Mesh's own
+    detector must find a face in that crop; none of find's detector passes and rescoring runs
+    (one model call against about nine). None when Face Mesh finds no face there."""
+    points = np.asarray(landmarks, np.float64)
+    lo, hi = points.min(0), points.max(0)
+    right, left = points[list(ibug68.OUTER_EYE_CORNERS)]
+    roll = math.atan2(left[1] - right[1], left[0] - right[0])
+    with quiet_stderr():
+        dense = mesh_in_crop(image, (lo + hi) / 2, CROP_MARGIN * float(max(hi - lo)), roll)
+    if dense is None:
+        return None
+    box = np.concatenate([dense[:FACE_MESH_POINTS].min(0), np.ptp(dense[:FACE_MESH_POINTS], axis=0)])
+    return _candidate(box, float("nan"), dense, "Face Mesh near the last frame's landmarks",
+                      (math.degrees(roll) + 180.0) % 360.0 - 180.0)
+
+
 def find_in_box(image: np.ndarray, box, margin: float = 1.5) -> FaceCandidate | None:
     """Face Mesh on an upright square crop around a given (x, y, w, h) box, `margin` times its
     longer side: the face in it, or None."""

@@ -7,7 +7,7 @@ import sys
 
 import numpy as np
 import pytest
-from support.face_scenes import (DATA, astronaut, nme, read_pts, small_face_in_large_frame,
+from support.face_scenes import (DATA, astronaut, background, nme, read_pts, small_face_in_large_frame,
                                  tiny_face_in_large_frame, turned, two_faces)
 
 from softras_cl.errors import InputError, ResultError
@@ -455,6 +455,25 @@ def test_mesh_score_of_a_frontal_face_is_high():
     image, _ = astronaut()
     found = det.find_faces(image)
     assert mp.mesh_score(image, found[0].dense) > 0.85
+
+
+@pytest.mark.detect
+@pytest.mark.parametrize("k", [0, 1])
+def test_face_near_meshes_the_face_at_last_frames_landmarks(k):
+    """find.face_near, Face Mesh alone on the crop the last frame's landmarks place (moved by
+    some pixels, as a face moves between frames): the face's points, upright or turned a quarter
+    (the crop is levelled along the landmarks' eye line)."""
+    image, points = turned(*astronaut(), k)
+    moved = points + np.array([9.0, -6.0])
+    near = det.face_near(image, moved)
+    assert near is not None and near.shape == (68, 2)
+    assert nme(near, points) < MAX_NME
+
+
+@pytest.mark.detect
+def test_face_near_finds_no_face_where_there_is_none():
+    _, points = astronaut()
+    assert det.face_near(np.asarray(background(512, 512)), points) is None
 
 
 @pytest.mark.parametrize("source, on_mesh", [("mediapipe", True), ("dlib", False), ("file", False), ("beside", False)])

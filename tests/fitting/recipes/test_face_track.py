@@ -385,3 +385,26 @@ def test_follower_refuses_upside_down_landmarks_near_the_face(monkeypatch):
     assert follower.find(None, previous) is None
     monkeypatch.setattr(follower, "_near", lambda image, prev: steady)
     assert np.array_equal(follower.find(None, previous), steady)
+
+
+def test_follower_takes_the_landmark_stage_near_the_face_when_it_agrees(monkeypatch):
+    """FaceFollower._near: the backend's landmark stage alone on the crop the previous landmarks
+    place (find.face_near) when its face agrees with them; the detector on the crop when it
+    finds none or a face that does not agree (turned over)."""
+    from softras_cl.fitting.detection import follow
+
+    previous = _face_points()
+    steady, flipped = _face_points(centre=(104.0, 81.0), roll_deg=5.0), _face_points(roll_deg=180.0)
+    detector = _face_points(centre=(102.0, 80.0))
+    follower = FaceFollower()
+    detected = []
+    monkeypatch.setattr(follower, "_detect", lambda image, **choice: detected.append(choice) or detector)
+    image = np.zeros((200, 240, 3), np.uint8)
+    monkeypatch.setattr(follow, "face_near", lambda image, points, backend: steady)
+    assert np.array_equal(follower._near(image, previous), steady) and detected == []
+    for near in (None, flipped):
+        detected.clear()
+        monkeypatch.setattr(follow, "face_near", lambda image, points, backend: near)
+        found = follower._near(image, previous)
+        shift = found - detector                  # the detector's points, from its crop's pixels
+        assert len(detected) == 1 and np.allclose(shift, shift[0]) and np.all(shift[0] >= 0)
