@@ -94,9 +94,15 @@ from softras_cl.io.images import PNG_OPTIONS
 from softras_cl.io.outputs import atomic_path, write_bytes, write_figure
 
 __all__ = ["Stage", "FitResult", "FitError", "Objective", "fit", "load_checkpoint",
-           "CHECKPOINT_INTERVAL"]
+           "CHECKPOINT_INTERVAL", "MIN_DEPTH", "TOO_CLOSE_LOSS", "too_close_result"]
 
 CHECKPOINT_INTERVAL = 0.5       # seconds between two checkpoint writes during a stage
+# A model placed nearer the camera than MIN_DEPTH metres, or behind it, cannot be projected. An
+# objective answers such a point with too_close_result() (TOO_CLOSE_LOSS, more than any model in
+# view scores, and no gradient), so that the line search steps back instead of the fit stopping with
+# "vertices are behind the camera": a long step from a poor start can land there.
+MIN_DEPTH = 0.01
+TOO_CLOSE_LOSS = 1e12
 _META_KEYS = ("__stage__", "__iter__", "__loss__", "__evals__", "__completed__")
 
 _RESULT_NAMES = {getattr(nlopt, n): n for n in (
@@ -144,6 +150,12 @@ class Stage:
 
 
 Objective = Callable[[dict, Stage], "tuple[float, dict, dict]"]
+
+
+def too_close_result() -> tuple[float, dict, dict]:
+    """An objective's (loss, grads, terms) for a point that puts the model too close to the camera
+    (MIN_DEPTH): TOO_CLOSE_LOSS, no gradient; new dicts each time."""
+    return TOO_CLOSE_LOSS, {}, {"too_close": TOO_CLOSE_LOSS}
 
 
 @dataclass

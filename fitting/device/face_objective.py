@@ -48,11 +48,6 @@ class DeviceFaceEvaluation:
     def _level_options(self) -> dict:
         return dict(device_model=self.device_model)
 
-    def __call__(self, values: dict, stage: Stage):
-        geometry = self.geometry(values)
-        photo = self.photo(values, geometry.world, stage) if stage.weights.get("photo") else None
-        return self.combine(values, stage, geometry, photo)
-
     def geometry(self, values: dict) -> DeviceGeometry:
         """The placed shape of values on the device (DeviceFaceModel.geometry)."""
         return self.device_model.geometry(values)

@@ -23,6 +23,7 @@ Loaders for the file formats users bring (BFM 2009, BFM 2017, FLAME, the project
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -180,6 +181,23 @@ class FaceModel:
         if self.n_exp:
             flat = flat + (c_exp * self.exp_std) @ self._exp_flat
         return flat.reshape(self.n_vertices, 3), LinearContext((self.n_vertices, 3))
+
+    def radius_bound(self, id_coeffs, exp_coeffs) -> float:
+        """An upper bound (metres) on every vertex's distance from the model's origin for these
+        coefficients, without computing the shape: the mean shape's farthest vertex plus, per
+        component, |coefficient| x std x its farthest displacement."""
+        farthest = self._farthest
+        c_id = np.abs(np.asarray(id_coeffs, np.float64))
+        c_exp = np.abs(np.asarray(exp_coeffs, np.float64))
+        return float(farthest["mean"] + c_id @ farthest["id"] + c_exp @ farthest["exp"])
+
+    @cached_property
+    def _farthest(self) -> dict:
+        """radius_bound's terms: the mean's farthest vertex, each component's std x farthest displacement."""
+        def reach(basis, std):
+            return std * np.linalg.norm(basis, axis=2).max(axis=1) if len(std) else np.zeros(0)
+        return dict(mean=float(np.linalg.norm(self.mean_shape, axis=1).max()),
+                    id=reach(self.id_basis, self.id_std), exp=reach(self.exp_basis, self.exp_std))
 
     def shape_vjp(self, ctx: LinearContext, grad_vertices) -> dict:
         """grad_vertices (V, 3) = dL/d(vertices) -> {"id_coeffs": (K_id,), "exp_coeffs": (K_exp,)}

@@ -58,7 +58,7 @@ from softras_cl.fitting.metrics import psnr
 from softras_cl.fitting.models.body_model import BodyContext, BodyPose, SkinCotangents, VertexSubset
 from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.recipes.body_settings import BUDGETS, DEFAULT_POSE_SIGMA, POSE_SIGMA, BodyFitConfig
-from softras_cl.fitting.solver import FitResult, Stage, fit
+from softras_cl.fitting.solver import MIN_DEPTH, FitResult, Stage, fit, too_close_result
 
 __all__ = ["HINGE_LIMITS", "BodyTarget", "BodyScene", "BodyObjective", "DeviceBodyObjective", "objective_class",
            "BodyFit", "part_colors", "hinge_frames", "joint_limits",
@@ -67,8 +67,6 @@ __all__ = ["HINGE_LIMITS", "BodyTarget", "BodyScene", "BodyObjective", "DeviceBo
 
 TRANSLATION_SIGMA = 0.3          # metres
 DEPTH_RANGE = 5.0                # metres between the near and far planes, centred on the body
-MIN_DEPTH = 0.01                 # metres: a posed body nearer the camera than this is refused (too_close)
-TOO_CLOSE_LOSS = 1e12            # the loss of such a body: more than any body in view scores
 
 # Hinge joints: direction (model frame) the child bone moves to when the joint flexes, and the
 # (lower, upper) limits in rad of (flexion, twist about the bone, sideways bend).
@@ -384,7 +382,7 @@ class BodyObjective:
         # the solver's float64 blocks: no checks
         state, body_ctx = self.scene.pose(values, self.host_posed(renders).subset, check=False)
         if self.too_close(values, state, body_ctx):
-            return TOO_CLOSE_LOSS, {}, {"too_close": TOO_CLOSE_LOSS}
+            return too_close_result()
         terms, drawing = self.prior_terms(values, w), None
         if renders:
             image_terms, drawing = self.draw(values, stage, state, body_ctx)

@@ -85,7 +85,7 @@ from softras_cl.fitting.recipes.face_settings import (BUDGETS, COARSE_MESH, COAR
                                                       MIN_ROBUST_SCALE, MIN_SIZE, ROBUST_SCALE, FaceFitConfig,
                                                       input_check)
 from softras_cl.fitting.recipes.contour import ContourChoice, ContourLandmarks, jaw_candidates
-from softras_cl.fitting.solver import FitResult, Stage, fit
+from softras_cl.fitting.solver import MIN_DEPTH, FitResult, Stage, fit, too_close_result
 
 __all__ = ["Crop", "FaceScene", "FaceFit", "landmark_weights", "detected_landmark_weights", "default_stages",
            "depth_range", "half_resolution", "initial_pose", "initial_light", "prepare_photo", "face_params", "FaceObjective",
@@ -280,6 +280,16 @@ class FaceScene:
         shape, shape_ctx = self.model.shape(values["id"], values["exp"])
         R, rot_ctx = rodrigues(values["rotation"])
         return Geometry(shape @ R.T + values["translation"], GeometryContext(shape, shape_ctx, R, rot_ctx))
+
+    def too_close(self, values: dict) -> bool:
+        """Whether a vertex of the face placed by values lies nearer the camera than MIN_DEPTH,
+        or behind it, where it cannot be projected (fitting.solver.too_close_result). The model's
+        radius bound settles it without the shape (the face is metres away); only near the camera
+        is the shape placed."""
+        depth = -float(values["translation"][2])         # the camera looks down -z from the origin
+        if depth - self.model.radius_bound(values["id"], values["exp"]) >= MIN_DEPTH:
+            return False
+        return float(-self.geometry(values)[0][:, 2].max()) < MIN_DEPTH
 
     def geometry_vjp(self, ctx: GeometryContext, g_world: np.ndarray) -> dict:
         """dL/d(world vertices) (V, 3) -> dict id, exp, rotation, translation (float64)."""
@@ -523,6 +533,8 @@ class FaceObjective:
                 objective.scene.set_depth_range(translation)
 
     def __call__(self, values: dict, stage: Stage):
+        if self.scene.too_close(values):
+            return too_close_result()
         geometry = self.geometry(values)
         photo = self.photo(values, geometry.world, stage) if stage.weights.get("photo") else None
         return self.combine(values, stage, geometry, photo)

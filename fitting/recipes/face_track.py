@@ -48,12 +48,12 @@ from softras_cl.fitting.keypoints import ibug68
 from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.recipes.face import FaceScene, initial_pose, landmark_weights
 from softras_cl.fitting.recipes.track_settings import TrackConfig
-from softras_cl.fitting.solver import Stage, fit
+from softras_cl.fitting.solver import MIN_DEPTH, Stage, fit, too_close_result
 from softras_cl.scene.rotation import axis_angle_to_matrix, rodrigues, rodrigues_vjp
 
 __all__ = ["Identity", "LandmarkBasis", "FrameObjective", "FrameResult",
            "FrameTracker", "TrackerState", "FrameLight", "FixedLagSmoother", "world_vertices",
-           "project_landmarks", "choose_keyframes", "fit_identity", "detector_offsets",
+           "project_landmarks", "placed_landmarks", "choose_keyframes", "fit_identity", "detector_offsets",
            "head_angles_deg", "FRAME_BLOCKS"]
 
 FRAME_BLOCKS = ("rotation", "translation", "exp")     # fitted per frame
@@ -225,11 +225,19 @@ class LandmarkBasis:
 
 def project_landmarks(basis: LandmarkBasis, camera, values: dict):
     """The landmarks of values (rotation, translation, exp) in pixels (68, 2), and what their
-    gradient needs (model-frame points, R, its RodriguesContext, the projection's context)."""
+    gradient needs (model-frame points, R, its RodriguesContext, the projection's context).
+    ValueError when one lies behind the camera."""
+    model_points, R, rot_ctx, world = placed_landmarks(basis, values)
+    uv, ctx = camera.project_pixels(world)
+    return uv, (model_points, R, rot_ctx, ctx)
+
+
+def placed_landmarks(basis: LandmarkBasis, values: dict):
+    """(model-frame points (68, 3), R, its RodriguesContext, the points placed in the world
+    (68, 3)) of values (rotation, translation, exp)."""
     model_points = basis.points(values["exp"])
     R, rot_ctx = rodrigues(values["rotation"])
-    uv, ctx = camera.project_pixels(model_points @ R.T + values["translation"])
-    return uv, (model_points, R, rot_ctx, ctx)
+    return model_points, R, rot_ctx, model_points @ R.T + values["translation"]
 
 
 class FrameObjective:
@@ -248,7 +256,10 @@ class FrameObjective:
 
     def __call__(self, values: dict, stage: Stage | None = None):
         cfg = self.config
-        uv, (model_points, R, rot_ctx, ctx) = project_landmarks(self.basis, self.camera, values)
+        model_points, R, rot_ctx, world = placed_landmarks(self.basis, values)
+        if -world[:, 2].max() < MIN_DEPTH:         # a long step put a landmark at or behind the camera
+            return too_close_result()
+        uv, ctx = self.camera.project_pixels(world)
         residual = (uv - self.target) * self.scale
         weighted = cfg.landmark_weight * self.point_weights[:, None] * residual
         terms = {"landmarks": float(np.sum(weighted * residual))}

@@ -40,7 +40,7 @@ from softras_cl.fitting.params import Block, ParamSet
 from softras_cl.fitting.recipes.face import (FaceFit, FaceFitConfig, FaceObjective, default_stages, landmark_robust,
                                              photo_terms_together, prepare_fit, tied_landmarks)
 from softras_cl.fitting.recipes.face_settings import joint_config
-from softras_cl.fitting.solver import FitResult, Stage, fit
+from softras_cl.fitting.solver import FitResult, Stage, fit, too_close_result
 from softras_cl.scene.renderer import SHARP
 
 __all__ = ["SHARED", "PRIORS_ONCE", "view_block", "focal_scales", "FaceViewsObjective", "photo_terms", "FaceViewsFit",
@@ -96,6 +96,8 @@ class FaceViewsObjective:
                                                    for n, w in stage.weights.items()})
 
     def __call__(self, values: dict, stage: Stage):
+        if any(o.scene.too_close(self.view_values(values, k)) for k, o in enumerate(self.views)):
+            return too_close_result()
         loss, grads, terms = 0.0, {}, {}
         for k, (value, g, t) in enumerate(self._evaluate_views(values, stage)):
             loss += value

@@ -19,7 +19,7 @@ from softras_cl.fitting.device.body_model import DeviceSkin
 from softras_cl.fitting.models.body_model import BodyModel
 from softras_cl.fitting.models.mesh_lod import coarse_faces
 from softras_cl.fitting.recipes import body, body_photo
-from softras_cl.fitting.solver import Stage
+from softras_cl.fitting.solver import TOO_CLOSE_LOSS, Stage
 from support.gradients import central_differences
 
 RELATIVE = 1e-10
@@ -164,7 +164,7 @@ def test_a_body_too_near_the_camera_is_refused_before_any_device_work(demo_body_
     _, device = pair(demo_body_model, target_of(demo_body_model, rng, "colour"))
     values = dict(body.rest_values(demo_body_model), translation=np.array([0.0, 0.0, 3.6]))
     stage = Stage("image-1", ("betas",), ALL_TERMS, sigma=1e-4, gamma=1e-2)
-    assert device(values, stage) == (body.TOO_CLOSE_LOSS, {}, {"too_close": body.TOO_CLOSE_LOSS})
+    assert device(values, stage) == (TOO_CLOSE_LOSS, {}, {"too_close": TOO_CLOSE_LOSS})
     assert device._drawn is None
 
 

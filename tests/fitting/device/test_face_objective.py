@@ -265,3 +265,16 @@ def test_a_fit_runs_on_the_objective_its_config_names(demo):
     assert face.objective_class("auto", scene) is (face.FaceObjective if cpu else face.DeviceFaceObjective)
     with pytest.raises(face.InputError, match="objective must be one of"):
         face.FaceFitConfig(objective="gpu")
+
+
+def test_device_objective_answers_a_face_behind_the_camera(demo):
+    """A solver's point that puts the face behind the camera: the device objective answers it as
+    the numpy one does (fitting.solver.too_close_result), before any device work."""
+    from softras_cl.fitting.solver import TOO_CLOSE_LOSS
+
+    values = random_values(demo, np.random.default_rng(31))
+    host, device = objectives(demo, 48, values)
+    behind = dict(values, translation=np.array([0.0, 0.0, 0.05]))
+    for weights in (PHOTO, LANDMARKS):
+        stage = Stage("photo-1", ("id",), weights, sigma=1e-5, gamma=1e-3)
+        assert device(behind, stage) == host(behind, stage) == (TOO_CLOSE_LOSS, {}, {"too_close": TOO_CLOSE_LOSS})

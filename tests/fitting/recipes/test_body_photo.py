@@ -8,7 +8,7 @@ from softras_cl.errors import InputError
 from softras_cl.fitting.recipes import body
 from softras_cl.fitting.keypoints.pose33 import KEYPOINT_MAP, head_landmarks, keypoint_layout
 from softras_cl.fitting.recipes.body_photo import BodyPhotoObjective, camera_distance, keypoint_weights, photo_stages
-from softras_cl.fitting.solver import Stage
+from softras_cl.fitting.solver import TOO_CLOSE_LOSS, Stage
 
 
 def test_every_keypoint_of_the_map_lands_on_a_demo_body_point(demo_body_model):
@@ -402,7 +402,7 @@ def test_posing_only_the_vertices_read_gives_the_whole_body(demo_body_model, coa
         state, ctx = scene.pose(values, fast.posed(False).subset)
         clear = scene.clear_of_camera(state.joints, model.reach(values["betas"], ctx.rot_local))
         assert clear == (place in ("there", "moved"))
-        assert (fast(values, stages[0])[2] == {"too_close": body.TOO_CLOSE_LOSS}) == (place == "through")
+        assert (fast(values, stages[0])[2] == {"too_close": TOO_CLOSE_LOSS}) == (place == "through")
 
 
 def test_the_layout_on_a_subset_reads_the_same_points(demo_body_model):

@@ -408,3 +408,20 @@ def test_follower_takes_the_landmark_stage_near_the_face_when_it_agrees(monkeypa
         found = follower._near(image, previous)
         shift = found - detector                  # the detector's points, from its crop's pixels
         assert len(detected) == 1 and np.allclose(shift, shift[0]) and np.all(shift[0] >= 0)
+
+
+def test_frame_objective_answers_a_head_behind_the_camera(demo_face_model):
+    """A solver's point that puts a landmark at or behind the camera (a long step on a wild
+    detection) gets fitting.solver.too_close_result instead of stopping the video's fit."""
+    from softras_cl.fitting.solver import MIN_DEPTH, TOO_CLOSE_LOSS
+
+    rng = np.random.default_rng(4)
+    model = demo_face_model
+    tracker = FrameTracker(model, truth_identity(model, rng), (SIZE, SIZE), TrackConfig())
+    values = head(5.0, np.zeros(model.n_exp))
+    objective = FrameObjective(tracker.basis, tracker.camera, 0.8, TrackConfig(), tracker.fitted_landmarks(values),
+                               None, 1 / 30)
+    assert objective(values)[0] < 1.0
+    for distance in (MIN_DEPTH / 2, 0.0, -0.3):
+        assert objective(dict(values, translation=np.array([0.0, 0.0, -distance]))) == (
+            TOO_CLOSE_LOSS, {}, {"too_close": TOO_CLOSE_LOSS})

@@ -276,3 +276,42 @@ def test_the_joint_fit_weighs_detected_landmarks_as_its_config_says(demo):
     np.testing.assert_array_equal(weights[True], expected_on)
     np.testing.assert_array_equal(weights[False], expected_off)
     assert not np.array_equal(expected_on, expected_off)
+
+
+def test_model_radius_bound_holds_for_any_coefficients(toy):
+    """FaceModel.radius_bound: no vertex is farther from the model's origin, whatever the
+    coefficients (the mean alone: the bound is the farthest mean vertex itself)."""
+    rng = np.random.default_rng(21)
+    for scale in (0.0, 1.0, 3.0, 10.0):
+        c_id, c_exp = rng.normal(size=toy.n_id) * scale, rng.normal(size=toy.n_exp) * scale
+        farthest = np.linalg.norm(toy.shape(c_id, c_exp)[0], axis=1).max()
+        bound = toy.radius_bound(c_id, c_exp)
+        assert farthest <= bound + 1e-12
+        if scale == 0.0:
+            assert bound == pytest.approx(farthest, rel=1e-12)
+
+
+def test_a_face_too_close_to_the_camera_is_answered_not_projected(toy):
+    """A point of the solver that puts a vertex nearer the camera than MIN_DEPTH, or behind it
+    (a long line-search step), gets too_close_result: the objective answers instead of stopping the
+    fit with "vertices are behind the camera". FaceScene.too_close against the placed shape's
+    own nearest vertex, over distances from a metre to behind the camera (the bound's short cut
+    and the exact test both)."""
+    from softras_cl.fitting.solver import MIN_DEPTH, TOO_CLOSE_LOSS
+
+    rng = np.random.default_rng(22)
+    objective = _objective(toy, rng, 36)
+    values = {name.split(".")[0]: v for name, v in _joint_values(toy, rng, 1).items()}
+    for z in np.linspace(-1.0, 0.2, 49):
+        placed = dict(values, translation=np.array([0.01, 0.0, z]))
+        nearest = -objective.scene.geometry(placed)[0][:, 2].max()
+        assert objective.scene.too_close(placed) == (nearest < MIN_DEPTH), z
+    stage = Stage("photo-1", ("id",), ALL_TERMS, sigma=1e-3, gamma=1e-2)
+    behind = dict(values, translation=np.array([0.0, 0.0, 0.05]))
+    assert objective(behind, stage) == (TOO_CLOSE_LOSS, {}, {"too_close": TOO_CLOSE_LOSS})
+    in_view = objective(values, stage)
+    assert in_view[0] < TOO_CLOSE_LOSS and "too_close" not in in_view[2]
+    joint = face_views.FaceViewsObjective([objective, _objective(toy, rng, 36)])
+    two = _joint_values(toy, rng, 2)
+    assert joint(dict(two, **{"translation.1": np.array([0.0, 0.0, 0.05])}), stage)[0] == TOO_CLOSE_LOSS
+    assert joint(two, stage)[0] < TOO_CLOSE_LOSS
