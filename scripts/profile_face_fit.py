@@ -134,7 +134,6 @@ PHASES = {
                                 "softras_cl.fitting.recipes.face:photo_terms_together",
                                 "softras_cl.fitting.recipes.face:FaceObjective.landmark_term",
                                 "softras_cl.fitting.recipes.face:FaceObjective.landmark_points",
-                                DEVICE_OBJECTIVE + ":DeviceFaceEvaluation.__call__",
                                 DEVICE_OBJECTIVE + ":DeviceFaceEvaluation.combine"],
 }
 CHECK_MODULES = ("softras_cl.checks", "softras_cl.raster.inputs")
@@ -223,8 +222,11 @@ def _wrap(fn, clock: Clock, phase: str, name: str):
 
 
 def _patch(owner, attr: str, wrapper_of) -> bool:
-    """Replace owner.attr (a function, staticmethod or plain method) by wrapper_of(fn), and every
-    module-level alias of it in the project's loaded modules (`from x import f`)."""
+    """Replace owner.attr (a function, staticmethod or plain method; a class's own, not one it
+    inherits) by wrapper_of(fn), and every module-level alias of it in the project's loaded
+    modules (`from x import f`). False when there is none."""
+    if inspect.isclass(owner) and attr not in vars(owner):
+        return False          # inherited, or the metaclass's (type.__call__): not this class's own
     try:
         raw = inspect.getattr_static(owner, attr)
     except AttributeError:
