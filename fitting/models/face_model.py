@@ -194,8 +194,8 @@ class FaceModel:
     @cached_property
     def _farthest(self) -> dict:
         """radius_bound's terms: the mean's farthest vertex, each component's std x farthest displacement."""
-        def reach(basis, std):
-            return std * np.linalg.norm(basis, axis=2).max(axis=1) if len(std) else np.zeros(0)
+        def reach(basis, std):                  # (K,); (0,) for a model without the component
+            return std * np.linalg.norm(basis, axis=2).max(axis=1)
         return dict(mean=float(np.linalg.norm(self.mean_shape, axis=1).max()),
                     id=reach(self.id_basis, self.id_std), exp=reach(self.exp_basis, self.exp_std))
 

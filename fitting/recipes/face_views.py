@@ -96,10 +96,11 @@ class FaceViewsObjective:
                                                    for n, w in stage.weights.items()})
 
     def __call__(self, values: dict, stage: Stage):
-        if any(o.scene.too_close(self.view_values(values, k)) for k, o in enumerate(self.views)):
+        views = [self.view_values(values, k) for k in range(len(self.views))]
+        if any(objective.scene.too_close(v) for objective, v in zip(self.views, views)):
             return too_close_result()
         loss, grads, terms = 0.0, {}, {}
-        for k, (value, g, t) in enumerate(self._evaluate_views(values, stage)):
+        for k, (value, g, t) in enumerate(self._evaluate_views(views, stage)):
             loss += value
             for name, grad in g.items():
                 key = view_block(name, k, self.shared)
@@ -110,10 +111,10 @@ class FaceViewsObjective:
                 terms[name] = terms.get(name, 0.0) + v
         return loss, grads, terms
 
-    def _evaluate_views(self, values: dict, stage: Stage) -> list[tuple]:
-        """Each photo's (loss, grads, terms) at its values, the photometric terms of the photos
-        that can share a render rendered together (:func:`photo_terms`)."""
-        views = [self.view_values(values, k) for k in range(len(self.views))]
+    def _evaluate_views(self, views: list[dict], stage: Stage) -> list[tuple]:
+        """Each photo's (loss, grads, terms) at its values (views: :meth:`view_values` of each),
+        the photometric terms of the photos that can share a render rendered together
+        (:func:`photo_terms`)."""
         stages = [self.view_stage(stage, k) for k in range(len(self.views))]
         geometries = [objective.geometry(v) for objective, v in zip(self.views, views)]
         photos = ([None] * len(views) if not stage.weights.get("photo") else
