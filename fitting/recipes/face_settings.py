@@ -47,7 +47,7 @@ LANDMARK_MAPS = ("auto", "model", "face-mesh")
 # axis in mm at the face, sqrt(median |e|^2 / (2 ln 2)) of the 2D error e (a per-axis Gaussian's median
 # squared 2D error is 2 ln 2 sigma^2; any bias is counted in), e in pixels over the face's pixels per mm
 # (focal / depth). Measured on bench face's synthetic faces (softras_cl.bench.face: draw_faces, then
-# detect_samples, 256 px), seeds 100, 101 and 102, 20 faces per bin of |yaw| 0-15, 15-45 and 45-75 each
+# detect_photos, 256 px), seeds 100, 101 and 102, 20 faces per bin of |yaw| 0-15, 15-45 and 45-75 each
 # (151 faces detected: 60 / 57 / 34), against the tied points of the true face projected (hidden jaw
 # points moved to the silhouette as the bench's silhouette_jaw moves them), pooled over the bins, each
 # left/right pair given the RMS of its two. Per group, frontal (0-15) / 15-45 / 45-75 degrees: jaw 5.5 /

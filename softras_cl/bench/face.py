@@ -38,9 +38,10 @@ fits every face with each way of placing the jaw landmarks on the model
 (FaceFitConfig.contour_landmarks) and compares them per yaw bin.
 
 --landmarks truth,detected fits each face from the true landmarks (with their noise, above) and
-from what the detector finds on its photo (MediaPipe Face Mesh, the fit's default detector: its
-68 points and its 468 dense points; needs the detect extra); a face the detector misses is left
-out of every run, and counted. --dense 0,W fits each face with each dense landmark weight
+from what the detector finds on the photo fitted (MediaPipe Face Mesh, the fit's default
+detector: its 68 points and its 468 dense points, found on each renderer's photo of the face;
+needs the detect extra); a face the detector misses on any renderer's photo is left out of
+every run, and counted per renderer. --dense 0,W fits each face with each dense landmark weight
 (FaceFitConfig.dense_weight) and compares them with 0; the dense points are always the
 detector's (with --landmarks truth, beside the true 68).
 """
@@ -156,28 +157,39 @@ def draw_faces(model, rng: np.random.Generator, size: int, n: int, yaw_bin=None)
     return faces, redrawn
 
 
-def detect_samples(samples: list[dict]) -> tuple[list[dict], list[dict], int]:
-    """MediaPipe on each sample's photo (sRGB, 8 bits, as a photo file would hold it): (the
-    samples it found a face in, the same samples with the detected 68 landmarks, both with the
-    detected dense points (468, 2) under "dense" and the detection's seconds, the number missed).
-    A sample whose detection fails (no face, landmarks that form no face) is left out."""
+def detect_photos(photos: dict) -> tuple[dict, dict]:
+    """MediaPipe on every renderer's photo of each face (sRGB, 8 bits, as a photo file would
+    hold it): each photo's fit gets the landmarks found on that photo. photos: renderer ->
+    samples of the same faces. Returns (source -> renderer -> samples: "truth" with the true
+    landmarks, "detected" with the detected 68, both with the detected dense points (468, 2)
+    under "dense" and the detection's seconds; renderer -> faces missed on its photos). A face
+    missed on any renderer's photo (no face, landmarks that form no face) is left out of every
+    renderer's samples, so that their runs stay paired face for face."""
+    found = {renderer: [_detect(sample["photo"]) for sample in samples] for renderer, samples in photos.items()}
+    kept = [i for i in range(len(next(iter(photos.values())))) if all(f[i] is not None for f in found.values())]
+    by_source = {"truth": {}, "detected": {}}
+    for renderer, samples in photos.items():
+        detections = [(samples[i], *found[renderer][i]) for i in kept]
+        by_source["truth"][renderer] = [dict(sample, **extra) for sample, _, extra in detections]
+        by_source["detected"][renderer] = [dict(sample, landmarks=points, face_mesh_landmarks=True, **extra)
+                                           for sample, points, extra in detections]
+    return by_source, {renderer: sum(f is None for f in faces) for renderer, faces in found.items()}
+
+
+def _detect(photo: np.ndarray) -> tuple[np.ndarray, dict] | None:
+    """(the 68 landmarks (68, 2), dict(dense (468, 2), detect_seconds)) MediaPipe finds on a
+    linear-RGB photo (H, W, 3), or None when it finds no face or one whose landmarks form none."""
     from softras_cl.fitting.detection.faces import ImplausibleFaceError, NoFaceError
     from softras_cl.fitting.detection.find import detect_face
     from softras_cl.fitting.recipes.face import detected_dense
     from softras_cl.srgb import to_srgb
 
-    truth, detected, missed = [], [], 0
-    for sample in samples:
-        start = time.perf_counter()
-        try:
-            chosen = detect_face(np.round(to_srgb(sample["photo"]) * 255).astype(np.uint8), "mediapipe").chosen
-        except (NoFaceError, ImplausibleFaceError):
-            missed += 1
-            continue
-        found = dict(dense=detected_dense(chosen), detect_seconds=time.perf_counter() - start)
-        truth.append(dict(sample, **found))
-        detected.append(dict(sample, landmarks=chosen.landmarks.copy(), face_mesh_landmarks=True, **found))
-    return truth, detected, missed
+    start = time.perf_counter()
+    try:
+        chosen = detect_face(np.round(to_srgb(photo) * 255).astype(np.uint8), "mediapipe").chosen
+    except (NoFaceError, ImplausibleFaceError):
+        return None
+    return chosen.landmarks.copy(), dict(dense=detected_dense(chosen), detect_seconds=time.perf_counter() - start)
 
 
 def silhouette_jaw(scene, truth: dict, landmarks: np.ndarray) -> np.ndarray:
@@ -671,15 +683,14 @@ def run(args: argparse.Namespace) -> int:
         redrawn, missed = {}, {}
         for yaw_bin in yaw_bins:
             samples, redrawn[yaw_name(yaw_bin)] = draw_faces(model, rng, args.size, args.faces, yaw_bin)
-            by_source = dict.fromkeys((None, "truth"), samples)
+            photos, checks = photos_by_renderer(model, samples, renderers, args.spp, not args.json)
+            by_source = dict.fromkeys((None, "truth"), photos)
             if detect:
-                truth, detected, missed[yaw_name(yaw_bin)] = detect_samples(samples)
-                by_source = dict(truth=truth, detected=detected)
-            for source in (s for s in sources if by_source[s]):     # none: the detector found no face
-                photos, checks = photos_by_renderer(model, by_source[source], renderers, args.spp, not args.json)
+                by_source, missed[yaw_name(yaw_bin)] = detect_photos(photos)
+            for source, shots in ((s, by_source[s]) for s in sources if by_source[s][renderers[0]]):
                 for b, contour, dense in ((b, c, d) for b in [LANDMARKS_ONLY] + budgets for c in contours
                                           for d in dense_weights):
-                    for renderer, rows in run_interleaved(model, photos, b, args.size, not args.json,
+                    for renderer, rows in run_interleaved(model, shots, b, args.size, not args.json,
                                                           args.photo_weight, contour, dense).items():
                         name = run_name(renderer, b, yaw_bin, contour, source, dense)
                         per_run[name] = rows

@@ -255,13 +255,32 @@ def test_dense_comparison_pairs_each_weight_with_none_per_landmark_source():
 @pytest.mark.detect
 def test_detected_samples_hold_mediapipe_points_near_the_truth(demo_face_model):
     samples = [bench.synthetic_face(demo_face_model, np.random.default_rng(s), 256) for s in (0, 2)]
-    truth, detected, missed = bench.detect_samples(samples)
-    assert missed == 0 and len(truth) == len(detected) == 2
+    by_source, missed = bench.detect_photos({"softras": samples})
+    truth, detected = by_source["truth"]["softras"], by_source["detected"]["softras"]
+    assert missed == {"softras": 0} and len(truth) == len(detected) == 2
     for t, d, sample in zip(truth, detected, samples):
         np.testing.assert_array_equal(t["landmarks"], sample["landmarks"])     # the true ones, noisy
         assert d["dense"].shape == (468, 2) and np.array_equal(t["dense"], d["dense"])
         error = np.linalg.norm(d["landmarks"] - sample["clean_landmarks"], axis=1)
         assert 0.5 < np.median(error) < 15.0             # MediaPipe's points, not the truth's
+
+
+@pytest.mark.detect
+def test_each_renderers_photo_is_fitted_from_the_points_found_on_it(demo_face_model):
+    """A second renderer's photo moved by 9 px right and 6 px down: its detected points move
+    with it, so they were found on its own photo; a face missed on one photo leaves every run."""
+    samples = [bench.synthetic_face(demo_face_model, np.random.default_rng(s), 256) for s in (0, 2)]
+    moved = [dict(s, photo=np.roll(s["photo"], (6, 9), axis=(0, 1))) for s in samples]
+    blank = [moved[0], dict(moved[1], photo=np.full_like(moved[1]["photo"], 0.3))]
+    by_source, missed = bench.detect_photos({"softras": samples, "other": moved})
+    assert missed == {"softras": 0, "other": 0}
+    for a, b in zip(by_source["detected"]["softras"], by_source["detected"]["other"]):
+        shift = np.median(b["landmarks"] - a["landmarks"], axis=0)
+        np.testing.assert_allclose(shift, [9.0, 6.0], atol=1.5)
+        assert b["photo"] is not a["photo"]
+    by_source, missed = bench.detect_photos({"softras": samples, "other": blank})
+    assert missed == {"softras": 0, "other": 1}
+    assert [len(by_source[s][r]) for s in ("truth", "detected") for r in ("softras", "other")] == [1, 1, 1, 1]
 
 
 @pytest.mark.slow
@@ -289,5 +308,5 @@ def test_bench_face_says_so_when_the_detector_finds_no_face(tmp_path, capsys):
 def test_bench_face_leaves_out_a_yaw_bin_the_detector_misses(tmp_path, capsys):
     said, doc = _bench(tmp_path, capsys, "--size", "128", "--yaws", "0-15,75-80", "--landmarks", "truth,detected",
                        "--seed", "1")
-    assert doc["undetected_faces"] == {"yaw 0-15": 0, "yaw 75-80": 1}
+    assert doc["undetected_faces"] == {"yaw 0-15": {"softras": 0}, "yaw 75-80": {"softras": 1}}
     assert {s["yaw_bin"] for s in doc["summary"].values()} == {"yaw 0-15"} and "yaw 0-15" in said
