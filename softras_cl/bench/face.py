@@ -679,11 +679,12 @@ def run(args: argparse.Namespace) -> int:
         out = folder.path
         model = load_model("face", args.model)
         rng = np.random.default_rng(args.seed)
-        per_run, summary, checks = {}, {}, {}
+        per_run, summary, rendered = {}, {}, []
         redrawn, missed = {}, {}
         for yaw_bin in yaw_bins:
             samples, redrawn[yaw_name(yaw_bin)] = draw_faces(model, rng, args.size, args.faces, yaw_bin)
-            photos, checks = photos_by_renderer(model, samples, renderers, args.spp, not args.json)
+            photos = photos_by_renderer(model, samples, renderers, args.spp, not args.json)
+            rendered += photos.get("mitsuba", [])
             by_source = dict.fromkeys((None, "truth"), photos)
             if detect:
                 by_source, missed[yaw_name(yaw_bin)] = detect_photos(photos)
@@ -699,6 +700,7 @@ def run(args: argparse.Namespace) -> int:
                                              contour=contour or budget_config(b, args.size).contour_landmarks)
         if not summary:
             raise ResultError(f"the detector found none of the {args.faces * len(yaw_bins)} faces: nothing to fit")
+        checks = mitsuba_checks(model, rendered, args.spp) if rendered else {}
         comparison, dense_rows = contour_comparison(summary), dense_comparison(summary)
         doc = dict(size=args.size, seed=args.seed, model=model.name, photo_weight=args.photo_weight,
                    renderers=renderers, yaw_bins=yaw_bins if yaw_bins != [None] else None,
@@ -736,21 +738,24 @@ def run_name(renderer: str, budget: str, yaw_bin=None, contour: str | None = Non
     return "/".join(filter(None, parts))
 
 
-def photos_by_renderer(model, samples: list[dict], renderers: list[str], spp: int,
-                       progress: bool) -> tuple[dict, dict]:
-    """(renderer -> samples, the JSON's "mitsuba" section or nothing). Mitsuba's photos of the
-    same faces; their render checks per face, the Monte Carlo noise of the first NOISE_FACES."""
+def photos_by_renderer(model, samples: list[dict], renderers: list[str], spp: int, progress: bool) -> dict:
+    """renderer -> samples of the same faces: softras-cl's photos (``samples``) and Mitsuba's
+    (:func:`mitsuba_sample`, each with its render check), as ``renderers`` asks."""
     from tqdm import tqdm
 
     photos = {"softras": samples} if "softras" in renderers else {}
-    if "mitsuba" not in renderers:
-        return photos, {}
-    photos["mitsuba"] = [mitsuba_sample(model, s, spp, seed=i)
-                         for i, s in enumerate(tqdm(samples, desc="mitsuba renders", disable=not progress))]
-    per_face = [s["render_check"] for s in photos["mitsuba"]]
-    noise = [mitsuba_noise(model, s, spp) for s in samples[:NOISE_FACES]]
-    return photos, dict(mitsuba=dict(
-        spp=spp, faces=per_face, noise_rms=noise,
+    if "mitsuba" in renderers:
+        photos["mitsuba"] = [mitsuba_sample(model, s, spp, seed=i)
+                             for i, s in enumerate(tqdm(samples, desc="mitsuba renders", disable=not progress))]
+    return photos
+
+
+def mitsuba_checks(model, rendered: list[dict], spp: int) -> dict:
+    """The JSON's "mitsuba" section over every Mitsuba photo of the run (mitsuba_sample's, all
+    yaw bins): their render checks per face, the Monte Carlo noise of the first NOISE_FACES."""
+    per_face = [s["render_check"] for s in rendered]
+    return dict(mitsuba=dict(
+        spp=spp, faces=per_face, noise_rms=[mitsuba_noise(model, s, spp) for s in rendered[:NOISE_FACES]],
         silhouette_iou_min=min(c["silhouette_iou"] for c in per_face),
         silhouette_iou_median=statistics.median(c["silhouette_iou"] for c in per_face),
         psnr_vs_softras_db_median=statistics.median(c["psnr_vs_softras_db"] for c in per_face),

@@ -109,20 +109,21 @@ def test_face_photo_differs_in_shading_not_in_geometry(demo_face_model):
 
 
 def test_bench_face_on_mitsuba_photos(tmp_path, capsys):
-    """A one-face bench on Mitsuba's photo: its rows, its render checks and its strip."""
+    """A bench of one face in each of two yaw bins on Mitsuba's photos: its rows, the render
+    checks of every bin's photo and its strip."""
     import json
 
     from softras_cl.cli import main
 
     out = tmp_path / "bench"
     assert main(["bench", "face", "--faces", "1", "--size", "64", "--budgets", "fast", "--renderers", "mitsuba",
-                 "--spp", "4", "--out", str(out)]) == 0
+                 "--yaws", "0-15,15-45", "--spp", "4", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "mitsuba photos (4 spp)" in text and "Monte Carlo noise" in text
     doc = json.loads((out / "face.json").read_text())
-    assert list(doc["summary"]) == ["mitsuba/landmarks-only", "mitsuba/fast"]
-    assert {(s["renderer"], s["budget"]) for s in doc["summary"].values()} == {
-        ("mitsuba", "landmarks-only"), ("mitsuba", "fast")}
-    check, = doc["mitsuba"]["faces"]
-    assert check["silhouette_iou"] > 0.95 and doc["mitsuba"]["noise_rms"][0] > 0
+    assert list(doc["summary"]) == [f"mitsuba/yaw {b}/{budget}" for b in ("0-15", "15-45")
+                                    for budget in ("landmarks-only", "fast")]
+    assert {s["renderer"] for s in doc["summary"].values()} == {"mitsuba"}
+    assert len(doc["mitsuba"]["faces"]) == 2                     # both bins' photos, not the last bin's
+    assert all(c["silhouette_iou"] > 0.95 for c in doc["mitsuba"]["faces"]) and doc["mitsuba"]["noise_rms"][0] > 0
     assert (out / "face_mitsuba_strip.png").stat().st_size > 0 and not (out / "face_strip.png").exists()
