@@ -196,6 +196,11 @@ def _face_options() -> tuple[Option, ...]:
                field="coarse_mesh", to_config=_coarse_mesh, record_default=False, metavar="EDGES"),
         Option("focal", float, None, "focal length in pixels of the photo, if known (default: fitted)",
                field="focal"),
+        Option("fov", float, None, "field of view in degrees across the shorter image side, if known roughly "
+               "(a phone's main camera: about 50-55): the fit starts its focal length there and centres its "
+               "prior on it, and still fits it; it wins over the photo's EXIF, which the fit uses otherwise "
+               "(default: the EXIF, else 30 degrees across the longer side; --focal, which fixes the focal "
+               "length, wins over it)", record_default=False, metavar="DEG"),
         Option("landmark_map", str, "auto", "which points of the model the 68 landmarks are tied to: 'model' "
                "(the model's own iBUG 300-W points, where an annotator or dlib puts them), 'face-mesh' (where "
                "MediaPipe Face Mesh puts them, read from the model's Face Mesh correspondence, as the demo "

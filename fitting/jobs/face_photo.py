@@ -8,10 +8,11 @@ fitting.recipes.face.fit_face and writes through fitting.reports.face.
 :class:`FaceViewsJob`, several photos of one person (--same-person): the same for each photo,
 one joint fit (fitting.recipes.face_views), written by fitting.reports.face_views.
 
-The focal length: --focal fixes it; else a photo's EXIF 35 mm equivalent focal length, when it has
-one, sets where the fit starts it and centres its prior (:func:`exif_focal`; the fit still moves
-it: a crop or a digital zoom keeps the EXIF of the whole frame); else a 30 degree field of view
-across the longer side (FaceFitConfig.fov_deg) does.
+The focal length, first to last (:func:`with_focal_prior`): --focal fixes it; --fov (degrees across
+the shorter side, as fit-body's) sets where the fit starts it and centres its prior; else a
+photo's EXIF 35 mm equivalent focal length, when it has one, does (:func:`exif_focal`); else a 30
+degree field of view across the longer side (FaceFitConfig.fov_deg) does. The fit still moves
+it unless --focal gives it.
 """
 from __future__ import annotations
 
@@ -34,9 +35,16 @@ from softras_cl.io.images import read_photo
 from softras_cl.io.outputs import stable_names
 
 __all__ = ["FacePhotoJob", "FaceViewsJob", "face_model", "face_landmarks", "check_uncut", "exif_focal",
-           "with_exif_focal"]
+           "longer_side_fov", "with_focal_prior", "check_fov"]
 
 REQUIRED = ("landmark_error_px_full", "psnr_face_db")     # finite, or the fit failed
+
+
+def longer_side_fov(fov_short: float, image_size) -> tuple[float, float]:
+    """(focal length in pixels, field of view in degrees across the longer side) of an (H, W)
+    photo whose field of view across the shorter side is ``fov_short`` degrees."""
+    focal = 0.5 * min(image_size) / math.tan(math.radians(fov_short) / 2.0)
+    return focal, math.degrees(2.0 * math.atan(0.5 * max(image_size) / focal))
 
 
 def exif_focal(path, image_size) -> tuple[float, float] | None:
@@ -46,21 +54,29 @@ def exif_focal(path, image_size) -> tuple[float, float] | None:
     from softras_cl.fitting.jobs.body_photo import photo_fov
 
     fov_short = photo_fov(path, image_size)
-    if fov_short is None:
-        return None
-    focal = 0.5 * min(image_size) / math.tan(math.radians(fov_short) / 2.0)
-    return focal, math.degrees(2.0 * math.atan(0.5 * max(image_size) / focal))
+    return None if fov_short is None else longer_side_fov(fov_short, image_size)
 
 
-def with_exif_focal(config, path, image_size):
-    """(config, where its focal length comes from: "--focal", "exif" or "prior"): ``config``
-    (FaceFitConfig) as given when it fixes the focal length (--focal wins: the user knows it) or
-    the photo has no EXIF focal length; else with fov_deg from the EXIF (:func:`exif_focal`), which
-    then sets the fit's initial focal length and the centre of its prior, in place of the typical
-    30 degrees (a camera's own record beats a guess; the fit still moves it, as crops and digital
-    zoom keep the whole frame's EXIF)."""
+def check_fov(options: dict) -> None:
+    """InputError, before anything is read, for a --fov that is no field of view (finite, in
+    (0, 180) degrees)."""
+    fov = options.get("fov")
+    if fov is not None and not (math.isfinite(fov) and 0.0 < fov < 180.0):
+        raise InputError(f"--fov must be a field of view in degrees, above 0 and below 180, got {fov!r}")
+
+
+def with_focal_prior(config, fov: float | None, path, image_size):
+    """(config, where its focal length comes from: "--focal", "--fov", "exif" or "prior") for an
+    (H, W) photo. ``config`` (FaceFitConfig) as given when it fixes the focal length (--focal
+    wins: the user knows it, e.g. a calibrated camera); else with fov_deg from ``fov`` (--fov,
+    degrees across the shorter side): the user's word beats the file's, which a crop or an
+    editor's resize carries over from the whole frame; else from the EXIF (:func:`exif_focal`): a
+    camera's own record beats the typical 30 degrees; else as given ("prior"). fov_deg sets the
+    fit's initial focal length and the centre of its prior; the fit still moves it."""
     if config.focal is not None:
         return config, "--focal"
+    if fov is not None:
+        return dataclasses.replace(config, fov_deg=longer_side_fov(fov, image_size)[1]), "--fov"
     found = exif_focal(path, image_size)
     if found is None:
         return config, "prior"
@@ -142,6 +158,7 @@ class FacePhotoJob(FitJob):
                  face_box=None, all_faces: bool = False, recorded=None):
         self.path, self.landmarks_file = photo, landmarks
         self.options = FACE.values(options or {})
+        check_fov(self.options)
         self.face, self.face_box, self.all_faces = face, face_box, all_faces
         self.config = FACE.config(self.options)
         self.recorded = self.options if recorded is None else recorded
@@ -161,7 +178,8 @@ class FacePhotoJob(FitJob):
         if beside is not None:          # before the file is checked against the detector's faces
             refuse_face_choice(beside, True, self.face, self.face_box)
         self.photo = read_photo(self.path)
-        self.config, self.focal_source = with_exif_focal(self.config, self.path, self.photo.rgb8.shape[:2])
+        self.config, self.focal_source = with_focal_prior(self.config, self.options["fov"], self.path,
+                                                          self.photo.rgb8.shape[:2])
         self.landmarks = face_landmarks(self.photo, self.landmarks_file, self.face, self.face_box, self.all_faces)
         self.model = face_model(self.options)
         self.dense = detected_dense(self.landmarks.face)
@@ -209,6 +227,9 @@ class FaceViewsJob(FitJob):
                  same_camera: bool = False, recorded=None):
         self.paths, self.landmark_files = list(photos), landmarks or [None] * len(photos)
         self.options = FACE.values(options or {})
+        if self.options["fov"] is not None:
+            raise InputError("--fov is a single photo's: --same-person starts every photo at 30 degrees across "
+                             "its longer side and fits each focal length (or one, with --same-camera)")
         self.config = joint_config(FACE.config(self.options))
         self.same_camera = same_camera
         self.recorded = self.options if recorded is None else recorded

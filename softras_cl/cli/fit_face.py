@@ -113,12 +113,14 @@ def _face_box(args: argparse.Namespace):
 
 def run(args: argparse.Namespace) -> int:
     """One photo into --out itself, or a batch (several photos, folders, globs, a manifest)."""
+    from softras_cl.fitting.jobs.face_photo import check_fov
     from softras_cl.fitting.run_options import FACE
 
     if not args.photos and not args.manifest:
         raise InputError("give a photo (or several, folders, glob patterns, or --manifest CSV)"
                          + (" before --landmarks, which takes the files after it" if args.landmarks else ""))
     FACE.config(_options(args))         # options checked before any photo is read
+    check_fov(_options(args))
     _face_box(args)                     # --face-box's X,Y,W,H too
     if args.same_person:
         return run_same_person(args)

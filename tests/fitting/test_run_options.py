@@ -30,7 +30,7 @@ FILE = str(DATA / "landmarks" / "astronaut.pts")          # any file: a model op
 # a value other than the default for every option of each fit, as typed on the command line
 # (None: a switch); a new option needs its entry here
 FACE_SAMPLES = dict(model=FILE, model_landmarks=FILE, budget="fast", size="128", photo_weight="30",
-                    coarse_mesh="0.5", focal="900", landmark_map="model", landmark_robust="3", dense_landmarks="1.5",
+                    coarse_mesh="0.5", focal="900", fov="50", landmark_map="model", landmark_robust="3", dense_landmarks="1.5",
                     n_id="5", n_exp="6", n_albedo="7", objective="host")
 BODY_SAMPLES = dict(model=FILE, silhouette=None, input="photo", background="0.5,0.5,0.5", budget="thorough", size="64",
                     distance="4.5", height="1.1", fov="40", coarse_mesh="0", robust_joints="3",
