@@ -688,6 +688,7 @@ def run(args: argparse.Namespace) -> int:
             by_source = dict.fromkeys((None, "truth"), photos)
             if detect:
                 by_source, missed[yaw_name(yaw_bin)] = detect_photos(photos)
+            # a source without samples: the detector found no face in this bin
             for source, shots in ((s, by_source[s]) for s in sources if by_source[s][renderers[0]]):
                 for b, contour, dense in ((b, c, d) for b in [LANDMARKS_ONLY] + budgets for c in contours
                                           for d in dense_weights):
